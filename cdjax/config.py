@@ -1,0 +1,144 @@
+"""Static configuration (what fixes shapes and loop lengths) and traced hyper-parameters.
+
+`Config` is a frozen dataclass: it is hashed into the compiled program, so changing any field
+recompiles. `HParams` is a pytree of float32 scalars: it is an argument of the compiled program, so
+it can be vmapped alongside the seeds (alpha grids, learning-rate grids) without recompiling.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import jax.numpy as jnp
+from flax import struct
+
+Arm = Literal["model-free", "mbmf", "cd"]
+Encoder = Literal["gru", "frozen-gru", "l2"]
+ResetMode = Literal["cached", "fresh"]
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot run; the message is one sentence meant for the user."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Everything that fixes a shape, a loop length or the graph of the compiled update."""
+
+    env: str = "ant"  # task name (see cdjax.envs.available_envs())
+    arm: Arm = "cd"  # model-free: no model; mbmf: model trained, no consistency term; cd: consistency term built
+    num_envs: int = 2048  # environments stepped in parallel per seed
+    rollout_len: int = 32  # T: closed-loop steps per environment per update
+    horizon: int = 20  # k: open-loop length of the consistency windows
+    num_updates: int = 100  # updates run by train(key, hp)
+    num_epochs: int = 4  # PPO epochs over each rollout
+    num_minibatches: int = 32  # minibatches per epoch, split over environments (windows stay contiguous)
+    episode_length: int = 1000  # time-out in environment steps (a truncation, not a termination)
+    action_repeat: int = 1  # physics control steps per agent step
+    reset_mode: ResetMode = "cached"  # cached: each env resets to its own first start (as Brax); fresh: new random start
+    policy_hidden: tuple[int, ...] = (64, 64)  # policy MLP widths (tanh)
+    value_hidden: tuple[int, ...] = (256, 256)  # value MLP widths (tanh)
+    model_hidden: tuple[int, ...] = (500,)  # dynamics model MLP widths (relu; Mb-Mf uses one layer of 500)
+    encoder: Encoder = "gru"  # consistency encoder: trainable GRU (paper), frozen random GRU, per-step L2
+    encoder_dim: int = 128  # GRU hidden size
+    cc_windows: int = 0  # consistency windows per env per minibatch, random start offsets; 0 = all T-k+1
+    cc_unroll: int = 1  # lax.scan unroll factor of the k-step open-loop/encoder scan
+    eval_horizon: int = 50  # longer open-loop horizon for the compounding-error metric (paper: 50)
+    eval_envs: int = 8  # environments whose recent history is kept for the open-loop error metrics
+
+    def __post_init__(self):
+        validate(self)
+
+    @property
+    def use_model(self) -> bool:
+        return self.arm != "model-free"
+
+    @property
+    def use_consistency(self) -> bool:
+        return self.arm == "cd"
+
+    @property
+    def minibatch_envs(self) -> int:
+        return self.num_envs // self.num_minibatches
+
+    @property
+    def num_windows(self) -> int:
+        """Consistency windows per env per minibatch."""
+        all_windows = self.rollout_len - self.horizon + 1
+        return all_windows if self.cc_windows == 0 else min(self.cc_windows, all_windows)
+
+    @property
+    def env_steps_per_update(self) -> int:
+        return self.num_envs * self.rollout_len * self.action_repeat
+
+    @property
+    def history_len(self) -> int:
+        """Observations kept per eval env for open-loop error: enough for both horizons."""
+        return max(self.eval_horizon, self.horizon) + 1
+
+    def replace(self, **changes) -> "Config":
+        return dataclasses.replace(self, **changes)
+
+
+def validate(config: Config) -> None:
+    """Raise ConfigError (one sentence) for a configuration that cannot run; never compiles anything."""
+    from cdjax import envs  # local import: envs imports brax, config must stay light
+
+    if config.env not in envs.available_envs():
+        raise ConfigError(
+            f"Unknown env {config.env!r}; choose one of: {', '.join(sorted(envs.available_envs()))}."
+        )
+    if config.arm not in ("model-free", "mbmf", "cd"):
+        raise ConfigError(f"Unknown arm {config.arm!r}; choose model-free, mbmf or cd.")
+    if config.encoder not in ("gru", "frozen-gru", "l2"):
+        raise ConfigError(f"Unknown encoder {config.encoder!r}; choose gru, frozen-gru or l2.")
+    if config.reset_mode not in ("cached", "fresh"):
+        raise ConfigError(f"Unknown reset_mode {config.reset_mode!r}; choose cached or fresh.")
+    positive = (
+        "num_envs", "rollout_len", "horizon", "num_updates", "num_epochs", "num_minibatches",
+        "episode_length", "action_repeat", "encoder_dim", "cc_unroll", "eval_horizon", "eval_envs",
+    )
+    for name in positive:
+        value = getattr(config, name)
+        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+            raise ConfigError(f"{name} must be a positive integer, got {value!r}.")
+    if not isinstance(config.cc_windows, int) or config.cc_windows < 0:
+        raise ConfigError(f"cc_windows must be 0 (all windows) or a positive integer, got {config.cc_windows!r}.")
+    for name in ("policy_hidden", "value_hidden", "model_hidden"):
+        widths = getattr(config, name)
+        if len(widths) == 0 or any((not isinstance(w, int)) or w <= 0 for w in widths):
+            raise ConfigError(f"{name} must be a non-empty tuple of positive integers, got {widths!r}.")
+    if config.horizon > config.rollout_len:
+        raise ConfigError(
+            f"horizon (k={config.horizon}) is longer than the rollout (rollout_len={config.rollout_len}); "
+            "the closed-loop rollout must hold at least one k-step window."
+        )
+    if config.num_envs % config.num_minibatches != 0:
+        raise ConfigError(
+            f"num_minibatches={config.num_minibatches} does not divide num_envs={config.num_envs}."
+        )
+    if config.eval_envs > config.num_envs:
+        raise ConfigError(f"eval_envs={config.eval_envs} is larger than num_envs={config.num_envs}.")
+
+
+@struct.dataclass
+class HParams:
+    """Float hyper-parameters: traced, so any of them can be vmapped alongside the seeds."""
+
+    alpha: float = 1.0  # weight of the consistency loss (0 = Mb-Mf baseline)
+    lr_policy: float = 3e-4  # Adam learning rate of the policy
+    lr_value: float = 3e-4  # Adam learning rate of the value function
+    lr_model: float = 1e-3  # Adam learning rate of the dynamics model and the encoder (Mb-Mf: 1e-3)
+    max_grad_norm: float = 1.0  # global-norm clipping, applied per parameter group
+    gamma: float = 0.99  # discount
+    gae_lambda: float = 0.95  # GAE lambda
+    clip_eps: float = 0.2  # PPO ratio clipping
+    vf_coef: float = 0.5  # value loss weight
+    ent_coef: float = 0.0  # entropy bonus weight
+    model_coef: float = 1.0  # dynamics model NLL weight
+    reward_scale: float = 1.0  # reward multiplier seen by PPO (returns are logged unscaled)
+    init_log_std: float = -0.5  # initial log standard deviation of the policy (pre-squash)
+
+    def as_float32(self) -> "HParams":
+        return HParams(**{f.name: jnp.asarray(getattr(self, f.name), jnp.float32) for f in dataclasses.fields(self)})

@@ -1,0 +1,186 @@
+"""The environment layer: the only place that imports brax.envs or mujoco.
+
+`make_env(config)` returns a `BatchedEnv`: `num_envs` copies of a single-environment Brax `Env`
+(physics through MJX, `backend="mjx"`), stepped with `jax.vmap`, with
+
+- time-outs kept apart from terminations (`Step.truncated` vs `Step.terminated`),
+- the true observation after the action (`Step.next_obs`), even when the episode ends and the env
+  is reset (the policy sees the reset observation in `EnvState.obs`),
+- automatic resets, either to each environment's own first start (as Brax's AutoResetWrapper does;
+  cheap) or to a fresh random start (one more reset per step),
+- a guard against non-finite physics: an environment whose state, observation or reward is not
+  finite is reset, its transition is marked `valid=False` and its numbers are replaced by zeros,
+  so that no NaN reaches a loss or a parameter.
+
+Brax prints that its environments are no longer maintained; replacing them means replacing this
+module (and `swimmer.py`, `point.py` beside it), nothing else.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from cdjax.envs.point import PointMass
+
+# Brax tasks that run on MJX (brax's own swimmer has no mjx backend: see cdjax/envs/swimmer.py).
+BRAX_MJX_ENVS = (
+    "ant", "halfcheetah", "hopper", "humanoid", "humanoidstandup", "inverted_pendulum",
+    "inverted_double_pendulum", "pusher", "reacher", "walker2d",
+)
+
+
+def _brax_env(name: str, **kwargs):
+    import brax.envs
+
+    return brax.envs.get_environment(name, backend="mjx", **kwargs)
+
+
+def _swimmer(**kwargs):
+    from cdjax.envs.swimmer import Swimmer
+
+    return Swimmer(**kwargs)
+
+
+def _registry() -> dict[str, Callable[..., Any]]:
+    table: dict[str, Callable[..., Any]] = {name: functools.partial(_brax_env, name) for name in BRAX_MJX_ENVS}
+    table["point"] = PointMass  # tiny deterministic pure-JAX system for plumbing tests
+    try:
+        import cdjax.envs.swimmer  # noqa: F401
+
+        table["swimmer"] = _swimmer
+    except ImportError:  # pragma: no cover - the swimmer module is optional until it lands
+        pass
+    return table
+
+
+def available_envs() -> tuple[str, ...]:
+    return tuple(_registry())
+
+
+def make_single_env(name: str, **kwargs):
+    """One (unbatched) Brax-style environment with reset(key) -> State and step(State, a) -> State."""
+    table = _registry()
+    if name not in table:
+        raise KeyError(f"unknown env {name!r}")
+    return table[name](**kwargs)
+
+
+@struct.dataclass
+class EnvState:
+    """Batched state of `BatchedEnv`; every leaf has a leading [B] axis except `key`."""
+
+    core: Any  # the wrapped env's State, batched [B]
+    first: Any  # each env's first start, the target of a "cached" reset, batched [B]
+    obs: jax.Array  # [B, obs] observation the policy acts on (after any reset)
+    t: jax.Array  # [B] int32 steps into the current episode
+    key: jax.Array  # PRNG key for fresh resets
+
+
+@struct.dataclass
+class Step:
+    """What one batched step returns besides the new state. Leaves are [B] or [B, obs]."""
+
+    next_obs: jax.Array  # observation right after the action, before any reset (zeros if invalid)
+    reward: jax.Array  # float32 reward (zero if invalid)
+    terminated: jax.Array  # bool: the task ended (no bootstrapping)
+    truncated: jax.Array  # bool: time-out, not a termination (bootstrap from next_obs)
+    valid: jax.Array  # bool: False when the physics went non-finite; the transition must be masked
+
+
+def _strong(tree):
+    """Drop weak types (Brax returns weak-typed reward/done), so a jitted carry compiles once."""
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype=x.dtype) if hasattr(x, "dtype") else x, tree)
+
+
+def _where(mask, a, b):
+    """Per-env select over pytrees with a leading [B] axis."""
+
+    def pick(x, y):
+        m = mask.reshape(mask.shape + (1,) * (x.ndim - 1))
+        return jnp.where(m, x, y)
+
+    return jax.tree.map(pick, a, b)
+
+
+def _all_finite(tree, batch: int) -> jax.Array:
+    ok = jnp.ones((batch,), bool)
+    for leaf in jax.tree.leaves(tree):
+        if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating):
+            ok &= jnp.isfinite(leaf.reshape(batch, -1)).all(axis=-1)
+    return ok
+
+
+class BatchedEnv:
+    """`num_envs` auto-resetting copies of a single env. Not a pytree: close over it."""
+
+    def __init__(self, env, num_envs: int, episode_length: int, action_repeat: int = 1,
+                 reset_mode: str = "cached"):
+        self.env = env
+        self.num_envs = num_envs
+        self.episode_length = episode_length
+        self.action_repeat = action_repeat
+        self.reset_mode = reset_mode
+        self.observation_size = int(env.observation_size)
+        self.action_size = int(env.action_size)
+
+    def _reset_core(self, key):
+        return _strong(jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs)))
+
+    def reset(self, key: jax.Array) -> EnvState:
+        key_reset, key_next = jax.random.split(key)
+        core = self._reset_core(key_reset)
+        return EnvState(core=core, first=core, obs=core.obs.astype(jnp.float32),
+                        t=jnp.zeros((self.num_envs,), jnp.int32), key=key_next)
+
+    def step(self, state: EnvState, action: jax.Array) -> tuple[EnvState, Step]:
+        """action: [B, act] in [-1, 1]."""
+        assert action.shape == (self.num_envs, self.action_size), action.shape
+        B = self.num_envs
+        core = state.core
+        reward = jnp.zeros((B,), jnp.float32)
+        done = jnp.zeros((B,), bool)
+        for _ in range(self.action_repeat):
+            core = _strong(jax.vmap(self.env.step)(core, action))
+            reward = reward + jnp.where(done, 0.0, core.reward.astype(jnp.float32))
+            done = done | (core.done > 0.5)
+        next_obs = core.obs.astype(jnp.float32)
+        physics = getattr(core, "pipeline_state", None)
+        physics_q = (getattr(physics, "q", None), getattr(physics, "qd", None)) if physics is not None else ()
+        valid = _all_finite((next_obs, reward, physics_q), B)
+        t = state.t + 1
+        terminated = done & valid
+        truncated = (t >= self.episode_length) & ~terminated & valid
+        ended = terminated | truncated | ~valid
+
+        key, key_reset = jax.random.split(state.key)
+        if self.reset_mode == "fresh":
+            restart = self._reset_core(key_reset)
+        else:
+            restart = state.first
+        new_core = _where(ended, restart, core)
+        new_state = EnvState(
+            core=new_core,
+            first=state.first,
+            obs=new_core.obs.astype(jnp.float32),
+            t=jnp.where(ended, 0, t).astype(jnp.int32),
+            key=key,
+        )
+        step = Step(
+            next_obs=jnp.where(valid[:, None], next_obs, 0.0),
+            reward=jnp.where(valid, reward, 0.0),
+            terminated=terminated,
+            truncated=truncated,
+            valid=valid,
+        )
+        return new_state, step
+
+
+def make_env(config) -> BatchedEnv:
+    """The batched, auto-resetting environment that `config` describes."""
+    env = make_single_env(config.env)
+    return BatchedEnv(env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode)

@@ -1,0 +1,117 @@
+"""The two pathways, both `lax.scan`, both returning (final_carry, time-major stack [T, B, ...]).
+
+closed_loop: the policy acts in the (batched) environment and observes the real next states.
+open_loop:   a dynamics model step is applied from a start state to a given action sequence, without
+             looking at the environment again (the imagined pathway).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from cdjax.envs import BatchedEnv, EnvState
+
+
+@struct.dataclass
+class Transition:
+    """One closed-loop step of B environments; stacked by the scan into [T, B, ...]."""
+
+    obs: jax.Array  # [B, O] observation acted on
+    next_obs: jax.Array  # [B, O] true observation after the action (before any reset)
+    action: jax.Array  # [B, A] executed (squashed) action
+    raw_action: jax.Array  # [B, A] pre-squash action u = mean + std * noise; action = tanh(u)
+    noise: jax.Array  # [B, A] standard-normal noise that produced it
+    log_prob: jax.Array  # [B] behaviour log-probability of the pre-squash action
+    value: jax.Array  # [B] value estimate of obs
+    reward: jax.Array  # [B]
+    terminated: jax.Array  # [B] bool
+    truncated: jax.Array  # [B] bool (time-out)
+    valid: jax.Array  # [B] bool (False: non-finite physics, masked everywhere)
+
+    @property
+    def ended(self) -> jax.Array:
+        """The episode ended after this step (the next obs in the batch belongs to a new episode)."""
+        return self.terminated | self.truncated | ~self.valid
+
+
+@struct.dataclass
+class EpisodeStats:
+    """Per-env running returns and the totals of episodes finished during a rollout."""
+
+    ret: jax.Array  # [B] undiscounted return so far
+    disc_ret: jax.Array  # [B] discounted return so far
+    disc: jax.Array  # [B] gamma^t
+    done_count: jax.Array  # [] episodes finished in this rollout
+    done_ret: jax.Array  # [] sum of their returns
+    done_disc_ret: jax.Array  # [] sum of their discounted returns
+
+    @classmethod
+    def create(cls, batch: int) -> "EpisodeStats":
+        z = jnp.zeros((batch,), jnp.float32)
+        s = jnp.zeros((), jnp.float32)
+        return cls(z, z, jnp.ones((batch,), jnp.float32), s, s, s)
+
+    def start_rollout(self) -> "EpisodeStats":
+        s = jnp.zeros((), jnp.float32)
+        return self.replace(done_count=s, done_ret=s, done_disc_ret=s)
+
+    def record(self, reward, ended, counted, gamma) -> "EpisodeStats":
+        """Add one step; `counted` marks episode ends whose return is reported (not NaN resets)."""
+        ret = self.ret + reward
+        disc_ret = self.disc_ret + self.disc * reward
+        counted = counted.astype(jnp.float32)
+        return EpisodeStats(
+            ret=jnp.where(ended, 0.0, ret),
+            disc_ret=jnp.where(ended, 0.0, disc_ret),
+            disc=jnp.where(ended, 1.0, self.disc * gamma),
+            done_count=self.done_count + counted.sum(),
+            done_ret=self.done_ret + (counted * ret).sum(),
+            done_disc_ret=self.done_disc_ret + (counted * disc_ret).sum(),
+        )
+
+
+ActFn = Callable[[jax.Array, jax.Array], tuple[jax.Array, ...]]
+
+
+def closed_loop(env: BatchedEnv, act: ActFn, env_state: EnvState, stats: EpisodeStats, key: jax.Array,
+                length: int, gamma) -> tuple[tuple[EnvState, EpisodeStats], Transition]:
+    """Run the policy for `length` steps in all B environments.
+
+    act(obs [B, O], key) -> (action, raw_action, noise [B, A], log_prob [B], value [B]).
+    Returns ((env_state, stats), Transition with leaves [length, B, ...]).
+    """
+    assert env_state.obs.shape == (env.num_envs, env.observation_size), env_state.obs.shape
+
+    def step(carry, step_key):
+        env_state, stats = carry
+        obs = env_state.obs
+        action, raw_action, noise, log_prob, value = act(obs, step_key)
+        env_state, out = env.step(env_state, action)
+        ended = out.terminated | out.truncated | ~out.valid
+        stats = stats.record(out.reward, ended, out.terminated | out.truncated, gamma)
+        tr = Transition(obs=obs, next_obs=out.next_obs, action=action, raw_action=raw_action, noise=noise,
+                        log_prob=log_prob,
+                        value=value, reward=out.reward, terminated=out.terminated, truncated=out.truncated,
+                        valid=out.valid)
+        return (env_state, stats), tr
+
+    return jax.lax.scan(step, (env_state, stats.start_rollout()), jax.random.split(key, length))
+
+
+def open_loop(model_step: Callable[[jax.Array, jax.Array], jax.Array], s0: jax.Array,
+              actions: jax.Array, unroll: int = 1) -> tuple[jax.Array, jax.Array]:
+    """Imagine s_1..s_k from s0 [B, O] under actions [k, B, A]; model_step(s, a) -> s'.
+
+    Returns (s_k [B, O], states [k, B, O]).
+    """
+    assert actions.ndim == 3 and actions.shape[1] == s0.shape[0], (s0.shape, actions.shape)
+
+    def step(s, a):
+        s = model_step(s, a)
+        return s, s
+
+    return jax.lax.scan(step, s0, actions, unroll=unroll)
