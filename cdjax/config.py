@@ -142,3 +142,9 @@ class HParams:
 
     def as_float32(self) -> "HParams":
         return HParams(**{f.name: jnp.asarray(getattr(self, f.name), jnp.float32) for f in dataclasses.fields(self)})
+
+
+def stack_hparams(hps: list[HParams]) -> HParams:
+    """Stack HParams into one with leaves [len(hps)], to vmap over (e.g. an alpha grid)."""
+    return HParams(**{f.name: jnp.asarray([getattr(h, f.name) for h in hps], jnp.float32)
+                      for f in dataclasses.fields(HParams)})

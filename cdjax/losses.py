@@ -170,7 +170,7 @@ def consistency_loss(model_step: Callable, normalize: Callable, s0, actions, rea
         "loss/consistency": loss,
         "encoder/spread_real": _masked_spread(e_re, mask),
         "encoder/spread_imagined": _masked_spread(e_im, mask),
-        "consistency/masked_fraction": 1.0 - mask.astype(jnp.float32).mean(),
+        "consistency/masked_fraction": (~mask).astype(jnp.float32).mean(),
         "consistency/final_mse": masked_mean(final_err, mask),
     }
     return loss, metrics

@@ -96,9 +96,16 @@ def _leading_dim(tree: PyTree, what: str) -> int:
     return dims.pop()
 
 
+def _cast_strong(x: Any, dtype: Any) -> jax.Array:
+    """``x`` as a strongly typed array of ``dtype`` (PRNG-key leaves are left alone)."""
+    if jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key):
+        return x
+    return lax.convert_element_type(x, dtype)
+
+
 def _as_carry(tree: PyTree) -> PyTree:
     """Turn every leaf into a strongly typed array, so it can be a ``lax.scan`` carry."""
-    return jax.tree_util.tree_map(lambda x: lax.convert_element_type(x, jnp.result_type(x)), tree)
+    return jax.tree_util.tree_map(lambda x: _cast_strong(x, jnp.result_type(x)), tree)
 
 
 def _match_carry(new: PyTree, old: PyTree) -> PyTree:
@@ -120,7 +127,7 @@ def _match_carry(new: PyTree, old: PyTree) -> PyTree:
             raise ValueError(
                 f"step_fn changed a state leaf's shape from {jnp.shape(o)} to {jnp.shape(n)}"
             )
-        out.append(lax.convert_element_type(n, o.dtype))
+        out.append(_cast_strong(n, o.dtype))
     return jax.tree_util.tree_unflatten(old_def, out)
 
 

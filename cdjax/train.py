@@ -76,6 +76,8 @@ class Trainer(NamedTuple):
     config: Config
     init: Callable[[jax.Array, HParams], TrainState]  # (key, hp) -> state
     update: Callable[[TrainState, HParams], tuple[TrainState, dict]]  # (state, hp) -> (state, metrics)
+    collect: Callable  # (state, hp) -> (env_state, episodes, traj, batch): rollout + GAE, no learning
+    loss: Callable  # (params, norms, batch [T, Bm, ...], offsets [n], hp) -> (total, metrics)
     act: Callable  # (params, norms, obs [B, O], key or None) -> action [B, A]; None: deterministic
     model_step: Callable  # (model_params, norms, obs [..., O], action [..., A]) -> (next_obs, reward)
     env: Any  # the BatchedEnv
@@ -197,11 +199,11 @@ def make_trainer(config: Config) -> Trainer:
             out[f"model/openloop_mse_{name}"] = jnp.where(n > 0, losses.masked_mean(err, ok), jnp.nan)
         return out
 
-    def update(state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
+    def collect(state: TrainState, hp: HParams):
+        """Closed-loop rollout with the current policy, then GAE. -> (env_state, episodes, traj, batch)."""
         hp = hp.as_float32()
-        tx = make_optimizer(config, state.params, hp)
-        key, key_roll, key_epochs = jax.random.split(state.key, 3)
         params, norms = state.params, state.norms
+        _, key_roll, _ = jax.random.split(state.key, 3)
 
         def behaviour(obs, key):
             obs_n = nz.normalize(norms.obs, obs)
@@ -216,8 +218,16 @@ def make_trainer(config: Config) -> Trainer:
         next_value = value.apply(params["value"], nz.normalize(norms.obs, traj.next_obs))
         advantages, returns = losses.gae(traj.reward * hp.reward_scale, traj.value, next_value,
                                          traj.valid & ~traj.terminated, traj.ended, hp.gamma, hp.gae_lambda)
-        data = Batch(traj.obs, traj.next_obs, traj.action, traj.raw_action, traj.noise, traj.log_prob,
-                     traj.reward, traj.ended, traj.valid, advantages, returns)
+        batch = Batch(traj.obs, traj.next_obs, traj.action, traj.raw_action, traj.noise, traj.log_prob,
+                      traj.reward, traj.ended, traj.valid, advantages, returns)
+        return env_state, episodes, traj, batch
+
+    def update(state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
+        env_state, episodes, traj, data = collect(state, hp)
+        hp = hp.as_float32()
+        tx = make_optimizer(config, state.params, hp)
+        key, _, key_epochs = jax.random.split(state.key, 3)
+        params, norms = state.params, state.norms
 
         def minibatch(carry, inp):
             params, opt_state = carry
@@ -267,7 +277,8 @@ def make_trainer(config: Config) -> Trainer:
             update_step=state.update_step + 1)
         return _strong(new_state), metrics
 
-    return Trainer(config=config, init=init, update=update, act=act, model_step=model_step, env=env)
+    return Trainer(config=config, init=init, update=update, collect=collect, loss=loss_fn, act=act,
+                   model_step=model_step, env=env)
 
 
 @struct.dataclass

@@ -13,7 +13,7 @@ Brax's own ``Swimmer`` only accepts ``backend='generalized'``, which made it
 look as if MJX could not simulate a swimmer. That is not the case for
 mujoco-mjx 3.17.0. Its JAX backend (``mujoco/mjx/_src/passive.py::_fluid``)
 implements MuJoCo's *inertia-box* fluid model, the body-level
-viscosity/drag/lift model that is switched on by ``<option density=...
+viscous + quadratic-drag model that is switched on by ``<option density=...
 viscosity=...>`` and used by Gymnasium's swimmer XML. Every link is replaced by
 the box with the same inertia, and each box gets
 
@@ -21,13 +21,17 @@ the box with the same inertia, and each box gets
 * a quadratic drag ``-0.5 * density * A_i * |v_i| * v_i`` on each local axis
   ``i``, where ``A_i`` is the box's cross-section normal to that axis.
 
-For a 1 x 0.2 x 0.2 link, the sideways cross-section is about 6 times the
-end-on one. That anisotropy (sideways motion resisted much more than motion
-along the link) is what lets a travelling body wave propel the swimmer. MJX
-also supports the RK4 integrator, so this env uses the same physics settings
-as Gymnasium (timestep 0.01, RK4, density 4000, viscosity 0.1).
-We checked MJX's fluid forces against C MuJoCo: ``qfrc_passive`` agrees to
-float32 precision, and ``tests/test_swimmer.py`` compares whole trajectories.
+For these links the equivalent box is about 1.14 x 0.17 x 0.17, so the
+sideways cross-section is about 6.6 times the end-on one. That anisotropy
+(sideways motion resisted much more than motion along the link) is what lets
+a travelling body wave propel the swimmer. MJX also supports the RK4
+integrator, so this env uses the same physics settings as Gymnasium
+(timestep 0.01, RK4, density 4000, viscosity 0.1). We checked MJX's fluid
+forces against C MuJoCo: ``qfrc_passive`` agrees to float32 precision, and
+``tests/test_swimmer.py`` compares whole trajectories. RK4 costs about four
+times as much per substep as Euler. We keep it because, with the fluid turned
+off, semi-implicit Euler at this timestep let the centre of mass of a flailing
+swimmer drift by metres (RK4: about 3 cm), and momentum should be conserved.
 
 What mujoco-mjx 3.17.0 (JAX backend) does *not* support, and this model
 therefore avoids:
@@ -40,16 +44,16 @@ therefore avoids:
 * ``Data.qfrc_fluid`` is never recomputed; MJX adds the fluid forces straight
   into ``qfrc_passive``.
 
-(The classic ``<option collision="predefined">`` attribute is also gone from
-current MuJoCo. It is not needed because all geoms here have contype =
-conaffinity = 0, so there are no contacts.)
+(Gymnasium's XML also has ``<option collision="predefined">``, which MuJoCo
+4.0.0's parser rejects. It is not needed here because all geoms have contype
+= conaffinity = 0, so there are no contacts.)
 
 Differences from Gymnasium's ``Swimmer-v5`` and why
 ---------------------------------------------------
-* Geometry/root frame: Gymnasium puts the root joints 0.5 behind the front
-  capsule (a point that is rigidly attached to the front link but lies
-  outside it). Here the root is at the *centre of the front link*, so
-  ``qpos[:2]`` and the forward reward track a point on the body. Masses
+* Geometry/root frame: Gymnasium puts the root joints 0.5 behind the rear
+  end of the front capsule (a point that is rigidly attached to the front
+  link but lies outside it). Here the root is at the *centre of the front
+  link*, so ``qpos[:2]`` and the forward reward track a point on the body. Masses
   (35.6 per link), lengths, joint ranges (+/-100 deg on the actuated hinges),
   armature 0.1, gear 150 and fluid parameters are the same. The front-link
   centre and Gymnasium's root point differ only by a bounded rotation term,

@@ -1,0 +1,24 @@
+"""Configs and compiled functions shared between test modules (MJX compiles slowly on CPU)."""
+
+import functools
+
+import jax
+
+from cdjax import Config, HParams, make_trainer
+
+POINT = Config(env="point", num_envs=16, rollout_len=12, horizon=4, num_updates=3, num_epochs=2,
+               num_minibatches=2, episode_length=40, policy_hidden=(16,), value_hidden=(16,),
+               model_hidden=(32,), encoder_dim=8, eval_horizon=10, eval_envs=4)
+
+# One small MJX task for integration: learning, compile-once and the NaN guard share its compiled update.
+PENDULUM = Config(env="inverted_pendulum", num_envs=32, rollout_len=32, horizon=8, num_updates=1, num_epochs=4,
+                  num_minibatches=4, episode_length=200, policy_hidden=(64, 64), value_hidden=(64, 64),
+                  model_hidden=(64,), encoder_dim=32, eval_horizon=50, eval_envs=4)
+PENDULUM_HP = HParams(alpha=1.0, lr_policy=1e-3, lr_value=1e-3)
+
+
+@functools.lru_cache(maxsize=None)
+def compiled(config: Config):
+    """(trainer, jit(init), jit(update)) for a config, built once per test session."""
+    trainer = make_trainer(config)
+    return trainer, jax.jit(trainer.init), jax.jit(trainer.update)

@@ -1,0 +1,156 @@
+"""The jitted update as a whole: seeds under vmap, compile once, NaN guard, arms, learning on MJX."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cdjax import Config, ConfigError, HParams, make_train
+from cdjax.config import stack_hparams
+
+from _shared import PENDULUM, PENDULUM_HP, POINT, compiled
+
+
+def _finite(tree):
+    return all(bool(jnp.isfinite(x).all()) for x in jax.tree.leaves(tree)
+               if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating))
+
+
+def test_vmap_over_seeds_equals_each_seed_alone():
+    train = make_train(POINT)
+    hp = HParams(alpha=0.5)
+    keys = jax.random.split(jax.random.key(3), 2)
+    state_v, metrics_v = jax.jit(jax.vmap(train, in_axes=(0, None)))(keys, hp)
+    single = jax.jit(train)
+    for i in range(2):
+        state_i, metrics_i = single(keys[i], hp)
+        for name in ("loss/total", "loss/consistency", "loss/model_nll", "env/reward_mean"):
+            np.testing.assert_allclose(metrics_v[name][i], metrics_i[name], rtol=2e-5, atol=1e-6, err_msg=name)
+        for a, b in zip(jax.tree.leaves(state_v.params), jax.tree.leaves(state_i.params)):
+            np.testing.assert_allclose(a[i], b, rtol=2e-5, atol=1e-6)
+    # and the seeds really differ
+    assert not np.allclose(metrics_v["loss/total"][0], metrics_v["loss/total"][1])
+
+
+def test_vmap_over_alpha_and_seeds():
+    """HParams floats vmap alongside seeds: alpha = 0 and 1 in one program, alpha changes the result."""
+    train = make_train(POINT)
+    keys = jax.random.split(jax.random.key(4), 2)
+    hps = stack_hparams([HParams(alpha=0.0), HParams(alpha=1.0)])
+    _, metrics = jax.jit(jax.vmap(train, in_axes=(0, 0)))(keys, hps)
+    _, alone = jax.jit(train)(keys[1], HParams(alpha=1.0))
+    np.testing.assert_allclose(metrics["loss/total"][1], alone["loss/total"], rtol=2e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("config", [POINT, PENDULUM], ids=["point", "mjx-pendulum"])
+def test_update_compiles_once(config):
+    trainer, init, update = compiled(config)
+    hp = PENDULUM_HP if config is PENDULUM else HParams()
+    state = init(jax.random.key(0), hp)
+    before = update._cache_size()
+    state, _ = update(state, hp)
+    state, _ = update(state, hp)
+    state, _ = update(state, hp.replace(alpha=0.3))  # new float values, same program
+    assert update._cache_size() == before + 1
+
+
+def test_arms_switch_the_same_code():
+    free, init, update = compiled(POINT.replace(arm="model-free"))
+    state = init(jax.random.key(0), HParams())
+    assert set(state.params) == {"policy", "value"}
+    state2, metrics = update(state, HParams())
+    assert "loss/model_nll" not in metrics and "loss/consistency" not in metrics
+    mbmf, init, update = compiled(POINT.replace(arm="mbmf"))
+    state = init(jax.random.key(0), HParams())
+    assert set(state.params) == {"policy", "value", "model"}
+    _, metrics = update(state, HParams())
+    assert "loss/model_nll" in metrics and "loss/consistency" not in metrics
+    l2, init, update = compiled(POINT.replace(encoder="l2"))
+    state = init(jax.random.key(0), HParams())
+    assert "encoder" not in state.params
+    _, metrics = update(state, HParams())
+    assert float(metrics["loss/consistency"]) > 0
+
+
+def test_frozen_encoder_stays_put_trainable_one_moves():
+    for encoder, should_move in (("frozen-gru", False), ("gru", True)):
+        _, init, update = compiled(POINT.replace(encoder=encoder))
+        state = init(jax.random.key(0), HParams(alpha=1.0))
+        new, _ = update(state, HParams(alpha=1.0))
+        moved = any(not np.array_equal(a, b) for a, b in
+                    zip(jax.tree.leaves(state.params["encoder"]), jax.tree.leaves(new.params["encoder"])))
+        assert moved == should_move, encoder
+
+
+def test_nan_in_one_env_is_reset_and_masked():
+    trainer, init, update = compiled(PENDULUM)
+    state = init(jax.random.key(1), PENDULUM_HP)
+    state, _ = update(state, PENDULUM_HP)
+    physics = state.env_state.core.pipeline_state
+    poisoned = physics.replace(qd=physics.qd.at[3].set(jnp.nan), qvel=physics.qvel.at[3].set(jnp.nan))
+    state = state.replace(env_state=state.env_state.replace(core=state.env_state.core.replace(pipeline_state=poisoned)))
+    new, metrics = update(state, PENDULUM_HP)
+    assert float(metrics["env/invalid_fraction"]) > 0  # the poisoned step was caught ...
+    assert float(metrics["env/invalid_fraction"]) <= 1.0 / (PENDULUM.num_envs * PENDULUM.rollout_len) + 1e-9
+    assert _finite(new.params) and _finite(new.opt_state) and _finite(new.norms)  # ... and reached nothing
+    assert float(metrics["opt/skipped_updates"]) == 0.0  # no update had to be thrown away
+    for name, value in metrics.items():
+        if name.startswith("loss/"):
+            assert np.isfinite(value), name
+    assert _finite(new.env_state.core.pipeline_state.qd) and _finite(new.env_state.obs)  # env 3 was reset
+
+
+def test_learning_on_mjx_pendulum():
+    """Mean return rises far above the untrained policy's, and the open-loop model error falls."""
+    _, init, update = compiled(PENDULUM)
+    state = init(jax.random.key(0), PENDULUM_HP)
+    returns, errors = [], []
+    for _ in range(100):
+        state, metrics = update(state, PENDULUM_HP)
+        returns.append(float(metrics["episode/return"]))
+        errors.append(float(metrics["model/openloop_mse_k"]))
+    untrained = np.nanmean(returns[:3])
+    trained = np.mean(returns[-10:])
+    assert trained > 4 * untrained and trained > 100, (untrained, trained)
+    first_errors = [e for e in errors[:15] if np.isfinite(e)]
+    assert first_errors, "no open-loop error measured early on"
+    assert np.nanmean(errors[-10:]) < 0.2 * np.mean(first_errors[:3]), (first_errors[:3], errors[-10:])
+
+
+@pytest.mark.parametrize("changes, words", [
+    (dict(env="antt"), "Unknown env 'antt'"),
+    (dict(horizon=40, rollout_len=32), "longer than the rollout"),
+    (dict(num_envs=0), "num_envs must be a positive integer"),
+    (dict(num_minibatches=-2), "num_minibatches must be a positive integer"),
+    (dict(num_envs=30, num_minibatches=4), "does not divide num_envs=30"),
+    (dict(policy_hidden=()), "policy_hidden must be a non-empty tuple"),
+    (dict(arm="dreamer"), "Unknown arm"),
+])
+def test_invalid_configs_fail_before_compiling(changes, words):
+    with pytest.raises(ConfigError, match=words) as info:
+        Config(**{**dict(env="ant"), **changes})
+    message = str(info.value)
+    assert message.endswith(".") and message.count(". ") == 0  # one sentence
+
+
+def test_batched_env_keeps_truncation_apart_and_final_obs():
+    from cdjax.envs import BatchedEnv
+    from cdjax.envs.point import PointMass
+
+    env = BatchedEnv(PointMass(start_range=0.5), num_envs=3, episode_length=4)
+    state = env.reset(jax.random.key(0))
+    step = jax.jit(env.step)
+    push = jnp.array([[1.0, 0.0], [0.0, 0.0], [-1.0, 1.0]])
+    for t in range(4):
+        prev = state
+        state, out = step(state, push)
+        np.testing.assert_allclose(out.next_obs, PointMass.dynamics(prev.obs, push), rtol=1e-6)
+    assert bool(out.truncated.all()) and not bool(out.terminated.any())
+    np.testing.assert_array_equal(state.t, 0)
+    np.testing.assert_allclose(state.obs, env.reset(jax.random.key(0)).obs)  # cached reset: own first start
+    assert not np.allclose(out.next_obs, state.obs)  # the final observation survives the reset
+    # leaving the box terminates, which is not a truncation
+    far = state.replace(obs=state.obs.at[0, 0].set(1.99).at[0, 2].set(1.0),
+                        core=state.core.replace(obs=state.core.obs.at[0, 0].set(1.99).at[0, 2].set(1.0)))
+    _, out = step(far, push)
+    assert bool(out.terminated[0]) and not bool(out.truncated[0])
