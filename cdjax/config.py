@@ -44,6 +44,7 @@ class Config:
     encoder_dim: int = 128  # GRU hidden size
     cc_windows: int = 0  # consistency windows per env per minibatch, random start offsets; 0 = all T-k+1
     cc_unroll: int = 1  # lax.scan unroll factor of the k-step open-loop/encoder scan
+    cc_epochs: int = 0  # PPO epochs (the first ones) whose minibatches include the consistency term; 0 = all
     eval_horizon: int = 50  # longer open-loop horizon for the compounding-error metric (paper: 50)
     eval_envs: int = 8  # environments whose recent history is kept for the open-loop error metrics
 
@@ -103,6 +104,8 @@ def validate(config: Config) -> None:
         value = getattr(config, name)
         if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
             raise ConfigError(f"{name} must be a positive integer, got {value!r}.")
+    if not isinstance(config.cc_epochs, int) or not 0 <= config.cc_epochs <= config.num_epochs:
+        raise ConfigError(f"cc_epochs must be between 0 (all epochs) and num_epochs={config.num_epochs}, got {config.cc_epochs!r}.")
     if not isinstance(config.cc_windows, int) or config.cc_windows < 0:
         raise ConfigError(f"cc_windows must be 0 (all windows) or a positive integer, got {config.cc_windows!r}.")
     for name in ("policy_hidden", "value_hidden", "model_hidden"):

@@ -149,7 +149,7 @@ def make_trainer(config: Config) -> Trainer:
             last_return=nan, last_disc_return=nan, key=key_train, update_step=jnp.zeros((), jnp.int32))
         return _strong(state)
 
-    def loss_fn(params, norms, mb, offsets, hp):
+    def loss_fn(params, norms, mb, offsets, hp, with_consistency: bool = True):
         """Total loss of one minibatch mb (leaves [T, Bm, ...]) -> (loss, metrics)."""
         obs_n = nz.normalize(norms.obs, mb.obs)
         mean, log_std = policy.apply(params["policy"], obs_n)
@@ -164,7 +164,7 @@ def make_trainer(config: Config) -> Trainer:
             nll, model_metrics = losses.model_loss(pred_mean, pred_log_std, target, mb.valid)
             metrics.update(model_metrics)
             total = total + hp.model_coef * nll
-        if config.use_consistency:
+        if config.use_consistency and with_consistency:
             actions = networks.act_from_noise(mean, log_std, mb.noise)  # [T, Bm, A], carries d/dphi
             idx = losses.window_indices(offsets, k)  # [k, n]
             flat = lambda x: x.reshape(x.shape[:-3] + (-1,) + x.shape[-1:])  # noqa: E731  [.., n, Bm, D] -> [.., n*Bm, D]
@@ -229,27 +229,36 @@ def make_trainer(config: Config) -> Trainer:
         key, _, key_epochs = jax.random.split(state.key, 3)
         params, norms = state.params, state.norms
 
-        def minibatch(carry, inp):
+        def minibatch(carry, inp, with_consistency):
             params, opt_state = carry
             mb, key = inp
             if all_offsets:
                 offsets = jnp.arange(n_windows)
             else:
                 offsets = jnp.sort(jax.random.choice(key, T - k + 1, (n_windows,), replace=False))
-            grads, metrics = jax.grad(loss_fn, has_aux=True)(params, norms, mb, offsets, hp)
+            grads, metrics = jax.grad(loss_fn, has_aux=True)(params, norms, mb, offsets, hp, with_consistency)
             updates, opt_state = tx.update(grads, opt_state, params)
             params = optax.apply_updates(params, updates)
             return (params, opt_state), metrics
 
-        def epoch(carry, key):
+        def epoch(carry, key, with_consistency):
             key_perm, key_mb = jax.random.split(key)
             perm = jax.random.permutation(key_perm, config.num_envs)
             split = lambda x: jnp.swapaxes(x[:, perm].reshape((T, M, Bm) + x.shape[2:]), 0, 1)  # noqa: E731
             mbs = jax.tree.map(split, data)
-            return jax.lax.scan(minibatch, carry, (mbs, jax.random.split(key_mb, M)))
+            step = functools.partial(minibatch, with_consistency=with_consistency)
+            return jax.lax.scan(step, carry, (mbs, jax.random.split(key_mb, M)))
 
-        (params, opt_state), metrics = jax.lax.scan(epoch, (params, state.opt_state),
-                                                    jax.random.split(key_epochs, config.num_epochs))
+        # Epochs with the consistency term first, then (cc_epochs > 0) the rest without it.
+        epoch_keys = jax.random.split(key_epochs, config.num_epochs)
+        n_cc = config.num_epochs if config.cc_epochs == 0 else config.cc_epochs
+        carry, metrics = jax.lax.scan(functools.partial(epoch, with_consistency=True), (params, state.opt_state),
+                                      epoch_keys[:n_cc])
+        if n_cc < config.num_epochs:
+            carry, rest = jax.lax.scan(functools.partial(epoch, with_consistency=False), carry, epoch_keys[n_cc:])
+            metrics = {name: jnp.concatenate([value, rest[name]]) if name in rest else value
+                       for name, value in metrics.items()}
+        params, opt_state = carry
         metrics = jax.tree.map(jnp.mean, metrics)
 
         history = state.history.push(traj)

@@ -1,0 +1,31 @@
+"""Run by test_sweep.py in a fresh process with 2 forced CPU devices (XLA_FLAGS set by the caller)."""
+
+import json
+import sys
+
+import jax
+import numpy as np
+
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+from _shared import POINT  # noqa: E402
+from cdjax import HParams, make_train  # noqa: E402
+from cdjax.sweep import make_sweep, unpad  # noqa: E402
+
+assert jax.device_count() == 2, jax.devices()
+sweep = make_sweep(POINT)
+hps = [HParams(alpha=0.0), HParams(alpha=1.0)]
+keys, stacked = sweep.grid(seed=7, num_seeds=3, hps=hps)  # 6 runs -> even, no padding on 2 devices
+state = sweep.init(keys, stacked)
+state, m1 = sweep.run(state, stacked, 2)
+state, m2 = sweep.run(state, stacked, 1)
+devices_used = sorted({d.id for leaf in jax.tree.leaves(state.params) for d in leaf.sharding.device_set})
+spec = str(jax.tree.leaves(state.params)[0].sharding.spec)
+total = np.concatenate([np.asarray(m1["loss/total"]), np.asarray(m2["loss/total"])], axis=1)  # [R, 3]
+# the same runs alone, unsharded, in one call of 3 updates
+train = jax.jit(make_train(POINT.replace(num_updates=3)))
+alone = [np.asarray(train(keys[r], HParams(alpha=[0.0, 1.0][r // 3]))[1]["loss/total"]) for r in range(6)]
+# padding: 3 runs on 2 devices -> 4, and unpad drops the extra one
+keys3, hps3 = sweep.grid(seed=7, num_seeds=3, hps=hps[:1])
+print(json.dumps({"devices_used": devices_used, "spec": spec, "sharded": total.tolist(),
+                  "alone": [a.tolist() for a in alone], "padded_runs": int(keys3.shape[0]),
+                  "unpadded_runs": int(unpad(keys3, 3).shape[0])}))
