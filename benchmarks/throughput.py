@@ -1,188 +1,121 @@
-"""Throughput of the cdjax update (and of the raw MJX ceiling), one case per process.
+"""Steady-state throughput of one case, in this process: the MJX ceiling, cdjax's rollout alone, and
+cdjax's update for each arm and consistency setting.
 
-    python benchmarks/throughput.py --cases ceiling model-free mbmf cd --env ant --num-envs 4096
-    python benchmarks/throughput.py --tiny          # CPU smoke test (CI): tiny sizes, point env
-
-Each case runs in a fresh subprocess (so peak device memory is that case's own), compiles the jitted
-update once (compile time reported apart), warms up, then times `--updates` updates and reports
-steady-state environment steps per second. Results are printed as one JSON line per case and, with
---out, written as JSON and a markdown table.
+Every function returns one result row (a flat dict); `benchmarks.run` strings them into suites.
+A case compiles its jitted function once with `jit(f).lower(*args).compile()` (lower and XLA
+compile seconds recorded apart), runs `Timing.warmup` calls, then times calls one by one with a
+device sync after each; `env_steps_per_s` is env steps per call / the median call. The memory of a
+case is XLA's buffer assignment of the compiled call (`common.compiled_footprint`).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import subprocess
-import sys
-import time
+from typing import Callable
 
-CASES = {
-    # name: (Config overrides, HParams overrides)
-    "model-free": (dict(arm="model-free"), dict()),
-    "mbmf": (dict(arm="mbmf"), dict(alpha=0.0)),
-    "cd": (dict(arm="cd"), dict(alpha=1.0)),
-    "cd-w2": (dict(arm="cd", cc_windows=2), dict(alpha=1.0)),
-    "cd-unroll": (dict(arm="cd", cc_unroll=20), dict(alpha=1.0)),
-    "cd-w2-unroll": (dict(arm="cd", cc_windows=2, cc_unroll=20), dict(alpha=1.0)),
-    "cd-l2": (dict(arm="cd", encoder="l2"), dict(alpha=1.0)),
-}
+from benchmarks.common import Spec, Timing, compile_timed, compiled_footprint, process_peak, steady, time_calls
+
+# cdjax cases at the matched config: name -> (description, Config overrides, HParams overrides).
+# cc_unroll is the horizon k (the whole k-step open-loop scan unrolled).
+DESIGNATED_CD = "cd-fast"  # the row the issue's CD targets are evaluated on
 
 
-def _device_info():
-    import jax
-
-    dev = jax.devices()[0]
-    return {"device": getattr(dev, "device_kind", str(dev)), "platform": dev.platform, "jax": jax.__version__,
-            "num_devices": jax.device_count()}
-
-
-def _peak_bytes():
-    import jax
-
-    stats = jax.devices()[0].memory_stats() or {}
-    return stats.get("peak_bytes_in_use")
-
-
-def run_case(name: str, args) -> dict:
-    import jax
-
-    from cdjax import Config, HParams, make_trainer
-
-    if args.cache:
-        jax.config.update("jax_compilation_cache_dir", args.cache)
-    base = dict(env=args.env, num_envs=args.num_envs, rollout_len=args.rollout_len, horizon=args.horizon,
-                num_epochs=args.epochs, num_minibatches=args.minibatches, episode_length=1000)
-    if args.tiny:
-        base.update(policy_hidden=(16,), value_hidden=(16,), model_hidden=(32,), encoder_dim=8, eval_envs=2,
-                    eval_horizon=10)
-    result = {"case": name, **_device_info(), **base, "seeds": args.seeds}
-    if name == "ceiling":
-        return {**result, **_ceiling(args)}
-    overrides, hp_overrides = CASES[name]
-    config = Config(**{**base, **overrides})
-    hp = HParams(**hp_overrides)
-    trainer = make_trainer(config)
-    keys = jax.random.split(jax.random.key(0), args.seeds)
-    init = jax.jit(jax.vmap(trainer.init, in_axes=(0, None)))
-    update = jax.jit(jax.vmap(trainer.update, in_axes=(0, None)))
-    state = jax.block_until_ready(init(keys, hp))
-    t0 = time.perf_counter()
-    compiled = update.lower(state, hp).compile()
-    compile_s = time.perf_counter() - t0
-    state, metrics = compiled(state, hp)
-    jax.block_until_ready(metrics)
-    times = []
-    for _ in range(args.updates):
-        t0 = time.perf_counter()
-        state, metrics = compiled(state, hp)
-        jax.block_until_ready(metrics)
-        times.append(time.perf_counter() - t0)
-    times.sort()
-    median = times[len(times) // 2]
-    steps = config.env_steps_per_update * args.seeds
-    return {**result, **overrides, "compile_s": round(compile_s, 2), "update_s_median": round(median, 4),
-            "env_steps_per_s": round(steps / median), "per_seed_steps_per_s": round(steps / median / args.seeds),
-            "peak_bytes": _peak_bytes(), "finite": bool(all(bool(jax.numpy.isfinite(v).all())
-                                                              for k, v in metrics.items() if k.startswith("loss/")))}
+def cdjax_cases(spec: Spec) -> dict[str, tuple[str, dict, dict]]:
+    k = spec.horizon
+    return {
+        "model-free": ("PPO only, no model", dict(arm="model-free"), dict()),
+        "mbmf": ("PPO + model NLL, alpha = 0 (Mb-Mf)", dict(arm="mbmf"), dict(alpha=0.0)),
+        "cd-fast": (f"CD k={k}: 2 windows/env/minibatch, unroll {k}, consistency in epoch 1 only",
+                    dict(arm="cd", cc_windows=2, cc_unroll=k, cc_epochs=1), dict(alpha=1.0)),
+        "cd-w2-unroll": (f"CD k={k}: 2 windows/env/minibatch, unroll {k}, every epoch",
+                         dict(arm="cd", cc_windows=2, cc_unroll=k), dict(alpha=1.0)),
+        "cd-default": (f"CD k={k}: default settings (all windows, every epoch, unroll 1)",
+                       dict(arm="cd"), dict(alpha=1.0)),
+    }
 
 
-def _ceiling(args) -> dict:
-    """Raw MJX stepping with uniform random actions: a 200-step scan of vmapped env.step."""
+def _row(kind: str, case: str, spec: Spec, **fields) -> dict:
+    return {"case": case, "kind": kind, "env": spec.env, "num_envs": spec.num_envs, "seeds": 1,
+            "rollout_len": spec.rollout_len, "status": "ok", **fields}
+
+
+def ceiling(spec: Spec, timing: Timing, length: int = 200) -> dict:
+    """Raw MJX stepping: `length`-step lax.scan of vmapped env.step with uniform random actions in [-1, 1]
+    (no policy, no auto-reset, no NaN guard) over spec.num_envs copies of the single env."""
     import jax
     import jax.numpy as jnp
 
     from cdjax.envs import make_single_env
 
-    env = make_single_env(args.env)
-    B, L = args.num_envs, 200
-    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), B))
-    state = jax.tree.map(lambda x: jnp.asarray(x, x.dtype), state)
+    env = make_single_env(spec.env)
+    B = spec.num_envs
+    strong = lambda t: jax.tree.map(lambda x: jnp.asarray(x, x.dtype), t)  # noqa: E731
+    state = strong(jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), B)))
 
     def roll(state, key):
+        key, key_scan = jax.random.split(key)
+
         def body(s, k):
             a = jax.random.uniform(k, (B, env.action_size), minval=-1.0, maxval=1.0)
-            s = jax.vmap(env.step)(s, a)
-            return jax.tree.map(lambda x: jnp.asarray(x, x.dtype), s), None
+            return strong(jax.vmap(env.step)(s, a)), None
 
-        return jax.lax.scan(body, state, jax.random.split(key, L))[0]
+        return jax.lax.scan(body, state, jax.random.split(key_scan, length))[0], key
 
-    t0 = time.perf_counter()
-    compiled = jax.jit(roll).lower(state, jax.random.key(1)).compile()
-    compile_s = time.perf_counter() - t0
-    state = jax.block_until_ready(compiled(state, jax.random.key(1)))
-    times = []
-    for i in range(max(3, args.updates // 2)):
-        t0 = time.perf_counter()
-        state = jax.block_until_ready(compiled(state, jax.random.key(i + 2)))
-        times.append(time.perf_counter() - t0)
-    median = sorted(times)[len(times) // 2]
-    return {"compile_s": round(compile_s, 2), "update_s_median": round(median, 4),
-            "env_steps_per_s": round(B * L / median), "peak_bytes": _peak_bytes()}
+    compiled, lower_s, compile_s = compile_timed(jax.jit(roll, donate_argnums=0), state, jax.random.key(1))
+    _, times = time_calls(lambda c: compiled(*c), (state, jax.random.key(1)), timing)
+    return _row("ceiling", "ceiling", spec, what=f"raw MJX env.step, random actions, {length}-step scan",
+                lower_s=lower_s, xla_compile_s=compile_s, compile_s=lower_s + compile_s,
+                **steady(times, B * length), mem_bytes=compiled_footprint(compiled), mem_source="compiled",
+                process_peak_bytes=process_peak())
 
 
-def table(rows: list[dict]) -> str:
-    ref = {r["case"]: r["env_steps_per_s"] for r in rows if "env_steps_per_s" in r}
-    lines = ["| case | env | envs | T | k | epochs x minibatches | seeds | compile s | env steps/s | vs model-free | peak GiB |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for r in rows:
-        if "error" in r:
-            lines.append(f"| {r['case']} | error: {r['error'][:80]} |")
-            continue
-        ratio = r["env_steps_per_s"] / ref["model-free"] if "model-free" in ref else float("nan")
-        peak = r.get("peak_bytes")
-        lines.append(
-            f"| {r['case']} | {r['env']} | {r['num_envs']} | {r['rollout_len']} | {r['horizon']} | "
-            f"{r['num_epochs']} x {r['num_minibatches']} | {r['seeds']} | {r['compile_s']} | "
-            f"{r['env_steps_per_s']:,} | {ratio:.2f} | {peak / 2**30 if peak else float('nan'):.2f} |")
-    return "\n".join(lines)
+def collect(spec: Spec, timing: Timing) -> dict:
+    """cdjax's closed-loop rollout alone (policy + value forward, env layer with auto-reset and NaN
+    guard, GAE) at the matched config: the rollout share of every arm's update."""
+    import jax
+
+    from cdjax import HParams, make_trainer
+
+    config = spec.config(arm="model-free")
+    trainer = make_trainer(config)
+    hp = HParams().as_float32()
+    state = jax.jit(trainer.init)(jax.random.key(0), hp)
+
+    def f(state, hp):
+        env_state, episodes, _, batch = trainer.collect(state, hp)
+        return state.replace(env_state=env_state, episodes=episodes, key=jax.random.fold_in(state.key, 1)), batch
+
+    compiled, lower_s, compile_s = compile_timed(jax.jit(f, donate_argnums=0), state, hp)
+    _, times = time_calls(lambda c: compiled(c[0], hp), (state, None), timing)
+    return _row("collect", "collect", spec, what=f"cdjax rollout of {config.rollout_len} steps + GAE, no learning",
+                lower_s=lower_s, xla_compile_s=compile_s, compile_s=lower_s + compile_s,
+                **steady(times, config.env_steps_per_update), mem_bytes=compiled_footprint(compiled),
+                mem_source="compiled", process_peak_bytes=process_peak())
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--cases", nargs="+", default=["ceiling", "model-free", "mbmf", "cd"],
-                   choices=["ceiling", *CASES])
-    p.add_argument("--env", default="ant")
-    p.add_argument("--num-envs", type=int, default=4096)
-    p.add_argument("--rollout-len", type=int, default=32)
-    p.add_argument("--horizon", type=int, default=20)
-    p.add_argument("--epochs", type=int, default=4)
-    p.add_argument("--minibatches", type=int, default=32)
-    p.add_argument("--seeds", type=int, default=1)
-    p.add_argument("--updates", type=int, default=10, help="timed updates per case")
-    p.add_argument("--tiny", action="store_true", help="CPU smoke sizes: point env, 16 envs")
-    p.add_argument("--cache", default=os.environ.get("CDJAX_JAX_CACHE"), help="persistent compilation cache dir")
-    p.add_argument("--out", help="write <out>.json and <out>.md")
-    p.add_argument("--one", help=argparse.SUPPRESS)  # internal: run one case in this process
-    args = p.parse_args(argv)
-    if args.tiny:
-        args.env, args.num_envs, args.rollout_len, args.horizon = "point", 16, 8, 4
-        args.epochs, args.minibatches, args.updates = 2, 2, 3
-    if args.one:
-        print("RESULT " + json.dumps(run_case(args.one, args)), flush=True)
-        return
-    rows = []
-    for case in args.cases:
-        cmd = [sys.executable, __file__, "--one", case] + [a for a in (argv or sys.argv[1:])]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
-        if proc.returncode != 0 or not lines:
-            row = {"case": case, "error": (proc.stderr.strip().splitlines() or ["no output"])[-1]}
-        else:
-            row = json.loads(lines[-1][len("RESULT "):])
-        print(json.dumps(row), flush=True)
-        rows.append(row)
-    md = table(rows)
-    print(md)
-    if args.out:
-        with open(args.out + ".json", "w") as f:
-            json.dump(rows, f, indent=1)
-        with open(args.out + ".md", "w") as f:
-            f.write(md + "\n")
-    if any("error" in r for r in rows):
-        sys.exit(1)
+def cdjax_update(spec: Spec, case: str, timing: Timing, trace_dir: str | None = None) -> dict:
+    """One jitted cdjax update (rollout + GAE + epochs x minibatches of SGD), one seed, default device."""
+    import jax
+    import jax.numpy as jnp
 
+    from cdjax import HParams, make_trainer
 
-if __name__ == "__main__":
-    main()
+    what, overrides, hp_overrides = cdjax_cases(spec)[case]
+    config = spec.config(**overrides)
+    trainer = make_trainer(config)
+    hp = HParams(**hp_overrides).as_float32()
+    state = jax.jit(trainer.init)(jax.random.key(0), hp)
+    compiled, lower_s, compile_s = compile_timed(jax.jit(trainer.update, donate_argnums=0), state, hp)
+    step: Callable = lambda c: compiled(c[0], hp)  # noqa: E731
+    carry, times = time_calls(step, (state, None), timing)
+    if trace_dir:
+        with jax.profiler.trace(os.path.join(trace_dir, case)):
+            carry = jax.block_until_ready(step(carry))
+    metrics = carry[1]
+    ok = all(bool(jnp.isfinite(v).all()) for name, v in metrics.items() if name.startswith("loss/"))
+    return _row("cdjax", case, spec, what=what, arm=config.arm, overrides=overrides, alpha=hp_overrides.get("alpha"),
+                num_windows=config.num_windows if config.use_consistency else 0,
+                sgd_steps=config.num_epochs * config.num_minibatches,
+                lower_s=lower_s, xla_compile_s=compile_s, compile_s=lower_s + compile_s,
+                **steady(times, config.env_steps_per_update), mem_bytes=compiled_footprint(compiled),
+                mem_source="compiled", process_peak_bytes=process_peak(), finite=ok)

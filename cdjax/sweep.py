@@ -54,6 +54,10 @@ class Sweep:
         """`num_updates` updates of every run: (state [R], metrics {name: [R, num_updates]})."""
         return self._run(state, hps, num_updates)
 
+    def lower(self, state: TrainState, hps: HParams, num_updates: int):
+        """The lowered chunk program (call .compile() on it to time compilation apart)."""
+        return self._run.lower(state, hps, num_updates)
+
     def grid(self, seed: int, num_seeds: int, hps: Sequence[HParams]) -> tuple[jax.Array, HParams]:
         """Runs for every (hp, seed) pair, hp-major: run r = i * num_seeds + s.
 

@@ -1,0 +1,225 @@
+"""What every benchmark part shares: the matched configuration, timing, memory and device facts.
+
+The matched configuration is written once, in Brax PPO's terms (`Spec`), and translated to both
+trainers, so that Brax PPO and cdjax collect the same environment steps per update and run the same
+SGD schedule:
+
+    Brax: each training step collects batch_size * num_minibatches / num_envs unrolls of
+          unroll_length steps per env, then num_epochs ("num_updates_per_batch") x num_minibatches
+          minibatches of batch_size sequences of unroll_length steps;
+    cdjax: rollout_len = unroll_length * batch_size * num_minibatches / num_envs steps per env, then
+          num_epochs x num_minibatches minibatches of num_envs / num_minibatches envs x rollout_len steps.
+
+At the default (ant, 4096 envs, unroll 20, batch 512, 32 minibatches, 8 epochs) both take
+327,680 env steps per update and SGD over 8 x 32 minibatches of 10,240 samples.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+import math
+import os
+import statistics
+import time
+from typing import Any, Callable
+
+# Brax's ppo_networks.make_ppo_networks defaults (brax 0.14.2): policy (32,)*4, value (256,)*5.
+BRAX_POLICY_HIDDEN = (32,) * 4
+BRAX_VALUE_HIDDEN = (256,) * 5
+
+
+@dataclasses.dataclass(frozen=True)
+class Spec:
+    """One benchmark configuration in Brax PPO's terms; `config()` and `brax_kwargs()` translate it."""
+
+    env: str = "ant"  # task name, both in cdjax.envs and brax.envs (backend="mjx")
+    num_envs: int = 4096  # environments stepped in parallel (per seed)
+    unroll_length: int = 20  # Brax unroll length; cdjax's consistency horizon is separate (`horizon`)
+    batch_size: int = 512  # Brax: sequences per minibatch
+    num_minibatches: int = 32  # minibatches per epoch (both)
+    num_epochs: int = 8  # SGD passes over each rollout (Brax: num_updates_per_batch)
+    horizon: int = 20  # cdjax k: open-loop length of the consistency windows
+    episode_length: int = 1000  # time-out (both)
+    policy_hidden: tuple[int, ...] = BRAX_POLICY_HIDDEN  # policy MLP widths (both)
+    value_hidden: tuple[int, ...] = BRAX_VALUE_HIDDEN  # value MLP widths (both)
+    model_hidden: tuple[int, ...] = (500,)  # cdjax dynamics model widths (Mb-Mf: one layer of 500)
+    encoder_dim: int = 128  # cdjax GRU size
+    eval_envs: int = 8  # cdjax: envs whose history feeds the open-loop error metrics
+    eval_horizon: int = 50  # cdjax: long open-loop horizon of that metric
+
+    def __post_init__(self):
+        if (self.batch_size * self.num_minibatches) % self.num_envs:
+            raise ValueError(f"batch_size * num_minibatches = {self.batch_size * self.num_minibatches} is not a "
+                             f"multiple of num_envs = {self.num_envs} (Brax needs whole unrolls per env).")
+
+    @property
+    def unrolls_per_env(self) -> int:
+        return self.batch_size * self.num_minibatches // self.num_envs
+
+    @property
+    def rollout_len(self) -> int:
+        """cdjax T: the env steps per env per update."""
+        return self.unroll_length * self.unrolls_per_env
+
+    @property
+    def env_steps_per_update(self) -> int:
+        return self.num_envs * self.rollout_len
+
+    @property
+    def samples_per_minibatch(self) -> int:
+        return self.batch_size * self.unroll_length
+
+    def with_num_envs(self, num_envs: int) -> "Spec":
+        """The same rollout length and SGD schedule at another num_envs (batch_size follows)."""
+        batch = num_envs * self.unrolls_per_env // self.num_minibatches
+        return dataclasses.replace(self, num_envs=num_envs, batch_size=batch)
+
+    def config(self, **overrides):
+        """The cdjax Config of this spec (overrides: arm, cc_windows, ...)."""
+        from cdjax import Config
+
+        return Config(env=self.env, num_envs=self.num_envs, rollout_len=self.rollout_len, horizon=self.horizon,
+                      num_epochs=self.num_epochs, num_minibatches=self.num_minibatches,
+                      episode_length=self.episode_length, policy_hidden=self.policy_hidden,
+                      value_hidden=self.value_hidden, model_hidden=self.model_hidden,
+                      encoder_dim=self.encoder_dim, eval_envs=self.eval_envs, eval_horizon=self.eval_horizon,
+                      **overrides)
+
+    def brax_kwargs(self) -> dict:
+        """Arguments of brax.training.agents.ppo.train.train for this spec (timing-relevant ones)."""
+        return dict(num_envs=self.num_envs, unroll_length=self.unroll_length, batch_size=self.batch_size,
+                    num_minibatches=self.num_minibatches, num_updates_per_batch=self.num_epochs,
+                    episode_length=self.episode_length, action_repeat=1, normalize_observations=True,
+                    max_grad_norm=1.0, learning_rate=3e-4, entropy_cost=1e-2, discounting=0.97,
+                    reward_scaling=10.0)
+
+    def describe(self) -> dict:
+        return {**dataclasses.asdict(self), "unrolls_per_env": self.unrolls_per_env, "rollout_len": self.rollout_len,
+                "env_steps_per_update": self.env_steps_per_update,
+                "samples_per_minibatch": self.samples_per_minibatch}
+
+
+FULL = Spec()
+# CPU smoke sizes: cdjax's pure-JAX point mass (it has the Brax Env interface, so Brax PPO runs on it too).
+TINY = Spec(env="point", num_envs=16, unroll_length=4, batch_size=16, num_minibatches=2, num_epochs=2, horizon=4,
+            episode_length=100, policy_hidden=(16,), value_hidden=(16,), model_hidden=(32,), encoder_dim=8,
+            eval_envs=2, eval_horizon=10)
+
+
+@dataclasses.dataclass
+class Timing:
+    """How a case is timed: warm-up calls, then up to `updates` timed calls, stopping early (after at
+    least `min_updates`) once the timed calls have used `max_seconds`."""
+
+    updates: int = 5
+    min_updates: int = 2
+    max_seconds: float = 20.0
+    warmup: int = 1
+
+
+def time_calls(step: Callable[[Any], Any], carry: Any, timing: Timing) -> tuple[Any, list[float]]:
+    """Call `carry = step(carry)` with a device sync after each; returns (carry, seconds of timed calls).
+
+    `step` must return the new carry; everything it returns is blocked on.
+    """
+    import jax
+
+    for _ in range(timing.warmup):
+        carry = jax.block_until_ready(step(carry))
+    times: list[float] = []
+    while len(times) < timing.updates:
+        t0 = time.perf_counter()
+        carry = jax.block_until_ready(step(carry))
+        times.append(time.perf_counter() - t0)
+        if len(times) >= timing.min_updates and sum(times) > timing.max_seconds:
+            break
+    return carry, times
+
+
+def compile_timed(jitted, *args) -> tuple[Any, float, float]:
+    """(compiled, lower seconds, compile seconds): tracing/lowering and XLA compilation timed apart."""
+    t0 = time.perf_counter()
+    lowered = jitted.lower(*args)
+    t1 = time.perf_counter()
+    compiled = lowered.compile()
+    t2 = time.perf_counter()
+    return compiled, t1 - t0, t2 - t1
+
+
+def compiled_footprint(compiled) -> int | None:
+    """Device bytes one call of a compiled program holds at its peak, by XLA's buffer assignment:
+    arguments + outputs - donated aliases + temporaries (per device when sharded). None if unknown."""
+    try:
+        m = compiled.memory_analysis()
+        return int(m.argument_size_in_bytes + m.output_size_in_bytes - m.alias_size_in_bytes + m.temp_size_in_bytes)
+    except Exception:  # noqa: BLE001 - a backend without memory analysis (or None): unknown
+        return None
+
+
+def memory_stats() -> dict:
+    import jax
+
+    try:
+        return jax.devices()[0].memory_stats() or {}
+    except Exception:  # noqa: BLE001
+        return {}
+
+
+def process_peak() -> int | None:
+    """Process-wide peak device bytes of device 0 (monotone over the process; None on CPU)."""
+    return memory_stats().get("peak_bytes_in_use")
+
+
+def bytes_limit() -> int | None:
+    return memory_stats().get("bytes_limit")
+
+
+def is_oom(error: BaseException) -> bool:
+    text = f"{type(error).__name__}: {error}"
+    return any(s in text for s in ("RESOURCE_EXHAUSTED", "Out of memory", "out of memory", "OOM"))
+
+
+def median(xs: list[float]) -> float:
+    return float(statistics.median(xs))
+
+
+def steady(times: list[float], steps: int) -> dict:
+    """Summary of timed calls that each take `steps` env steps."""
+    med = median(times)
+    return {"update_s": med, "update_s_all": [round(t, 5) for t in times],
+            "env_steps_per_s": steps / med, "steps_per_update": steps}
+
+
+def cleanup():
+    gc.collect()
+
+
+def device_info() -> dict:
+    import jax
+
+    devs = jax.devices()
+    versions = {"jax": jax.__version__}
+    for name in ("jaxlib", "brax", "mujoco", "mujoco_mjx", "flax", "optax"):
+        try:
+            from importlib.metadata import version
+
+            versions[name] = version(name.replace("_", "-"))
+        except Exception:  # noqa: BLE001
+            pass
+    return {
+        "device": getattr(devs[0], "device_kind", str(devs[0])),
+        "platform": devs[0].platform,
+        "device_count": jax.device_count(),
+        "local_device_count": jax.local_device_count(),
+        "process_count": jax.process_count(),
+        "bytes_limit": bytes_limit(),
+        "versions": versions,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "mem_fraction": os.environ.get("XLA_PYTHON_CLIENT_MEM_FRACTION", ""),
+        "preallocate": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", ""),
+    }
+
+
+def finite(x: float | None) -> bool:
+    return x is not None and isinstance(x, (int, float)) and math.isfinite(x)

@@ -1,0 +1,283 @@
+"""cdjax benchmarks: one command, all cases of a suite measured in this one process.
+
+    python -m benchmarks.run --suite compare    # ceiling, Brax PPO, cdjax arms at the matched config
+    python -m benchmarks.run --suite seeds      # 1/8/32/128 vmapped seeds (sharded over all local devices)
+    python -m benchmarks.run --suite envs       # num_envs 512..8192, one seed
+    python -m benchmarks.run --suite devices    # a sweep on 1 device vs all devices (multi-GPU hosts)
+    python -m benchmarks.run --tiny --suite all # CPU smoke test of every part (CI)
+    python -m benchmarks.run --merge DIR [DIR ...] --write-results benchmarks/RESULTS.md   # no device needed
+
+Each suite writes results.json / results.md / results.png into --out (default
+benchmarks/results/<date>-<device>-<suite>; the JSON is rewritten after every case, so a killed run
+keeps what it measured) and prints the markdown last. See benchmarks/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import pathlib
+import shlex
+import sys
+import time
+import traceback
+
+if __package__ in (None, ""):  # `python benchmarks/run.py` as well as `python -m benchmarks.run`
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from benchmarks import report  # noqa: E402
+from benchmarks.common import FULL, TINY, Spec, Timing, cleanup  # noqa: E402
+
+SUITES = ("compare", "seeds", "envs", "devices")
+COMPARE_CASES = ("brax-ppo", "ceiling", "collect", "model-free", "mbmf", "cd-fast", "cd-w2-unroll", "cd-default")
+SCALING_CASES = ("cd-fast", "model-free")  # the designated CD first: its 32-vs-1 ratio is a target
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+
+def parse(argv):
+    p = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--suite", nargs="+", default=["compare"], choices=[*SUITES, "all"],
+                   help="parts to run in this process (GPU: one per command, each fits in ~9 minutes)")
+    p.add_argument("--tiny", action="store_true", help="CPU smoke sizes (point env, 16 envs); numbers mean nothing")
+    p.add_argument("--cases", nargs="+", choices=COMPARE_CASES, help="compare: only these cases (default: all)")
+    p.add_argument("--scaling-cases", nargs="+", choices=SCALING_CASES, default=list(SCALING_CASES),
+                   help="seeds/envs: cdjax cases to scale (default: cd-fast model-free)")
+    p.add_argument("--env", help="task (default ant; tiny: point)")
+    p.add_argument("--num-envs", type=int, help="compare: num_envs (default 4096)")
+    p.add_argument("--seed-envs", type=int, help="seeds/devices: num_envs per seed (default 256)")
+    p.add_argument("--seed-counts", type=int, nargs="+", help="seeds: vmapped seed counts (default 1 8 32 128)")
+    p.add_argument("--device-seed-counts", type=int, nargs="+", help="devices: seed counts (default 32 128)")
+    p.add_argument("--env-counts", type=int, nargs="+", help="envs: num_envs values (default 512 ... 8192)")
+    p.add_argument("--updates", type=int, help="timed calls per case (default 5)")
+    p.add_argument("--max-case-s", type=float, help="stop timing a case after this many timed seconds (min 2 calls)")
+    p.add_argument("--brax-steps-per-epoch", type=int, default=2, help="Brax training steps per timed epoch")
+    p.add_argument("--brax-steady-epochs", type=int, default=3, help="Brax epochs timed after the 2 warm-up epochs")
+    p.add_argument("--ceiling-len", type=int, default=200, help="ceiling: steps per timed scan")
+    p.add_argument("--budget-s", type=float, default=420.0,
+                   help="skip the remaining cases once this process has run this long (default 420 s)")
+    p.add_argument("--out", help="output directory (results.json, results.md, results.png)")
+    p.add_argument("--write-results", metavar="PATH", help="also render PATH (e.g. benchmarks/RESULTS.md) + PATH.png")
+    p.add_argument("--merge", nargs="+", metavar="DIR", help="merge these results (dirs or json) instead of running")
+    p.add_argument("--cache", default=os.environ.get("CDJAX_JAX_CACHE"),
+                   help="persistent compilation cache dir (default off on GPU so compile times are honest; "
+                        "tiny: .jax_cache)")
+    p.add_argument("--trace", metavar="DIR", help="compare: write a jax.profiler trace of one update per cdjax case")
+    p.add_argument("--distributed", action="store_true",
+                   help="call jax.distributed.initialize() first (several hosts; see README)")
+    p.add_argument("--coordinator", help="--distributed: coordinator host:port (default: auto-detected)")
+    p.add_argument("--num-processes", type=int, help="--distributed: number of processes (default: auto-detected)")
+    p.add_argument("--process-id", type=int, help="--distributed: this process's id (default: auto-detected)")
+    p.add_argument("--dry-run", action="store_true", help="print the plan (configs, env steps) and exit")
+    args = p.parse_args(argv)
+    args.suite = list(SUITES) if "all" in args.suite else list(dict.fromkeys(args.suite))
+    return args
+
+
+def specs(args) -> tuple[Spec, Spec]:
+    base = TINY if args.tiny else FULL
+    if args.env:
+        base = Spec(**{**base.__dict__, "env": args.env})
+    main = base.with_num_envs(args.num_envs) if args.num_envs else base
+    seed_envs = args.seed_envs or (16 if args.tiny else 256)
+    return main, base.with_num_envs(seed_envs)
+
+
+def defaults(args):
+    tiny = args.tiny
+    args.seed_counts = args.seed_counts or ([1, 2, 4] if tiny else [1, 8, 32, 128])
+    args.device_seed_counts = args.device_seed_counts or ([2, 4] if tiny else [32, 128])
+    args.env_counts = args.env_counts or ([16, 32] if tiny else [512, 1024, 2048, 4096, 8192])
+    args.updates = args.updates or (3 if tiny else 5)
+    args.max_case_s = args.max_case_s or (5.0 if tiny else 20.0)
+    if tiny:
+        args.ceiling_len = min(args.ceiling_len, 20)
+    if args.cache is None and tiny:
+        args.cache = str(REPO / ".jax_cache")
+    return args
+
+
+class Suite:
+    """Runs cases with error capture and a process time budget; rewrites results.json after each."""
+
+    def __init__(self, args, meta: dict, out_dir: str | None):
+        self.args, self.t0, self.out_dir = args, time.perf_counter(), out_dir
+        self.results = {"metas": [meta], "part_meta": {}, "parts": {}}
+
+    def part(self, name: str) -> list:
+        self.results["part_meta"][name] = 0
+        return self.results["parts"].setdefault(name, [])
+
+    def run_case(self, label: str, fn) -> dict:
+        from benchmarks.scaling import classify_error
+
+        elapsed = time.perf_counter() - self.t0
+        if elapsed > self.args.budget_s:
+            row = {"case": label, "status": f"skipped (time budget {self.args.budget_s:.0f} s used)"}
+            print(f"[{elapsed:6.0f}s] {label}: skipped, time budget used", flush=True)
+            return row
+        t0 = time.perf_counter()
+        try:
+            row = fn()
+        except Exception as e:  # noqa: BLE001 - a failed case is a result, the suite goes on
+            status = classify_error(e)
+            first_line = str(e).splitlines()[0][:300] if str(e) else ""
+            row = {"case": label, "status": status, "error": f"{type(e).__name__}: {first_line}"}
+            if status != "OOM":
+                traceback.print_exc()
+        row["case_wall_s"] = round(time.perf_counter() - t0, 2)
+        cleanup()
+        sps = row.get("env_steps_per_s")
+        msg = (f"{sps:,.0f} env steps/s, {row.get('update_s', float('nan')):.4f} s/update, compile "
+               f"{row.get('compile_s', float('nan')):.1f} s" if row.get("status") == "ok" else row.get("status"))
+        print(f"[{time.perf_counter() - self.t0:6.0f}s] {label}: {msg} (case {row['case_wall_s']:.0f} s)", flush=True)
+        return row
+
+    def add(self, part: str, row: dict) -> None:
+        self.part(part).append(row)
+        self.save()
+
+    def save(self) -> None:
+        if self.out_dir:
+            import json
+
+            pathlib.Path(self.out_dir).mkdir(parents=True, exist_ok=True)
+            (pathlib.Path(self.out_dir) / "results.json").write_text(json.dumps(self.results, indent=1, default=str))
+
+
+def run_compare(suite: Suite, spec: Spec, timing: Timing, args) -> None:
+    from benchmarks import throughput
+    from benchmarks.brax_ppo import brax_ppo
+
+    cases = args.cases or COMPARE_CASES
+    suite.part("compare")
+    # Brax first: the process-wide peak memory is then Brax's own (the other rows use XLA's compiled footprint).
+    for case in COMPARE_CASES:
+        if case not in cases:
+            continue
+        if case == "brax-ppo":
+            fn = lambda: brax_ppo(spec, args.brax_steps_per_epoch, args.brax_steady_epochs)  # noqa: E731
+        elif case == "ceiling":
+            fn = lambda: throughput.ceiling(spec, timing, args.ceiling_len)  # noqa: E731
+        elif case == "collect":
+            fn = lambda: throughput.collect(spec, timing)  # noqa: E731
+        else:
+            fn = lambda case=case: throughput.cdjax_update(spec, case, timing, args.trace)  # noqa: E731
+        row = suite.run_case(case, fn)
+        row["case"] = case
+        suite.add("compare", row)
+
+
+def run_seeds(suite: Suite, spec: Spec, timing: Timing, args) -> None:
+    from benchmarks.scaling import seed_scaling
+
+    suite.part("seeds")
+    for row in seed_scaling(spec, args.scaling_cases, args.seed_counts, timing, suite.run_case):
+        row["mesh_devices"] = row.get("mesh_devices") or suite.results["metas"][0]["device_count"]
+        suite.add("seeds", row)
+
+
+def run_devices(suite: Suite, spec: Spec, timing: Timing, args) -> None:
+    import jax
+
+    from benchmarks.scaling import seed_scaling
+
+    suite.part("devices")
+    meshes = [1] + ([jax.device_count()] if jax.device_count() > 1 else [])
+    if jax.device_count() == 1:
+        print("devices: only one device here; measuring the 1-device mesh only", flush=True)
+    for n in meshes:
+        for row in seed_scaling(spec, ["cd-fast"], args.device_seed_counts, timing, suite.run_case, mesh_devices=n):
+            row["mesh_devices"] = n
+            suite.add("devices", row)
+
+
+def run_envs(suite: Suite, spec: Spec, timing: Timing, args) -> None:
+    from benchmarks import throughput
+
+    suite.part("envs")
+    for n in args.env_counts:
+        s = spec.with_num_envs(n)
+        for case in ("ceiling", *args.scaling_cases):
+            if case == "ceiling":
+                fn = lambda s=s: throughput.ceiling(s, timing, args.ceiling_len)  # noqa: E731
+            else:
+                fn = lambda s=s, case=case: throughput.cdjax_update(s, case, timing)  # noqa: E731
+            row = suite.run_case(f"{case} @ {n} envs", fn)
+            row.update(case=case, num_envs=n)
+            suite.add("envs", row)
+
+
+def main(argv=None) -> dict:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = defaults(parse(argv))
+    command = "python -m benchmarks.run " + shlex.join(argv)
+    if args.merge:
+        results = report.merge([report.load(p) for p in args.merge])
+        if args.out:
+            md = report.write_out(results, args.out)
+        else:
+            md = report.markdown(results)
+        if args.write_results:
+            report.write_results_md(results, args.write_results, command)
+        print(md)
+        return results
+
+    spec, seed_spec = specs(args)
+    if args.dry_run:
+        import json
+
+        print(json.dumps({"suites": args.suite, "compare_spec": spec.describe(), "seed_spec": seed_spec.describe(),
+                          "configs": {case: str(spec.config(**ov)) for case, (_, ov, _) in
+                                      __import__("benchmarks.throughput", fromlist=["x"]).cdjax_cases(spec).items()},
+                          "env_counts": args.env_counts, "seed_counts": args.seed_counts}, indent=1))
+        for n in args.env_counts:
+            spec.with_num_envs(n).config()
+        return {}
+
+    import jax
+
+    if args.distributed:
+        jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
+                                   process_id=args.process_id)
+    if args.cache:
+        jax.config.update("jax_compilation_cache_dir", args.cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    from benchmarks.common import device_info
+
+    info = device_info()
+    date = datetime.datetime.now().strftime("%Y-%m-%d")
+    meta = {**info, "suite": args.suite, "command": command, "date": date,
+            "time": datetime.datetime.now().isoformat(timespec="seconds"), "tiny": args.tiny,
+            "compilation_cache": args.cache or os.environ.get("JAX_COMPILATION_CACHE_DIR"),
+            "spec": spec.describe(), "seed_spec": seed_spec.describe(),
+            "timing": {"updates": args.updates, "max_case_s": args.max_case_s},
+            "seed_counts": args.seed_counts, "env_counts": args.env_counts}
+    print(f"cdjax benchmarks: {info['device']} x{info['device_count']} ({info['platform']}), jax "
+          f"{info['versions'].get('jax')}, suites {args.suite}{' (tiny)' if args.tiny else ''}", flush=True)
+    out_dir = args.out
+    if out_dir is None and not args.tiny:
+        slug = "".join(c if c.isalnum() else "-" for c in info["device"].lower()).strip("-")
+        out_dir = str(REPO / "benchmarks" / "results" / f"{date}-{slug}-{'-'.join(args.suite)}")
+    if jax.process_index() != 0:
+        out_dir = None
+    suite = Suite(args, meta, out_dir)
+    timing = Timing(updates=args.updates, max_seconds=args.max_case_s)
+    runners = {"compare": (run_compare, spec), "seeds": (run_seeds, seed_spec), "envs": (run_envs, spec),
+               "devices": (run_devices, seed_spec)}
+    for name in args.suite:
+        fn, s = runners[name]
+        fn(suite, s, timing, args)
+    results = report.add_ratios(suite.results)
+    md = report.write_out(results, out_dir) if out_dir else report.markdown(results)
+    if args.write_results:
+        report.write_results_md(results, args.write_results, command)
+    if out_dir:
+        print(f"\nwrote {out_dir}/results.json, results.md, results.png", flush=True)
+    print("\n" + md, flush=True)
+    return results
+
+
+if __name__ == "__main__":
+    main()

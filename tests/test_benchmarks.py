@@ -1,0 +1,186 @@
+"""Benchmarks: the tiny CPU suite runs end to end in this process; ratios, targets and tables follow
+from the raw numbers; the matched configuration is what Brax PPO's semantics say."""
+
+import inspect
+import json
+import math
+import pathlib
+import sys
+
+import pytest
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # `benchmarks` is not an installed package
+from benchmarks import report  # noqa: E402
+from benchmarks.common import FULL, TINY  # noqa: E402
+from benchmarks.run import main  # noqa: E402
+from benchmarks.scaling import seed_scaling  # noqa: E402
+from benchmarks.throughput import DESIGNATED_CD  # noqa: E402
+
+COMPARE = ["brax-ppo", "ceiling", "collect", "model-free", DESIGNATED_CD]
+
+
+def test_matched_config_follows_brax_ppo_semantics():
+    # Brax: batch_size * num_minibatches / num_envs unrolls of unroll_length per env per training step.
+    assert FULL.unrolls_per_env == 4 and FULL.rollout_len == 80
+    assert FULL.env_steps_per_update == 327_680 == FULL.batch_size * FULL.unroll_length * FULL.num_minibatches
+    config = FULL.config(arm="cd", cc_windows=2)
+    assert (config.num_envs, config.rollout_len, config.num_epochs, config.num_minibatches) == (4096, 80, 8, 32)
+    assert config.minibatch_envs * config.rollout_len == FULL.samples_per_minibatch == 10_240
+    assert config.horizon == 20 and config.env_steps_per_update == FULL.env_steps_per_update
+    kw = FULL.brax_kwargs()
+    assert (kw["num_envs"], kw["unroll_length"], kw["batch_size"], kw["num_minibatches"], kw["num_updates_per_batch"]) \
+        == (4096, 20, 512, 32, 8)
+    # the network widths are Brax's own PPO defaults
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    params = inspect.signature(ppo_networks.make_ppo_networks).parameters
+    assert tuple(params["policy_hidden_layer_sizes"].default) == FULL.policy_hidden == config.policy_hidden
+    assert tuple(params["value_hidden_layer_sizes"].default) == FULL.value_hidden == config.value_hidden
+    # num_envs scaling keeps rollout length and SGD schedule
+    for n in (512, 1024, 2048, 8192):
+        s = FULL.with_num_envs(n)
+        assert s.rollout_len == 80 and s.config().num_minibatches == 32 and s.env_steps_per_update == n * 80
+    assert FULL.with_num_envs(256).config().minibatch_envs == 8
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """One run of the tiny suite (a subset of `--tiny --suite all`: every part except the devices
+    comparison, which needs several devices; 1 and 2 seeds; one num_envs, the compare one, so that its
+    programs come from the compilation cache)."""
+    out = tmp_path_factory.mktemp("bench")
+    main(["--tiny", "--suite", "compare", "seeds", "envs", "--cases", *COMPARE, "--seed-counts", "1", "2",
+          "--scaling-cases", "model-free", DESIGNATED_CD, "--env-counts", "16", "--out", str(out)])
+    return out, json.loads((out / "results.json").read_text())
+
+
+def test_tiny_suite_measures_every_case(tiny):
+    out, results = tiny
+    parts = results["parts"]
+    assert [r["case"] for r in parts["compare"]] == COMPARE
+    assert {(r["case"], r["seeds"]) for r in parts["seeds"]} == {
+        (c, n) for c in ("model-free", DESIGNATED_CD) for n in (1, 2)}
+    assert {(r["case"], r["num_envs"]) for r in parts["envs"]} == {
+        ("ceiling", 16), ("model-free", 16), (DESIGNATED_CD, 16)}
+    for part, rows in parts.items():
+        for r in rows:
+            assert r["status"] == "ok", (part, r)
+            assert math.isfinite(r["env_steps_per_s"]) and r["env_steps_per_s"] > 0, (part, r)
+            assert r["update_s"] > 0 and r["compile_s"] >= 0, (part, r)
+            assert r.get("finite", True), (part, r)
+    brax = parts["compare"][0]
+    assert len(brax["epoch_s_all"]) == 5 and brax["env_class"] == "PointMass"
+    meta = results["metas"][0]
+    assert meta["tiny"] and meta["device_count"] >= 1 and meta["command"].startswith("python -m benchmarks.run")
+    assert (out / "results.png").stat().st_size > 0
+
+
+def test_ratios_follow_from_raw_numbers(tiny):
+    _, results = tiny
+    rows = {r["case"]: r for r in results["parts"]["compare"]}
+    ceiling, brax, mf = rows["ceiling"], rows["brax-ppo"], rows["model-free"]
+    for r in rows.values():
+        assert r["vs_ceiling"] == pytest.approx(r["env_steps_per_s"] / ceiling["env_steps_per_s"])
+        assert r["vs_brax"] == pytest.approx(r["env_steps_per_s"] / brax["env_steps_per_s"])
+    cd = rows[DESIGNATED_CD]
+    assert cd["wall_vs_model_free"] == pytest.approx(cd["update_s"] / mf["update_s"])
+    assert cd["env_steps_per_s"] == pytest.approx(cd["steps_per_update"] / cd["update_s"])
+    seeds = {(r["case"], r["seeds"]): r for r in results["parts"]["seeds"]}
+    for case in ("model-free", DESIGNATED_CD):
+        one, two = seeds[(case, 1)], seeds[(case, 2)]
+        assert two["steps_per_update"] == 2 * one["steps_per_update"] == 2 * TINY.with_num_envs(16).env_steps_per_update
+        assert two["speedup_vs_1"] == pytest.approx(two["env_steps_per_s"] / one["env_steps_per_s"])
+        assert two["s_per_seed_update"] == pytest.approx(two["update_s"] / 2)
+    by = {t["target"]: t for t in report.targets(results)}
+    assert by["cd_vs_brax"]["value"] == pytest.approx(cd["env_steps_per_s"] / brax["env_steps_per_s"])
+    assert by["mf_vs_brax"]["value"] == pytest.approx(mf["env_steps_per_s"] / brax["env_steps_per_s"])
+    assert by["cd_compile_s"]["value"] == pytest.approx(cd["compile_s"])
+    assert by["seeds32_vs_1"]["met"] is None  # 32 seeds not measured at tiny sizes
+
+
+def test_markdown_lists_every_case(tiny):
+    out, results = tiny
+    md = (out / "results.md").read_text()
+    compare_section = md.split("### seeds")[0]
+    for case in COMPARE:
+        assert f"| {case} " in compare_section or f"**{case}**" in compare_section, case
+    assert "### seeds" in md and "### envs" in md and md.rstrip().split("### targets")[-1].count("\n|") >= 6
+    for case in ("model-free", DESIGNATED_CD):
+        assert f"| {case} | 2 | 16 |" in md
+    assert "tiny CPU smoke" in md
+    _assert_tables_rectangular(md)
+    # RESULTS.md generator: device, exact command, tables, plot
+    target = out / "RESULTS.md"
+    report.write_results_md(results, target, "python -m benchmarks.run --merge x --write-results RESULTS.md")
+    text = target.read_text()
+    assert results["metas"][0]["command"] in text and results["metas"][0]["device"] in text
+    assert "![throughput and scaling](RESULTS.png)" in text and (out / "RESULTS.png").exists()
+
+
+def _assert_tables_rectangular(md: str):
+    """Every markdown table has as many cells in each row as in its header."""
+    blocks, current = [], []
+    for line in md.splitlines() + [""]:
+        if line.startswith("|"):
+            current.append(line)
+        elif current:
+            blocks.append(current)
+            current = []
+    assert blocks
+    for block in blocks:
+        assert len({line.count("|") for line in block}) == 1, block
+
+
+def _row(case, sps, update_s, **kw):
+    return {"case": case, "status": "ok", "env_steps_per_s": sps, "update_s": update_s, **kw}
+
+
+def test_targets_and_scaling_on_hand_made_numbers():
+    steps = 327_680
+    results = {"metas": [{"device": "H200", "device_count": 1}], "part_meta": {"compare": 0, "seeds": 0},
+               "parts": {"compare": [
+                   _row("brax-ppo", 245_000.0, steps / 245_000, kind="brax", steps_per_update=steps),
+                   _row("ceiling", 1_800_000.0, 0.5, kind="ceiling", steps_per_update=900_000),
+                   _row("model-free", 490_000.0, steps / 490_000, kind="cdjax", arm="model-free",
+                        steps_per_update=steps),
+                   _row(DESIGNATED_CD, 300_000.0, steps / 300_000, kind="cdjax", arm="cd", compile_s=70.0,
+                        steps_per_update=steps),
+                   {"case": "cd-default", "status": "error", "error": "boom"}],
+                   "seeds": [_row(DESIGNATED_CD, 10_000.0, 2.0, seeds=1, mesh_devices=1, mem_bytes=1_000),
+                             _row(DESIGNATED_CD, 90_000.0, 7.1, seeds=32, mesh_devices=1, mem_bytes=32_000),
+                             {"case": DESIGNATED_CD, "status": "OOM", "seeds": 128, "mesh_devices": 1}]}}
+    report.add_ratios(results)
+    by = {t["target"]: t for t in report.targets(results)}
+    assert by["cd_vs_brax"]["value"] == pytest.approx(300 / 245) and by["cd_vs_brax"]["met"]
+    assert by["mf_vs_brax"]["value"] == pytest.approx(2.0) and by["mf_vs_brax"]["met"]
+    assert by["cd_wall_vs_mf"]["value"] == pytest.approx(490 / 300) and by["cd_wall_vs_mf"]["met"] is False
+    assert by["seeds32_vs_1"]["value"] == pytest.approx(9.0) and by["seeds32_vs_1"]["met"]
+    assert by["cd_compile_s"]["met"] is False
+    md = report.markdown(results)
+    assert "**MISSED**" in md and "boom" in md and "first OOM at 128" in md and "largest count that ran: 32" in md
+    _assert_tables_rectangular(md)
+    assert "cd_wall_vs_mf missed" in md and "cd_compile_s missed" in md
+    # linear fit through (1, 1000), (32, 32000): 1000 bytes per seed -> 64,000 bytes fit 64 seeds
+    assert report.estimate_max_seeds(results["parts"]["seeds"], 64_000) == 64
+    first = {"compare": [{"case": "x"}], "seeds": [{"case": "y", "seeds": 1}, {"case": "y", "seeds": 8, "v": 1}]}
+    second = {"compare": [{"case": "w"}], "seeds": [{"case": "z", "seeds": 1}, {"case": "y", "seeds": 8, "v": 2}]}
+    merged = report.merge([{"metas": [{"device": "a"}], "part_meta": {"compare": 0, "seeds": 0}, "parts": first},
+                           {"metas": [{"device": "b"}], "part_meta": {"compare": 0, "seeds": 0}, "parts": second}])
+    assert merged["part_meta"] == {"compare": 1, "seeds": 0} and len(merged["metas"]) == 2
+    assert [r["case"] for r in merged["parts"]["compare"]] == ["w"]  # compare: one process, never mixed
+    assert [(r["case"], r["seeds"], r.get("v")) for r in merged["parts"]["seeds"]] == [("y", 1, None), ("z", 1, None),
+                                                                                      ("y", 8, 2)]
+
+
+def test_seed_scaling_stops_growing_after_oom():
+    calls = []
+
+    def fake_run_case(label, fn):
+        calls.append(label)
+        runs = int(label.split("x")[-1])
+        return {"status": "OOM"} if runs >= 8 else _row("model-free", 1.0 * runs, 1.0, seeds=runs)
+
+    rows = list(seed_scaling(TINY, ["model-free"], [1, 8, 32, 128], None, fake_run_case))
+    assert calls == ["model-free x1", "model-free x8"]
+    assert [r["status"] for r in rows] == ["ok", "OOM"] + ["not tried (smaller count was OOM)"] * 2
+    assert [r["seeds"] for r in rows] == [1, 8, 32, 128]
