@@ -133,6 +133,7 @@ class HParams:
     lr_policy: float = 3e-4  # Adam learning rate of the policy
     lr_value: float = 3e-4  # Adam learning rate of the value function
     lr_model: float = 1e-3  # Adam learning rate of the dynamics model and the encoder (Mb-Mf: 1e-3)
+    lr_distill: float = 1e-3  # Adam learning rate of the Mb-Mf phase's behaviour cloning (Nagabandi: 1e-3)
     max_grad_norm: float = 1.0  # global-norm clipping, applied per parameter group
     gamma: float = 0.99  # discount
     gae_lambda: float = 0.95  # GAE lambda

@@ -29,7 +29,7 @@ from flax import struct
 from cdjax import losses, networks
 from cdjax import normalize as nz
 from cdjax.config import Config, HParams
-from cdjax.envs import EnvState, make_env
+from cdjax.envs import EnvState, make_env, strong_types
 from cdjax.rollout import EpisodeStats, Transition, closed_loop, open_loop
 
 
@@ -81,17 +81,6 @@ class Trainer(NamedTuple):
     act: Callable  # (params, norms, obs [B, O], key or None) -> action [B, A]; None: deterministic
     model_step: Callable  # (model_params, norms, obs [..., O], action [..., A]) -> (next_obs, reward)
     env: Any  # the BatchedEnv
-
-
-def _strong(tree):
-    """Drop weak types so that a state produced by init and by update has the same type (compile once)."""
-
-    def cast(x):
-        if not hasattr(x, "dtype") or jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
-            return x
-        return jnp.asarray(x, dtype=x.dtype)
-
-    return jax.tree.map(cast, tree)
 
 
 def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientTransformation:
@@ -147,7 +136,7 @@ def make_trainer(config: Config) -> Trainer:
             episodes=EpisodeStats.create(config.num_envs),
             history=History.create(config.history_len - 1, config.eval_envs, O, A),
             last_return=nan, last_disc_return=nan, key=key_train, update_step=jnp.zeros((), jnp.int32))
-        return _strong(state)
+        return strong_types(state)
 
     def loss_fn(params, norms, mb, offsets, hp, with_consistency: bool = True):
         """Total loss of one minibatch mb (leaves [T, Bm, ...]) -> (loss, metrics)."""
@@ -284,7 +273,7 @@ def make_trainer(config: Config) -> Trainer:
             params=params, opt_state=opt_state, norms=new_norms, env_state=env_state, episodes=episodes,
             history=history, last_return=last_return, last_disc_return=last_disc, key=key,
             update_step=state.update_step + 1)
-        return _strong(new_state), metrics
+        return strong_types(new_state), metrics
 
     return Trainer(config=config, init=init, update=update, collect=collect, loss=loss_fn, act=act,
                    model_step=model_step, env=env)

@@ -92,9 +92,15 @@ class Step:
     valid: jax.Array  # bool: False when the physics went non-finite; the transition must be masked
 
 
-def _strong(tree):
-    """Drop weak types (Brax returns weak-typed reward/done), so a jitted carry compiles once."""
-    return jax.tree.map(lambda x: jnp.asarray(x, dtype=x.dtype) if hasattr(x, "dtype") else x, tree)
+def strong_types(tree):
+    """Drop weak types (Brax returns weak-typed reward/done), so that a jitted carry compiles once."""
+
+    def cast(x):
+        if not hasattr(x, "dtype") or jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+            return x
+        return jnp.asarray(x, dtype=x.dtype)
+
+    return jax.tree.map(cast, tree)
 
 
 def _where(mask, a, b):
@@ -129,7 +135,7 @@ class BatchedEnv:
         self.action_size = int(env.action_size)
 
     def _reset_core(self, key):
-        return _strong(jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs)))
+        return strong_types(jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs)))
 
     def reset(self, key: jax.Array) -> EnvState:
         key_reset, key_next = jax.random.split(key)
@@ -145,7 +151,7 @@ class BatchedEnv:
         reward = jnp.zeros((B,), jnp.float32)
         done = jnp.zeros((B,), bool)
         for _ in range(self.action_repeat):
-            core = _strong(jax.vmap(self.env.step)(core, action))
+            core = strong_types(jax.vmap(self.env.step)(core, action))
             reward = reward + jnp.where(done, 0.0, core.reward.astype(jnp.float32))
             done = done | (core.done > 0.5)
         next_obs = core.obs.astype(jnp.float32)
