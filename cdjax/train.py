@@ -266,7 +266,7 @@ def make_trainer(config: Config) -> Trainer:
             "episode/discounted_return": last_disc,
             "episode/count": count,
             "env/reward_mean": losses.masked_mean(traj.reward, traj.valid),
-            "env/invalid_fraction": 1.0 - traj.valid.astype(jnp.float32).mean(),
+            "env/invalid_fraction": (~traj.valid).astype(jnp.float32).mean(),
             "opt/skipped_updates": opt_state.total_notfinite.astype(jnp.float32),
         })
         new_state = TrainState(

@@ -34,10 +34,19 @@ BRAX_MJX_ENVS = (
 )
 
 
-def _brax_env(name: str, **kwargs):
-    import brax.envs
+def _quiet_import(module: str):
+    """Import a module whose import prints to stdout (mujoco.mjx announces its optional warp backend)."""
+    import contextlib
+    import importlib
+    import io
 
-    return brax.envs.get_environment(name, backend="mjx", **kwargs)
+    with contextlib.redirect_stdout(io.StringIO()):
+        return importlib.import_module(module)
+
+
+def _brax_env(name: str, **kwargs):
+    brax_envs = _quiet_import("brax.envs")
+    return brax_envs.get_environment(name, backend="mjx", **kwargs)
 
 
 def _swimmer(**kwargs):
@@ -50,7 +59,7 @@ def _registry() -> dict[str, Callable[..., Any]]:
     table: dict[str, Callable[..., Any]] = {name: functools.partial(_brax_env, name) for name in BRAX_MJX_ENVS}
     table["point"] = PointMass  # tiny deterministic pure-JAX system for plumbing tests
     try:
-        import cdjax.envs.swimmer  # noqa: F401
+        _quiet_import("cdjax.envs.swimmer")
 
         table["swimmer"] = _swimmer
     except ImportError:  # pragma: no cover - the swimmer module is optional until it lands
@@ -131,7 +140,9 @@ class BatchedEnv:
         self.episode_length = episode_length
         self.action_repeat = action_repeat
         self.reset_mode = reset_mode
-        self.observation_size = int(env.observation_size)
+        # Brax's observation_size property runs reset op by op (~30 s for an MJX env on a CPU): trace it instead.
+        shapes = jax.eval_shape(env.reset, jax.random.key(0))
+        self.observation_size = int(shapes.obs.shape[-1])
         self.action_size = int(env.action_size)
 
     def _reset_core(self, key):

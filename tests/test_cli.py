@@ -1,0 +1,178 @@
+"""The `cdjax` command: options derived from the dataclasses, presets, bad input as one sentence with
+exit status 2, an end-to-end sweep / resume / eval / plot, and Ctrl-C in a real process."""
+
+import dataclasses
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from cdjax import Config, HParams
+from cdjax.cli import build_parser, main, sweep_spec
+from cdjax.runner import SweepSpec, prepare
+
+from _shared import POINT
+from conftest import CACHE
+
+# A tiny point-mass sweep on the command line (2 updates per chunk of 192 env steps).
+TINY = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon", "4", "--num-epochs", "2",
+        "--num-minibatches", "2", "--episode-length", "40", "--policy-hidden", "16", "--value-hidden", "16",
+        "--model-hidden", "32", "--encoder-dim", "8", "--eval-horizon", "10", "--eval-envs", "4",
+        "--seeds", "2", "--chunk-updates", "2", "--no-progress"]
+
+
+def _fail(capsys, argv) -> str:
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2, err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("cdjax: ") and lines[0].endswith("."), err
+    return lines[0]
+
+
+@pytest.fixture
+def other_run(tmp_path):
+    """A directory that holds a run (run.json only; nothing compiled)."""
+    out = tmp_path / "other"
+    prepare(SweepSpec(out=out, config=POINT, seeds=2, total_env_steps=2000), resume=False)
+    return out
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["sweep", "--out", "{d}/a", "--env", "antt"], "Unknown env 'antt'"),
+    (["sweep", "--out", "{d}/a", "--preset", "nope"], "Unknown preset 'nope'"),
+    (["sweep", "--out", "{d}/a", "--bogus", "3"], "unknown option(s): --bogus 3; see `cdjax sweep --help`"),
+    (["sweep", "--out", "{d}/a", "--alhpa", "1"], "unknown option(s): --alhpa"),
+    (["sweep", "--out", "{d}/a", "--alpha", "0", "-1"], "--alpha must not be negative, got -1.0"),
+    (["sweep", "--out", "{d}/a", "--gamma", "1.5"], "--gamma must be between 0 and 1"),
+    (["sweep", "--out", "{d}/a", "--arms", "dreamer"], "Unknown arm 'dreamer'"),
+    (["sweep", "--out", "{d}/a", "--steps", "1.5"], "not a whole number"),
+    (["sweep", "--out", "{d}/a", "--horizon", "40", "--rollout-len", "32"], "longer than the rollout"),
+    (["sweep", "--out", "{d}/a", "--encoder", "lstm"], "invalid choice: 'lstm'"),
+    (["sweep", "--env", "point"], "the following arguments are required: --out"),
+    (["sweep", "--out", "{d}", "--resume"], "holds no run (no run.json)"),
+    (["eval", "{d}"], "holds no run"),
+    (["plot", "{d}"], "holds no run"),
+    (["frobnicate"], "invalid choice: 'frobnicate'"),
+])
+def test_bad_input_is_one_sentence_and_exit_2(capsys, tmp_path, argv, words):
+    line = _fail(capsys, [a.replace("{d}", str(tmp_path)) for a in argv])
+    assert words in line
+
+
+def test_out_holding_another_run_is_refused(capsys, other_run):
+    before = (other_run / "run.json").read_text()
+    line = _fail(capsys, ["sweep", "--out", str(other_run), "--preset", "point"])
+    assert "already holds a run; continue it with --resume" in line
+    line = _fail(capsys, ["sweep", "--out", str(other_run), "--resume", "--horizon", "3"])
+    assert "--horizon cannot be changed" in line
+    assert (other_run / "run.json").read_text() == before  # nothing overwritten
+    (other_run / "run.json").write_text("{not json")
+    assert "is not valid JSON" in _fail(capsys, ["sweep", "--out", str(other_run), "--resume"])
+
+
+def test_options_are_derived_from_the_dataclasses(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["sweep", "--help"])
+    assert info.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for field in dataclasses.fields(Config):
+        flag = "--" + field.name.replace("_", "-")
+        listed = re.search(re.escape(flag) + r"(?![\w-])", text) is not None  # (--arm is not --arms)
+        assert listed == (field.name not in ("arm", "num_updates")), flag
+    for field in dataclasses.fields(HParams):
+        assert f"--{field.name.replace('_', '-')} X [X ...]" in text
+    assert "environments stepped in parallel per seed (default 2048)" in text  # the comment in config.py
+    assert "weight of the consistency loss" in text
+    assert "cpu-smoke" in text
+
+
+def test_precedence_defaults_then_preset_then_flags():
+    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]))  # noqa: E731
+    spec = parse("--preset", "cpu-smoke", "--num-envs", "16", "--alpha", "0", "0.5", "--seeds", "2")
+    assert spec.config.env == "inverted_pendulum" and spec.config.rollout_len == 32  # preset
+    assert spec.config.num_envs == 16 and spec.grid["alpha"] == (0.0, 0.5) and spec.seeds == 2  # flags
+    assert spec.grid["lr_policy"] == (1e-3,) and spec.arms == ("mbmf", "cd")  # preset
+    assert spec.config.encoder_dim == 32 and spec.config.cc_windows == Config().cc_windows  # preset, default
+    spec = parse("--env", "point", "--steps", "50_000")  # the env's own preset applies without --preset
+    assert spec.config.num_envs == 32 and spec.total_env_steps == 50_000 and spec.seeds == 2
+    spec = parse("--env", "inverted_double_pendulum", "--steps", "5e6")  # no preset of that name: defaults
+    assert spec.config.num_envs == Config().num_envs and spec.grid == {} and spec.total_env_steps == 5_000_000
+    spec = parse("--preset", "ant", "--env", "halfcheetah")
+    assert spec.config.env == "halfcheetah" and spec.config.horizon == 20 and spec.grid["reward_scale"] == (10.0,)
+
+
+def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):
+    out = tmp_path / "run"
+    main(["sweep", *TINY, "--alpha", "0", "1", "--steps", str(4 * 192), "--out", str(out)])
+    captured = capsys.readouterr()
+    assert "compile" in captured.err and "Trained in" in captured.err
+    run = json.loads((out / "run.json").read_text())
+    assert [a["name"] for a in run["arms"]] == ["mbmf", "cd"]
+    assert run["arms"][1]["hp_labels"] == ["alpha=0.0", "alpha=1.0"]
+    assert run["command"].startswith("cdjax sweep --env point")
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == (1 + 2) * 2 * 4 and max(r["update"] for r in rows) == 4
+    assert sorted(p.name for p in (out / "checkpoints" / "cd").iterdir() if p.name.isdigit()) == ["2", "4"]
+    assert list((out / "tb" / "cd" / "alpha=1.0" / "seed1").glob("events.out.tfevents.*"))
+
+    main(["sweep", "--out", str(out), "--resume", "--steps", str(6 * 192), "--no-progress"])
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == (1 + 2) * 2 * 6
+    assert len({(r["arm"], r["hp"], r["seed"], r["update"]) for r in rows}) == len(rows)  # no update twice
+    assert json.loads((out / "run.json").read_text())["num_updates"] == 6
+    assert sorted(p.name for p in (out / "checkpoints" / "mbmf").iterdir() if p.name.isdigit()) == ["4", "6"]
+
+    pytest.importorskip("cdjax.evaluate")
+    capsys.readouterr()
+    main(["eval", str(out), "--episodes", "3"])
+    text = capsys.readouterr().out
+    assert "cd / alpha=1.0" in text and "mbmf / default" in text
+    evals = [json.loads(line) for line in (out / "eval.jsonl").read_text().splitlines()]
+    assert {(e["arm"], e["hp"], e["seed"]) for e in evals if e["episodes"] == 3} == {
+        ("mbmf", "default", 0), ("mbmf", "default", 1), ("cd", "alpha=0.0", 0), ("cd", "alpha=0.0", 1),
+        ("cd", "alpha=1.0", 0), ("cd", "alpha=1.0", 1)}
+    assert all(e["update"] == 6 and len(e["returns"]) == 3 for e in evals if e["episodes"] == 3)
+
+    pytest.importorskip("cdjax.plots")
+    for name in ("summary.md", "summary.csv", "plots/return.png"):
+        (out / name).unlink()
+    main(["plot", str(out)])
+    for name in ("summary.md", "summary.csv", "plots/return.png"):
+        assert (out / name).stat().st_size > 0, name
+    assert "cd" in (out / "summary.md").read_text()
+
+
+def test_ctrl_c_saves_a_checkpoint_and_says_how_to_resume(tmp_path):
+    out = tmp_path / "sigint"
+    env = dict(os.environ, CDJAX_JAX_CACHE=str(CACHE), JAX_PLATFORMS="cpu")
+    cmd = [sys.executable, "-m", "cdjax.cli", "sweep", *TINY, "--arms", "cd", "--chunk-updates", "1",
+           "--steps", str(100_000 * 192), "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and proc.poll() is None:
+            metrics = out / "metrics.jsonl"
+            if metrics.exists() and metrics.stat().st_size > 0:
+                break
+            time.sleep(0.5)
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in err
+    assert f"Resume with: cdjax sweep --out {out} --resume" in err
+    steps = sorted(int(p.name) for p in (out / "checkpoints" / "cd").iterdir() if p.name.isdigit())
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert steps and steps[-1] == max(r["update"] for r in rows)  # the logs end where the checkpoint is
+    assert steps[-1] < 100_000

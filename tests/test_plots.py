@@ -1,0 +1,186 @@
+"""plot_run on a hand-written run directory: files, exact plotted numbers, summary ranking, NaN tolerance."""
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import scipy.stats
+from rliable import metrics as rly_metrics
+
+from cdjax import plots
+
+UPDATES = 20
+STEPS_PER_UPDATE = 512
+RNG = np.random.default_rng(0)
+# arm name -> (arm type, seeds, level of the return curve)
+ARMS = {"good": ("cd", 5, 100.0), "bad": ("model-free", 5, 10.0), "few": ("mbmf", 3, 50.0)}
+
+
+def _return(level, seed, u):
+    """A rising curve with a seed offset: NaN at update 0 (no episode finished yet)."""
+    if u == 0:
+        return None
+    return level * (u / UPDATES) + 3.0 * seed + RNG.normal()
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    run = tmp_path_factory.mktemp("run")
+    info = {"version": 1, "base_config": {"env": "point"}, "seeds": 5, "seed": 0, "total_env_steps": 0,
+            "chunk_updates": 10, "command": "synthetic",
+            "arms": [{"name": name, "arm": arm, "config": {"arm": arm}, "hparams": [{}], "hp_labels": ["alpha=1.0"]}
+                     for name, (arm, _, _) in ARMS.items()]}
+    (run / "run.json").write_text(json.dumps(info))
+    table = {}
+    with (run / "metrics.jsonl").open("w") as f:
+        for name, (arm, seeds, level) in ARMS.items():
+            for s in range(seeds):
+                for u in range(UPDATES):
+                    ret = _return(level, s, u)
+                    if name == "good" and s == 4 and u == 7:
+                        ret = None  # a late gap in one seed
+                    row = {"arm": name, "hp": "alpha=1.0", "seed": s, "update": u,
+                           "env_steps": (u + 1) * STEPS_PER_UPDATE, "wall_s": 0.1 * u,
+                           "episode/return": ret, "episode/discounted_return": None if ret is None else ret / 10,
+                           "loss/total": 1.0 / (u + 1)}
+                    if arm != "model-free":
+                        row["model/openloop_mse_k"] = 0.5 / (u + 1) + 0.01 * s
+                        row["model/openloop_mse_50"] = None if u < 3 else 5.0 / (u + 1)
+                    if arm == "cd":
+                        row["loss/consistency"] = 0.2 + 0.01 * s
+                    table[(name, s, u)] = ret
+                    f.write(json.dumps(row) + "\n")
+        f.write('{"arm": "good", "hp": "alpha=1.0", "seed": 0, "upd')  # a run killed mid-line
+    with (run / "eval.jsonl").open("w") as f:
+        for name, (_, seeds, level) in ARMS.items():
+            for s in range(seeds):
+                for update, bonus in ((10, 0.0), (19, 1.0)):  # the latest evaluation counts
+                    f.write(json.dumps({"arm": name, "hp": "alpha=1.0", "seed": s, "update": update,
+                                        "deterministic": True, "episodes": 4, "eval/return": level * bonus + s,
+                                        "eval/discounted_return": None}) + "\n")
+    paths = plots.plot_run(run, reps=500)
+    return run, paths, table
+
+
+def _csv(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_files_exist(run_dir):
+    run, paths, _ = run_dir
+    for key in ("return", "return_csv", "discounted_return", "discounted_return_csv", "model", "model_csv",
+                "summary_md", "summary_csv"):
+        assert paths[key].exists() and paths[key].stat().st_size > 0, key
+    assert paths["return"].parent == run / "plots" and paths["summary_md"] == run / "summary.md"
+    assert paths["return"].read_bytes()[:4] == b"\x89PNG"
+
+
+def test_load_metrics_shapes_and_nans(run_dir):
+    run, _, table = run_dir
+    curves = plots.load_metrics(run)
+    assert list(curves) == [(name, "alpha=1.0") for name in ARMS]  # run.json order
+    good = curves[("good", "alpha=1.0")]
+    assert good.metrics["episode/return"].shape == (5, UPDATES) and good.arm_type == "cd"
+    assert np.isnan(good.metrics["episode/return"][:, 0]).all() and np.isnan(good.metrics["episode/return"][4, 7])
+    assert good.metrics["episode/return"][2, 5] == pytest.approx(table[("good", 2, 5)])
+    np.testing.assert_allclose(good.env_steps, (np.arange(UPDATES) + 1) * STEPS_PER_UPDATE)
+    assert "loss/consistency" not in curves[("bad", "alpha=1.0")].metrics
+
+
+def test_csv_iqm_equals_hand_computation(run_dir):
+    _, paths, table = run_dir
+    rows = {(r["arm"], int(r["update"])): r for r in _csv(paths["return_csv"])}
+    # 5 seeds: the 25% trimmed mean drops the lowest and the highest value
+    values = np.array([table[("bad", s, 12)] for s in range(5)])
+    hand = np.sort(values)[1:4].mean()
+    row = rows[("bad", 12)]
+    assert float(row["iqm"]) == pytest.approx(hand, rel=1e-9)
+    assert float(row["iqm"]) == pytest.approx(rly_metrics.aggregate_iqm(values[:, None]), rel=1e-9)
+    assert float(row["ci_low"]) <= hand <= float(row["ci_high"]) and int(row["n_seeds"]) == 5
+    assert float(row["env_steps"]) == 13 * STEPS_PER_UPDATE
+    # the gap: only 4 seeds at update 7 of "good", IQM of those 4 (middle two)
+    four = np.sort([table[("good", s, 7)] for s in range(4)])
+    assert float(rows[("good", 7)]["iqm"]) == pytest.approx(four[1:3].mean()) and rows[("good", 7)]["n_seeds"] == "4"
+    # fewer than 4 seeds: the IQM is the mean
+    three = [table[("few", s, 12)] for s in range(3)]
+    assert float(rows[("few", 12)]["iqm"]) == pytest.approx(np.mean(three))
+    # before any finished episode: nothing plotted, no crash
+    assert rows[("good", 0)]["iqm"] == "" and rows[("good", 0)]["n_seeds"] == "0"
+
+
+def test_iqm_columns_matches_rliable():
+    scores = RNG.normal(size=(7, 1, 6))
+    expected = [rly_metrics.aggregate_iqm(scores[..., p]) for p in range(6)]
+    np.testing.assert_allclose(plots.iqm_columns(scores), expected)
+
+
+def test_model_csv_mean_across_seeds(run_dir):
+    _, paths, _ = run_dir
+    rows = _csv(paths["model_csv"])
+    assert {r["metric"] for r in rows} == {"model/openloop_mse_k", "model/openloop_mse_50", "loss/consistency"}
+    assert {r["arm"] for r in rows} == {"good", "few"}  # model-free logs no model metrics
+    row = next(r for r in rows if r["metric"] == "model/openloop_mse_k" and r["arm"] == "few" and r["update"] == "4")
+    assert float(row["mean"]) == pytest.approx(np.mean([0.5 / 5 + 0.01 * s for s in range(3)]))
+    early = next(r for r in rows if r["metric"] == "model/openloop_mse_50" and r["update"] == "1")
+    assert early["mean"] == ""
+
+
+def test_summary_ranks_and_columns(run_dir):
+    run, paths, table = run_dir
+    rows = _csv(paths["summary_csv"])
+    assert [r["arm"] for r in rows] == ["good", "few", "bad"]
+    for col in ("arm", "hp", "arm_type", "seeds", "env_steps", "final_return_iqm", "final_return_ci_low",
+                "final_return_ci_high", "auc_return_iqm", "final_discounted_return_iqm",
+                "auc_discounted_return_iqm", "eval_det_return_iqm", "eval_det_return_ci_low"):
+        assert col in rows[0], col
+    good = rows[0]
+    assert good["seeds"] == "5" and float(good["env_steps"]) == UPDATES * STEPS_PER_UPDATE
+    # final: mean of the last 10% (2 of 20) updates per seed, then IQM over seeds
+    finals = np.array([np.mean([table[("good", s, u)] for u in (18, 19)]) for s in range(5)])
+    assert float(good["final_return_iqm"]) == pytest.approx(scipy.stats.trim_mean(finals, 0.25))
+    # AUC: nan-mean over the whole curve per seed (update 0 and the gap are skipped)
+    aucs = np.array([np.mean([table[("good", s, u)] for u in range(1, UPDATES) if table[("good", s, u)] is not None])
+                     for s in range(5)])
+    assert float(good["auc_return_iqm"]) == pytest.approx(scipy.stats.trim_mean(aucs, 0.25))
+    assert float(good["final_return_ci_low"]) <= float(good["final_return_iqm"]) <= float(good["final_return_ci_high"])
+    # eval: latest update per seed -> 100 + s for s in 0..4, IQM = middle three
+    assert float(good["eval_det_return_iqm"]) == pytest.approx(102.0)
+    assert good["eval_det_discounted_return_iqm"] == ""  # all null: n/a, not a crash
+    md = paths["summary_md"].read_text()
+    assert "| rank | arm | hp | seeds |" in md and "final return" in md and "eval return (deterministic)" in md
+    assert md.index("| 1 | good") < md.index("| 3 | bad")
+
+
+def test_single_seed_and_empty_metrics(tmp_path):
+    """One seed: no interval but a value; an arm whose returns are all null: n/a; no eval.jsonl."""
+    with (tmp_path / "metrics.jsonl").open("w") as f:
+        for u in range(5):
+            f.write(json.dumps({"arm": "solo", "hp": "", "seed": 0, "update": u, "env_steps": u,
+                                "episode/return": float(u), "episode/discounted_return": float("nan") if u < 2 else 1.0}
+                               ).replace("NaN", "null") + "\n")
+            f.write(json.dumps({"arm": "dead", "hp": "", "seed": 0, "update": u, "env_steps": u,
+                                "episode/return": None, "episode/discounted_return": None}) + "\n")
+    paths = plots.plot_run(tmp_path, reps=100)
+    rows = _csv(paths["summary_csv"])
+    assert [r["arm"] for r in rows] == ["solo", "dead"]
+    assert float(rows[0]["final_return_iqm"]) == 4.0 and rows[0]["final_return_ci_low"] == ""
+    assert rows[1]["final_return_iqm"] == "" and "model" not in paths
+    assert not any(k.startswith("eval") for k in rows[0])
+    assert "n/a" in paths["summary_md"].read_text()
+    assert math.isclose(float(_csv(paths["return_csv"])[-1]["iqm"]), 4.0)
+
+
+def test_fallback_bootstrap_matches_rliable():
+    """The local bootstrap (used when rliable.library cannot import) reproduces rliable's numbers."""
+    if plots.rly is None:
+        pytest.skip(f"rliable.library does not import here ({plots.RLIABLE_ERROR}); pin pandas<3 to use it")
+    scores = RNG.normal(size=(6, 1, 4))
+    np.random.seed(1)
+    point, interval = plots.rly.get_interval_estimates({"x": scores}, plots.iqm_columns, reps=300)
+    np.random.seed(1)
+    point2, interval2 = plots.stratified_bootstrap(scores, plots.iqm_columns, reps=300)
+    np.testing.assert_allclose(point2, point["x"])
+    np.testing.assert_allclose(interval2, interval["x"])
