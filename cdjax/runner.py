@@ -40,7 +40,9 @@ from cdjax.sweep import Sweep, make_sweep, unpad
 
 ARMS = ("model-free", "mbmf", "cd")
 # Hyper-parameters an arm does not use: fixed (not part of its grid) so they do not multiply its runs.
-UNUSED = {"model-free": ("alpha", "lr_model", "model_coef"), "mbmf": ("alpha",), "cd": ()}
+# lr_distill belongs to the Mb-Mf phase (cdjax.mbmf), which the runner does not run yet.
+UNUSED = {"model-free": ("alpha", "lr_model", "model_coef", "lr_distill"), "mbmf": ("alpha", "lr_distill"),
+          "cd": ("lr_distill",)}
 FIXED = {"alpha": 0.0}  # the value an unused hyper-parameter takes (others keep their default)
 RETURN = "episode/return"
 LINE_EVERY_S = 5.0  # without a terminal, a progress line at most this often (and at the end)
