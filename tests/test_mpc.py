@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from jax import lax
 
+from cdjax.envs import strong_types
 from cdjax import mpc
 
 # --------------------------------------------------------------------------------------
@@ -218,15 +219,10 @@ MPC_HORIZON = 10
 MPC_CANDIDATES = 96
 
 
-def _strong(tree):
-    """Cast every leaf to a strongly typed array (Brax leaves some fields weak-typed)."""
-    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.result_type(x)), tree)
-
-
 def _closed_loop(env, key, *, use_mpc: bool):
     """Run NUM_ENVS envs for NUM_STEPS steps. Returns per-step [T, B] reward terms."""
     reset_key, loop_key = jax.random.split(key)
-    states = _strong(jax.vmap(env.reset)(jax.random.split(reset_key, NUM_ENVS)))
+    states = strong_types(jax.vmap(env.reset)(jax.random.split(reset_key, NUM_ENVS)))
 
     def true_dynamics(s, a):
         # One env.step per call; the model is the simulator itself.
@@ -245,7 +241,7 @@ def _closed_loop(env, key, *, use_mpc: bool):
             )
         else:
             actions = jax.random.uniform(k, (NUM_ENVS, env.action_size), minval=-1.0, maxval=1.0)
-        nxt = _strong(jax.vmap(env.step)(s, actions))
+        nxt = strong_types(jax.vmap(env.step)(s, actions))
         return nxt, (nxt.reward, nxt.metrics["reward_dist"], nxt.metrics["reward_ctrl"])
 
     _, out = lax.scan(body, states, jax.random.split(loop_key, NUM_STEPS))
