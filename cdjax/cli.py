@@ -117,6 +117,43 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
         group.add_argument(_flag(field.name), help=f"{help_text} (default {default})".replace("%", "%%"), **kwargs)
 
 
+def add_phase_options(parser: argparse.ArgumentParser) -> None:
+    """--mbmf-phase on/off and one --phase-<field> option per MbMfPhase field (any of them turns it on)."""
+    from cdjax.mbmf import MbMfPhase
+
+    group = parser.add_argument_group(
+        "Mb-Mf phase (cdjax.mbmf.MbMfPhase): random data, model, random-shooting MPC, distillation; run by the "
+        "arms with a model before PPO, its env steps counted in --steps")
+    onoff = group.add_mutually_exclusive_group()
+    onoff.add_argument("--mbmf-phase", action="store_true", default=None, dest="phase_on",
+                       help="run the phase (default: as the preset says; off without one)")
+    onoff.add_argument("--no-mbmf-phase", action="store_false", dest="phase_on", help="do not run the phase")
+    hints = typing.get_type_hints(MbMfPhase)
+    comments = field_comments(MbMfPhase)
+    for field in dataclasses.fields(MbMfPhase):
+        hint = hints[field.name]
+        kwargs: dict[str, Any] = dict(default=None, dest=f"phase.{field.name}")
+        if typing.get_origin(hint) is Literal:
+            kwargs.update(choices=typing.get_args(hint), metavar="{" + ",".join(typing.get_args(hint)) + "}")
+        elif hint is bool:
+            kwargs.update(type=_bool, metavar="{true,false}")
+        elif hint in (int, float):
+            kwargs.update(type=_count if hint is int else _float, metavar=hint.__name__.upper())
+        else:  # pragma: no cover - a new kind of field needs a line here
+            raise TypeError(f"MbMfPhase.{field.name}: no command-line form for {hint}")
+        group.add_argument("--phase-" + field.name.replace("_", "-"),
+                           help=f"{comments.get(field.name, '')} (default {field.default})".replace("%", "%%"),
+                           **kwargs)
+
+
+def _bool(text: str) -> bool:
+    if text.lower() in ("true", "1", "yes"):
+        return True
+    if text.lower() in ("false", "0", "no"):
+        return False
+    raise argparse.ArgumentTypeError(f"{text!r} is not true or false")
+
+
 def add_hparam_options(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group(
         "hyper-parameters (cdjax.config.HParams; traced): several values make a grid, vmapped with the seeds")
@@ -150,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--preset", metavar="NAME",
                      help="named overrides, listed below (default: the preset named like --env, if any)")
     run.add_argument("--arms", nargs="+", metavar="ARM", default=None,
-                     help="arms to train: model-free, mbmf, cd (default: mbmf cd)")
+                     help="arms to train: model-free, mbmf, cd, or cd-kN for cd with horizon N (default: mbmf cd)")
     run.add_argument("--seeds", type=_count, default=None, metavar="N", help="seeds per hp combination (default 3)")
     run.add_argument("--seed", type=_count, default=None, metavar="S", help="base seed (default 0)")
     run.add_argument("--steps", type=_count, default=None, metavar="N",
@@ -166,6 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--no-progress", action="store_true", help="no progress display")
     add_config_options(sweep)
     add_hparam_options(sweep)
+    add_phase_options(sweep)
 
     ev = sub.add_parser("eval", help="evaluate the saved policies of a run, per seed and per arm", allow_abbrev=False)
     ev.add_argument("run_dir", metavar="RUN_DIR")
@@ -192,12 +230,15 @@ def _given(args: argparse.Namespace, prefix: str) -> dict[str, Any]:
 
 def sweep_spec(args: argparse.Namespace, command: str = ""):
     """The SweepSpec that the sweep options describe (defaults < preset < explicit options)."""
+    from cdjax.mbmf import MbMfPhase
     from cdjax.runner import SweepSpec, resume_spec
 
-    config_given, hp_given = _given(args, "config."), _given(args, "hp.")
+    config_given, hp_given, phase_given = _given(args, "config."), _given(args, "hp."), _given(args, "phase.")
     spec_given = {field: getattr(args, opt) for opt, field in SPEC_OPTIONS.items() if getattr(args, opt) is not None}
     if args.resume:
         extra = sorted({_flag(k) for k in config_given} | {_flag(k) for k in hp_given}
+                       | {"--phase-" + k.replace("_", "-") for k in phase_given}
+                       | ({"--mbmf-phase" if args.phase_on else "--no-mbmf-phase"} if args.phase_on is not None else set())
                        | {_flag(opt) for opt in SPEC_OPTIONS if getattr(args, opt) is not None
                           and opt not in RESUME_OPTIONS} | ({"--preset"} if args.preset else set()))
         if extra:
@@ -215,6 +256,11 @@ def sweep_spec(args: argparse.Namespace, command: str = ""):
     spec_values = {**(preset.sweep if preset else {}), **spec_given}
     if "arms" in spec_values:
         spec_values["arms"] = tuple(spec_values["arms"])
+    phase_values = {**(preset.phase or {} if preset else {}), **phase_given}
+    on = args.phase_on if args.phase_on is not None else bool(phase_given) or bool(preset and preset.phase is not None)
+    if phase_given and args.phase_on is False:
+        raise UsageError("--no-mbmf-phase contradicts the --phase-* options given.")
+    spec_values["phase"] = MbMfPhase(**phase_values) if on else None
     return SweepSpec(out=args.out, config=config, grid=grid, progress=not args.no_progress, command=command,
                      **spec_values)
 

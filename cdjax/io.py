@@ -59,6 +59,11 @@ class RunDir:
     def eval(self) -> pathlib.Path:
         return self.path / "eval.jsonl"
 
+    @property
+    def phase(self) -> pathlib.Path:
+        """Diagnostics of the Mb-Mf phase (the update-0 rows of metrics.jsonl, kept apart for reading)."""
+        return self.path / "phase.jsonl"
+
     def tb(self, arm: str, hp: str, seed: int) -> pathlib.Path:
         return self.path / "tb" / arm / hp / f"seed{seed}"
 
@@ -121,12 +126,13 @@ def _json_float(x) -> float | None:
 
 
 def metric_rows(arm: str, labels: list[str], num_seeds: int, metrics: dict, first_update: int,
-                steps_per_update: int, wall_start: float, wall_end: float) -> list[dict]:
+                steps_per_update: int, wall_start: float, wall_end: float, steps_offset: int = 0) -> list[dict]:
     """Rows of metrics.jsonl for one chunk of one arm.
 
     metrics: {name: [R, n]} on the host, runs hp-major (run r = i * num_seeds + s). `update` counts the
-    updates done (1-based), `env_steps` the environment steps of that run so far, `wall_s` the training
-    wall-clock of the sweep (compile excluded), interpolated linearly inside the chunk.
+    updates done (1-based), `env_steps` the environment steps of that run so far (`steps_offset`: those
+    of the Mb-Mf phase before the first update), `wall_s` the training wall-clock of the sweep (compile
+    excluded), interpolated linearly inside the chunk.
     """
     names = sorted(metrics)
     n = next(iter(metrics.values())).shape[1]
@@ -136,10 +142,34 @@ def metric_rows(arm: str, labels: list[str], num_seeds: int, metrics: dict, firs
             r = i * num_seeds + s
             for j in range(n):
                 update = first_update + j + 1
-                row = {"arm": arm, "hp": label, "seed": s, "update": update, "env_steps": update * steps_per_update,
+                row = {"arm": arm, "hp": label, "seed": s, "update": update,
+                       "env_steps": steps_offset + update * steps_per_update,
                        "wall_s": round(wall_start + (wall_end - wall_start) * (j + 1) / n, 3)}
                 row.update({name: _json_float(metrics[name][r, j]) for name in names})
                 rows.append(row)
+    return rows
+
+
+# Phase diagnostics that are also the curve's first point (update 0), under the PPO metrics' names.
+PHASE_AS_METRIC = {"dagger/episode_return": "episode/return"}
+
+
+def phase_rows(arm: str, labels: list[str], num_seeds: int, info: dict, env_steps: int, wall_start: float,
+               wall_end: float) -> list[dict]:
+    """Rows (update 0) of the Mb-Mf phase of one arm: info {name: [R]} on the host, runs hp-major.
+
+    Every diagnostic is kept under "phase/<name>"; the distilled policy's return in the phase's last
+    DAgger round is also the row's "episode/return", the first point of the arm's return curve.
+    """
+    rows = []
+    for i, label in enumerate(labels):
+        for s in range(num_seeds):
+            r = i * num_seeds + s
+            row = {"arm": arm, "hp": label, "seed": s, "update": 0, "env_steps": env_steps,
+                   "wall_s": round(wall_end, 3), "phase_wall_s": round(wall_end - wall_start, 3)}
+            row.update({f"phase/{name}": _json_float(value[r]) for name, value in sorted(info.items())})
+            row.update({new: _json_float(info[old][r]) for old, new in PHASE_AS_METRIC.items() if old in info})
+            rows.append(row)
     return rows
 
 

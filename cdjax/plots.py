@@ -294,12 +294,30 @@ def per_seed_final(curves: Curves, name: str, fraction: float = FINAL_FRACTION) 
 
 
 def per_seed_auc(curves: Curves, name: str) -> np.ndarray:
-    """[S]: normalised area under the curve, the nan-mean of the metric over each seed's logged updates
-    (updates before the first finished episode, NaN, are skipped)."""
+    """[S]: normalised area under the curve over environment steps, per seed.
+
+    Each logged point stands for the env steps since the previous point (the first for those since 0):
+    the AUC is the mean of the metric weighted by those steps, so arms compare over the same budget even
+    when one logs its first point late (an Mb-Mf phase, logged as update 0 at the phase's env steps).
+    Points with a NaN value (before the first finished episode) are skipped. Without env steps in the
+    log, every logged update weighs the same.
+    """
     values = curves.metrics.get(name)
+    out = np.full(len(curves.seeds), np.nan)
     if values is None:
-        return np.full(len(curves.seeds), np.nan)
-    return _nan_reduce(np.nanmean, np.where(curves.present, values, np.nan), axis=1)
+        return out
+    steps = curves.env_steps if np.isfinite(curves.env_steps).all() else curves.updates.astype(float)
+    for s in range(len(curves.seeds)):
+        idx = np.flatnonzero(curves.present[s])
+        if idx.size == 0:
+            continue
+        x = steps[idx]
+        weights = np.diff(np.r_[0.0, x])
+        v = values[s, idx]
+        ok = np.isfinite(v) & (weights > 0)
+        if ok.any():
+            out[s] = float(np.sum(v[ok] * weights[ok]) / np.sum(weights[ok]))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -375,8 +393,9 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
         f"({'rliable' if rly is not None else 'rliable method, computed locally: rliable.library does not import'}). "
         "With fewer than 4 seeds "
         "the IQM equals the mean; with 1 seed no interval is given. Final: mean of the last "
-        f"{FINAL_FRACTION:.0%} of each seed's logged updates. AUC: mean of each seed's whole return curve "
-        "(updates before the first finished episode are skipped). Eval: mean return over the evaluation "
+        f"{FINAL_FRACTION:.0%} of each seed's logged updates. AUC: mean of each seed's whole return curve, "
+        "each point weighted by the env steps since the previous one (an Mb-Mf phase's point by the phase's "
+        "steps; points before the first finished episode are skipped). Eval: mean return over the evaluation "
         "episodes of each seed's latest evaluation.",
     ]
     return "\n".join(lines) + "\n"

@@ -26,6 +26,7 @@ class Preset:
     config: dict[str, Any]  # Config field -> value
     hparams: dict[str, tuple[float, ...]]  # HParams field -> values (several values make a grid)
     sweep: dict[str, Any]  # SweepSpec field -> value (arms, seeds, total_env_steps, chunk_updates, ...)
+    phase: dict[str, Any] | None = None  # MbMfPhase field -> value; None: no Mb-Mf phase unless asked for
 
 
 def _locomotion(env: str, *, steps: int, gamma: float, reward_scale: float, ent_coef: float, num_epochs: int,

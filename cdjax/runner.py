@@ -6,7 +6,17 @@
 
 Arms are separate compiled programs (their parameter trees differ); inside an arm, every combination of
 the grid's hyper-parameters times every seed is one run of one `make_sweep(config)` program (vmapped,
-sharded over devices). Seed s has the same PRNG key in every arm and every hp combination.
+sharded over devices). Seed s has the same PRNG key in every arm and every hp combination. An arm name
+is `model-free`, `mbmf` or `cd`, optionally with a horizon: `cd-k5` is the cd arm with k = 5 (the
+paper's k ablation runs `cd-k5` and `cd-k20` side by side).
+
+With `phase=MbMfPhase(...)` the arms that learn a model (mbmf, cd) first run the model-based phase of
+Mb-Mf (cdjax.mbmf: random data, model, MPC aggregation, distillation into the policy), compiled and
+vmapped like the updates, then PPO. The phase's env steps count towards the arm's budget: such an arm
+gets ceil((steps - phase steps) / steps per update) PPO updates, so every arm is compared at the same
+number of environment steps. The phase is logged as update 0 (metrics.jsonl, at env_steps = its
+steps; its diagnostics also in phase.jsonl) and checkpointed as step 0, so a resumed run never
+repeats it.
 
 Each chunk runs `chunk_updates` updates of every run of every arm; between chunks the host writes
 metrics.jsonl and TensorBoard, saves an orbax checkpoint per arm, updates the progress display and, if
@@ -25,6 +35,7 @@ import dataclasses
 import itertools
 import math
 import pathlib
+import re
 import signal
 import sys
 import threading
@@ -36,13 +47,15 @@ import numpy as np
 
 from cdjax import io
 from cdjax.config import Config, ConfigError, HParams
+from cdjax.mbmf import MbMfPhase, total_env_steps as phase_env_steps, validate_phase
 from cdjax.sweep import Sweep, make_sweep, unpad
 
 ARMS = ("model-free", "mbmf", "cd")
 # Hyper-parameters an arm does not use: fixed (not part of its grid) so they do not multiply its runs.
-# lr_distill belongs to the Mb-Mf phase (cdjax.mbmf), which the runner does not run yet.
+# lr_distill is the Mb-Mf phase's (cdjax.mbmf): unused without the phase.
 UNUSED = {"model-free": ("alpha", "lr_model", "model_coef", "lr_distill"), "mbmf": ("alpha", "lr_distill"),
           "cd": ("lr_distill",)}
+UNUSED_WITH_PHASE = {"model-free": UNUSED["model-free"], "mbmf": ("alpha",), "cd": ()}
 FIXED = {"alpha": 0.0}  # the value an unused hyper-parameter takes (others keep their default)
 RETURN = "episode/return"
 LINE_EVERY_S = 5.0  # without a terminal, a progress line at most this often (and at the end)
@@ -75,16 +88,37 @@ class SweepSpec:
     final_eval: bool = True  # evaluate and plot at the end (if cdjax.evaluate / cdjax.plots are present)
     progress: bool = True  # show a progress display (a line per chunk when stderr is not a terminal)
     command: str = ""  # the command line, recorded in run.json
-    stop_after_chunks: int | None = None  # test hook: stop as if interrupted after this many chunks
+    phase: MbMfPhase | None = None  # the Mb-Mf model-based phase run before PPO by the arms with a model
+    stop_after_chunks: int | None = None  # test hook: stop as if interrupted after this many chunks (0: after the phases)
     on_chunk: Callable[[int, dict[str, int]], None] | None = None  # hook(chunks done, updates per arm)
 
 
 @dataclasses.dataclass(frozen=True)
 class ArmPlan:
-    name: str  # e.g. "cd"
-    config: Config  # the arm's config (arm and num_updates set)
+    name: str  # e.g. "cd" or "cd-k5"
+    config: Config  # the arm's config (arm, horizon and num_updates set)
     hparams: tuple[HParams, ...]  # one per hp combination
     labels: tuple[str, ...]  # "alpha=1.0,lr_model=0.001"; "default" when nothing varies
+    phase: MbMfPhase | None = None  # the Mb-Mf phase this arm runs before PPO
+    phase_steps: int = 0  # env steps of that phase per run
+
+    @property
+    def total_env_steps(self) -> int:
+        return self.phase_steps + self.config.num_updates * self.config.env_steps_per_update
+
+
+def parse_arm(name: str) -> tuple[str, dict]:
+    """An arm name -> (arm, Config overrides): "cd" -> ("cd", {}), "cd-k5" -> ("cd", {"horizon": 5})."""
+    match = re.fullmatch(r"(model-free|mbmf|cd)(?:-k(\d+))?", name)
+    if match is None:
+        raise ConfigError(f"Unknown arm {name!r}; choose from: {', '.join(ARMS)} (optionally with a horizon, "
+                          "e.g. cd-k5).")
+    arm, k = match.groups()
+    if k is not None and arm == "model-free":
+        raise ConfigError(f"Arm {name!r}: the model-free arm has no horizon.")
+    if k is not None and int(k) <= 0:
+        raise ConfigError(f"Arm {name!r}: the horizon must be a positive integer.")
+    return arm, ({"horizon": int(k)} if k is not None else {})
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -123,9 +157,7 @@ def plan_arms(spec: SweepSpec) -> list[ArmPlan]:
     grid = validate_grid(spec.grid)
     if not spec.arms:
         raise ConfigError("--arms needs at least one of: model-free, mbmf, cd.")
-    for arm in spec.arms:
-        if arm not in ARMS:
-            raise ConfigError(f"Unknown arm {arm!r}; choose from: {', '.join(ARMS)}.")
+    parsed = [parse_arm(name) for name in spec.arms]
     if len(set(spec.arms)) != len(spec.arms):
         raise ConfigError(f"--arms lists an arm twice: {' '.join(spec.arms)}.")
     if not isinstance(spec.seeds, int) or spec.seeds <= 0:
@@ -138,11 +170,27 @@ def plan_arms(spec: SweepSpec) -> list[ArmPlan]:
     for name in ("checkpoint_every", "eval_episodes"):
         if getattr(spec, name) <= 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(spec, name)}.")
-    num_updates = math.ceil(spec.total_env_steps / spec.config.env_steps_per_update)
     plans = []
-    for arm in spec.arms:
-        own = {k: v for k, v in grid.items() if k not in UNUSED[arm]}
-        fixed = {k: FIXED[k] for k in UNUSED[arm] if k in FIXED}
+    for name, (arm, overrides) in zip(spec.arms, parsed):
+        try:
+            config = spec.config.replace(arm=arm, **overrides)
+        except ConfigError as err:
+            raise ConfigError(f"Arm {name!r}: {err}") from None
+        phase = spec.phase if config.use_model else None
+        phase_steps = 0
+        if phase is not None:
+            validate_phase(config, phase)
+            phase_steps = phase_env_steps(config, phase)
+            if phase_steps >= spec.total_env_steps:
+                raise ConfigError(f"--steps={spec.total_env_steps:,} leaves no PPO updates after the Mb-Mf phase's "
+                                  f"{phase_steps:,} env steps; raise --steps or shrink the phase.")
+        # Whole updates: rounded up without a phase; with one, to the nearest count (at least 1), so the
+        # arm's total is within half an update of the arms without the phase.
+        left = (spec.total_env_steps - phase_steps) / config.env_steps_per_update
+        num_updates = math.ceil(left) if phase is None else max(1, round(left))
+        unused = (UNUSED_WITH_PHASE if phase is not None else UNUSED)[arm]
+        own = {k: v for k, v in grid.items() if k not in unused}
+        fixed = {k: FIXED[k] for k in unused if k in FIXED}
         names = list(own)
         shown = [k for k in names if len(own[k]) > 1 or (k == "alpha" and arm == "cd")]
         if arm == "cd" and "alpha" not in names:
@@ -153,8 +201,8 @@ def plan_arms(spec: SweepSpec) -> list[ArmPlan]:
             hp = HParams(**{**values, **fixed})
             hps.append(hp)
             labels.append(",".join(f"{k}={_label(getattr(hp, k))}" for k in shown) or "default")
-        config = spec.config.replace(arm=arm, num_updates=num_updates)
-        plans.append(ArmPlan(arm, config, tuple(hps), tuple(labels)))
+        plans.append(ArmPlan(name, config.replace(num_updates=num_updates), tuple(hps), tuple(labels), phase,
+                             phase_steps))
     return plans
 
 
@@ -166,21 +214,24 @@ def chunk_size(spec: SweepSpec, num_updates: int) -> int:
 
 
 def run_record(spec: SweepSpec, plans: list[ArmPlan]) -> dict:
-    num_updates = plans[0].config.num_updates
+    num_updates = max(p.config.num_updates for p in plans)
     return {
         "version": io.RUN_VERSION,
         "base_config": io.config_to_json(spec.config.replace(num_updates=num_updates)),
         "arms": [{"name": p.name, "arm": p.config.arm, "config": io.config_to_json(p.config),
-                  "hparams": [io.hparams_to_json(h) for h in p.hparams], "hp_labels": list(p.labels)}
+                  "hparams": [io.hparams_to_json(h) for h in p.hparams], "hp_labels": list(p.labels),
+                  "num_updates": p.config.num_updates, "phase_env_steps": p.phase_steps,
+                  "total_env_steps": p.total_env_steps}
                  for p in plans],
         "grid": {k: list(v) for k, v in validate_grid(spec.grid).items()},
         "seeds": spec.seeds,
         "seed": spec.seed,
-        "total_env_steps": num_updates * spec.config.env_steps_per_update,
+        "phase": dataclasses.asdict(spec.phase) if spec.phase is not None else None,
+        "total_env_steps": max(p.total_env_steps for p in plans),
         "requested_env_steps": spec.total_env_steps,
         "num_updates": num_updates,
         "env_steps_per_update": spec.config.env_steps_per_update,
-        "chunk_updates": chunk_size(spec, num_updates),
+        "chunk_updates": chunk_size(spec, math.ceil(spec.total_env_steps / spec.config.env_steps_per_update)),
         "checkpoint_every": spec.checkpoint_every,
         "command": spec.command,
     }
@@ -188,14 +239,19 @@ def run_record(spec: SweepSpec, plans: list[ArmPlan]) -> dict:
 
 # What may differ between the run.json of a directory and the spec that resumes it.
 _MAY_CHANGE = ("command", "total_env_steps", "requested_env_steps", "num_updates", "base_config", "arms")
+_ARM_MAY_CHANGE = ("num_updates", "total_env_steps")
 
 
 def _same_run(old: dict, new: dict) -> bool:
     def strip(run):
         out = {k: v for k, v in run.items() if k not in _MAY_CHANGE}
+        out.setdefault("phase", None)  # run.json written before the phase existed
         out["base_config"] = {k: v for k, v in run["base_config"].items() if k != "num_updates"}
-        out["arms"] = [{**a, "config": {k: v for k, v in a["config"].items() if k != "num_updates"}}
+        out["arms"] = [{**{k: v for k, v in a.items() if k not in _ARM_MAY_CHANGE},
+                        "config": {k: v for k, v in a["config"].items() if k != "num_updates"}}
                        for a in run["arms"]]
+        for a in out["arms"]:
+            a.setdefault("phase_env_steps", 0)
         return out
 
     return strip(old) == strip(new)
@@ -206,10 +262,11 @@ def resume_spec(out: str | pathlib.Path, **changes) -> SweepSpec:
     run = io.RunDir(pathlib.Path(out)).read()
     try:
         config = io.config_from_json(run["base_config"])
+        phase = MbMfPhase(**run["phase"]) if run.get("phase") else None
         spec = SweepSpec(out=out, config=config, arms=tuple(a["name"] for a in run["arms"]),
                          grid={k: tuple(v) for k, v in run["grid"].items()}, seeds=run["seeds"], seed=run["seed"],
                          total_env_steps=run["requested_env_steps"], chunk_updates=run["chunk_updates"],
-                         checkpoint_every=run["checkpoint_every"], command=run["command"])
+                         checkpoint_every=run["checkpoint_every"], command=run["command"], phase=phase)
     except (KeyError, TypeError, ConfigError) as err:
         raise io.RunDirError(f"{out}/run.json is not a run this cdjax can resume ({err}).") from None
     return dataclasses.replace(spec, **changes)
@@ -234,6 +291,7 @@ class _Arm:
     pending: tuple | None = None  # (new_state, metrics, n) dispatched, not yet logged
     compiled: dict = dataclasses.field(default_factory=dict)  # n -> compiled chunk program
     last_return: float = float("nan")
+    phase_done: bool = True  # False until this arm's Mb-Mf phase has run (or been restored)
 
     @property
     def name(self) -> str:
@@ -243,9 +301,22 @@ class _Arm:
     def steps_per_update(self) -> int:
         return self.plan.config.env_steps_per_update
 
+    @property
+    def num_updates(self) -> int:
+        return self.plan.config.num_updates
+
+    def env_steps(self, updates: int | None = None) -> int:
+        """Env steps per run after `updates` PPO updates (default: those done), the phase included."""
+        return self.plan.phase_steps + (self.updates if updates is None else updates) * self.steps_per_update
+
+
+def _nanmean(values) -> float:
+    values = np.asarray(values, float)
+    return float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
+
 
 def _new_arm(plan: ArmPlan, spec: SweepSpec, rd: io.RunDir) -> _Arm:
-    sweep = make_sweep(plan.config)
+    sweep = make_sweep(plan.config, phase=plan.phase)
     keys, hps = sweep.grid(spec.seed, spec.seeds, plan.hparams)
     return _Arm(plan, sweep, keys, hps, len(plan.hparams) * spec.seeds, io.Checkpoints(rd.checkpoints(plan.name)))
 
@@ -398,8 +469,7 @@ def evaluate_arms(rd: io.RunDir, arms: list[_Arm], num_seeds: int, episodes: int
         keys = jax.vmap(lambda k: jax.random.fold_in(k, EVAL_TAG))(arm.keys)
         results = evaluator({"policy": arm.state.params["policy"]}, arm.state.norms, keys, arm.hps)
         records += eval_records(results, arm=arm.name, hp_labels=list(arm.plan.labels), seeds=range(num_seeds),
-                                deterministic=deterministic, update=arm.updates,
-                                env_steps=arm.updates * arm.steps_per_update)
+                                deterministic=deterministic, update=arm.updates, env_steps=arm.env_steps())
     append_jsonl(rd.eval, records)
     means: dict[str, list[float]] = {}
     for row in records:
@@ -444,7 +514,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
     stopped early (after saving a checkpoint of every arm).
     """
     rd, plans, record = prepare(spec, resume)
-    num_updates = record["num_updates"]
+    num_updates = record["num_updates"]  # the most of any arm (arms with the Mb-Mf phase have fewer)
     chunk = record["chunk_updates"]
     progress = _Progress(spec.progress, record["total_env_steps"])
     say = progress.say
@@ -461,15 +531,17 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
             arm.state, got = restored
             arm.updates = arm.saved = int(got["updates"])
             arm.wall_offset = float(got.get("wall_s", 0.0))
+            arm.phase_done = True
         else:
             for step in arm.ckpt.steps():  # a fresh start of this arm: older checkpoints are stale
                 arm.ckpt.manager.delete(step)
+            arm.phase_done = plan.phase is None
         arms.append(arm)
     if resume:
         dropped = log.truncate({a.name: a.updates for a in arms})
         io.MetricsLog(rd.eval).truncate({a.name: a.updates for a in arms})
-        done = ", ".join(f"{a.name} {a.updates}" for a in arms)
-        say(f"Resuming {rd.path}: updates done per arm: {done} of {num_updates}"
+        done = ", ".join(f"{a.name} {a.updates}/{a.num_updates}" for a in arms)
+        say(f"Resuming {rd.path}: updates done per arm: {done}"
             + (f"; dropped {dropped} log rows written after the last checkpoint." if dropped else "."))
     jax.block_until_ready([a.state for a in arms])
     t_init = time.perf_counter() - t_setup
@@ -480,21 +552,54 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
         return arm.compiled[n]
 
     t_compile = time.perf_counter()
+    phase_programs = {a.name: a.sweep.lower_phase(a.state, a.hps).compile() for a in arms if not a.phase_done}
     for arm in arms:
-        if arm.updates < num_updates:
-            compiled(arm, min(chunk, num_updates - arm.updates))
+        if arm.updates < arm.num_updates:
+            compiled(arm, min(chunk, arm.num_updates - arm.updates))
     t_compile = time.perf_counter() - t_compile
-    say(f"Arms {', '.join(f'{a.name} ({a.num_runs} runs)' for a in arms)}: {num_updates} updates of "
-        f"{plans[0].config.env_steps_per_update:,} env steps per run in chunks of {chunk}; "
-        f"setup {t_init:.1f} s, compile {t_compile:.1f} s.")
+    phased = [a for a in arms if a.plan.phase is not None]
+    say(f"Arms {', '.join(f'{a.name} ({a.num_runs} runs)' for a in arms)}: "
+        + ", ".join(f"{a.name} {a.num_updates}" for a in arms)
+        + f" updates of {plans[0].config.env_steps_per_update:,} env steps per run in chunks of {chunk}"
+        + (f", after an Mb-Mf phase of {phased[0].plan.phase_steps:,} env steps ({', '.join(a.name for a in phased)})"
+           if phased else "")
+        + f"; setup {t_init:.1f} s, compile {t_compile:.1f} s.")
 
-    purge = {a.name: (a.updates + 1) * a.steps_per_update for a in arms} if resume else None
+    purge = {a.name: a.env_steps(a.updates + 1) for a in arms} if resume else None
     tb = io.TensorBoard(rd, purge_steps=purge)
     clock = _Clock()
     evaluate = bool(spec.eval_every) and _have_evaluate()
     steps_this_process = 0
     chunks_done = 0
     extra_compile = 0.0
+
+    def run_phase(arm: _Arm) -> None:
+        """The Mb-Mf phase of every run of `arm`: logged as update 0, checkpointed as step 0."""
+        nonlocal steps_this_process
+        wall_start = arm.wall_offset + clock.now()
+        state, info = phase_programs.pop(arm.name)(arm.state, arm.hps)  # donates arm.state
+        info = io.host(unpad(info, arm.num_runs))
+        arm.state, arm.phase_done = state, True
+        took = info.pop("env_steps")
+        if not np.all(took == arm.plan.phase_steps):
+            raise RuntimeError(f"arm {arm.name}: the Mb-Mf phase took {sorted(set(took.tolist()))} env steps, "
+                               f"planned {arm.plan.phase_steps}")
+        wall_end = arm.wall_offset + clock.now()
+        rows = io.phase_rows(arm.name, list(arm.plan.labels), spec.seeds, info, arm.plan.phase_steps,
+                             wall_start, wall_end)
+        log.append(rows)
+        io.MetricsLog(rd.phase).append(rows)
+        tb.write(rows)
+        steps_this_process += arm.plan.phase_steps * arm.num_runs
+        ret = info.get("dagger/episode_return")
+        if ret is not None and np.isfinite(ret).any():
+            arm.last_return = float(np.nanmean(ret))
+        mean = lambda name: _nanmean(info.get(name, np.nan))  # noqa: E731
+        say(f"Mb-Mf phase of {arm.name}: {arm.plan.phase_steps:,} env steps per run in {wall_end - wall_start:.1f} s; "
+            f"episode return: random actions {mean('random/episode_return'):.1f}, MPC "
+            f"{mean('mpc/episode_return'):.1f}, distilled policy {mean('dagger/episode_return'):.1f}.")
+        arm.saved = -1
+        save(arm)
 
     def commit(arm: _Arm) -> None:
         """Fetch the pending chunk's metrics, log them, make its state the arm's state."""
@@ -503,7 +608,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
         metrics = io.host(unpad(metrics, arm.num_runs))
         wall_end = arm.wall_offset + clock.now()
         rows = io.metric_rows(arm.name, list(arm.plan.labels), spec.seeds, metrics, arm.updates,
-                              arm.steps_per_update, wall_start, wall_end)
+                              arm.steps_per_update, wall_start, wall_end, steps_offset=arm.plan.phase_steps)
         log.append(rows)
         arm.state, arm.updates, arm.pending = new_state, arm.updates + n, None
         tb.write(rows)
@@ -514,7 +619,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
 
     def save(arm: _Arm) -> None:
         if arm.saved != arm.updates:
-            done = {"updates": arm.updates, "env_steps": arm.updates * arm.steps_per_update,
+            done = {"updates": arm.updates, "env_steps": arm.env_steps(),
                     "wall_s": arm.wall_offset + clock.now(), "chunk_updates": chunk}
             arm.ckpt.save(arm.updates, arm.state, done)
             arm.saved = arm.updates
@@ -532,9 +637,18 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
     try:
         with progress, _StopFlag(say) as flag:
             try:
-                while any(a.updates < num_updates for a in arms):
-                    active = [a for a in arms if a.updates < num_updates]
-                    sizes = {a.name: min(chunk, num_updates - a.updates) for a in active}
+                for arm in arms:
+                    if not arm.phase_done:
+                        with clock.running():
+                            run_phase(arm)
+                            arm.ckpt.wait()
+                        if flag.requested:
+                            stop()
+                if spec.stop_after_chunks == 0:
+                    stop()
+                while any(a.updates < a.num_updates for a in arms):
+                    active = [a for a in arms if a.updates < a.num_updates]
+                    sizes = {a.name: min(chunk, a.num_updates - a.updates) for a in active}
                     for arm in active:
                         if sizes[arm.name] not in arm.compiled:  # a shorter last chunk
                             t0 = time.perf_counter()
@@ -549,15 +663,15 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
                         for arm in active:
                             commit(arm)
                         chunks_done += 1
-                        last_round = all(a.updates >= num_updates for a in arms)
+                        last_round = all(a.updates >= a.num_updates for a in arms)
                         if chunks_done % spec.checkpoint_every == 0 or last_round or flag.requested:
                             for arm in active:
                                 save(arm)
                         for arm in active:
                             arm.ckpt.wait()  # the next chunk donates the saved buffers
                     rate = steps_this_process / max(clock.total, 1e-9)
-                    left = sum((num_updates - a.updates) * a.steps_per_update * a.num_runs for a in arms)
-                    progress.update(min(a.updates for a in arms) * arms[0].steps_per_update, rate,
+                    left = sum((a.num_updates - a.updates) * a.steps_per_update * a.num_runs for a in arms)
+                    progress.update(min(a.env_steps() for a in arms), rate,
                                     {a.name: a.last_return for a in arms}, left / rate if rate > 0 else math.inf)
                     if evaluate and chunks_done % spec.eval_every == 0 and not last_round:
                         evaluate_arms(rd, arms, spec.seeds, spec.eval_episodes, True, say)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +29,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cdjax.config import Config, HParams, stack_hparams
 from cdjax.train import TrainState, Trainer, make_trainer
+
+if TYPE_CHECKING:
+    from cdjax.mbmf import MbMfPhase
 
 AXIS = "runs"
 
@@ -45,6 +48,7 @@ class Sweep:
     mesh: Mesh
     init: Callable[[jax.Array, HParams], TrainState]  # (keys [R], hps [R]) -> state [R]
     _run: Callable  # jitted (state, hps, num_updates) -> (state, metrics [R, n])
+    _phase: Callable | None = None  # jitted (state, hps) -> (state, info [R]): the Mb-Mf phase of every run
 
     @property
     def num_devices(self) -> int:
@@ -57,6 +61,17 @@ class Sweep:
     def lower(self, state: TrainState, hps: HParams, num_updates: int):
         """The lowered chunk program (call .compile() on it to time compilation apart)."""
         return self._run.lower(state, hps, num_updates)
+
+    def phase(self, state: TrainState, hps: HParams):
+        """The Mb-Mf phase of every run (cdjax.mbmf): (state [R] ready for PPO, info {name: [R]})."""
+        if self._phase is None:
+            raise ValueError("this sweep was built without an Mb-Mf phase (make_sweep(config, phase=...))")
+        return self._phase(state, hps)
+
+    def lower_phase(self, state: TrainState, hps: HParams):
+        if self._phase is None:
+            raise ValueError("this sweep was built without an Mb-Mf phase (make_sweep(config, phase=...))")
+        return self._phase.lower(state, hps)
 
     def grid(self, seed: int, num_seeds: int, hps: Sequence[HParams]) -> tuple[jax.Array, HParams]:
         """Runs for every (hp, seed) pair, hp-major: run r = i * num_seeds + s.
@@ -80,7 +95,8 @@ def unpad(tree, num_runs: int):
     return jax.tree.map(lambda x: x[:num_runs], tree)
 
 
-def make_sweep(config: Config, mesh: Mesh | None = None) -> Sweep:
+def make_sweep(config: Config, mesh: Mesh | None = None, phase: "MbMfPhase | None" = None) -> Sweep:
+    """The sweep programs of `config`; with `phase`, also the Mb-Mf phase (run it before the updates)."""
     trainer = make_trainer(config)
     mesh = mesh if mesh is not None else runs_mesh()
     sharded = NamedSharding(mesh, PartitionSpec(AXIS))
@@ -100,4 +116,15 @@ def make_sweep(config: Config, mesh: Mesh | None = None) -> Sweep:
         state, metrics = jax.vmap(one_run)(state, hps)
         return place(state), place(metrics)
 
-    return Sweep(config=config, trainer=trainer, mesh=mesh, init=init, _run=run)
+    phase_run = None
+    if phase is not None:
+        from cdjax.mbmf import make_mbmf_phase
+
+        one_phase = make_mbmf_phase(config, phase, trainer)
+
+        @functools.partial(jax.jit, donate_argnums=0)
+        def phase_run(state, hps):
+            state, info = jax.vmap(one_phase)(state, hps)
+            return place(state), place(info)
+
+    return Sweep(config=config, trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run)

@@ -61,6 +61,14 @@ def other_run(tmp_path):
     (["eval", "{d}"], "holds no run"),
     (["plot", "{d}"], "holds no run"),
     (["frobnicate"], "invalid choice: 'frobnicate'"),
+    (["sweep", "--out", "{d}/a", "--arms", "cd-kx"], "Unknown arm 'cd-kx'"),
+    (["sweep", "--out", "{d}/a", "--arms", "model-free-k5"], "the model-free arm has no horizon"),
+    (["sweep", "--out", "{d}/a", "--preset", "point", "--arms", "cd-k40"], "Arm 'cd-k40': horizon (k=40) is longer"),
+    (["sweep", "--out", "{d}/a", "--preset", "point", "--phase-mpc-horizon", "0"],
+     "MbMfPhase.mpc_horizon must be a positive integer, got 0"),
+    (["sweep", "--out", "{d}/a", "--no-mbmf-phase", "--phase-mpc-horizon", "3"], "contradicts"),
+    (["sweep", "--out", "{d}/a", "--preset", "point", "--arms", "mbmf", "--phase-random-steps", "10000"],
+     "leaves no PPO updates after the Mb-Mf phase"),
 ])
 def test_bad_input_is_one_sentence_and_exit_2(capsys, tmp_path, argv, words):
     line = _fail(capsys, [a.replace("{d}", str(tmp_path)) for a in argv])
@@ -107,6 +115,17 @@ def test_precedence_defaults_then_preset_then_flags():
     assert spec.config.num_envs == Config().num_envs and spec.grid == {} and spec.total_env_steps == 5_000_000
     spec = parse("--preset", "ant", "--env", "halfcheetah")
     assert spec.config.env == "halfcheetah" and spec.config.horizon == 20 and spec.grid["reward_scale"] == (10.0,)
+
+
+def test_phase_options():
+    from cdjax.mbmf import MbMfPhase
+
+    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]))  # noqa: E731
+    assert parse("--preset", "point").phase is None  # off unless asked for (or a preset says so)
+    assert parse("--preset", "point", "--mbmf-phase").phase == MbMfPhase()
+    spec = parse("--preset", "point", "--phase-mpc-candidates", "64", "--phase-relabel", "false",
+                 "--arms", "model-free", "mbmf", "cd-k2")
+    assert spec.phase == MbMfPhase(mpc_candidates=64, relabel=False) and spec.arms == ("model-free", "mbmf", "cd-k2")
 
 
 def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):

@@ -184,3 +184,18 @@ def test_fallback_bootstrap_matches_rliable():
     point2, interval2 = plots.stratified_bootstrap(scores, plots.iqm_columns, reps=300)
     np.testing.assert_allclose(point2, point["x"])
     np.testing.assert_allclose(interval2, interval["x"])
+
+
+def test_auc_weights_each_point_by_the_env_steps_it_stands_for(tmp_path):
+    """An Mb-Mf phase point (update 0 at 1000 env steps) weighs 1000 steps; later points 100 each."""
+    with (tmp_path / "metrics.jsonl").open("w") as f:
+        for s, (phase_ret, ret) in enumerate(((10.0, 20.0), (0.0, 40.0))):
+            f.write(json.dumps({"arm": "mbmf", "hp": "", "seed": s, "update": 0, "env_steps": 1000,
+                                "episode/return": phase_ret}) + "\n")
+            for u in range(1, 4):
+                f.write(json.dumps({"arm": "mbmf", "hp": "", "seed": s, "update": u, "env_steps": 1000 + 100 * u,
+                                    "episode/return": None if u == 2 else ret}) + "\n")
+    (c,) = plots.load_metrics(tmp_path).values()
+    auc = plots.per_seed_auc(c, plots.RETURN)
+    # the NaN point (update 2) is skipped with its 100 steps
+    np.testing.assert_allclose(auc, [(10 * 1000 + 20 * 200) / 1200, (0 * 1000 + 40 * 200) / 1200])

@@ -24,7 +24,7 @@ def _rows(run_dir) -> list[dict]:
     """metrics.jsonl without the wall-clock (the only field that differs between two runs), in a fixed
     order (arms that resume from different updates interleave their chunks differently)."""
     rows = io.read_jsonl(pathlib.Path(run_dir) / "metrics.jsonl")
-    rows = [{k: v for k, v in row.items() if k != "wall_s"} for row in rows]
+    rows = [{k: v for k, v in row.items() if k not in ("wall_s", "phase_wall_s")} for row in rows]
     return sorted(rows, key=lambda r: (r["arm"], r["hp"], r["seed"], r["update"]))
 
 
@@ -156,3 +156,79 @@ def test_plan_grids_labels_and_refusals(tmp_path):
     prepare(dataclasses.replace(spec, total_env_steps=2_000_000), resume=True)  # only the length may change
     with pytest.raises(io.RunDirError, match="holds no run"):
         prepare(dataclasses.replace(spec, out=tmp_path / "b"), resume=True)
+
+
+# ---------------------------------------------------------------------------------------------------
+# The Mb-Mf phase inside a sweep: budgets, logs, the same numbers as the library phase, no repeat on resume.
+
+from cdjax.mbmf import MbMfPhase, make_mbmf_phase, total_env_steps  # noqa: E402
+
+PHASE = MbMfPhase(num_envs=4, random_steps=12, aggregation_iters=1, mpc_steps_per_iter=6, model_epochs=2,
+                  model_minibatch=32, mpc_horizon=3, mpc_candidates=8, distill_iters=1, distill_steps_per_iter=4,
+                  distill_epochs=2, distill_minibatch=16, value_epochs=1)
+PHASE_SPEC = dataclasses.replace(SPEC, arms=("model-free", "mbmf", "cd-k3"), grid={"alpha": (1.0,)}, phase=PHASE,
+                                 total_env_steps=4 * POINT.env_steps_per_update)
+
+
+@pytest.fixture(scope="module")
+def phased(tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs") / "phased"
+    run_sweep(dataclasses.replace(PHASE_SPEC, out=out))
+    return out
+
+
+def test_phase_arms_get_fewer_updates_and_the_same_env_step_budget(phased):
+    spu, phase_steps = POINT.env_steps_per_update, total_env_steps(POINT, PHASE)
+    assert phase_steps == 4 * (12 + 6 + 4) == 88
+    run = json.loads((phased / "run.json").read_text())
+    arms = {a["name"]: a for a in run["arms"]}
+    assert arms["model-free"]["phase_env_steps"] == 0 and arms["model-free"]["num_updates"] == 4
+    for name in ("mbmf", "cd-k3"):
+        assert arms[name]["phase_env_steps"] == phase_steps
+        assert arms[name]["num_updates"] == round((4 * spu - phase_steps) / spu) == 4  # 192 env steps/update
+        assert abs(arms[name]["total_env_steps"] - 4 * spu) <= spu / 2
+    assert arms["cd-k3"]["config"]["horizon"] == 3 and arms["cd-k3"]["arm"] == "cd"
+    assert arms["mbmf"]["config"]["horizon"] == POINT.horizon
+    assert run["phase"]["mpc_candidates"] == 8
+    rows = _rows(phased)
+    zero = [r for r in rows if r["update"] == 0]
+    assert {(r["arm"], r["seed"]) for r in zero} == {("mbmf", 0), ("mbmf", 1), ("cd-k3", 0), ("cd-k3", 1)}
+    assert all(r["env_steps"] == phase_steps and "phase/distill/abs_error" in r for r in zero)
+    assert all(r["episode/return"] == r["phase/dagger/episode_return"] for r in zero)
+    first = {r["arm"]: r["env_steps"] for r in rows if r["update"] == 1}
+    assert first == {"model-free": spu, "mbmf": phase_steps + spu, "cd-k3": phase_steps + spu}
+    assert len(io.read_jsonl(phased / "phase.jsonl")) == len(zero)
+
+
+def test_phase_in_the_sweep_equals_the_library_phase_run_alone_and_is_not_repeated_on_resume(phased, tmp_path):
+    """Stopped right after the phases: seed 1's state equals make_mbmf_phase run alone; resuming does not
+    run the phase again and ends with the numbers of the uninterrupted run."""
+    out = tmp_path / "cut-after-phase"
+    with pytest.raises(Interrupted) as stopped:
+        run_sweep(dataclasses.replace(PHASE_SPEC, out=out, stop_after_chunks=0))
+    assert stopped.value.updates == {"model-free": 0, "mbmf": 0, "cd-k3": 0}
+    states = _states(out)
+    assert states["mbmf"][0] == 0 and states["cd-k3"][0] == 0
+    from cdjax import make_trainer
+
+    config = POINT.replace(arm="mbmf", num_updates=4)
+    trainer = make_trainer(config)
+    hp = HParams(alpha=0.0)
+    key = jax.random.split(jax.random.key(SPEC.seed), SPEC.seeds)[1]
+    alone, info = jax.jit(make_mbmf_phase(config, PHASE, trainer))(jax.jit(trainer.init)(key, hp), hp)
+    assert int(info["env_steps"]) == total_env_steps(POINT, PHASE)
+    swept = states["mbmf"][1]
+    for x, y in zip(jax.tree.leaves(alone.params), jax.tree.leaves(swept.params)):
+        np.testing.assert_allclose(np.asarray(y)[1], np.asarray(x), rtol=1e-4, atol=1e-6)
+    init = jax.jit(trainer.init)(key, hp)
+    moved = [float(np.abs(np.asarray(a) - np.asarray(b)).max())
+             for a, b in zip(jax.tree.leaves(init.params["policy"]), jax.tree.leaves(alone.params["policy"]))]
+    assert max(moved) > 0  # the phase did train the policy (distillation)
+    row = next(r for r in io.read_jsonl(out / "phase.jsonl") if r["seed"] == 1 and r["arm"] == "mbmf")
+    assert row["phase/distill/abs_error"] == pytest.approx(float(info["distill/abs_error"]), rel=1e-4)
+
+    phase_rows = len(io.read_jsonl(out / "phase.jsonl"))
+    run_sweep(resume_spec(out, progress=False, final_eval=False), resume=True)
+    assert len(io.read_jsonl(out / "phase.jsonl")) == phase_rows  # not run again
+    assert _rows(out) == _rows(phased)
+    _assert_same_states(_states(out), _states(phased))
