@@ -30,10 +30,12 @@ on CPU the numbers equal those of an uninterrupted run.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import itertools
 import math
+import os
 import pathlib
 import re
 import signal
@@ -507,6 +509,38 @@ def prepare(spec: SweepSpec, resume: bool) -> tuple[io.RunDir, list[ArmPlan], di
     return rd, plans, record
 
 
+def compile_workers() -> int:
+    """Threads compiling the arms' programs at once: half the CPU cores (XLA compiles in C++, without the
+    GIL; on a 2-core machine one, i.e. one after the other)."""
+    return max(1, (os.cpu_count() or 1) // 2)
+
+
+def compile_all(arms: list[_Arm], chunk: int) -> dict[str, Any]:
+    """Lower every arm's first chunk program (and Mb-Mf phase, if it has yet to run) one after the other,
+    then compile them in parallel threads. Fills arm.compiled; returns {arm name: compiled phase}."""
+    jobs = []
+    for arm in arms:
+        if not arm.phase_done:
+            jobs.append((arm, "phase", arm.sweep.lower_phase(arm.state, arm.hps)))
+        if arm.updates < arm.num_updates:
+            n = min(chunk, arm.num_updates - arm.updates)
+            if n not in arm.compiled:
+                jobs.append((arm, n, arm.sweep.lower(arm.state, arm.hps, n)))
+    workers = min(len(jobs), compile_workers())
+    if workers > 1:
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+            programs = list(pool.map(lambda job: job[2].compile(), jobs))
+    else:
+        programs = [job[2].compile() for job in jobs]
+    phases = {}
+    for (arm, what, _), program in zip(jobs, programs):
+        if what == "phase":
+            phases[arm.name] = program
+        else:
+            arm.compiled[what] = program
+    return phases
+
+
 def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
     """Train every arm of `spec` in chunks, logging and checkpointing into spec.out; returns the run dir.
 
@@ -552,10 +586,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
         return arm.compiled[n]
 
     t_compile = time.perf_counter()
-    phase_programs = {a.name: a.sweep.lower_phase(a.state, a.hps).compile() for a in arms if not a.phase_done}
-    for arm in arms:
-        if arm.updates < arm.num_updates:
-            compiled(arm, min(chunk, arm.num_updates - arm.updates))
+    phase_programs = compile_all(arms, chunk)
     t_compile = time.perf_counter() - t_compile
     phased = [a for a in arms if a.plan.phase is not None]
     say(f"Arms {', '.join(f'{a.name} ({a.num_runs} runs)' for a in arms)}: "

@@ -232,3 +232,13 @@ def test_phase_in_the_sweep_equals_the_library_phase_run_alone_and_is_not_repeat
     assert len(io.read_jsonl(out / "phase.jsonl")) == phase_rows  # not run again
     assert _rows(out) == _rows(phased)
     _assert_same_states(_states(out), _states(phased))
+
+
+def test_programs_compiled_in_parallel_threads_give_the_same_run(phased, tmp_path, monkeypatch):
+    """The GPU path: the arms' chunk and phase programs compiled by 3 threads at once."""
+    import cdjax.runner as runner
+
+    monkeypatch.setattr(runner, "compile_workers", lambda: 3)
+    out = tmp_path / "threads"
+    run_sweep(dataclasses.replace(PHASE_SPEC, out=out))
+    assert _rows(out) == _rows(phased)
