@@ -516,16 +516,17 @@ def compile_workers() -> int:
 
 
 def compile_all(arms: list[_Arm], chunk: int) -> dict[str, Any]:
-    """Lower every arm's first chunk program (and Mb-Mf phase, if it has yet to run) one after the other,
-    then compile them in parallel threads. Fills arm.compiled; returns {arm name: compiled phase}."""
+    """Lower every arm's chunk programs (full and last, shorter chunk) and its Mb-Mf phase (if it has yet
+    to run) one after the other, then compile them in parallel threads. Fills arm.compiled; returns
+    {arm name: compiled phase}."""
     jobs = []
     for arm in arms:
         if not arm.phase_done:
             jobs.append((arm, "phase", arm.sweep.lower_phase(arm.state, arm.hps)))
-        if arm.updates < arm.num_updates:
-            n = min(chunk, arm.num_updates - arm.updates)
-            if n not in arm.compiled:
-                jobs.append((arm, n, arm.sweep.lower(arm.state, arm.hps, n)))
+        left = arm.num_updates - arm.updates
+        sizes = {min(chunk, left), left % chunk} if left > 0 else set()  # the first and the last (shorter) chunk
+        for n in sorted(sizes - {0} - set(arm.compiled)):
+            jobs.append((arm, n, arm.sweep.lower(arm.state, arm.hps, n)))
     workers = min(len(jobs), compile_workers())
     if workers > 1:
         with concurrent.futures.ThreadPoolExecutor(workers) as pool:
