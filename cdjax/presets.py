@@ -96,7 +96,8 @@ def _paper(env: str, *, steps: int, gamma: float, reward_scale: float, ent_coef:
         sweep=dict(arms=("model-free", "mbmf", "cd-k5", "cd-k20"), seeds=10, total_env_steps=steps, eval_episodes=10),
         phase=dict(num_envs=64, random_steps=100, aggregation_iters=2, mpc_steps_per_iter=100, model_epochs=20,
                    model_minibatch=512, mpc_horizon=mpc_horizon, mpc_candidates=mpc_candidates, distill_iters=2,
-                   distill_steps_per_iter=50, distill_epochs=50, distill_minibatch=512, value_epochs=5),
+                   distill_steps_per_iter=50, distill_epochs=50, distill_minibatch=512, value_epochs=5,
+                   relabel_chunk=256),
     )
 
 
