@@ -26,7 +26,8 @@ class Transition:
     raw_action: jax.Array  # [B, A] pre-squash action u = mean + std * noise; action = tanh(u)
     noise: jax.Array  # [B, A] standard-normal noise that produced it
     log_prob: jax.Array  # [B] behaviour log-probability of the pre-squash action
-    value: jax.Array  # [B] value estimate of obs
+    value: jax.Array  # [B] value estimate of obs (closed_loop fills it after the scan, in one batched pass)
+    next_value: jax.Array  # [B] value estimate of next_obs, the bootstrap target (filled likewise)
     reward: jax.Array  # [B]
     terminated: jax.Array  # [B] bool
     truncated: jax.Array  # [B] bool (time-out)
@@ -75,13 +76,15 @@ class EpisodeStats:
 
 
 ActFn = Callable[[jax.Array, jax.Array], tuple[jax.Array, ...]]
+ValueFn = Callable[[jax.Array], jax.Array]
 
 
-def closed_loop(env: BatchedEnv, act: ActFn, env_state: EnvState, stats: EpisodeStats, key: jax.Array,
-                length: int, gamma) -> tuple[tuple[EnvState, EpisodeStats], Transition]:
+def closed_loop(env: BatchedEnv, act: ActFn, value: ValueFn, env_state: EnvState, stats: EpisodeStats,
+                key: jax.Array, length: int, gamma) -> tuple[tuple[EnvState, EpisodeStats], Transition]:
     """Run the policy for `length` steps in all B environments.
 
-    act(obs [B, O], key) -> (action, raw_action, noise [B, A], log_prob [B], value [B]).
+    act(obs [B, O], key) -> (action, raw_action, noise [B, A], log_prob [B]).
+    value(obs [N, O]) -> [N]: not applied per step but after the scan, in one batched pass (`_values`).
     Returns ((env_state, stats), Transition with leaves [length, B, ...]).
     """
     assert env_state.obs.shape == (env.num_envs, env.observation_size), env_state.obs.shape
@@ -89,17 +92,38 @@ def closed_loop(env: BatchedEnv, act: ActFn, env_state: EnvState, stats: Episode
     def step(carry, step_key):
         env_state, stats = carry
         obs = env_state.obs
-        action, raw_action, noise, log_prob, value = act(obs, step_key)
+        action, raw_action, noise, log_prob = act(obs, step_key)
         env_state, out = env.step(env_state, action)
         ended = out.terminated | out.truncated | ~out.valid
         stats = stats.record(out.reward, ended, out.terminated | out.truncated, gamma)
         tr = Transition(obs=obs, next_obs=out.next_obs, action=action, raw_action=raw_action, noise=noise,
-                        log_prob=log_prob,
-                        value=value, reward=out.reward, terminated=out.terminated, truncated=out.truncated,
-                        valid=out.valid)
+                        log_prob=log_prob, value=None, next_value=None, reward=out.reward,
+                        terminated=out.terminated, truncated=out.truncated, valid=out.valid)
         return (env_state, stats), tr
 
-    return jax.lax.scan(step, (env_state, stats.start_rollout()), jax.random.split(key, length))
+    carry, traj = jax.lax.scan(step, (env_state, stats.start_rollout()), jax.random.split(key, length))
+    v_obs, v_next = _values(value, traj, env.restart_obs(env_state))
+    return carry, traj.replace(value=v_obs, next_value=v_next)
+
+
+def _values(value: ValueFn, traj: Transition, restart_obs: jax.Array | None) -> tuple[jax.Array, jax.Array]:
+    """(value of traj.obs, value of traj.next_obs), both [T, B], from one call of `value` on stacked rows.
+
+    next_obs always needs its own rows: where an episode ended it is the final observation, not the next
+    obs. The next obs is otherwise next_obs itself: obs[t+1] = where(ended[t], restart obs, next_obs[t]).
+    When every env restarts from a fixed observation (`restart_obs` [B, O], cached resets) the values of
+    obs follow from those of next_obs, obs[0] and restart_obs (T*B + 2B rows); otherwise (fresh resets)
+    obs and next_obs are valued together (2*T*B rows).
+    """
+    T, B, O = traj.obs.shape
+    if restart_obs is None:
+        v = value(jnp.concatenate([traj.obs, traj.next_obs]).reshape(2 * T * B, O)).reshape(2, T, B)
+        return v[0], v[1]
+    rows = jnp.concatenate([restart_obs[None], traj.obs[:1], traj.next_obs])  # [T + 2, B, O]
+    v = value(rows.reshape((T + 2) * B, O)).reshape(T + 2, B)
+    v_restart, v_first, v_next = v[0], v[1], v[2:]
+    v_obs = jnp.concatenate([v_first[None], jnp.where(traj.ended[:-1], v_restart, v_next[:-1])])
+    return v_obs, v_next
 
 
 def open_loop(model_step: Callable[[jax.Array, jax.Array], jax.Array], s0: jax.Array,

@@ -195,17 +195,18 @@ def make_trainer(config: Config) -> Trainer:
         _, key_roll, _ = jax.random.split(state.key, 3)
 
         def behaviour(obs, key):
-            obs_n = nz.normalize(norms.obs, obs)
-            mean, log_std = policy.apply(params["policy"], obs_n)
+            mean, log_std = policy.apply(params["policy"], nz.normalize(norms.obs, obs))
             noise = jax.random.normal(key, mean.shape)
             raw = mean + jnp.exp(log_std) * noise
             log_prob = networks.action_distribution(mean, log_std).log_prob(raw)
-            return networks.squash(raw), raw, noise, log_prob, value.apply(params["value"], obs_n)
+            return networks.squash(raw), raw, noise, log_prob
 
-        (env_state, episodes), traj = closed_loop(env, behaviour, state.env_state, state.episodes, key_roll, T,
-                                                  hp.gamma)
-        next_value = value.apply(params["value"], nz.normalize(norms.obs, traj.next_obs))
-        advantages, returns = losses.gae(traj.reward * hp.reward_scale, traj.value, next_value,
+        def value_of(obs):
+            return value.apply(params["value"], nz.normalize(norms.obs, obs))
+
+        (env_state, episodes), traj = closed_loop(env, behaviour, value_of, state.env_state, state.episodes,
+                                                  key_roll, T, hp.gamma)
+        advantages, returns = losses.gae(traj.reward * hp.reward_scale, traj.value, traj.next_value,
                                          traj.valid & ~traj.terminated, traj.ended, hp.gamma, hp.gae_lambda)
         batch = Batch(traj.obs, traj.next_obs, traj.action, traj.raw_action, traj.noise, traj.log_prob,
                       traj.reward, traj.ended, traj.valid, advantages, returns)

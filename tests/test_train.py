@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdjax import Config, ConfigError, HParams, make_train
+from cdjax import Config, ConfigError, HParams, make_train, make_trainer
 from cdjax.config import stack_hparams
 
 from _shared import PENDULUM, PENDULUM_HP, POINT, compiled
@@ -153,3 +153,26 @@ def test_batched_env_keeps_truncation_apart_and_final_obs():
                         core=state.core.replace(obs=state.core.obs.at[0, 0].set(1.99).at[0, 2].set(1.0)))
     _, out = step(far, push)
     assert bool(out.terminated[0]) and not bool(out.truncated[0])
+
+
+@pytest.mark.parametrize("reset_mode", ["cached", "fresh"])
+def test_rollout_values_are_values_of_obs_and_next_obs(reset_mode):
+    """closed_loop values obs and next_obs after the scan (with cached resets it derives value(obs[t+1]) from
+    value(next_obs[t]) and the restart obs): the result is the value network applied to each, across
+    truncations, terminations and a non-finite step."""
+    from cdjax import networks
+    from cdjax import normalize as nz
+
+    config = POINT.replace(arm="model-free", episode_length=5, reset_mode=reset_mode)
+    trainer = make_trainer(config)
+    state = jax.jit(trainer.init)(jax.random.key(2), HParams())
+    env_state = state.env_state
+    core_obs = env_state.core.obs.at[0].set(jnp.nan).at[1, 0].set(1.99).at[1, 2].set(1.0)  # 0: NaN, 1: leaves the box
+    state = state.replace(env_state=env_state.replace(core=env_state.core.replace(obs=core_obs),
+                                                      obs=env_state.obs.at[1].set(core_obs[1])))
+    _, _, traj, _ = jax.jit(trainer.collect)(state, HParams())
+    assert bool(traj.terminated.any()) and bool(traj.truncated.any()) and not bool(traj.valid.all())
+    value = lambda obs: networks.Value(config.value_hidden).apply(  # noqa: E731
+        state.params["value"], nz.normalize(state.norms.obs, obs))
+    np.testing.assert_allclose(traj.value, value(traj.obs), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(traj.next_value, value(traj.next_obs), rtol=1e-6, atol=1e-6)

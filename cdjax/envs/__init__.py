@@ -154,6 +154,11 @@ class BatchedEnv:
         return EnvState(core=core, first=core, obs=core.obs.astype(jnp.float32),
                         t=jnp.zeros((self.num_envs,), jnp.int32), key=key_next)
 
+    def restart_obs(self, state: EnvState) -> jax.Array | None:
+        """[B, obs] observation that an env whose episode ends restarts from, where it is fixed in
+        advance (cached resets: its own first start); None for fresh resets."""
+        return state.first.obs.astype(jnp.float32) if self.reset_mode == "cached" else None
+
     def step(self, state: EnvState, action: jax.Array) -> tuple[EnvState, Step]:
         """action: [B, act] in [-1, 1]."""
         assert action.shape == (self.num_envs, self.action_size), action.shape
@@ -178,7 +183,7 @@ class BatchedEnv:
         if self.reset_mode == "fresh":
             restart = self._reset_core(key_reset)
         else:
-            restart = state.first
+            restart = state.first  # what restart_obs tells closed_loop
         new_core = _where(ended, restart, core)
         new_state = EnvState(
             core=new_core,
