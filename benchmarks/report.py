@@ -343,6 +343,11 @@ def markdown(results: dict) -> str:
             out.append(compare_table(parts[part]))
             out.append("\nWhere the time of one update goes (seconds):\n")
             out.append(time_table(parts[part]))
+            for row in parts[part]:
+                if row.get("profile_md"):
+                    out.append(f"\nOp-level profile of one `{row['case']}` update (`--trace`, "
+                               f"`python -m benchmarks.profile_summary {row.get('trace_dir', 'DIR')}`):\n")
+                    out.append(row["profile_md"].rstrip("\n"))
         elif part == "seeds":
             seed_spec = meta.get("seed_spec", spec)
             out.append(f"Per seed: {seed_spec.get('num_envs')} envs, {seed_spec.get('rollout_len')} steps/env/update, "

@@ -63,7 +63,10 @@ def parse(argv):
     p.add_argument("--cache", default=os.environ.get("CDJAX_JAX_CACHE"),
                    help="persistent compilation cache dir (default off on GPU so compile times are honest; "
                         "tiny: .jax_cache)")
-    p.add_argument("--trace", metavar="DIR", help="compare: write a jax.profiler trace of one update per cdjax case")
+    p.add_argument("--trace", metavar="DIR",
+                   help="compare: write a jax.profiler trace of one update per cdjax case into DIR/<case> and "
+                        "summarise its device ops (benchmarks.profile_summary) into the results")
+    p.add_argument("--trace-top", type=int, default=25, help="--trace: ops listed per case (default 25)")
     p.add_argument("--distributed", action="store_true",
                    help="call jax.distributed.initialize() first (several hosts; see README)")
     p.add_argument("--coordinator", help="--distributed: coordinator host:port (default: auto-detected)")
@@ -166,7 +169,24 @@ def run_compare(suite: Suite, spec: Spec, timing: Timing, args) -> None:
             fn = lambda case=case: throughput.cdjax_update(spec, case, timing, args.trace)  # noqa: E731
         row = suite.run_case(case, fn)
         row["case"] = case
+        if row.get("trace_dir"):
+            attach_profile(row, args.trace_top)
         suite.add("compare", row)
+
+
+def attach_profile(row: dict, top: int) -> None:
+    """Summarise the trace of a case into its row (`profile`, `profile_md`) and print the tables."""
+    from benchmarks import profile_summary
+
+    try:
+        summary = profile_summary.summarize(row["trace_dir"], top)
+    except Exception as e:  # noqa: BLE001 - an unreadable trace costs its table, not the suite
+        row["profile_error"] = f"{type(e).__name__}: {e}"
+        print(f"{row['case']}: no op-level profile ({row['profile_error']})", flush=True)
+        return
+    row["profile"] = summary
+    row["profile_md"] = profile_summary.markdown(summary)
+    print(f"\nop-level profile of one {row['case']} update ({row['trace_dir']}):\n\n{row['profile_md']}", flush=True)
 
 
 def run_seeds(suite: Suite, spec: Spec, timing: Timing, args) -> None:

@@ -108,8 +108,12 @@ def cdjax_update(spec: Spec, case: str, timing: Timing, trace_dir: str | None = 
     compiled, lower_s, compile_s = compile_timed(jax.jit(trainer.update, donate_argnums=0), state, hp)
     step: Callable = lambda c: compiled(c[0], hp)  # noqa: E731
     carry, times = time_calls(step, (state, None), timing)
+    traced = {}
     if trace_dir:
-        with jax.profiler.trace(os.path.join(trace_dir, case)):
+        from benchmarks import profile_summary
+
+        traced["trace_dir"] = os.path.join(trace_dir, case)
+        with profile_summary.trace(traced["trace_dir"], compiled):  # perfetto JSON + HLO text for the summary
             carry = jax.block_until_ready(step(carry))
     metrics = carry[1]
     ok = all(bool(jnp.isfinite(v).all()) for name, v in metrics.items() if name.startswith("loss/"))
@@ -118,4 +122,4 @@ def cdjax_update(spec: Spec, case: str, timing: Timing, trace_dir: str | None = 
                 sgd_steps=config.num_epochs * config.num_minibatches,
                 lower_s=lower_s, xla_compile_s=compile_s, compile_s=lower_s + compile_s,
                 **steady(times, config.env_steps_per_update), mem_bytes=compiled_footprint(compiled),
-                mem_source="compiled", process_peak_bytes=process_peak(), finite=ok)
+                mem_source="compiled", process_peak_bytes=process_peak(), finite=ok, **traced)

@@ -10,7 +10,7 @@ import sys
 import pytest
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # `benchmarks` is not an installed package
-from benchmarks import report  # noqa: E402
+from benchmarks import profile_summary, report  # noqa: E402
 from benchmarks.common import FULL, TINY  # noqa: E402
 from benchmarks.run import main  # noqa: E402
 from benchmarks.scaling import seed_scaling  # noqa: E402
@@ -50,7 +50,8 @@ def tiny(tmp_path_factory):
     programs come from the compilation cache)."""
     out = tmp_path_factory.mktemp("bench")
     main(["--tiny", "--suite", "compare", "seeds", "envs", "--cases", *COMPARE, "--seed-counts", "1", "2",
-          "--scaling-cases", "model-free", DESIGNATED_CD, "--env-counts", "16", "--out", str(out)])
+          "--scaling-cases", "model-free", DESIGNATED_CD, "--env-counts", "16", "--out", str(out),
+          "--trace", str(out / "trace"), "--trace-top", "10"])
     return out, json.loads((out / "results.json").read_text())
 
 
@@ -73,6 +74,77 @@ def test_tiny_suite_measures_every_case(tiny):
     meta = results["metas"][0]
     assert meta["tiny"] and meta["device_count"] >= 1 and meta["command"].startswith("python -m benchmarks.run")
     assert (out / "results.png").stat().st_size > 0
+
+
+def test_traced_cases_carry_an_op_level_profile(tiny):
+    out, results = tiny
+    rows = {r["case"]: r for r in results["parts"]["compare"]}
+    for case in ("model-free", DESIGNATED_CD):
+        profile = rows[case]["profile"]
+        assert profile["source"] == "XLA ops (CPU)" and profile["hlo_grouping"], profile
+        assert len(profile["ops"]) == 10 and profile["device_ms"] > 0
+        assert sum(g["pct"] for g in profile["groups"]) == pytest.approx(100.0, abs=0.01)
+        assert "gemm" in {g["group"] for g in profile["groups"]}  # the MLPs
+        assert rows[case]["profile_md"].rstrip("\n") in (out / "results.md").read_text()
+    assert "profile" not in rows["collect"] and "profile" not in rows["ceiling"]
+
+
+def test_profile_summary_finds_the_matmul(tmp_path):
+    """A real trace on CPU of a matmul followed by elementwise ops: the dot is found, percentages add up."""
+    import jax
+    import jax.numpy as jnp
+
+    def f(x, w):
+        return jnp.tanh(x @ w) * 2.0 + 1.0
+
+    x, w = jnp.ones((256, 512)), jnp.full((512, 512), 0.01)
+    compiled = jax.jit(f).lower(x, w).compile()
+    jax.block_until_ready(compiled(x, w))
+    with profile_summary.trace(tmp_path / "trace", compiled):
+        for _ in range(3):
+            jax.block_until_ready(compiled(x, w))
+    summary = profile_summary.summarize(tmp_path / "trace")
+    assert summary["source"] == "XLA ops (CPU)" and summary["hlo_grouping"]
+    dots = [o for o in summary["ops"] if o["group"] == "gemm"]
+    assert len(dots) == 1 and dots[0]["count"] == 3 and "dot_general" in dots[0]["source"], summary["ops"]
+    assert sum(o["pct"] for o in summary["ops"]) == pytest.approx(100.0, abs=0.01)
+    assert sum(g["pct"] for g in summary["groups"]) == pytest.approx(100.0, abs=0.01)
+    assert sum(o["total_ms"] for o in summary["ops"]) == pytest.approx(summary["device_ms"])
+    # the command line: the same tables, to a file
+    md = profile_summary.main([str(tmp_path), "--top", "5", "--out", str(tmp_path / "ops.md")])
+    assert (tmp_path / "ops.md").read_text() == md and "| gemm |" in md
+    _assert_tables_rectangular(md)
+    # without the HLO text the ops are grouped by name; the times do not change
+    for f in (tmp_path / "trace").glob("*.hlo.txt"):
+        f.unlink()
+    by_name = profile_summary.summarize(tmp_path / "trace")
+    assert not by_name["hlo_grouping"] and by_name["device_ms"] == summary["device_ms"]
+
+
+def test_profile_summary_of_a_gpu_trace_reads_stream_kernels(tmp_path):
+    """Hand-made events in the layout of a GPU trace: only kernels on Stream lines count (not the XLA Ops
+    line that spans them again), grouped by kernel name."""
+    events = [
+        {"ph": "M", "pid": 1, "name": "process_name", "args": {"name": "/device:GPU:0"}},
+        {"ph": "M", "pid": 1, "tid": 7, "name": "thread_name", "args": {"name": "Stream #7(Compute)"}},
+        {"ph": "M", "pid": 1, "tid": 9, "name": "thread_name", "args": {"name": "XLA Ops"}},
+        {"ph": "M", "pid": 2, "name": "process_name", "args": {"name": "/host:CPU"}},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 0.0, "dur": 60.0, "args": {"hlo_op": "custom-call.3"},
+         "name": "void cutlass::Kernel<cutlass_80_tensorop_s1688gemm_128x128>(Params)"},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 70.0, "dur": 30.0, "name": "loop_add_fusion",
+         "args": {"hlo_op": "loop_add_fusion"}},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 100.0, "dur": 10.0, "name": "Memset", "args": {}},
+        {"ph": "X", "pid": 1, "tid": 9, "ts": 0.0, "dur": 100.0, "name": "custom-call.3", "args": {}},
+        {"ph": "X", "pid": 2, "tid": 3, "ts": 0.0, "dur": 500.0, "name": "host work", "args": {"hlo_op": "x"}},
+    ]
+    run = tmp_path / "plugins" / "profile" / "run1"
+    run.mkdir(parents=True)
+    with profile_summary.gzip.open(run / "perfetto_trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    summary = profile_summary.summarize(tmp_path)
+    assert summary["source"] == "GPU kernels" and summary["device_ms"] == pytest.approx(0.1)
+    assert [(o["group"], round(o["pct"])) for o in summary["ops"]] == [("gemm", 60), ("fusion", 30), ("memset", 10)]
+    assert summary["ops"][0]["name"].startswith("custom-call.3: cutlass::Kernel<")
 
 
 def test_ratios_follow_from_raw_numbers(tiny):
