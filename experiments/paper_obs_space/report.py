@@ -37,7 +37,7 @@ DIAGNOSTICS = (
     ("consistency/masked_fraction", "masked windows"),
 )
 # Per-seed, per-update columns kept in the committed data (metrics.jsonl itself is large).
-KEEP = ("arm", "hp", "seed", "update", "env_steps", "wall_s", RETURN, DISC, "env/invalid_fraction",
+KEEP = ("arm", "hp", "seed", "update", "env_steps", "wall_s", RETURN, DISC, "episode/count", "env/invalid_fraction",
         "opt/skipped_updates") + tuple(name for name, _ in DIAGNOSTICS)
 LABELS = {"model-free": "model-free", "mbmf": "Mb-Mf", "cd-k5": "CD k=5", "cd-k20": "CD k=20"}
 COLORS = {"model-free": "#7f7f7f", "mbmf": "#1f77b4", "cd-k5": "#ff7f0e", "cd-k20": "#d62728"}
@@ -139,6 +139,9 @@ def arm_rows(task: Task, reps: int = 2000) -> list[dict]:
                 values = fn(c, name)
                 row[f"{stat}_{target}"] = plots.iqm_interval(values, reps)[:3]
                 row[f"{stat}_{target}_seeds"] = [None if not np.isfinite(v) else round(float(v), 4) for v in values]
+        count = c.metrics.get("episode/count")
+        row["episodes"] = float(np.nanmean(np.nansum(np.where(c.present, count, 0.0), axis=1))) \
+            if count is not None else math.nan
         ev = next((v for (a, _, det), v in task.evals.items() if a == arm and det), None)
         row["eval_return"] = plots.iqm_interval(ev["return"], reps)[:3] if ev else (math.nan,) * 3
         for name, _ in DIAGNOSTICS:
@@ -149,12 +152,12 @@ def arm_rows(task: Task, reps: int = 2000) -> list[dict]:
 
 
 def returns_table(rows: list[dict]) -> str:
-    head = ("| task | arm | seeds | env steps | of which Mb-Mf phase | PPO updates | final return | AUC return | "
-            "final disc. return | AUC disc. return | eval return (mean action) |")
+    head = ("| task | arm | seeds | env steps | of which Mb-Mf phase | PPO updates | episodes ended / seed | "
+            "final return | AUC return | final disc. return | AUC disc. return | eval return (mean action) |")
     lines = [head, "|" + "|".join(["---"] * (head.count("|") - 1)) + "|"]
     for r in rows:
         lines.append(f"| {r['task']} | {LABELS.get(r['arm'], r['arm'])} | {r['seeds']} | {r['env_steps']:,.0f} | "
-                     f"{r['phase_env_steps']:,} | {r['ppo_updates']} | {_cell(*r['final_return'])} | "
+                     f"{r['phase_env_steps']:,} | {r['ppo_updates']} | {r['episodes']:,.0f} | {_cell(*r['final_return'])} | "
                      f"{_cell(*r['auc_return'])} | {_cell(*r['final_disc_return'])} | {_cell(*r['auc_disc_return'])} | "
                      f"{_cell(*r['eval_return'])} |")
     return "\n".join(lines)
@@ -319,6 +322,9 @@ def write_results(tasks: list[Task], out: pathlib.Path = HERE, reps: int = 2000)
         "30-minute GPU session allows for four arms x 10 seeds per task. Read the results as early-training "
         "comparisons.",
         "",
+        "Several tasks ran at once, one per GPU of a 2 x H200 host (each process saw one GPU); wall-clock "
+        "times are per task.",
+        "",
         "## Verdicts (final return, 95% intervals)",
         "",
         "| task | CD k=20 vs Mb-Mf | CD k=20 vs CD k=5 | Mb-Mf vs model-free |",
@@ -328,10 +334,14 @@ def write_results(tasks: list[Task], out: pathlib.Path = HERE, reps: int = 2000)
         r = [x for x in rows if x["task"] == t.name]
         lines.append(f"| {t.name} | {verdict(r, 'cd-k20', 'mbmf')} | {verdict(r, 'cd-k20', 'cd-k5')} | "
                      f"{verdict(r, 'mbmf', 'model-free')} |")
+    analysis = out / "analysis.md"
+    if analysis.exists():
+        lines += ["", "## Reading the results", "", analysis.read_text().strip()]
     lines += ["", "## Returns", "", returns_table(rows), "",
               "## Model and consistency diagnostics (end of training)", "",
               "Open-loop MSE: normalised-state error of the model imagining k and 50 steps from real states under "
-              "the real actions (8 envs per seed). Encoder spread: mean distance of the encodings from their "
+              "the real actions (8 envs per seed); k is the arm's own horizon (CD k=5: 5; Mb-Mf and CD k=20: 20), "
+              "and each arm is measured on the states its own policy visits. Encoder spread: mean distance of the encodings from their "
               "mean (a collapsed encoder has spread ~0). Masked windows: fraction of consistency windows dropped "
               "because an episode ended inside them.", "", diagnostics_table(rows), "",
               "## Figures", "",
