@@ -449,7 +449,8 @@ def merge(results_list: list[dict]) -> dict:
                 out["parts"][part] = list(rows)
                 out["part_meta"][part] = index
                 continue
-            key = lambda r: (r.get("case"), r.get("seeds"), r.get("num_envs"), r.get("mesh_devices"))  # noqa: E731
+            # A skipped row carries no seed count or mesh: those default to 1, so a later measurement replaces it.
+            key = lambda r: (r.get("case"), r.get("seeds") or 1, r.get("num_envs"), r.get("mesh_devices") or 1)  # noqa: E731
             new_keys = {key(r) for r in rows}
             out["parts"][part] = [r for r in out["parts"][part] if key(r) not in new_keys] + list(rows)
     return out
@@ -489,4 +490,7 @@ def write_results_md(results: dict, path: str | pathlib.Path, command: str) -> N
     for m in metas:
         lines.append(f"- {m.get('date')}, {m.get('device')} x{m.get('device_count')}: `{m.get('command')}`")
     lines += ["", f"This file: `{command}`", "", markdown(results), "", f"![throughput and scaling]({png.name})", ""]
+    notes = path.with_name("analysis.md")  # hand-written reading of the numbers, kept across regenerations
+    if notes.exists():
+        lines += ["## Reading the numbers", "", notes.read_text().strip(), ""]
     path.write_text("\n".join(lines))
