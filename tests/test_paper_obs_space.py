@@ -10,15 +10,18 @@ import pytest
 from experiments.paper_obs_space import __main__ as cli
 from experiments.paper_obs_space import report
 
-# The paper-swimmer preset shrunk to the point env (2 arms, phase on, 10 updates in chunks of 5).
-TINY = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon", "4", "--num-minibatches", "2",
-        "--episode-length", "40", "--policy-hidden", "16", "--value-hidden", "16", "--model-hidden", "32",
-        "--encoder-dim", "8", "--eval-horizon", "10", "--eval-envs", "4", "--cc-windows", "2", "--cc-unroll", "2",
-        "--arms", "model-free", "cd-k2", "--seeds", "4", "--steps", "1920", "--chunk-updates", "5",
-        "--phase-num-envs", "4", "--phase-random-steps", "12", "--phase-aggregation-iters", "1",
-        "--phase-mpc-steps-per-iter", "6", "--phase-model-epochs", "2", "--phase-mpc-horizon", "3",
-        "--phase-mpc-candidates", "8", "--phase-distill-iters", "1", "--phase-distill-steps-per-iter", "4",
-        "--phase-distill-epochs", "2", "--phase-value-epochs", "1", "--eval-episodes", "2", "--no-progress"]
+# The paper-swimmer preset shrunk to tests/_shared.POINT with test_runner's Mb-Mf phase (2 arms, 4 updates in
+# chunks of 2): the same programs as test_runner's phase sweep, so the compilation cache serves the second.
+TINY = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon", "4", "--num-epochs", "2",
+        "--num-minibatches", "2", "--episode-length", "40", "--policy-hidden", "16", "--value-hidden", "16",
+        "--model-hidden", "32", "--encoder-dim", "8", "--eval-horizon", "10", "--eval-envs", "4",
+        "--cc-windows", "0", "--cc-unroll", "1", "--arms", "model-free", "cd-k3", "--seeds", "2", "--steps", "768",
+        "--chunk-updates", "2", "--phase-num-envs", "4", "--phase-random-steps", "12",
+        "--phase-aggregation-iters", "1", "--phase-mpc-steps-per-iter", "6", "--phase-model-epochs", "2",
+        "--phase-model-minibatch", "32", "--phase-mpc-horizon", "3", "--phase-mpc-candidates", "8",
+        "--phase-distill-iters", "1", "--phase-distill-steps-per-iter", "4", "--phase-distill-epochs", "2",
+        "--phase-distill-minibatch", "16", "--phase-value-epochs", "1", "--phase-relabel-chunk", "1024",
+        "--eval-episodes", "2", "--no-progress"]
 
 
 @pytest.fixture(scope="module")
@@ -33,9 +36,9 @@ def test_train_runs_the_preset_with_the_phase_and_records_the_machine(trained):
     assert run["command"].startswith("cdjax sweep --preset paper-swimmer")
     assert run["phase"]["mpc_candidates"] == 8 and run["grid"]["gamma"] == [0.995]  # preset value kept
     arms = {a["name"]: a for a in run["arms"]}
-    assert arms["model-free"]["num_updates"] == 10 and arms["model-free"]["phase_env_steps"] == 0
-    assert arms["cd-k2"]["num_updates"] == 10 and arms["cd-k2"]["phase_env_steps"] == 4 * (12 + 6 + 4)
-    assert arms["cd-k2"]["config"]["horizon"] == 2
+    assert arms["model-free"]["num_updates"] == 4 and arms["model-free"]["phase_env_steps"] == 0
+    assert arms["cd-k3"]["num_updates"] == 4 and arms["cd-k3"]["phase_env_steps"] == 4 * (12 + 6 + 4)
+    assert arms["cd-k3"]["config"]["horizon"] == 3
     machine = json.loads((trained / "swimmer" / "machine.json").read_text())
     assert machine["exit_code"] == 0 and machine["device"].endswith("(cpu)")
 
@@ -44,10 +47,10 @@ def test_report_tables_and_a_rebuild_from_the_kept_data(trained, tmp_path):
     out = tmp_path / "out"
     assert cli.main(["report", "--runs", str(trained), "--out", str(out), "--reps", "200"]) == 0
     text = (out / "RESULTS.md").read_text()
-    assert "| swimmer | model-free | 4 | 1,920 | 0 | 10 |" in text
-    assert "| swimmer | cd-k2 | 4 | 2,008 | 88 | 10 |" in text  # the phase's 88 env steps + 10 x 192
+    assert "| swimmer | model-free | 2 | 768 | 0 | 4 |" in text
+    assert "| swimmer | cd-k3 | 2 | 856 | 88 | 4 |" in text  # the phase's 88 env steps + 4 x 192
     rows = json.loads((out / "data" / "summary.json").read_text())
-    assert {r["arm"] for r in rows} == {"model-free", "cd-k2"}
+    assert {r["arm"] for r in rows} == {"model-free", "cd-k3"}
     for name in ("figures/returns.png", "figures/returns.csv", "figures/all_arms.png", "data/swimmer/metrics.jsonl.gz",
                  "data/swimmer/run.json", "data/swimmer/phase.jsonl", "data/swimmer/eval.jsonl"):
         assert (out / name).exists(), name
