@@ -60,6 +60,11 @@ UNUSED = {"model-free": ("alpha", "lr_model", "model_coef", "lr_distill"), "mbmf
 UNUSED_WITH_PHASE = {"model-free": UNUSED["model-free"], "mbmf": ("alpha",), "cd": ()}
 FIXED = {"alpha": 0.0}  # the value an unused hyper-parameter takes (others keep their default)
 RETURN = "episode/return"
+SPREAD = "encoder/spread_real"
+# Below this output spread (std of the encodings across windows, averaged over features) a trainable GRU maps
+# every window to nearly one point: l_cc then vanishes without the model becoming consistent. A fresh GRU
+# spreads ~0.1-0.5; the collapsed ant runs of experiments/paper_obs_space ended at 5e-5 to 3e-4.
+COLLAPSE_SPREAD = 1e-3
 LINE_EVERY_S = 5.0  # without a terminal, a progress line at most this often (and at the end)
 
 
@@ -294,6 +299,7 @@ class _Arm:
     compiled: dict = dataclasses.field(default_factory=dict)  # n -> compiled chunk program
     last_return: float = float("nan")
     phase_done: bool = True  # False until this arm's Mb-Mf phase has run (or been restored)
+    warned_collapse: bool = False  # the encoder-collapse warning was shown (once per arm and process)
 
     @property
     def name(self) -> str:
@@ -310,6 +316,23 @@ class _Arm:
     def env_steps(self, updates: int | None = None) -> int:
         """Env steps per run after `updates` PPO updates (default: those done), the phase included."""
         return self.plan.phase_steps + (self.updates if updates is None else updates) * self.steps_per_update
+
+
+def collapse_warning(arm_name: str, config: Config, metrics: dict) -> str | None:
+    """A sentence when the trainable GRU encoder of some runs has collapsed at the latest update, else None.
+
+    metrics: {name: [R, n]} on the host (one chunk). Only the `gru` encoder is checked: `frozen-gru` does
+    not train and `l2` has no encoder.
+    """
+    if config.encoder != "gru" or SPREAD not in metrics:
+        return None
+    last = np.asarray(metrics[SPREAD])[:, -1]
+    low = np.isfinite(last) & (last < COLLAPSE_SPREAD)
+    if not low.any():
+        return None
+    return (f"Arm {arm_name}: the GRU encoder's output spread fell below {COLLAPSE_SPREAD:g} in {int(low.sum())} of "
+            f"{last.size} runs (median {np.median(last[low]):.1e}); the encoder may have collapsed, which makes l_cc "
+            "vanish without making the model consistent. The frozen-gru and l2 encoders (--encoder) cannot collapse.")
 
 
 def _nanmean(values) -> float:
@@ -648,6 +671,11 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
         if RETURN in metrics:
             last = metrics[RETURN][:, -1]
             arm.last_return = float(np.nanmean(last)) if np.isfinite(last).any() else float("nan")
+        if not arm.warned_collapse:
+            warning = collapse_warning(arm.name, arm.plan.config, metrics)
+            if warning is not None:
+                say(warning)
+                arm.warned_collapse = True
 
     def save(arm: _Arm) -> None:
         if arm.saved != arm.updates:

@@ -242,3 +242,17 @@ def test_programs_compiled_in_parallel_threads_give_the_same_run(phased, tmp_pat
     out = tmp_path / "threads"
     run_sweep(dataclasses.replace(PHASE_SPEC, out=out))
     assert _rows(out) == _rows(phased)
+
+
+def test_encoder_collapse_warning():
+    """Said once the trainable GRU's spread is below the threshold in some run; never for other encoders."""
+    from cdjax.runner import COLLAPSE_SPREAD, collapse_warning
+
+    config = POINT.replace(arm="cd")
+    healthy = {"encoder/spread_real": np.array([[0.3, 0.2], [0.4, 0.25]])}
+    collapsed = {"encoder/spread_real": np.array([[0.3, 0.2], [0.01, COLLAPSE_SPREAD / 10]])}
+    assert collapse_warning("cd", config, healthy) is None
+    text = collapse_warning("cd", config, collapsed)
+    assert "in 1 of 2 runs" in text and "1.0e-04" in text and "frozen-gru" in text
+    assert collapse_warning("cd", config.replace(encoder="frozen-gru"), collapsed) is None
+    assert collapse_warning("mbmf", POINT.replace(arm="mbmf"), {}) is None
