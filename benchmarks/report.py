@@ -374,6 +374,24 @@ def markdown(results: dict) -> str:
 
 # ---------------------------------------------------------------------------------------------- plot
 
+def _scaling_axis(ax, rows: list[dict], x: str, xlabel: str, ylabel: str, title: str, linear: bool = False) -> None:
+    """Env steps/s against `x` per case on log-log axes; `linear`: a dotted line of perfect scaling from x = 1."""
+    for case in dict.fromkeys(r["case"] for r in rows):
+        pts = sorted((r[x], r["env_steps_per_s"]) for r in rows if r["case"] == case)
+        line, = ax.plot(*zip(*pts), "o-", label=case, color=COLORS.get(case))
+        if linear and pts[0][0] == 1:
+            ax.plot([p[0] for p in pts], [pts[0][1] * p[0] for p in pts], ":", color=line.get_color(), alpha=0.6)
+    if not rows:
+        ax.text(0.5, 0.5, f"{'seeds' if x == 'seeds' else 'envs'}: not run", ha="center")
+        return
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend()
+
+
 def plot(results: dict, path: str | pathlib.Path) -> None:
     import matplotlib
 
@@ -393,36 +411,10 @@ def plot(results: dict, path: str | pathlib.Path) -> None:
         ax.set_title("matched config, one seed")
     else:
         ax.text(0.5, 0.5, "compare: not run", ha="center")
-    ax = axes[1]
-    seed_rows = [r for r in parts.get("seeds", []) if ok(r)]
-    for case in dict.fromkeys(r["case"] for r in seed_rows):
-        pts = sorted((r["seeds"], r["env_steps_per_s"]) for r in seed_rows if r["case"] == case)
-        line, = ax.plot(*zip(*pts), "o-", label=case, color=COLORS.get(case))
-        if pts[0][0] == 1:
-            ax.plot([p[0] for p in pts], [pts[0][1] * p[0] for p in pts], ":", color=line.get_color(), alpha=0.6)
-    if seed_rows:
-        ax.set_xscale("log", base=2)
-        ax.set_yscale("log")
-        ax.set_xlabel("vmapped seeds")
-        ax.set_ylabel("aggregate env steps / s")
-        ax.set_title("seed scaling (dotted: linear)")
-        ax.legend()
-    else:
-        ax.text(0.5, 0.5, "seeds: not run", ha="center")
-    ax = axes[2]
-    env_rows = [r for r in parts.get("envs", []) if ok(r)]
-    for case in dict.fromkeys(r["case"] for r in env_rows):
-        pts = sorted((r["num_envs"], r["env_steps_per_s"]) for r in env_rows if r["case"] == case)
-        ax.plot(*zip(*pts), "o-", label=case, color=COLORS.get(case))
-    if env_rows:
-        ax.set_xscale("log", base=2)
-        ax.set_yscale("log")
-        ax.set_xlabel("num_envs (one seed)")
-        ax.set_ylabel("env steps / s")
-        ax.set_title("num_envs scaling")
-        ax.legend()
-    else:
-        ax.text(0.5, 0.5, "envs: not run", ha="center")
+    _scaling_axis(axes[1], [r for r in parts.get("seeds", []) if ok(r)], "seeds", "vmapped seeds",
+                  "aggregate env steps / s", "seed scaling (dotted: linear)", linear=True)
+    _scaling_axis(axes[2], [r for r in parts.get("envs", []) if ok(r)], "num_envs", "num_envs (one seed)",
+                  "env steps / s", "num_envs scaling")
     metas = results.get("metas", [])
     if metas:
         tiny = " (tiny CPU smoke)" if metas[0].get("tiny") else ""

@@ -151,6 +151,11 @@ class Rollout:
     valid: jax.Array  # [L, B] bool
 
 
+def _flat(x: jax.Array) -> jax.Array:
+    """[L, B, ...] -> [L * B, ...]."""
+    return x.reshape((-1,) + x.shape[2:])
+
+
 @struct.dataclass
 class Transitions:
     """Model data; leaves [N, ...]."""
@@ -163,8 +168,7 @@ class Transitions:
 
     @classmethod
     def of(cls, traj: Rollout) -> "Transitions":
-        flat = lambda x: x.reshape((-1,) + x.shape[2:])  # noqa: E731
-        return cls(flat(traj.obs), flat(traj.action), flat(traj.next_obs), flat(traj.reward), flat(traj.valid))
+        return cls(*map(_flat, (traj.obs, traj.action, traj.next_obs, traj.reward, traj.valid)))
 
 
 @struct.dataclass
@@ -177,8 +181,7 @@ class Labelled:
 
     @classmethod
     def of(cls, traj: Rollout) -> "Labelled":
-        flat = lambda x: x.reshape((-1,) + x.shape[2:])  # noqa: E731
-        return cls(flat(traj.obs), flat(traj.label), flat(traj.valid))
+        return cls(*map(_flat, (traj.obs, traj.label, traj.valid)))
 
 
 @struct.dataclass

@@ -572,7 +572,6 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
     stopped early (after saving a checkpoint of every arm).
     """
     rd, plans, record = prepare(spec, resume)
-    num_updates = record["num_updates"]  # the most of any arm (arms with the Mb-Mf phase have fewer)
     chunk = record["chunk_updates"]
     progress = _Progress(spec.progress, record["total_env_steps"])
     say = progress.say
@@ -653,8 +652,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False) -> pathlib.Path:
         say(f"Mb-Mf phase of {arm.name}: {arm.plan.phase_steps:,} env steps per run in {wall_end - wall_start:.1f} s; "
             f"episode return: random actions {mean('random/episode_return'):.1f}, MPC "
             f"{mean('mpc/episode_return'):.1f}, distilled policy {mean('dagger/episode_return'):.1f}.")
-        arm.saved = -1
-        save(arm)
+        save(arm)  # step 0: a resumed run restores it instead of running the phase again
 
     def commit(arm: _Arm) -> None:
         """Fetch the pending chunk's metrics, log them, make its state the arm's state."""

@@ -64,14 +64,16 @@ class Sweep:
 
     def phase(self, state: TrainState, hps: HParams):
         """The Mb-Mf phase of every run (cdjax.mbmf): (state [R] ready for PPO, info {name: [R]})."""
-        if self._phase is None:
-            raise ValueError("this sweep was built without an Mb-Mf phase (make_sweep(config, phase=...))")
-        return self._phase(state, hps)
+        return self._phase_program()(state, hps)
 
     def lower_phase(self, state: TrainState, hps: HParams):
+        """The lowered phase program (call .compile() on it to time compilation apart)."""
+        return self._phase_program().lower(state, hps)
+
+    def _phase_program(self) -> Callable:
         if self._phase is None:
             raise ValueError("this sweep was built without an Mb-Mf phase (make_sweep(config, phase=...))")
-        return self._phase.lower(state, hps)
+        return self._phase
 
     def grid(self, seed: int, num_seeds: int, hps: Sequence[HParams]) -> tuple[jax.Array, HParams]:
         """Runs for every (hp, seed) pair, hp-major: run r = i * num_seeds + s.
