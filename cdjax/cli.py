@@ -108,6 +108,8 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
             (item, _) = typing.get_args(hint)
             kwargs.update(type=item, nargs="+", metavar=item.__name__.upper())
             default = " ".join(map(str, default))
+        elif hint is bool:
+            kwargs.update(type=_bool, metavar="{true,false}")
         elif hint in (int, str, float):
             kwargs.update(type=_count if hint is int else _float if hint is float else str,
                           metavar=hint.__name__.upper())

@@ -14,8 +14,13 @@ import jax.numpy as jnp
 from flax import struct
 
 Arm = Literal["model-free", "mbmf", "cd"]
-Encoder = Literal["gru", "frozen-gru", "l2"]
+Encoder = Literal["grounded-gru", "gru", "frozen-gru", "l2"]
 ResetMode = Literal["cached", "fresh"]
+PolicyStd = Literal["state", "global"]
+Entropy = Literal["squashed", "gaussian"]
+Init = Literal["orthogonal", "lecun"]
+ClipScope = Literal["group", "policy-value"]
+ENCODERS = ("grounded-gru", "gru", "frozen-gru", "l2")
 
 
 class ConfigError(ValueError):
@@ -33,14 +38,21 @@ class Config:
     horizon: int = 20  # k: open-loop length of the consistency windows
     num_updates: int = 100  # updates run by train(key, hp)
     num_epochs: int = 4  # PPO epochs over each rollout
-    num_minibatches: int = 32  # minibatches per epoch, split over environments (windows stay contiguous)
-    episode_length: int = 1000  # time-out in environment steps (a truncation, not a termination)
+    num_minibatches: int = 32  # minibatches per epoch, drawn from shuffled (env, segment) sequences
+    segment_len: int = 0  # minibatch sequence length: the rollout is cut into T/segment_len segments; 0 = T
+    gae_in_loss: bool = True  # recompute GAE in every minibatch with the current value net (as Brax), else once
+    episode_length: int = 1000  # time-out in physics steps (agent steps x action_repeat, as Brax); a truncation
     action_repeat: int = 1  # physics control steps per agent step
     reset_mode: ResetMode = "cached"  # cached: each env resets to its own first start (as Brax); fresh: new random start
-    policy_hidden: tuple[int, ...] = (64, 64)  # policy MLP widths (tanh)
-    value_hidden: tuple[int, ...] = (256, 256)  # value MLP widths (tanh)
+    activation: str = "swish"  # activation of the policy and value MLPs (a flax.linen name: swish, tanh, ...)
+    policy_std: PolicyStd = "state"  # policy std: state (softplus head, as Brax) or global (one log-std per dim)
+    entropy: Entropy = "squashed"  # entropy bonus: of the tanh-squashed action (one-sample) or of the Gaussian
+    weight_init: Init = "orthogonal"  # policy/value weights: orthogonal (gain sqrt 2, small policy head) or lecun-uniform (Brax)
+    clip_scope: ClipScope = "group"  # gradient clipping: per parameter group, or policy and value together (Brax)
+    policy_hidden: tuple[int, ...] = (64, 64)  # policy MLP widths
+    value_hidden: tuple[int, ...] = (256, 256)  # value MLP widths
     model_hidden: tuple[int, ...] = (500,)  # dynamics model MLP widths (relu; Mb-Mf uses one layer of 500)
-    encoder: Encoder = "gru"  # consistency encoder: trainable GRU (paper), frozen random GRU, per-step L2
+    encoder: Encoder = "grounded-gru"  # consistency encoder: grounded-gru (GRU + reconstruction + spread floor), gru (paper), frozen-gru, l2
     encoder_dim: int = 128  # GRU hidden size
     cc_windows: int = 0  # consistency windows per env per minibatch, random start offsets; 0 = all T-k+1
     cc_unroll: int = 1  # lax.scan unroll factor of the k-step open-loop/encoder scan
@@ -60,13 +72,24 @@ class Config:
         return self.arm == "cd"
 
     @property
-    def minibatch_envs(self) -> int:
-        return self.num_envs // self.num_minibatches
+    def segment(self) -> int:
+        """L: the length of the sequences minibatches are made of."""
+        return self.segment_len or self.rollout_len
+
+    @property
+    def num_segments(self) -> int:
+        """Sequences per update: num_envs x (T / L)."""
+        return self.num_envs * (self.rollout_len // self.segment)
+
+    @property
+    def minibatch_seqs(self) -> int:
+        """Sequences of L steps per minibatch."""
+        return self.num_segments // self.num_minibatches
 
     @property
     def num_windows(self) -> int:
-        """Consistency windows per env per minibatch."""
-        all_windows = self.rollout_len - self.horizon + 1
+        """Consistency windows per sequence per minibatch."""
+        all_windows = self.segment - self.horizon + 1
         return all_windows if self.cc_windows == 0 else min(self.cc_windows, all_windows)
 
     @property
@@ -92,10 +115,21 @@ def validate(config: Config) -> None:
         )
     if config.arm not in ("model-free", "mbmf", "cd"):
         raise ConfigError(f"Unknown arm {config.arm!r}; choose model-free, mbmf or cd.")
-    if config.encoder not in ("gru", "frozen-gru", "l2"):
-        raise ConfigError(f"Unknown encoder {config.encoder!r}; choose gru, frozen-gru or l2.")
+    if config.encoder not in ENCODERS:
+        raise ConfigError(f"Unknown encoder {config.encoder!r}; choose one of: {', '.join(ENCODERS)}.")
     if config.reset_mode not in ("cached", "fresh"):
         raise ConfigError(f"Unknown reset_mode {config.reset_mode!r}; choose cached or fresh.")
+    if config.policy_std not in ("state", "global"):
+        raise ConfigError(f"Unknown policy_std {config.policy_std!r}; choose state or global.")
+    if config.entropy not in ("squashed", "gaussian"):
+        raise ConfigError(f"Unknown entropy {config.entropy!r}; choose squashed or gaussian.")
+    if config.weight_init not in ("orthogonal", "lecun"):
+        raise ConfigError(f"Unknown weight_init {config.weight_init!r}; choose orthogonal or lecun.")
+    if config.clip_scope not in ("group", "policy-value"):
+        raise ConfigError(f"Unknown clip_scope {config.clip_scope!r}; choose group or policy-value.")
+    if not isinstance(config.activation, str) or not callable(getattr(_linen(), config.activation, None)):
+        raise ConfigError(f"Unknown activation {config.activation!r}; use a flax.linen activation such as swish, "
+                          "tanh or relu.")
     positive = (
         "num_envs", "rollout_len", "horizon", "num_updates", "num_epochs", "num_minibatches",
         "episode_length", "action_repeat", "encoder_dim", "cc_unroll", "eval_horizon", "eval_envs",
@@ -108,21 +142,37 @@ def validate(config: Config) -> None:
         raise ConfigError(f"cc_epochs must be between 0 (all epochs) and num_epochs={config.num_epochs}, got {config.cc_epochs!r}.")
     if not isinstance(config.cc_windows, int) or config.cc_windows < 0:
         raise ConfigError(f"cc_windows must be 0 (all windows) or a positive integer, got {config.cc_windows!r}.")
+    if not isinstance(config.segment_len, int) or config.segment_len < 0:
+        raise ConfigError(f"segment_len must be 0 (the whole rollout) or a positive integer, got {config.segment_len!r}.")
+    if config.rollout_len % config.segment != 0:
+        raise ConfigError(f"segment_len={config.segment_len} does not divide rollout_len={config.rollout_len}.")
     for name in ("policy_hidden", "value_hidden", "model_hidden"):
         widths = getattr(config, name)
         if len(widths) == 0 or any((not isinstance(w, int)) or w <= 0 for w in widths):
             raise ConfigError(f"{name} must be a non-empty tuple of positive integers, got {widths!r}.")
-    if config.horizon > config.rollout_len:
+    if config.horizon > config.segment:
         raise ConfigError(
-            f"horizon (k={config.horizon}) is longer than the rollout (rollout_len={config.rollout_len}); "
-            "the closed-loop rollout must hold at least one k-step window."
+            f"horizon (k={config.horizon}) is longer than the minibatch sequences (segment_len={config.segment}); "
+            "each sequence must hold at least one k-step window."
         )
-    if config.num_envs % config.num_minibatches != 0:
+    if config.cc_windows > config.segment - config.horizon + 1:
         raise ConfigError(
-            f"num_minibatches={config.num_minibatches} does not divide num_envs={config.num_envs}."
+            f"cc_windows={config.cc_windows} is more than the {config.segment - config.horizon + 1} k-step windows a "
+            f"sequence of {config.segment} steps holds (k={config.horizon}); use 0 for all of them."
+        )
+    if config.num_segments % config.num_minibatches != 0:
+        raise ConfigError(
+            f"num_minibatches={config.num_minibatches} does not divide the {config.num_segments} sequences of an "
+            f"update (num_envs={config.num_envs} x rollout_len/segment_len={config.rollout_len // config.segment})."
         )
     if config.eval_envs > config.num_envs:
         raise ConfigError(f"eval_envs={config.eval_envs} is larger than num_envs={config.num_envs}.")
+
+
+def _linen():
+    import flax.linen as nn
+
+    return nn
 
 
 @struct.dataclass
@@ -130,11 +180,15 @@ class HParams:
     """Float hyper-parameters: traced, so any of them can be vmapped alongside the seeds."""
 
     alpha: float = 1.0  # weight of the consistency loss (0 = Mb-Mf baseline)
+    cc_model: float = 1.0  # multiplier of alpha on the consistency gradient reaching the model and the encoder
+    cc_policy: float = 0.1  # multiplier of alpha on the consistency gradient reaching the policy (via the actions)
+    enc_aux_coef: float = 1.0  # weight of the grounded-gru encoder's auxiliary loss: reconstruction + spread floor (encoder only)
     lr_policy: float = 3e-4  # Adam learning rate of the policy
     lr_value: float = 3e-4  # Adam learning rate of the value function
     lr_model: float = 1e-3  # Adam learning rate of the dynamics model and the encoder (Mb-Mf: 1e-3)
     lr_distill: float = 1e-3  # Adam learning rate of the Mb-Mf phase's behaviour cloning (Nagabandi: 1e-3)
     max_grad_norm: float = 1.0  # global-norm clipping, applied per parameter group
+    adam_eps: float = 1e-8  # Adam's epsilon (every parameter group)
     gamma: float = 0.99  # discount
     gae_lambda: float = 0.95  # GAE lambda
     clip_eps: float = 0.2  # PPO ratio clipping

@@ -58,7 +58,8 @@ def evaluate(trainer: Trainer, params: dict, norms: Any, key: jax.Array, *, epis
     "return_mean", "discounted_return_mean", "length_mean".
     """
     config = trainer.config
-    horizon = config.episode_length if max_steps is None else min(int(max_steps), config.episode_length)
+    agent_steps = -(-config.episode_length // config.action_repeat)  # the time-out counts physics steps
+    horizon = agent_steps if max_steps is None else min(int(max_steps), agent_steps)
     env = BatchedEnv(trainer.env.env, episodes, config.episode_length, config.action_repeat, config.reset_mode)
     gamma = jnp.asarray(hp.gamma, jnp.float32)
     key_reset, key_act = jax.random.split(key)

@@ -6,12 +6,10 @@ Shapes are time-major: [T, B, ...]. A `mask` is 1 where a sample counts and 0 wh
 
 from __future__ import annotations
 
-from typing import Callable
-
 import jax
 import jax.numpy as jnp
 
-from cdjax.networks import action_distribution
+from cdjax.networks import action_distribution, squashed_entropy
 
 
 def masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
@@ -19,44 +17,53 @@ def masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
     return (x * mask).sum() / jnp.maximum(mask.sum(), 1.0)
 
 
-def safe_norm(x: jax.Array, axis: int = -1) -> jax.Array:
-    """Euclidean norm whose value AND gradient are exactly 0 at x = 0 (plain norm: NaN gradient)."""
-    sq = jnp.sum(x**2, axis=axis)
-    positive = sq > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
-
-
-def gae(reward, value, next_value, bootstrap, ended, gamma, lam):
+def gae(reward, value, next_value, bootstrap, ended, gamma, lam, valid=None):
     """Generalised advantage estimation, time-major [T, B].
 
     bootstrap: 1 where V(next_obs) is used (not terminated; time-outs DO bootstrap), ended: 1 where the
     episode ended after the step (terminated, timed out or reset after a non-finite state); the
-    advantage recursion stops there. Returns (advantages, value targets).
+    advantage recursion stops there. valid: 0 for a non-finite transition, whose TD error is set to 0
+    so that nothing of it (-V(s)) reaches the step before. Returns (advantages, value targets).
     """
     bootstrap = bootstrap.astype(jnp.float32)
     cont = 1.0 - ended.astype(jnp.float32)
     delta = reward + gamma * bootstrap * next_value - value
+    if valid is not None:
+        delta = jnp.where(valid, delta, 0.0)
 
-    def step(next_adv, inp):
-        d, c = inp
-        adv = d + gamma * lam * c * next_adv
-        return adv, adv
-
-    _, adv = jax.lax.scan(step, jnp.zeros_like(value[0]), (delta, cont), reverse=True)
+    adv = backward_linear_recurrence(gamma * lam * cont, delta)
     return adv, adv + value
 
 
-def ppo_loss(mean, log_std, value, raw_action, log_prob_old, advantages, returns, mask, hp):
+def backward_linear_recurrence(a: jax.Array, b: jax.Array) -> jax.Array:
+    """x_t = b_t + a_t * x_{t+1} with x_T = 0, along axis 0, by an associative scan.
+
+    The same numbers as a reverse `lax.scan`, without its loop: on a GPU a scan's loop costs a
+    host round trip per step, which made GAE recomputed in every minibatch the largest part of it.
+    """
+
+    def combine(later, earlier):  # compose x -> b_e + a_e * (b_l + a_l * x)
+        a_l, b_l = later
+        a_e, b_e = earlier
+        return a_e * a_l, b_e + a_e * b_l
+
+    _, x = jax.lax.associative_scan(combine, (a[::-1], b[::-1]))
+    return x[::-1]
+
+
+def ppo_loss(mean, std, value, raw_action, log_prob_old, advantages, returns, mask, hp, entropy_noise=None):
     """Clipped-surrogate PPO with value loss and entropy bonus, from current network outputs.
 
-    mean [T, B, A] and log_std [A] are the current policy's outputs on the rollout's observations,
-    value [T, B] the current value estimates; raw_action [T, B, A] is the executed pre-squash action,
-    whose log-probability is re-evaluated under the current policy. Advantages are normalised over
-    the unmasked samples. Returns (loss, metrics).
+    mean, std [T, B, A] are the current policy's outputs on the rollout's observations, value [T, B]
+    the current value estimates; raw_action [T, B, A] is the executed pre-squash action, whose
+    log-probability is re-evaluated under the current policy (the tanh Jacobian cancels in the
+    ratio). The entropy is the Gaussian's, or with `entropy_noise` [T, B, A] the one-sample estimate of
+    the squashed action's (`networks.squashed_entropy`). Advantages are normalised over the unmasked
+    samples. Returns (loss, metrics).
     """
-    dist = action_distribution(mean, log_std)
-    return policy_terms(dist.log_prob(raw_action), dist.entropy(), value, log_prob_old, advantages,
-                        returns, mask, hp)
+    dist = action_distribution(mean, std)
+    entropy = dist.entropy() if entropy_noise is None else squashed_entropy(mean, std, entropy_noise)
+    return policy_terms(dist.log_prob(raw_action), entropy, value, log_prob_old, advantages, returns, mask, hp)
 
 
 def policy_terms(log_prob, entropy, value, log_prob_old, advantages, returns, mask, hp):
@@ -95,82 +102,5 @@ def model_loss(pred_mean, pred_log_std, target, mask):
         "loss/model_nll": loss,
         "model/onestep_mse": masked_mean(sq[..., :-1].mean(-1), mask),
         "model/reward_mse": masked_mean(sq[..., -1], mask),
-    }
-    return loss, metrics
-
-
-def window_indices(offsets: jax.Array, horizon: int) -> jax.Array:
-    """Time indices [k, n] of n windows of length k starting at `offsets` [n]."""
-    return offsets[None, :] + jnp.arange(horizon)[:, None]
-
-
-def window_mask(ended: jax.Array, valid: jax.Array, idx: jax.Array) -> jax.Array:
-    """[n, B] True for windows that stay inside one episode.
-
-    A window starting at o uses obs[o], actions o..o+k-1 and next_obs[o..o+k-1]. It is broken if an
-    episode ends after any of its first k-1 steps (auto-reset replaced the next state) or if any of
-    its k transitions is invalid. An episode ending after the window's last step is fine: next_obs
-    holds the true final observation.
-    """
-    crosses = ended[idx[:-1]].any(axis=0)
-    invalid = (~valid[idx]).any(axis=0)
-    return ~crosses & ~invalid
-
-
-def _masked_spread(x: jax.Array, mask: jax.Array) -> jax.Array:
-    """Mean over features of the standard deviation across the unmasked rows of x [W, D]."""
-    m = mask.astype(jnp.float32)[:, None]
-    mean = (x * m).sum(0) / jnp.maximum(m.sum(), 1.0)
-    var = (((x - mean) ** 2) * m).sum(0) / jnp.maximum(m.sum(), 1.0)
-    return jnp.sqrt(var + 1e-12).mean()
-
-
-def consistency_loss(model_step: Callable, normalize: Callable, s0, actions, real_next, mask, *,
-                     encoder: str, encode_step: Callable | None = None, h0=None, unroll: int = 1):
-    """l_cc: distance between the encodings of the real and the imagined k-step sequences.
-
-    s0 [W, O] real start states; actions [k, W, A] (differentiable in the policy); real_next [k, W, O]
-    the real states s_1..s_k; mask [W]. model_step(s, a) -> s' imagines in raw observation space;
-    normalize maps raw states to the encoder's input space. One scan computes the imagined states and
-    both encodings (the encoder is shared, real and imagined rows go through it as one batch).
-
-    encoder: "gru" / "frozen-gru": || GRU(s_1..s_k) - GRU(s^I_1..s^I_k) ||_2 with encode_step(h, x) -> h
-             and initial state h0 [W, H];
-             "l2": mean over the k steps of || norm(s_t) - norm(s^I_t) ||_2.
-    Returns (loss averaged over unmasked windows, metrics).
-    """
-    k, W = actions.shape[:2]
-    assert s0.shape[0] == W and real_next.shape[:2] == (k, W) and mask.shape == (W,), (
-        s0.shape, actions.shape, real_next.shape, mask.shape)
-    use_gru = encoder != "l2"
-    h = jnp.concatenate([h0, h0], axis=0) if use_gru else jnp.zeros((2 * W, 1), jnp.float32)
-
-    def step(carry, inp):
-        s_im, h, acc = carry
-        a, s_re = inp
-        s_im = model_step(s_im, a)
-        x_re, x_im = normalize(s_re), normalize(s_im)
-        if use_gru:
-            h = encode_step(h, jnp.concatenate([x_re, x_im], axis=0))
-        else:
-            acc = acc + safe_norm(x_re - x_im)
-        return (s_im, h, acc), None
-
-    (s_im, h, acc), _ = jax.lax.scan(step, (s0, h, jnp.zeros((W,), jnp.float32)), (actions, real_next),
-                                     unroll=unroll)
-    if use_gru:
-        e_re, e_im = h[:W], h[W:]
-        per_window = safe_norm(e_re - e_im)
-    else:
-        e_re, e_im = normalize(real_next[-1]), normalize(s_im)
-        per_window = acc / k
-    loss = masked_mean(per_window, mask)
-    final_err = ((normalize(real_next[-1]) - normalize(s_im)) ** 2).mean(-1)
-    metrics = {
-        "loss/consistency": loss,
-        "encoder/spread_real": _masked_spread(e_re, mask),
-        "encoder/spread_imagined": _masked_spread(e_im, mask),
-        "consistency/masked_fraction": (~mask).astype(jnp.float32).mean(),
-        "consistency/final_mse": masked_mean(final_err, mask),
     }
     return loss, metrics

@@ -2,7 +2,7 @@
 
 All modules take normalised inputs. Actions live in [-1, 1]: the policy is a diagonal Gaussian over
 the pre-squash action u, and the executed action is tanh(u). `action_distribution` is the one place
-that builds that distribution.
+that builds that distribution; `squashed_entropy` the one place that estimates its entropy after tanh.
 """
 
 from __future__ import annotations
@@ -16,57 +16,92 @@ import jax.numpy as jnp
 
 MODEL_LOG_STD_MIN = -6.0  # bounds of the dynamics model's predicted log standard deviation
 MODEL_LOG_STD_MAX = 1.0
+MIN_POLICY_STD = 1e-3  # floor of the state-dependent policy standard deviation (softplus(x) + floor)
 
 
-def action_distribution(mean: jax.Array, log_std: jax.Array) -> distrax.MultivariateNormalDiag:
+def action_distribution(mean: jax.Array, std: jax.Array) -> distrax.MultivariateNormalDiag:
     """Diagonal Gaussian over the pre-squash action u; the executed action is squash(u)."""
-    return distrax.MultivariateNormalDiag(mean, jnp.exp(log_std) * jnp.ones_like(mean))
+    return distrax.MultivariateNormalDiag(mean, std * jnp.ones_like(mean))
 
 
 def squash(u: jax.Array) -> jax.Array:
     return jnp.tanh(u)
 
 
-def act_from_noise(mean: jax.Array, log_std: jax.Array, noise: jax.Array) -> jax.Array:
+def squash_log_det(u: jax.Array) -> jax.Array:
+    """log |d tanh(u) / du| summed over the last axis, in a form that stays finite for large |u|."""
+    return (2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))).sum(-1)
+
+
+def squashed_entropy(mean: jax.Array, std: jax.Array, noise: jax.Array) -> jax.Array:
+    """One-sample estimate of the entropy of the squashed action tanh(u), u ~ N(mean, std).
+
+    H[tanh(u)] = H[u] + E[log |d tanh/du|]; the expectation is estimated at u = mean + std * noise
+    (reparameterised, so it is differentiable in mean and std). Unlike the Gaussian entropy alone, it
+    falls when the policy saturates the action box, so an entropy bonus does not reward that.
+    """
+    gaussian = action_distribution(mean, std).entropy()
+    return gaussian + squash_log_det(mean + std * noise)
+
+
+def act_from_noise(mean: jax.Array, std: jax.Array, noise: jax.Array) -> jax.Array:
     """The action a = squash(mean + std * noise): differentiable in the policy's outputs."""
-    return squash(mean + jnp.exp(log_std) * noise)
+    return squash(mean + std * noise)
 
 
 class MLP(nn.Module):
     widths: Sequence[int]
     out: int
-    activation: str = "tanh"
+    activation: str = "swish"  # any flax.linen activation name (swish, tanh, relu, ...)
     out_scale: float = 1.0  # orthogonal init scale of the last layer
+    weight_init: str = "orthogonal"  # orthogonal: gain sqrt(2) hidden, out_scale last; lecun: lecun-uniform (Brax)
 
     @nn.compact
     def __call__(self, x):
         act = getattr(nn, self.activation)
+        lecun = self.weight_init == "lecun"
+        hidden = nn.initializers.lecun_uniform() if lecun else nn.initializers.orthogonal(jnp.sqrt(2.0))
+        last = nn.initializers.lecun_uniform() if lecun else nn.initializers.orthogonal(self.out_scale)
         for w in self.widths:
-            x = act(nn.Dense(w, kernel_init=nn.initializers.orthogonal(jnp.sqrt(2.0)))(x))
-        return nn.Dense(self.out, kernel_init=nn.initializers.orthogonal(self.out_scale))(x)
+            x = act(nn.Dense(w, kernel_init=hidden)(x))
+        return nn.Dense(self.out, kernel_init=last)(x)
 
 
 class Policy(nn.Module):
-    """obs [..., O] -> (mean [..., A], log_std [A]); log_std is state-independent."""
+    """obs [..., O] -> (mean [..., A], std [..., A] or [A]).
+
+    std_mode "state": std = softplus(head(obs)) + MIN_POLICY_STD, a second head of the last layer (as
+    Brax's PPO); "global": std = exp(log_std), one parameter per action dimension, independent of the
+    state. `set_initial_std` sets the initial std in either mode (through the head's bias or log_std).
+    """
 
     action_size: int
     hidden: Sequence[int]
+    activation: str = "swish"
+    std_mode: str = "state"
+    weight_init: str = "orthogonal"
 
     @nn.compact
     def __call__(self, obs):
-        mean = MLP(self.hidden, self.action_size, "tanh", out_scale=0.01)(obs)
-        log_std = self.param("log_std", nn.initializers.zeros, (self.action_size,))
-        return mean, log_std
+        A = self.action_size
+        if self.std_mode == "state":
+            out = MLP(self.hidden, 2 * A, self.activation, out_scale=0.01, weight_init=self.weight_init)(obs)
+            return out[..., :A], jax.nn.softplus(out[..., A:]) + MIN_POLICY_STD
+        mean = MLP(self.hidden, A, self.activation, out_scale=0.01, weight_init=self.weight_init)(obs)
+        log_std = self.param("log_std", nn.initializers.zeros, (A,))
+        return mean, jnp.exp(log_std) * jnp.ones_like(mean)
 
 
 class Value(nn.Module):
     """obs [..., O] -> value [...]."""
 
     hidden: Sequence[int]
+    activation: str = "swish"
+    weight_init: str = "orthogonal"
 
     @nn.compact
     def __call__(self, obs):
-        return MLP(self.hidden, 1, "tanh", out_scale=1.0)(obs)[..., 0]
+        return MLP(self.hidden, 1, self.activation, out_scale=1.0, weight_init=self.weight_init)(obs)[..., 0]
 
 
 class DynamicsModel(nn.Module):
@@ -90,31 +125,46 @@ class DynamicsModel(nn.Module):
 
 
 class Encoder(nn.Module):
-    """One GRU step: (h [..., H], x [..., O]) -> h'. Scanned over a sequence by the caller."""
+    """The consistency encoder: a GRU scanned by the caller, and a decoder of a whole window.
+
+    `__call__(h [..., H], x [..., D]) -> h'` is one GRU step. `decode(h [..., H]) -> [..., k * D]` maps a
+    final encoding back to the k inputs it read (used by the grounded encoder's reconstruction loss;
+    built only when `window_size` > 0).
+    """
 
     features: int
+    window_size: int = 0  # k * D: the size of the flattened window the decoder reconstructs; 0 = no decoder
 
-    @nn.compact
+    def setup(self):
+        self.cell = nn.GRUCell(self.features)
+        if self.window_size:
+            self.decoder = nn.Dense(self.window_size)
+
     def __call__(self, h, x):
-        h, _ = nn.GRUCell(self.features)(h, x)
+        h, _ = self.cell(h, x)
         return h
+
+    def decode(self, h):
+        return self.decoder(h)
 
 
 def build(config, obs_size: int, action_size: int) -> dict[str, nn.Module]:
     """The modules an arm of `config` uses, by parameter-group name."""
     modules = {
-        "policy": Policy(action_size, tuple(config.policy_hidden)),
-        "value": Value(tuple(config.value_hidden)),
+        "policy": Policy(action_size, tuple(config.policy_hidden), config.activation, config.policy_std, config.weight_init),
+        "value": Value(tuple(config.value_hidden), config.activation, config.weight_init),
     }
     if config.use_model:
         modules["model"] = DynamicsModel(obs_size, tuple(config.model_hidden))
     if config.use_consistency and config.encoder != "l2":
-        modules["encoder"] = Encoder(config.encoder_dim)
+        window = config.horizon * obs_size if config.encoder == "grounded-gru" else 0
+        modules["encoder"] = Encoder(config.encoder_dim, window)
     return modules
 
 
 def init_params(modules: dict[str, nn.Module], key: jax.Array, obs_size: int, action_size: int,
                 init_log_std) -> dict:
+    """Parameters of every module; the policy's initial standard deviation is exp(init_log_std)."""
     keys = dict(zip(modules, jax.random.split(key, len(modules))))
     obs = jnp.zeros((1, obs_size), jnp.float32)
     act = jnp.zeros((1, action_size), jnp.float32)
@@ -123,9 +173,35 @@ def init_params(modules: dict[str, nn.Module], key: jax.Array, obs_size: int, ac
         if name == "model":
             params[name] = module.init(keys[name], obs, act)
         elif name == "encoder":
-            params[name] = module.init(keys[name], jnp.zeros((1, module.features), jnp.float32), obs)
+            params[name] = init_encoder(module, keys[name], obs_size)
         else:
             params[name] = module.init(keys[name], obs)
-    log_std = params["policy"]["params"]["log_std"]
-    params["policy"]["params"]["log_std"] = jnp.full_like(log_std, init_log_std)
+    params["policy"] = set_initial_std(modules["policy"], params["policy"], init_log_std)
     return params
+
+
+def init_encoder(module: Encoder, key: jax.Array, input_size: int) -> dict:
+    """Parameters of the encoder's GRU (inputs of `input_size`) and, if it has one, of its decoder."""
+    h = jnp.zeros((1, module.features), jnp.float32)
+    x = jnp.zeros((1, input_size), jnp.float32)
+    if module.window_size:
+        return module.init(key, h, x, method=lambda m, h, x: m.decode(m(h, x)))
+    return module.init(key, h, x)
+
+
+def set_initial_std(policy: Policy, params: dict, init_log_std) -> dict:
+    """The policy's parameters with its initial standard deviation set to exp(init_log_std) (traced)."""
+    p = params["params"]
+    if policy.std_mode == "global":
+        p = dict(p, log_std=jnp.full_like(p["log_std"], init_log_std))
+        return {"params": p}
+    # state: the std head's bias b with softplus(b) + floor = exp(init_log_std) (its weights start near 0).
+    A = policy.action_size
+    target = jnp.maximum(jnp.exp(init_log_std) - MIN_POLICY_STD, 1e-6)
+    bias = target + jnp.log(-jnp.expm1(-target))  # softplus^-1, stable for small and large targets
+    mlp = dict(p["MLP_0"])
+    last = f"Dense_{len(policy.hidden)}"
+    layer = dict(mlp[last])
+    layer["bias"] = layer["bias"].at[A:].set(bias)
+    mlp[last] = layer
+    return {"params": dict(p, MLP_0=mlp)}

@@ -55,9 +55,10 @@ from cdjax.sweep import Sweep, make_sweep, unpad
 ARMS = ("model-free", "mbmf", "cd")
 # Hyper-parameters an arm does not use: fixed (not part of its grid) so they do not multiply its runs.
 # lr_distill is the Mb-Mf phase's (cdjax.mbmf): unused without the phase.
-UNUSED = {"model-free": ("alpha", "lr_model", "model_coef", "lr_distill"), "mbmf": ("alpha", "lr_distill"),
-          "cd": ("lr_distill",)}
-UNUSED_WITH_PHASE = {"model-free": UNUSED["model-free"], "mbmf": ("alpha",), "cd": ()}
+CONSISTENCY_ONLY = ("alpha", "cc_model", "cc_policy", "enc_aux_coef")
+UNUSED = {"model-free": CONSISTENCY_ONLY + ("lr_model", "model_coef", "lr_distill"),
+          "mbmf": CONSISTENCY_ONLY + ("lr_distill",), "cd": ("lr_distill",)}
+UNUSED_WITH_PHASE = {"model-free": UNUSED["model-free"], "mbmf": CONSISTENCY_ONLY, "cd": ()}
 FIXED = {"alpha": 0.0}  # the value an unused hyper-parameter takes (others keep their default)
 RETURN = "episode/return"
 SPREAD = "encoder/spread_real"
@@ -65,6 +66,7 @@ SPREAD = "encoder/spread_real"
 # every window to nearly one point: l_cc then vanishes without the model becoming consistent. A fresh GRU
 # spreads ~0.1-0.5; the collapsed ant runs of experiments/paper_obs_space ended at 5e-5 to 3e-4.
 COLLAPSE_SPREAD = 1e-3
+TRAINED_ENCODERS = ("gru", "grounded-gru")
 LINE_EVERY_S = 5.0  # without a terminal, a progress line at most this often (and at the end)
 
 
@@ -321,16 +323,16 @@ class _Arm:
 def collapse_warning(arm_name: str, config: Config, metrics: dict) -> str | None:
     """A sentence when the trainable GRU encoder of some runs has collapsed at the latest update, else None.
 
-    metrics: {name: [R, n]} on the host (one chunk). Only the `gru` encoder is checked: `frozen-gru` does
-    not train and `l2` has no encoder.
+    metrics: {name: [R, n]} on the host (one chunk). Only the trained encoders (gru, grounded-gru) are checked:
+    `frozen-gru` does not train and `l2` has no encoder.
     """
-    if config.encoder != "gru" or SPREAD not in metrics:
+    if config.encoder not in TRAINED_ENCODERS or SPREAD not in metrics:
         return None
     last = np.asarray(metrics[SPREAD])[:, -1]
     low = np.isfinite(last) & (last < COLLAPSE_SPREAD)
     if not low.any():
         return None
-    return (f"Arm {arm_name}: the GRU encoder's output spread fell below {COLLAPSE_SPREAD:g} in {int(low.sum())} of "
+    return (f"Arm {arm_name}: the {config.encoder} encoder's output spread fell below {COLLAPSE_SPREAD:g} in {int(low.sum())} of "
             f"{last.size} runs (median {np.median(last[low]):.1e}); the encoder may have collapsed, which makes l_cc "
             "vanish without making the model consistent. The frozen-gru and l2 encoders (--encoder) cannot collapse.")
 

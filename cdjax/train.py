@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from cdjax import losses, networks
+from cdjax import consistency, losses, networks
 from cdjax import normalize as nz
 from cdjax.config import Config, HParams
 from cdjax.envs import EnvState, make_env, strong_types
@@ -76,11 +76,14 @@ class Trainer(NamedTuple):
     config: Config
     init: Callable[[jax.Array, HParams], TrainState]  # (key, hp) -> state
     update: Callable[[TrainState, HParams], tuple[TrainState, dict]]  # (state, hp) -> (state, metrics)
-    collect: Callable  # (state, hp) -> (env_state, episodes, traj, batch): rollout + GAE, no learning
-    loss: Callable  # (params, norms, batch [T, Bm, ...], offsets [n], hp) -> (total, metrics)
+    collect: Callable  # (state, hp, key) -> (env_state, episodes, traj, batch): rollout + GAE, no learning
+    loss: Callable  # (params, norms, batch [L, Bs, ...], offsets [n], hp) -> (total, metrics)
     act: Callable  # (params, norms, obs [B, O], key or None) -> action [B, A]; None: deterministic
     model_step: Callable  # (model_params, norms, obs [..., O], action [..., A]) -> (next_obs, reward)
     env: Any  # the BatchedEnv
+    grad_norms: Callable  # (params, norms, batch [L, Bs, ...], offsets [n], hp) -> {"grad/<term>/<group>": norm}
+    loss_terms: Callable  # (params, norms, batch, offsets, hp) -> ({term: scalar}, metrics)
+    advantages: Callable  # (params, norms, batch [L, Bs, ...], hp) -> (advantages, returns), current value net
 
 
 def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientTransformation:
@@ -89,8 +92,11 @@ def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientT
     The frozen-GRU encoder gets zero updates. A step whose gradients are not finite is skipped.
     """
 
+    def adam(lr):
+        return optax.adam(lr, eps=hp.adam_eps)
+
     def group(lr):
-        return optax.chain(optax.clip_by_global_norm(hp.max_grad_norm), optax.adam(lr, eps=1e-5))
+        return optax.chain(optax.clip_by_global_norm(hp.max_grad_norm), adam(lr))
 
     lrs = {"policy": hp.lr_policy, "value": hp.lr_value, "model": hp.lr_model, "encoder": hp.lr_model}
     transforms = {}
@@ -98,19 +104,49 @@ def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientT
         frozen = name == "encoder" and config.encoder == "frozen-gru"
         transforms[name] = optax.set_to_zero() if frozen else group(lrs[name])
     labels = lambda p: {name: jax.tree.map(lambda _: name, sub) for name, sub in p.items()}  # noqa: E731
-    return optax.apply_if_finite(optax.multi_transform(transforms, labels), max_consecutive_errors=1_000_000)
+    tx = optax.multi_transform(transforms, labels)
+    if config.clip_scope == "policy-value":  # one clip over policy and value together, then Adam per group
+        transforms.update(policy=adam(hp.lr_policy), value=adam(hp.lr_value))
+        joint = lambda p: {name: jax.tree.map(lambda _: "ppo" if name in ("policy", "value") else "rest", sub)  # noqa: E731
+                           for name, sub in p.items()}
+        clip = optax.multi_transform({"ppo": optax.clip_by_global_norm(hp.max_grad_norm),
+                                      "rest": optax.identity()}, joint)
+        tx = optax.chain(clip, optax.multi_transform(transforms, labels))
+    return optax.apply_if_finite(tx, max_consecutive_errors=1_000_000)
+
+
+# The parameter groups each loss term can reach (the gradient-norm metrics report these pairs).
+TERM_GROUPS = {"ppo": ("policy", "value"), "model_nll": ("model",), "consistency": ("model", "encoder", "policy"),
+               "encoder_aux": ("encoder",)}
+
+
+def term_weights(hp: HParams) -> dict[str, jax.Array]:
+    """The weight of each named loss term in the total."""
+    return {"ppo": jnp.ones((), jnp.float32), "model_nll": hp.model_coef, "consistency": hp.alpha,
+            "encoder_aux": hp.enc_aux_coef}
+
+
+def refresh_norms(norms: nz.Norms, obs, next_obs, reward, valid) -> nz.Norms:
+    """Merge a batch of transitions (leaves [..., D], valid [...]) into the running statistics."""
+    return nz.Norms(obs=nz.update(norms.obs, obs, valid), delta=nz.update(norms.delta, next_obs - obs, valid),
+                    reward=nz.update(norms.reward, reward[..., None], valid))
+
+
+def to_segments(x: jax.Array, segment: int) -> jax.Array:
+    """[T, B, ...] -> [L, (T / L) * B, ...]: the rollout cut into sequences of L steps (column s * B + b)."""
+    T, B = x.shape[:2]
+    S = T // segment
+    return jnp.swapaxes(x.reshape((S, segment, B) + x.shape[2:]), 0, 1).reshape((segment, S * B) + x.shape[2:])
 
 
 def make_trainer(config: Config) -> Trainer:
     env = make_env(config)
     O, A = env.observation_size, env.action_size
-    T, k, M, Bm = config.rollout_len, config.horizon, config.num_minibatches, config.minibatch_envs
+    T, L, k, M = config.rollout_len, config.segment, config.horizon, config.num_minibatches
     modules = networks.build(config, O, A)
     policy, value = modules["policy"], modules["value"]
     model = modules.get("model")
     encoder = modules.get("encoder")
-    n_windows = config.num_windows
-    all_offsets = config.num_windows == T - k + 1
 
     def model_step(model_params, norms, obs, action):
         mean, _ = model.apply(model_params, nz.normalize(norms.obs, obs), action)
@@ -119,10 +155,10 @@ def make_trainer(config: Config) -> Trainer:
         return next_obs, reward
 
     def act(params, norms, obs, key):
-        mean, log_std = policy.apply(params["policy"], nz.normalize(norms.obs, obs))
+        mean, std = policy.apply(params["policy"], nz.normalize(norms.obs, obs))
         if key is None:
             return networks.squash(mean)
-        return networks.act_from_noise(mean, log_std, jax.random.normal(key, mean.shape))
+        return networks.act_from_noise(mean, std, jax.random.normal(key, mean.shape))
 
     def init(key: jax.Array, hp: HParams) -> TrainState:
         hp = hp.as_float32()
@@ -138,43 +174,87 @@ def make_trainer(config: Config) -> Trainer:
             last_return=nan, last_disc_return=nan, key=key_train, update_step=jnp.zeros((), jnp.int32))
         return strong_types(state)
 
-    def loss_fn(params, norms, mb, offsets, hp, with_consistency: bool = True):
-        """Total loss of one minibatch mb (leaves [T, Bm, ...]) -> (loss, metrics)."""
+    def advantages(params, norms, mb: "Batch", hp, values=None):
+        """GAE of a minibatch of sequences [L, Bs] with the current value net (no gradient through it);
+        `values` [L, Bs]: the value net's output on mb.obs when the caller has it already.
+
+        V(obs[t+1]) is the current value of the next row except where the episode ended after t: there
+        the bootstrap target is V(next_obs[t]), the final observation, taken from the rollout (only
+        time-outs use it). The last step bootstraps on the current value of next_obs[L-1].
+        """
+        if values is None:
+            values = value.apply(params["value"], nz.normalize(norms.obs, mb.obs))
+        v = jax.lax.stop_gradient(values)
+        v_last = jax.lax.stop_gradient(value.apply(params["value"], nz.normalize(norms.obs, mb.next_obs[-1])))
+        v_next = jnp.concatenate([jnp.where(mb.ended[:-1], mb.next_value[:-1], v[1:]), v_last[None]])
+        return losses.gae(mb.reward * hp.reward_scale, v, v_next, mb.valid & ~mb.terminated, mb.ended, hp.gamma,
+                          hp.gae_lambda, mb.valid)
+
+    def loss_terms(params, norms, mb: "Batch", offsets, hp, with_consistency: bool = True):
+        """The named loss terms of one minibatch mb (leaves [L, Bs, ...]) -> ({name: scalar}, metrics)."""
         obs_n = nz.normalize(norms.obs, mb.obs)
-        mean, log_std = policy.apply(params["policy"], obs_n)
+        mean, std = policy.apply(params["policy"], obs_n)
         values = value.apply(params["value"], obs_n)
-        total, metrics = losses.ppo_loss(mean, log_std, values, mb.raw_action, mb.log_prob, mb.advantages,
-                                         mb.returns, mb.valid, hp)
-        metrics["loss/ppo"] = total
+        if config.gae_in_loss:
+            adv, returns = advantages(params, norms, mb, hp, values)
+        else:
+            adv, returns = mb.advantages, mb.returns
+        entropy_noise = mb.noise if config.entropy == "squashed" else None
+        ppo, metrics = losses.ppo_loss(mean, std, values, mb.raw_action, mb.log_prob, adv, returns, mb.valid,
+                                       hp, entropy_noise)
+        metrics["loss/ppo"] = ppo
+        metrics["policy/std"] = losses.masked_mean(std.mean(-1), mb.valid)
+        terms = {"ppo": ppo}
         if model is not None:
             pred_mean, pred_log_std = model.apply(params["model"], obs_n, mb.action)
             target = jnp.concatenate([nz.normalize(norms.delta, mb.next_obs - mb.obs),
                                       nz.normalize(norms.reward, mb.reward[..., None])], axis=-1)
-            nll, model_metrics = losses.model_loss(pred_mean, pred_log_std, target, mb.valid)
+            terms["model_nll"], model_metrics = losses.model_loss(pred_mean, pred_log_std, target, mb.valid)
             metrics.update(model_metrics)
-            total = total + hp.model_coef * nll
         if config.use_consistency and with_consistency:
-            actions = networks.act_from_noise(mean, log_std, mb.noise)  # [T, Bm, A], carries d/dphi
-            idx = losses.window_indices(offsets, k)  # [k, n]
-            flat = lambda x: x.reshape(x.shape[:-3] + (-1,) + x.shape[-1:])  # noqa: E731  [.., n, Bm, D] -> [.., n*Bm, D]
-            mask = losses.window_mask(mb.ended, mb.valid, idx).reshape(-1)
-            if encoder is not None:
-                enc_params = params["encoder"]
-                if config.encoder == "frozen-gru":
-                    enc_params = jax.lax.stop_gradient(enc_params)
-                encode_step = functools.partial(encoder.apply, enc_params)
-                h0 = jnp.zeros((mask.shape[0], config.encoder_dim), jnp.float32)
-            else:
-                encode_step, h0 = None, None
-            step = lambda s, a: model_step(params["model"], norms, s, a)[0]  # noqa: E731
-            cc, cc_metrics = losses.consistency_loss(
-                step, functools.partial(nz.normalize, norms.obs), flat(mb.obs[offsets][None])[0],
-                flat(actions[idx]), flat(mb.next_obs[idx]), mask, encoder=config.encoder,
-                encode_step=encode_step, h0=h0, unroll=config.cc_unroll)
+            actions = networks.act_from_noise(mean, std, mb.noise)  # [L, Bs, A], carries d/dphi
+            s0, window_actions, real_next, mask = consistency.windows(mb.obs, mb.next_obs, actions, mb.ended,
+                                                                      mb.valid, offsets, k)
+            cc_terms, cc_metrics = consistency.consistency_loss(
+                lambda p, s, a: model_step(p, norms, s, a)[0], params["model"], s0, window_actions, real_next, mask,
+                kind=config.encoder, normalize=functools.partial(nz.normalize, norms.obs),
+                weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=encoder,
+                encoder_params=params.get("encoder"), unroll=config.cc_unroll)
+            terms.update(cc_terms)
             metrics.update(cc_metrics)
-            total = total + hp.alpha * cc
+        return terms, metrics
+
+    def loss_fn(params, norms, mb, offsets, hp, with_consistency: bool = True):
+        """Total loss of one minibatch mb (leaves [L, Bs, ...]) -> (loss, metrics): the named terms times
+        `term_weights(hp)`."""
+        terms, metrics = loss_terms(params, norms, mb, offsets, hp, with_consistency)
+        weights = term_weights(hp)
+        total = sum(weights[name] * term for name, term in terms.items())
         metrics["loss/total"] = total
         return total, metrics
+
+    def grad_norms(params, norms, mb, offsets, hp) -> dict:
+        """The gradient norm of every weighted loss term on each parameter group it reaches (TERM_GROUPS), and of
+        their sum on every group: metrics "grad/<term>/<group>", so the balance of the terms is visible."""
+        weights = term_weights(hp)
+
+        def weighted(p):
+            terms, _ = loss_terms(p, norms, mb, offsets, hp)
+            return {name: weights[name] * term for name, term in terms.items()}
+
+        out, pullback = jax.vjp(weighted, params)
+        metrics = {}
+        total = jax.tree.map(jnp.zeros_like, params)
+        for name in out:
+            cotangent = {n: jnp.ones_like(v) if n == name else jnp.zeros_like(v) for n, v in out.items()}
+            (grads,) = pullback(cotangent)
+            total = jax.tree.map(jnp.add, total, grads)
+            for group in TERM_GROUPS[name]:
+                if group in grads:
+                    metrics[f"grad/{name}/{group}"] = optax.global_norm(grads[group])
+        for group, g in total.items():
+            metrics[f"grad/total/{group}"] = optax.global_norm(g)
+        return metrics
 
     def openloop_metrics(model_params, norms, history: History) -> dict:
         """Open-loop MSE (normalised space) of the model at k and at eval_horizon steps on real data."""
@@ -188,77 +268,79 @@ def make_trainer(config: Config) -> Trainer:
             out[f"model/openloop_mse_{name}"] = jnp.where(n > 0, losses.masked_mean(err, ok), jnp.nan)
         return out
 
-    def collect(state: TrainState, hp: HParams):
+    def collect(state: TrainState, hp: HParams, key: jax.Array):
         """Closed-loop rollout with the current policy, then GAE. -> (env_state, episodes, traj, batch)."""
         hp = hp.as_float32()
         params, norms = state.params, state.norms
-        _, key_roll, _ = jax.random.split(state.key, 3)
 
         def behaviour(obs, key):
-            mean, log_std = policy.apply(params["policy"], nz.normalize(norms.obs, obs))
+            mean, std = policy.apply(params["policy"], nz.normalize(norms.obs, obs))
             noise = jax.random.normal(key, mean.shape)
-            raw = mean + jnp.exp(log_std) * noise
-            log_prob = networks.action_distribution(mean, log_std).log_prob(raw)
+            raw = mean + std * noise
+            log_prob = networks.action_distribution(mean, std).log_prob(raw)
             return networks.squash(raw), raw, noise, log_prob
 
         def value_of(obs):
             return value.apply(params["value"], nz.normalize(norms.obs, obs))
 
         (env_state, episodes), traj = closed_loop(env, behaviour, value_of, state.env_state, state.episodes,
-                                                  key_roll, T, hp.gamma)
-        advantages, returns = losses.gae(traj.reward * hp.reward_scale, traj.value, traj.next_value,
-                                         traj.valid & ~traj.terminated, traj.ended, hp.gamma, hp.gae_lambda)
+                                                  key, T, hp.gamma)
+        adv, returns = losses.gae(traj.reward * hp.reward_scale, traj.value, traj.next_value,
+                                  traj.valid & ~traj.terminated, traj.ended, hp.gamma, hp.gae_lambda, traj.valid)
         batch = Batch(traj.obs, traj.next_obs, traj.action, traj.raw_action, traj.noise, traj.log_prob,
-                      traj.reward, traj.ended, traj.valid, advantages, returns)
+                      traj.reward, traj.terminated, traj.ended, traj.valid, traj.next_value, adv, returns)
         return env_state, episodes, traj, batch
 
-    def update(state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
-        env_state, episodes, traj, data = collect(state, hp)
-        hp = hp.as_float32()
-        tx = make_optimizer(config, state.params, hp)
-        key, _, key_epochs = jax.random.split(state.key, 3)
-        params, norms = state.params, state.norms
+    def sgd(params, opt_state, norms, data: "Batch", hp: HParams, key: jax.Array):
+        """Epochs x minibatches of Adam steps on the loss; minibatches are shuffled sequences of L steps."""
+        tx = make_optimizer(config, params, hp)
+        segments = jax.tree.map(lambda x: to_segments(x, L), data)  # [L, N, ...]
+        N = config.num_segments
+        Bs = config.minibatch_seqs
 
         def minibatch(carry, inp, with_consistency):
             params, opt_state = carry
             mb, key = inp
-            if all_offsets:
-                offsets = jnp.arange(n_windows)
-            else:
-                offsets = jnp.sort(jax.random.choice(key, T - k + 1, (n_windows,), replace=False))
+            offsets = consistency.window_offsets(key, L, k, config.num_windows)
             grads, metrics = jax.grad(loss_fn, has_aux=True)(params, norms, mb, offsets, hp, with_consistency)
             updates, opt_state = tx.update(grads, opt_state, params)
-            params = optax.apply_updates(params, updates)
-            return (params, opt_state), metrics
+            return (optax.apply_updates(params, updates), opt_state), metrics
 
         def epoch(carry, key, with_consistency):
             key_perm, key_mb = jax.random.split(key)
-            perm = jax.random.permutation(key_perm, config.num_envs)
-            split = lambda x: jnp.swapaxes(x[:, perm].reshape((T, M, Bm) + x.shape[2:]), 0, 1)  # noqa: E731
-            mbs = jax.tree.map(split, data)
+            perm = jax.random.permutation(key_perm, N)
+            split = lambda x: jnp.swapaxes(x[:, perm].reshape((L, M, Bs) + x.shape[2:]), 0, 1)  # noqa: E731
             step = functools.partial(minibatch, with_consistency=with_consistency)
-            return jax.lax.scan(step, carry, (mbs, jax.random.split(key_mb, M)))
+            return jax.lax.scan(step, carry, (jax.tree.map(split, segments), jax.random.split(key_mb, M)))
 
         # Epochs with the consistency term first, then (cc_epochs > 0) the rest without it.
+        key_diag, key_epochs = jax.random.split(key)
+        first = jax.tree.map(lambda x: x[:, :Bs], segments)
+        diagnostics = grad_norms(params, norms, first, consistency.window_offsets(key_diag, L, k, config.num_windows),
+                                 hp)
         epoch_keys = jax.random.split(key_epochs, config.num_epochs)
         n_cc = config.num_epochs if config.cc_epochs == 0 else config.cc_epochs
-        carry, metrics = jax.lax.scan(functools.partial(epoch, with_consistency=True), (params, state.opt_state),
+        carry, metrics = jax.lax.scan(functools.partial(epoch, with_consistency=True), (params, opt_state),
                                       epoch_keys[:n_cc])
         if n_cc < config.num_epochs:
             carry, rest = jax.lax.scan(functools.partial(epoch, with_consistency=False), carry, epoch_keys[n_cc:])
             metrics = {name: jnp.concatenate([value, rest[name]]) if name in rest else value
                        for name, value in metrics.items()}
-        params, opt_state = carry
         metrics = jax.tree.map(jnp.mean, metrics)
+        metrics.update(diagnostics)
+        return carry, metrics
+
+    def update(state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
+        hp = hp.as_float32()
+        key, key_roll, key_sgd = jax.random.split(state.key, 3)
+        env_state, episodes, traj, data = collect(state, hp, key_roll)
+        # The rollout joins the statistics before SGD: the first update already learns on normalised data.
+        norms = refresh_norms(state.norms, traj.obs, traj.next_obs, traj.reward, traj.valid)
+        (params, opt_state), metrics = sgd(state.params, state.opt_state, norms, data, hp, key_sgd)
 
         history = state.history.push(traj)
-        if model is not None:
-            metrics.update(openloop_metrics(state.params["model"], norms, history))
-        new_norms = nz.Norms(
-            obs=nz.update(norms.obs, traj.obs, traj.valid),
-            delta=nz.update(norms.delta, traj.next_obs - traj.obs, traj.valid),
-            reward=nz.update(norms.reward, traj.reward[..., None], traj.valid),
-        )
+        if model is not None:  # the model of the last update with the statistics it was trained with
+            metrics.update(openloop_metrics(state.params["model"], state.norms, history))
         count = episodes.done_count
         last_return = jnp.where(count > 0, episodes.done_ret / jnp.maximum(count, 1.0), state.last_return)
         last_disc = jnp.where(count > 0, episodes.done_disc_ret / jnp.maximum(count, 1.0), state.last_disc_return)
@@ -271,18 +353,18 @@ def make_trainer(config: Config) -> Trainer:
             "opt/skipped_updates": opt_state.total_notfinite.astype(jnp.float32),
         })
         new_state = TrainState(
-            params=params, opt_state=opt_state, norms=new_norms, env_state=env_state, episodes=episodes,
+            params=params, opt_state=opt_state, norms=norms, env_state=env_state, episodes=episodes,
             history=history, last_return=last_return, last_disc_return=last_disc, key=key,
             update_step=state.update_step + 1)
         return strong_types(new_state), metrics
 
     return Trainer(config=config, init=init, update=update, collect=collect, loss=loss_fn, act=act,
-                   model_step=model_step, env=env)
+                   model_step=model_step, env=env, grad_norms=grad_norms, loss_terms=loss_terms, advantages=advantages)
 
 
 @struct.dataclass
 class Batch:
-    """What the SGD phase needs of a rollout; leaves [T, B, ...]."""
+    """What the SGD phase needs of a rollout; leaves [T, B, ...] (minibatches: [L, Bs, ...])."""
 
     obs: jax.Array
     next_obs: jax.Array
@@ -291,9 +373,11 @@ class Batch:
     noise: jax.Array
     log_prob: jax.Array
     reward: jax.Array
+    terminated: jax.Array
     ended: jax.Array
     valid: jax.Array
-    advantages: jax.Array
+    next_value: jax.Array  # V(next_obs) at acting time: the bootstrap of time-outs inside a sequence
+    advantages: jax.Array  # GAE over the whole rollout at acting time (used when gae_in_loss is off)
     returns: jax.Array
 
 

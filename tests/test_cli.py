@@ -54,7 +54,7 @@ def other_run(tmp_path):
     (["sweep", "--out", "{d}/a", "--gamma", "1.5"], "--gamma must be between 0 and 1"),
     (["sweep", "--out", "{d}/a", "--arms", "dreamer"], "Unknown arm 'dreamer'"),
     (["sweep", "--out", "{d}/a", "--steps", "1.5"], "not a whole number"),
-    (["sweep", "--out", "{d}/a", "--horizon", "40", "--rollout-len", "32"], "longer than the rollout"),
+    (["sweep", "--out", "{d}/a", "--horizon", "40", "--rollout-len", "80"], "longer than the minibatch sequences"),
     (["sweep", "--out", "{d}/a", "--encoder", "lstm"], "invalid choice: 'lstm'"),
     (["sweep", "--env", "point"], "the following arguments are required: --out"),
     (["sweep", "--out", "{d}", "--resume"], "holds no run (no run.json)"),

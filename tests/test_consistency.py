@@ -1,24 +1,27 @@
-"""The consistency term: zero for an exact model, gradient paths, alpha = 0, masking."""
+"""The consistency module alone, on hand-made batches: windows, l_cc, encoders, the two gradient paths."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
-from cdjax import HParams, losses, networks
+from cdjax import consistency as cc
+from cdjax import networks
 from cdjax import normalize as nz
 from cdjax.envs.point import PointMass
 
-from _shared import POINT, compiled
-
 K, W = 6, 10
+ONE = cc.PathWeights(model=1.0, policy=1.0)
+IRREDUCIBLE = 0.1  # amplitude of the tiny-task model's error that training cannot remove
+INITIAL_ERROR = 0.05  # scale of its initial, learnable error
 
 
-def _real_windows(seed=0):
-    """W real k-step point-mass sequences under random actions (the 'closed loop')."""
+def _real_windows(seed=0, w=W):
+    """w real k-step point-mass sequences under random actions (the 'closed loop')."""
     key_s, key_a = jax.random.split(jax.random.key(seed))
-    s0 = jnp.concatenate([jax.random.uniform(key_s, (W, 2), minval=-1, maxval=1), jnp.zeros((W, 2))], -1)
-    actions = jax.random.uniform(key_a, (K, W, 2), minval=-1, maxval=1)
+    s0 = jnp.concatenate([jax.random.uniform(key_s, (w, 2), minval=-1, maxval=1), jnp.zeros((w, 2))], -1)
+    actions = jax.random.uniform(key_a, (K, w, 2), minval=-1, maxval=1)
 
     def step(s, a):
         s = PointMass.dynamics(s, a)
@@ -28,117 +31,182 @@ def _real_windows(seed=0):
     return s0, actions, real
 
 
-def _encoder(variant):
-    if variant == "l2":
-        return {}
-    module = networks.Encoder(8)
-    params = module.init(jax.random.key(1), jnp.zeros((1, 8)), jnp.zeros((1, 4)))
-    return dict(encode_step=lambda h, x: module.apply(params, h, x), h0=jnp.zeros((W, 8)))
-
-
 def _stats():
     return nz.update(nz.RunningStats.create(4), jax.random.normal(jax.random.key(2), (64, 4)))
 
 
-@pytest.mark.parametrize("variant", ["gru", "frozen-gru", "l2"])
-def test_zero_for_exact_model_positive_otherwise(variant):
-    s0, actions, real = _real_windows()
+def _encoder(kind, obs=4):
+    if kind == "l2":
+        return {}
+    module = networks.Encoder(8, K * obs if kind == "grounded-gru" else 0)
+    return dict(encoder=module, encoder_params=networks.init_encoder(module, jax.random.key(1), obs))
+
+
+def _model(scale):
+    """A 'learned model' with one parameter: the point mass's step scaled by `scale` (1 = exact)."""
+    return lambda p, s, a: PointMass.dynamics(s, a) * p["scale"], {"scale": jnp.asarray(scale, jnp.float32)}
+
+
+def _loss(kind, scale=1.0, weights=ONE, mask=None, real=None, **enc):
+    s0, actions, real_ = _real_windows()
+    step, params = _model(scale)
     norm = lambda x: nz.normalize(_stats(), x)  # noqa: E731
-    mask = jnp.ones((W,), bool)
-    exact, m = losses.consistency_loss(PointMass.dynamics, norm, s0, actions, real, mask, encoder=variant,
-                                       **_encoder(variant))
-    assert float(exact) == 0.0
+    mask = jnp.ones((W,), bool) if mask is None else mask
+    return cc.consistency_loss(step, params, s0, actions, real_ if real is None else real, mask, kind=kind,
+                               normalize=norm, weights=weights, **(enc or _encoder(kind)))
+
+
+@pytest.mark.parametrize("kind", cc.KINDS)
+def test_zero_for_exact_model_positive_otherwise(kind):
+    terms, m = _loss(kind, 1.0)
+    assert float(terms["consistency"]) == 0.0
     assert float(m["consistency/final_mse"]) == 0.0
-    biased = lambda s, a: PointMass.dynamics(s, a) + 0.01  # noqa: E731
-    wrong, _ = losses.consistency_loss(biased, norm, s0, actions, real, mask, encoder=variant, **_encoder(variant))
-    assert float(wrong) > 1e-4
+    wrong, _ = _loss(kind, 1.05)
+    assert float(wrong["consistency"]) > 1e-4
+    assert ("encoder_aux" in terms) == (kind == "grounded-gru")
 
 
-def test_masked_windows_contribute_nothing():
-    s0, actions, real = _real_windows()
-    norm = lambda x: nz.normalize(_stats(), x)  # noqa: E731
-    biased = lambda s, a: PointMass.dynamics(s, a) * 1.05  # noqa: E731
+@pytest.mark.parametrize("kind", ["gru", "grounded-gru"])
+def test_masked_windows_contribute_nothing(kind):
+    _, _, real = _real_windows()
     mask = jnp.arange(W) % 3 != 0
-    base, m = losses.consistency_loss(biased, norm, s0, actions, real, mask, encoder="gru", **_encoder("gru"))
+    enc = _encoder(kind)
+    base, m = _loss(kind, 1.05, mask=mask, **enc)
     garbage = jnp.where(mask[None, :, None], real, 1e6)
-    same, _ = losses.consistency_loss(biased, norm, s0, actions, garbage, mask, encoder="gru", **_encoder("gru"))
-    assert float(same) == float(base)
+    same, _ = _loss(kind, 1.05, mask=mask, real=garbage, **enc)
+    for name in base:
+        assert float(same[name]) == float(base[name]), name
     np.testing.assert_allclose(m["consistency/masked_fraction"], 4 / W)
-    kept = np.asarray(mask)
-    enc = _encoder("gru")
-    enc["h0"] = enc["h0"][kept]
-    alone, _ = losses.consistency_loss(biased, norm, s0[kept], actions[:, kept], real[:, kept],
-                                       jnp.ones((kept.sum(),), bool), encoder="gru", **enc)
-    np.testing.assert_allclose(alone, base, rtol=1e-6)
 
 
-@pytest.fixture(scope="module")
-def point_batch():
-    trainer, init, update = compiled(POINT)
-    hp = HParams(alpha=1.0)
-    state = init(jax.random.key(0), hp)
-    for _ in range(2):  # non-trivial normalisation statistics and a model that is not at init
-        state, _ = update(state, hp)
-    _, _, _, batch = jax.jit(trainer.collect)(state, hp)
-    mb = jax.tree.map(lambda x: x[:, : POINT.minibatch_envs], batch)
-    return trainer, state, mb
+def test_windows_and_mask_by_hand():
+    """A [T=5, B=2] batch: windows of k=3 at offsets (0, 2) as rows (window-major), and their mask."""
+    T, B, k = 5, 2, 3
+    obs = jnp.arange(T * B, dtype=jnp.float32).reshape(T, B, 1)  # obs[t, b] = 2t + b
+    next_obs = obs + 100.0
+    actions = -obs
+    ended = jnp.zeros((T, B), bool).at[0, 1].set(True)  # env 1's episode ends after step 0
+    valid = jnp.ones((T, B), bool).at[4, 0].set(False)  # env 0's step 4 is not finite
+    s0, a, real, mask = cc.windows(obs, next_obs, actions, ended, valid, jnp.array([0, 2]), k)
+    np.testing.assert_array_equal(s0[:, 0], [0, 1, 4, 5])  # rows: (o=0, b=0), (0, 1), (2, 0), (2, 1)
+    np.testing.assert_array_equal(a[:, :, 0], -np.array([[0, 1, 4, 5], [2, 3, 6, 7], [4, 5, 8, 9]]))
+    np.testing.assert_array_equal(real[:, 2, 0], [104, 106, 108])  # window at 2 of env 0: next_obs[2..4]
+    # (0, 1) crosses env 1's end after step 0; (2, 0) holds env 0's invalid step 4
+    np.testing.assert_array_equal(mask, [True, False, False, True])
 
 
-def _grads(trainer, params, norms, mb, alpha):
-    offsets = jnp.arange(POINT.num_windows)
-    fn = jax.jit(jax.grad(trainer.loss, has_aux=True))
-    return fn(params, norms, mb, offsets, HParams(alpha=alpha))
+def test_window_mask_ends_on_the_last_step_are_fine():
+    T, k = 6, 3
+    ended = jnp.zeros((T, 1), bool).at[2, 0].set(True)
+    valid = jnp.ones((T, 1), bool)
+    idx = cc.window_indices(jnp.arange(T - k + 1), k)
+    # an end after step 2 breaks windows whose first k-1 steps include 2 (starts 1 and 2); the window
+    # starting at 0 ends exactly at the episode's last step, which is fine
+    np.testing.assert_array_equal(cc.window_mask(ended, valid, idx)[:, 0], [True, False, False, True])
 
 
-def _norm(tree):
-    return float(jnp.sqrt(sum(jnp.sum(x**2) for x in jax.tree.leaves(tree))))
+def test_window_offsets_all_or_distinct_sorted():
+    np.testing.assert_array_equal(cc.window_offsets(jax.random.key(0), 8, 3, 6), np.arange(6))
+    some = np.asarray(cc.window_offsets(jax.random.key(0), 8, 3, 3))
+    assert len(set(some)) == 3 and list(some) == sorted(some) and some.max() <= 5
 
 
-def test_gradient_reaches_model_and_policy_not_value(point_batch):
-    trainer, state, mb = point_batch
-    g1, m1 = _grads(trainer, state.params, state.norms, mb, 1.0)
-    g0, m0 = _grads(trainer, state.params, state.norms, mb, 0.0)
-    diff = jax.tree.map(lambda a, b: a - b, g1, g0)  # the gradient of l_cc alone
-    assert float(m1["loss/consistency"]) > 0
-    assert _norm(diff["model"]) > 1e-6
-    assert _norm(diff["policy"]) > 1e-6  # through the re-derived actions
-    assert _norm(diff["encoder"]) > 1e-6
-    assert _norm(diff["value"]) == 0.0
-    # alpha = 0: the encoder gets nothing, and the other groups match the mbmf arm exactly
-    assert _norm(g0["encoder"]) == 0.0
-    mbmf, _, _ = compiled(POINT.replace(arm="mbmf"))
-    params = {name: p for name, p in state.params.items() if name != "encoder"}
-    g_mbmf, m_mbmf = _grads(mbmf, params, state.norms, mb, 0.0)
-    for name in g_mbmf:
-        for a, b in zip(jax.tree.leaves(g0[name]), jax.tree.leaves(g_mbmf[name])):
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
-    np.testing.assert_allclose(m0["loss/total"], m_mbmf["loss/total"], rtol=1e-6)
+def test_scale_gradient_identity_forward_scaled_backward():
+    x = jnp.array([1.0, -2.0])
+    np.testing.assert_array_equal(cc.scale_gradient(x, 0.3), x)
+    g = jax.grad(lambda x: (cc.scale_gradient(x, 0.3) ** 2).sum())(x)
+    np.testing.assert_allclose(g, 0.3 * 2 * x, rtol=1e-6)
+    g0 = jax.grad(lambda x: jnp.sqrt(cc.scale_gradient(x - x, 0.0)).sum())(x)  # d sqrt(u) / du at 0 is inf
+    np.testing.assert_array_equal(g0, 0.0)  # a zero weight gives exactly zero, whatever flows back
 
 
-def test_rederived_actions_equal_executed_actions(point_batch):
-    """Before any parameter change, squash(mean + std * noise) is numerically the executed action."""
-    trainer, state, _ = point_batch
-    hp = HParams(alpha=1.0)
-    _, _, traj, _ = jax.jit(trainer.collect)(state, hp)
-    policy = networks.Policy(2, POINT.policy_hidden)
-    mean, log_std = policy.apply(state.params["policy"], nz.normalize(state.norms.obs, traj.obs))
-    np.testing.assert_allclose(networks.act_from_noise(mean, log_std, traj.noise), traj.action, atol=1e-6)
+def test_safe_norm_value_and_gradient_at_zero():
+    x = jnp.zeros((3,))
+    assert cc.safe_norm(x) == 0.0
+    assert jnp.all(jax.grad(cc.safe_norm)(x) == 0.0)
+    y = jnp.array([3.0, 4.0])
+    np.testing.assert_allclose(cc.safe_norm(y), 5.0)
+    np.testing.assert_allclose(jax.grad(cc.safe_norm)(y), [0.6, 0.8], rtol=1e-6)
 
 
-def test_windows_crossing_a_reset_are_masked_in_the_update(point_batch):
-    trainer, state, mb = point_batch
-    offsets = jnp.arange(POINT.num_windows)
-    loss = jax.jit(trainer.loss)
-    _, m = loss(state.params, state.norms, mb.replace(ended=jnp.zeros_like(mb.ended)), offsets, HParams())
-    assert float(m["consistency/masked_fraction"]) == 0.0
-    # an episode end after step 5 in every env breaks the windows starting at 3..5 (k = 4): 3 of 9
-    ended = jnp.zeros_like(mb.ended).at[5].set(True)
-    _, m = loss(state.params, state.norms, mb.replace(ended=ended), offsets, HParams())
-    np.testing.assert_allclose(m["consistency/masked_fraction"], 3 / 9, rtol=1e-6)
-    # garbage after the reset in those windows changes nothing but what the kept windows see
-    garbage = mb.next_obs.at[6].set(1e3)  # used only by windows starting at 3..6; 6 is kept
-    _, m_garbage = loss(state.params, state.norms, mb.replace(ended=ended.at[6].set(True), next_obs=garbage),
-                        offsets, HParams())
-    _, m_clean = loss(state.params, state.norms, mb.replace(ended=ended.at[6].set(True)), offsets, HParams())
-    # with ends after 5 and 6, windows 3..6 are masked: no kept window reads next_obs[6]
-    np.testing.assert_allclose(m_garbage["loss/consistency"], m_clean["loss/consistency"], rtol=1e-6)
+@pytest.mark.parametrize("kind", ["gru", "grounded-gru", "l2"])
+def test_path_weights_scale_each_path_alone(kind):
+    """d l_cc / d model params scales with weights.model, d / d actions with weights.policy, the encoder's with
+    weights.model; the reconstruction's gradient does not depend on the weights; the value never changes."""
+    s0, actions, real = _real_windows()
+    step, model_params = _model(1.05)
+    norm = lambda x: nz.normalize(_stats(), x)  # noqa: E731
+    enc = _encoder(kind)
+    mask = jnp.ones((W,), bool)
+
+    def grads(w_model, w_policy, term="consistency"):
+        def f(mp, acts, ep):
+            e = dict(enc, encoder_params=ep) if enc else {}
+            terms, _ = cc.consistency_loss(step, mp, s0, acts, real, mask, kind=kind, normalize=norm,
+                                           weights=cc.PathWeights(w_model, w_policy), **e)
+            return terms[term]
+        return jax.value_and_grad(f, argnums=(0, 1, 2))(model_params, actions, enc.get("encoder_params", {}))
+
+    v1, (gm1, ga1, ge1) = grads(1.0, 1.0)
+    v2, (gm2, ga2, ge2) = grads(0.25, 3.0)
+    assert float(v1) == float(v2)
+    np.testing.assert_allclose(gm2["scale"], 0.25 * gm1["scale"], rtol=1e-5)
+    np.testing.assert_allclose(ga2, 3.0 * ga1, rtol=1e-5, atol=1e-9)
+    assert float(jnp.abs(ga1).max()) > 0 and float(jnp.abs(gm1["scale"])) > 0
+    for a, b in zip(jax.tree.leaves(ge2), jax.tree.leaves(ge1)):
+        np.testing.assert_allclose(a, 0.25 * b, rtol=1e-5, atol=1e-9)
+    _, (gm0, ga0, _) = grads(0.0, 0.0)
+    assert float(gm0["scale"]) == 0.0 and float(jnp.abs(ga0).max()) == 0.0
+    if kind == "grounded-gru":
+        r1, (_, _, gr1) = grads(1.0, 1.0, "encoder_aux")
+        r0, (_, _, gr0) = grads(0.0, 0.0, "encoder_aux")
+        assert float(r1) == float(r0) > 0
+        for a, b in zip(jax.tree.leaves(gr0), jax.tree.leaves(gr1)):
+            np.testing.assert_array_equal(a, b)
+
+
+def _train_encoder_and_model(kind, steps=1000):
+    """Train a small model (the point mass with an error, plus a learnable linear correction) and the encoder
+    on l_cc (plus the auxiliary loss for grounded-gru): -> (l_cc, spread) at the start and at the end."""
+    s0, actions, real = _real_windows(seed=3, w=64)
+    stats = nz.update(nz.RunningStats.create(4), real.reshape(-1, 4))
+    norm = lambda x: nz.normalize(stats, x)  # noqa: E731
+    enc = _encoder(kind)
+    mask = jnp.ones((64,), bool)
+
+    def step(p, s, a):  # the sine is an error the linear correction cannot remove
+        return PointMass.dynamics(s, a) + IRREDUCIBLE * jnp.sin(5 * s) + s @ p["w"] + p["b"]
+
+    params = {"model": {"w": INITIAL_ERROR * jax.random.normal(jax.random.key(4), (4, 4)),
+                        "b": jnp.full((4,), INITIAL_ERROR)},
+              "encoder": enc["encoder_params"]}
+
+    def loss(p):
+        terms, m = cc.consistency_loss(step, p["model"], s0, actions, real, mask, kind=kind, normalize=norm,
+                                       weights=ONE, encoder=enc["encoder"], encoder_params=p["encoder"])
+        return sum(terms.values()), (terms["consistency"], m["encoder/spread_real"])
+
+    tx = optax.adam(3e-3)
+
+    @jax.jit
+    def train(params):
+        def body(carry, _):
+            p, o = carry
+            g, aux = jax.grad(loss, has_aux=True)(p)
+            u, o = tx.update(g, o, p)
+            return (optax.apply_updates(p, u), o), aux
+        return jax.lax.scan(body, (params, tx.init(params)), None, length=steps)[1]
+
+    l_cc, spread = train(params)
+    return float(l_cc[0]), float(l_cc[-1]), float(spread[0]), float(spread[-1])
+
+
+def test_default_encoder_keeps_its_spread_while_l_cc_is_trained_down():
+    """grounded-gru: l_cc falls (the model becomes consistent) and the encodings stay spread out (the floor holds
+    them near SPREAD_FLOOR); the paper's gru, trained the same way, shrinks its encodings instead (what
+    collapsed on ant)."""
+    l0, l1, s0, s1 = _train_encoder_and_model("grounded-gru")
+    assert l1 < 0.3 * l0, (l0, l1)
+    assert s1 > 0.5 * s0 and s1 > 0.9 * cc.SPREAD_FLOOR, (s0, s1)
+    g_l0, g_l1, g_s0, g_s1 = _train_encoder_and_model("gru")
+    assert g_s1 < 0.5 * g_s0, (g_s0, g_s1)  # the same training collapses the ungrounded encoder

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdjax import HParams, losses
+from cdjax import HParams, losses, networks
 from cdjax import normalize as nz
 
 
@@ -51,14 +51,40 @@ def test_ppo_clipping_and_masking():
 
 def test_ppo_loss_matches_gaussian_log_prob():
     hp = HParams().as_float32()
-    mean, log_std = jnp.array([[0.3, -0.2]]), jnp.array([0.1, -0.4])
+    mean, log_std = jnp.array([[0.3, -0.2]]), jnp.array([[0.1, -0.4]])
     raw = jnp.array([[0.5, 0.0]])
     std = jnp.exp(log_std)
     logp = (-0.5 * ((raw - mean) / std) ** 2 - log_std - 0.5 * jnp.log(2 * jnp.pi)).sum(-1)
     # log_prob_old = logp makes the ratio exactly 1; with advantages (1) normalised to 0 the loss is 0
-    loss, m = losses.ppo_loss(mean, log_std, jnp.zeros(1), raw, logp, jnp.ones(1), jnp.zeros(1), jnp.ones(1, bool), hp)
+    loss, m = losses.ppo_loss(mean, std, jnp.zeros(1), raw, logp, jnp.ones(1), jnp.zeros(1), jnp.ones(1, bool), hp)
     np.testing.assert_allclose(m["ppo/approx_kl"], 0.0, atol=1e-6)
     np.testing.assert_allclose(m["loss/policy"], 0.0, atol=1e-6)
+    np.testing.assert_allclose(m["loss/entropy"], (0.5 + 0.5 * jnp.log(2 * jnp.pi) + log_std).sum(), rtol=1e-6)
+
+
+def test_squashed_entropy_by_hand():
+    """Gaussian entropy plus log(1 - tanh(u)^2) at u = mean + std * noise, per action dimension summed."""
+    mean, std, noise = jnp.array([[0.3, -2.0]]), jnp.array([[0.5, 0.2]]), jnp.array([[1.0, -1.5]])
+    u = np.array([0.3 + 0.5, -2.0 - 0.3])
+    gaussian = (0.5 + 0.5 * np.log(2 * np.pi) + np.log([0.5, 0.2])).sum()
+    expected = gaussian + np.log(1 - np.tanh(u) ** 2).sum()
+    np.testing.assert_allclose(networks.squashed_entropy(mean, std, noise), [expected], rtol=1e-5)
+    # a saturating mean lowers the estimate; the Gaussian entropy alone does not see it
+    far = networks.squashed_entropy(mean + 5.0, std, noise)
+    assert float(far[0]) < expected - 5
+    # large |u| stays finite (tanh saturates to 1 in float32; the closed form does not)
+    assert np.isfinite(networks.squashed_entropy(jnp.array([[40.0]]), jnp.array([[1.0]]), jnp.array([[0.0]]))).all()
+
+
+def test_gae_ignores_invalid_steps():
+    """A non-finite step (valid = 0) has zero TD error: nothing of -V(s) reaches the step before it."""
+    reward = jnp.array([[1.0], [0.0], [1.0]])
+    value = jnp.array([[0.5], [7.0], [0.2]])
+    next_value = jnp.array([[7.0], [0.0], [0.3]])
+    valid = jnp.array([[True], [False], [True]])
+    ended = ~valid  # the invalid step ends (and resets) its episode
+    adv, _ = losses.gae(reward, value, next_value, valid, ended, 0.9, 0.8, valid)
+    np.testing.assert_allclose(adv[:, 0], [1.0 + 0.9 * 7.0 - 0.5, 0.0, 1.0 + 0.9 * 0.3 - 0.2], rtol=1e-6)
 
 
 def test_model_nll_and_mask():
@@ -69,28 +95,6 @@ def test_model_nll_and_mask():
     np.testing.assert_allclose(loss, 0.5 * 4.0 + jnp.log(2 * jnp.pi), rtol=1e-6)  # 2 dims x 0.5 log 2 pi
     np.testing.assert_allclose(m["model/onestep_mse"], 0.0)
     np.testing.assert_allclose(m["model/reward_mse"], 4.0)
-
-
-def test_safe_norm_value_and_gradient_at_zero():
-    x = jnp.zeros((3,))
-    assert losses.safe_norm(x) == 0.0
-    g = jax.grad(losses.safe_norm)(x)
-    assert jnp.all(g == 0.0)
-    y = jnp.array([3.0, 4.0])
-    np.testing.assert_allclose(losses.safe_norm(y), 5.0)
-    np.testing.assert_allclose(jax.grad(losses.safe_norm)(y), [0.6, 0.8], rtol=1e-6)
-
-
-def test_window_mask_by_hand():
-    T, k = 6, 3
-    ended = jnp.zeros((T, 1), bool).at[2, 0].set(True)
-    valid = jnp.ones((T, 1), bool)
-    idx = losses.window_indices(jnp.arange(T - k + 1), k)
-    # an end after step 2 breaks windows whose first k-1 steps include 2 (starts 1 and 2); the window
-    # starting at 0 ends exactly at the episode's last step, which is fine
-    np.testing.assert_array_equal(losses.window_mask(ended, valid, idx)[:, 0], [True, False, False, True])
-    valid = valid.at[5, 0].set(False)
-    np.testing.assert_array_equal(losses.window_mask(ended, valid, idx)[:, 0], [True, False, False, False])
 
 
 def test_running_stats_match_numpy_with_mask():

@@ -72,7 +72,7 @@ def test_arms_switch_the_same_code():
 
 
 def test_frozen_encoder_stays_put_trainable_one_moves():
-    for encoder, should_move in (("frozen-gru", False), ("gru", True)):
+    for encoder, should_move in (("frozen-gru", False), ("gru", True), ("grounded-gru", True)):
         _, init, update = compiled(POINT.replace(encoder=encoder))
         state = init(jax.random.key(0), HParams(alpha=1.0))
         new, _ = update(state, HParams(alpha=1.0))
@@ -118,10 +118,15 @@ def test_learning_on_mjx_pendulum():
 
 @pytest.mark.parametrize("changes, words", [
     (dict(env="antt"), "Unknown env 'antt'"),
-    (dict(horizon=40, rollout_len=32), "longer than the rollout"),
+    (dict(horizon=40, rollout_len=32), "longer than the minibatch sequences"),
+    (dict(horizon=12, rollout_len=32, segment_len=8), "longer than the minibatch sequences"),
+    (dict(rollout_len=32, segment_len=12), "does not divide rollout_len=32"),
+    (dict(rollout_len=32, horizon=20, cc_windows=20), "is more than the 13 k-step windows"),
+    (dict(activation="swishh"), "Unknown activation"),
+    (dict(encoder="vae"), "Unknown encoder"),
     (dict(num_envs=0), "num_envs must be a positive integer"),
     (dict(num_minibatches=-2), "num_minibatches must be a positive integer"),
-    (dict(num_envs=30, num_minibatches=4), "does not divide num_envs=30"),
+    (dict(num_envs=30, num_minibatches=4), "does not divide the 30 sequences"),
     (dict(policy_hidden=()), "policy_hidden must be a non-empty tuple"),
     (dict(arm="dreamer"), "Unknown arm"),
 ])
@@ -170,9 +175,9 @@ def test_rollout_values_are_values_of_obs_and_next_obs(reset_mode):
     core_obs = env_state.core.obs.at[0].set(jnp.nan).at[1, 0].set(1.99).at[1, 2].set(1.0)  # 0: NaN, 1: leaves the box
     state = state.replace(env_state=env_state.replace(core=env_state.core.replace(obs=core_obs),
                                                       obs=env_state.obs.at[1].set(core_obs[1])))
-    _, _, traj, _ = jax.jit(trainer.collect)(state, HParams())
+    _, _, traj, _ = jax.jit(trainer.collect)(state, HParams(), jax.random.key(5))
     assert bool(traj.terminated.any()) and bool(traj.truncated.any()) and not bool(traj.valid.all())
-    value = lambda obs: networks.Value(config.value_hidden).apply(  # noqa: E731
+    value = lambda obs: networks.Value(config.value_hidden, config.activation).apply(  # noqa: E731
         state.params["value"], nz.normalize(state.norms.obs, obs))
     np.testing.assert_allclose(traj.value, value(traj.obs), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(traj.next_value, value(traj.next_obs), rtol=1e-6, atol=1e-6)

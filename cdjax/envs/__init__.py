@@ -86,7 +86,7 @@ class EnvState:
     core: Any  # the wrapped env's State, batched [B]
     first: Any  # each env's first start, the target of a "cached" reset, batched [B]
     obs: jax.Array  # [B, obs] observation the policy acts on (after any reset)
-    t: jax.Array  # [B] int32 steps into the current episode
+    t: jax.Array  # [B] int32 physics steps into the current episode (agent steps x action_repeat)
     key: jax.Array  # PRNG key for fresh resets
 
 
@@ -174,7 +174,7 @@ class BatchedEnv:
         physics = getattr(core, "pipeline_state", None)
         physics_q = (getattr(physics, "q", None), getattr(physics, "qd", None)) if physics is not None else ()
         valid = _all_finite((next_obs, reward, physics_q), B)
-        t = state.t + 1
+        t = state.t + self.action_repeat  # physics steps, as Brax's EpisodeWrapper counts them
         terminated = done & valid
         truncated = (t >= self.episode_length) & ~terminated & valid
         ended = terminated | truncated | ~valid

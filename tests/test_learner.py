@@ -1,0 +1,144 @@
+"""The learner inside the update: path weights against Mb-Mf, gradient-norm metrics, warm statistics,
+sequence minibatches, GAE with the current value net, time-outs in physics steps."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from cdjax import HParams, consistency
+from cdjax.train import TERM_GROUPS, refresh_norms, term_weights, to_segments
+
+from _shared import POINT, compiled
+
+HP = HParams(alpha=1.0)
+
+
+@pytest.fixture(scope="module")
+def point_batch():
+    """A trained-a-little cd state on the point mass, a fresh rollout and its first minibatch [T, Bs]."""
+    trainer, init, update = compiled(POINT)
+    state = init(jax.random.key(0), HP)
+    for _ in range(3):  # non-trivial statistics, a model not at init; the next rollout holds time-out 40
+        state, _ = update(state, HP)
+    _, _, traj, batch = jax.jit(trainer.collect)(state, HP, jax.random.key(7))
+    mb = jax.tree.map(lambda x: x[:, : POINT.minibatch_seqs], batch)
+    return trainer, state, traj, batch, mb
+
+
+def _grads(trainer, params, norms, mb, hp):
+    offsets = jnp.arange(POINT.num_windows)
+    return jax.jit(jax.grad(trainer.loss, has_aux=True))(params, norms, mb, offsets, hp)
+
+
+def _assert_same(a, b):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-9)
+
+
+def _differ(a, b) -> bool:
+    return any(not np.allclose(x, y, rtol=1e-4, atol=1e-7) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_each_path_weight_at_zero_leaves_that_group_with_mbmf_gradient(point_batch):
+    trainer, state, _, _, mb = point_batch
+    mbmf, _, _ = compiled(POINT.replace(arm="mbmf"))
+    params = {name: p for name, p in state.params.items() if name != "encoder"}
+    g_mbmf, _ = _grads(mbmf, params, state.norms, mb, HP.replace(alpha=0.0))
+    no_policy, m = _grads(trainer, state.params, state.norms, mb, HP.replace(cc_policy=0.0))
+    assert float(m["loss/consistency"]) > 0
+    _assert_same(no_policy["policy"], g_mbmf["policy"])  # the policy sees PPO alone ...
+    assert _differ(no_policy["model"], g_mbmf["model"])  # ... while the model still gets l_cc
+    no_model, _ = _grads(trainer, state.params, state.norms, mb, HP.replace(cc_model=0.0))
+    _assert_same(no_model["model"], g_mbmf["model"])  # the model sees its NLL alone ...
+    assert _differ(no_model["policy"], g_mbmf["policy"])  # ... while the policy still gets l_cc
+    both, _ = _grads(trainer, state.params, state.norms, mb, HP)
+    _assert_same(both["value"], g_mbmf["value"])  # l_cc never reaches the value function
+
+
+def test_gradient_norm_metrics_match_per_term_gradients(point_batch):
+    trainer, state, _, _, mb = point_batch
+    hp = HP.replace(alpha=0.7, cc_policy=0.3, enc_aux_coef=2.0, model_coef=0.5).as_float32()
+    offsets = jnp.arange(POINT.num_windows)
+    metrics = jax.jit(trainer.grad_norms)(state.params, state.norms, mb, offsets, hp)
+    weights = term_weights(hp)
+    expected = {}
+    for name, groups in TERM_GROUPS.items():
+        term = lambda p, name=name: weights[name] * trainer.loss_terms(p, state.norms, mb, offsets, hp)[0][name]  # noqa: E731
+        grads = jax.jit(jax.grad(term))(state.params)
+        for group in groups:
+            leaves = jax.tree.leaves(grads[group])
+            expected[f"grad/{name}/{group}"] = float(np.sqrt(sum(float((x ** 2).sum()) for x in leaves)))
+    total = jax.jit(jax.grad(lambda p: trainer.loss(p, state.norms, mb, offsets, hp)[0]))(state.params)
+    for group in state.params:
+        expected[f"grad/total/{group}"] = float(optax.global_norm(total[group]))
+    assert set(metrics) == set(expected)
+    for name, value in expected.items():
+        np.testing.assert_allclose(metrics[name], value, rtol=1e-4, err_msg=name)
+    assert expected["grad/consistency/policy"] > 0 and expected["grad/encoder_aux/encoder"] > 0
+
+
+def test_update_zero_normalises_with_the_first_rollout():
+    """The first rollout joins the (empty) statistics before SGD: update 0's minibatches are normalised with
+    them (its gradient diagnostics equal those computed with the first rollout's statistics, not the cold
+    ones), and the state carries them."""
+    trainer, init, update = compiled(POINT)
+    state = init(jax.random.key(1), HP)
+    new, metrics = update(state, HP)
+    _, key_roll, key_sgd = jax.random.split(state.key, 3)
+    _, _, traj, batch = jax.jit(trainer.collect)(state, HP, key_roll)
+    warm = refresh_norms(state.norms, traj.obs, traj.next_obs, traj.reward, traj.valid)
+    assert float(new.norms.obs.count) == POINT.rollout_len * POINT.num_envs
+    _assert_same(new.norms, warm)
+    key_diag, _ = jax.random.split(key_sgd)
+    first = jax.tree.map(lambda x: to_segments(x, POINT.segment)[:, : POINT.minibatch_seqs], batch)
+    offsets = consistency.window_offsets(key_diag, POINT.segment, POINT.horizon, POINT.num_windows)
+    diag = jax.jit(trainer.grad_norms)
+    with_warm, with_cold = diag(state.params, warm, first, offsets, HP), diag(state.params, state.norms, first, offsets, HP)
+    for name in with_warm:
+        np.testing.assert_allclose(metrics[name], with_warm[name], rtol=1e-5, err_msg=name)
+    assert not np.isclose(metrics["grad/model_nll/model"], with_cold["grad/model_nll/model"], rtol=1e-2)
+
+
+def test_to_segments_by_hand():
+    x = jnp.arange(6 * 2).reshape(6, 2)  # x[t, b] = 2t + b, T = 6, B = 2
+    seg = to_segments(x, 3)  # 2 segments of 3 steps per env: columns (s=0, b=0), (0, 1), (1, 0), (1, 1)
+    np.testing.assert_array_equal(seg, [[0, 1, 6, 7], [2, 3, 8, 9], [4, 5, 10, 11]])
+
+
+def test_sequence_minibatches_update_runs_and_learns_the_model():
+    """segment_len < T: minibatches of shuffled (env, segment) sequences; the windows stay inside them."""
+    config = POINT.replace(segment_len=6, num_minibatches=4)
+    _, init, update = compiled(config)
+    state = init(jax.random.key(2), HP)
+    nll = []
+    for _ in range(6):
+        state, m = update(state, HP)
+        nll.append(float(m["loss/model_nll"]))
+        assert float(m["consistency/masked_fraction"]) < 1.0
+    assert nll[-1] < nll[1]
+
+
+def test_gae_in_the_loss_equals_the_rollout_gae_with_the_same_value_net(point_batch):
+    """With the rollout's own parameters and statistics, recomputing GAE inside a minibatch of whole-rollout
+    sequences gives the advantages computed at acting time (time-outs bootstrap on the final observation)."""
+    trainer, state, traj, batch, _ = point_batch
+    assert bool(traj.truncated.any()) or bool(traj.terminated.any())
+    adv, ret = jax.jit(trainer.advantages)(state.params, state.norms, batch, HP)
+    np.testing.assert_allclose(adv, batch.advantages, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(ret, batch.returns, rtol=1e-4, atol=1e-5)
+
+
+def test_time_out_counts_physics_steps_with_action_repeat():
+    from cdjax.envs import BatchedEnv
+    from cdjax.envs.point import PointMass
+
+    env = BatchedEnv(PointMass(start_range=0.2), num_envs=2, episode_length=6, action_repeat=2)
+    state = env.reset(jax.random.key(0))
+    step = jax.jit(env.step)
+    truncated = []
+    for _ in range(4):
+        state, out = step(state, jnp.zeros((2, 2)))
+        truncated.append(bool(out.truncated.all()))
+    assert truncated == [False, False, True, False]  # 3 agent steps x 2 physics steps = 6
