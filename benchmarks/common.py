@@ -40,7 +40,14 @@ class Spec:
     num_minibatches: int = 32  # minibatches per epoch (both)
     num_epochs: int = 8  # SGD passes over each rollout (Brax: num_updates_per_batch)
     horizon: int = 20  # cdjax k: open-loop length of the consistency windows
-    episode_length: int = 1000  # time-out (both)
+    episode_length: int = 1000  # time-out in physics steps (both)
+    action_repeat: int = 1  # physics steps per agent step (both)
+    discounting: float = 0.97  # gamma (both)
+    reward_scaling: float = 10.0  # reward multiplier seen by the learner (both)
+    entropy_cost: float = 1e-2  # entropy bonus weight (both)
+    learning_rate: float = 3e-4  # Adam learning rate (Brax: one optimiser; cdjax: policy and value alike)
+    clipping_epsilon: float = 0.3  # PPO ratio clipping (Brax's default)
+    max_grad_norm: float = 1.0  # gradient clipping (Brax: global; cdjax: per parameter group)
     policy_hidden: tuple[int, ...] = BRAX_POLICY_HIDDEN  # policy MLP widths (both)
     value_hidden: tuple[int, ...] = BRAX_VALUE_HIDDEN  # value MLP widths (both)
     model_hidden: tuple[int, ...] = (500,)  # cdjax dynamics model widths (Mb-Mf: one layer of 500)
@@ -64,7 +71,8 @@ class Spec:
 
     @property
     def env_steps_per_update(self) -> int:
-        return self.num_envs * self.rollout_len
+        """Physics steps per update (Brax counts env steps x action_repeat)."""
+        return self.num_envs * self.rollout_len * self.action_repeat
 
     @property
     def samples_per_minibatch(self) -> int:
@@ -76,23 +84,39 @@ class Spec:
         return dataclasses.replace(self, num_envs=num_envs, batch_size=batch)
 
     def config(self, **overrides):
-        """The cdjax Config of this spec (overrides: arm, cc_windows, ...)."""
+        """The cdjax Config of this spec (overrides: arm, cc_windows, ...).
+
+        Minibatches are made of sequences of `unroll_length` steps (segment_len), as Brax's are.
+        """
         from cdjax import Config
 
-        return Config(env=self.env, num_envs=self.num_envs, rollout_len=self.rollout_len, horizon=self.horizon,
+        fields = dict(env=self.env, num_envs=self.num_envs, rollout_len=self.rollout_len,
+                      segment_len=self.unroll_length, horizon=min(self.horizon, self.unroll_length),
                       num_epochs=self.num_epochs, num_minibatches=self.num_minibatches,
-                      episode_length=self.episode_length, policy_hidden=self.policy_hidden,
-                      value_hidden=self.value_hidden, model_hidden=self.model_hidden,
-                      encoder_dim=self.encoder_dim, eval_envs=self.eval_envs, eval_horizon=self.eval_horizon,
-                      **overrides)
+                      episode_length=self.episode_length, action_repeat=self.action_repeat,
+                      policy_hidden=self.policy_hidden, value_hidden=self.value_hidden,
+                      model_hidden=self.model_hidden, encoder_dim=self.encoder_dim, eval_envs=self.eval_envs,
+                      eval_horizon=self.eval_horizon)
+        return Config(**{**fields, **overrides})
+
+    def hparams(self, **overrides):
+        """The cdjax HParams of this spec (Brax's value loss 0.25 * err^2 is cdjax's vf_coef 0.5 * 0.5 * err^2)."""
+        from cdjax import HParams
+
+        fields = dict(gamma=self.discounting, reward_scale=self.reward_scaling, ent_coef=self.entropy_cost,
+                      lr_policy=self.learning_rate, lr_value=self.learning_rate, clip_eps=self.clipping_epsilon,
+                      max_grad_norm=self.max_grad_norm, gae_lambda=0.95, vf_coef=0.5)
+        return HParams(**{**fields, **overrides})
 
     def brax_kwargs(self) -> dict:
-        """Arguments of brax.training.agents.ppo.train.train for this spec (timing-relevant ones)."""
+        """Arguments of brax.training.agents.ppo.train.train for this spec."""
         return dict(num_envs=self.num_envs, unroll_length=self.unroll_length, batch_size=self.batch_size,
                     num_minibatches=self.num_minibatches, num_updates_per_batch=self.num_epochs,
-                    episode_length=self.episode_length, action_repeat=1, normalize_observations=True,
-                    max_grad_norm=1.0, learning_rate=3e-4, entropy_cost=1e-2, discounting=0.97,
-                    reward_scaling=10.0)
+                    episode_length=self.episode_length, action_repeat=self.action_repeat,
+                    normalize_observations=True, max_grad_norm=self.max_grad_norm,
+                    learning_rate=self.learning_rate, entropy_cost=self.entropy_cost,
+                    discounting=self.discounting, reward_scaling=self.reward_scaling,
+                    clipping_epsilon=self.clipping_epsilon, gae_lambda=0.95)
 
     def describe(self) -> dict:
         return {**dataclasses.asdict(self), "unrolls_per_env": self.unrolls_per_env, "rollout_len": self.rollout_len,

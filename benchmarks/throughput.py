@@ -21,14 +21,15 @@ DESIGNATED_CD = "cd-fast"  # the row the issue's CD targets are evaluated on
 
 
 def cdjax_cases(spec: Spec) -> dict[str, tuple[str, dict, dict]]:
-    k = spec.horizon
+    k = min(spec.horizon, spec.unroll_length)
+    w = min(2, spec.unroll_length - k + 1)  # windows per sequence of unroll_length steps
     return {
         "model-free": ("PPO only, no model", dict(arm="model-free"), dict()),
         "mbmf": ("PPO + model NLL, alpha = 0 (Mb-Mf)", dict(arm="mbmf"), dict(alpha=0.0)),
-        "cd-fast": (f"CD k={k}: 2 windows/env/minibatch, unroll {k}, consistency in epoch 1 only",
-                    dict(arm="cd", cc_windows=2, cc_unroll=k, cc_epochs=1), dict(alpha=1.0)),
-        "cd-w2-unroll": (f"CD k={k}: 2 windows/env/minibatch, unroll {k}, every epoch",
-                         dict(arm="cd", cc_windows=2, cc_unroll=k), dict(alpha=1.0)),
+        "cd-fast": (f"CD k={k}: {w} windows/sequence/minibatch, unroll {k}, consistency in epoch 1 only",
+                    dict(arm="cd", cc_windows=w, cc_unroll=k, cc_epochs=1), dict(alpha=1.0)),
+        "cd-w2-unroll": (f"CD k={k}: {w} windows/sequence/minibatch, unroll {k}, every epoch",
+                         dict(arm="cd", cc_windows=w, cc_unroll=k), dict(alpha=1.0)),
         "cd-default": (f"CD k={k}: default settings (all windows, every epoch, unroll 1)",
                        dict(arm="cd"), dict(alpha=1.0)),
     }
@@ -74,16 +75,17 @@ def collect(spec: Spec, timing: Timing) -> dict:
     guard, GAE) at the matched config: the rollout share of every arm's update."""
     import jax
 
-    from cdjax import HParams, make_trainer
+    from cdjax import make_trainer
 
     config = spec.config(arm="model-free")
     trainer = make_trainer(config)
-    hp = HParams().as_float32()
+    hp = spec.hparams().as_float32()
     state = jax.jit(trainer.init)(jax.random.key(0), hp)
 
     def f(state, hp):
-        env_state, episodes, _, batch = trainer.collect(state, hp)
-        return state.replace(env_state=env_state, episodes=episodes, key=jax.random.fold_in(state.key, 1)), batch
+        key, key_roll = jax.random.split(state.key)
+        env_state, episodes, _, batch = trainer.collect(state, hp, key_roll)
+        return state.replace(env_state=env_state, episodes=episodes, key=key), batch
 
     compiled, lower_s, compile_s = compile_timed(jax.jit(f, donate_argnums=0), state, hp)
     _, times = time_calls(lambda c: compiled(c[0], hp), (state, None), timing)
@@ -98,12 +100,12 @@ def cdjax_update(spec: Spec, case: str, timing: Timing, trace_dir: str | None = 
     import jax
     import jax.numpy as jnp
 
-    from cdjax import HParams, make_trainer
+    from cdjax import make_trainer
 
     what, overrides, hp_overrides = cdjax_cases(spec)[case]
     config = spec.config(**overrides)
     trainer = make_trainer(config)
-    hp = HParams(**hp_overrides).as_float32()
+    hp = spec.hparams(**hp_overrides).as_float32()
     state = jax.jit(trainer.init)(jax.random.key(0), hp)
     compiled, lower_s, compile_s = compile_timed(jax.jit(trainer.update, donate_argnums=0), state, hp)
     step: Callable = lambda c: compiled(c[0], hp)  # noqa: E731

@@ -23,9 +23,11 @@ def test_matched_config_follows_brax_ppo_semantics():
     # Brax: batch_size * num_minibatches / num_envs unrolls of unroll_length per env per training step.
     assert FULL.unrolls_per_env == 4 and FULL.rollout_len == 80
     assert FULL.env_steps_per_update == 327_680 == FULL.batch_size * FULL.unroll_length * FULL.num_minibatches
-    config = FULL.config(arm="cd", cc_windows=2)
+    config = FULL.config(arm="cd")
     assert (config.num_envs, config.rollout_len, config.num_epochs, config.num_minibatches) == (4096, 80, 8, 32)
-    assert config.minibatch_envs * config.rollout_len == FULL.samples_per_minibatch == 10_240
+    # minibatches of sequences of Brax's unroll length, as many as Brax's batch_size
+    assert config.segment == FULL.unroll_length and config.minibatch_seqs == FULL.batch_size
+    assert config.minibatch_seqs * config.segment == FULL.samples_per_minibatch == 10_240
     assert config.horizon == 20 and config.env_steps_per_update == FULL.env_steps_per_update
     kw = FULL.brax_kwargs()
     assert (kw["num_envs"], kw["unroll_length"], kw["batch_size"], kw["num_minibatches"], kw["num_updates_per_batch"]) \
@@ -40,7 +42,33 @@ def test_matched_config_follows_brax_ppo_semantics():
     for n in (512, 1024, 2048, 8192):
         s = FULL.with_num_envs(n)
         assert s.rollout_len == 80 and s.config().num_minibatches == 32 and s.env_steps_per_update == n * 80
-    assert FULL.with_num_envs(256).config().minibatch_envs == 8
+    assert FULL.with_num_envs(256).config().minibatch_seqs == 32
+    hp, kw = FULL.hparams(), FULL.brax_kwargs()  # the same learning hyper-parameters on both sides
+    assert (hp.gamma, hp.reward_scale, hp.ent_coef, hp.lr_policy, hp.lr_value, hp.clip_eps, hp.max_grad_norm) == (
+        kw["discounting"], kw["reward_scaling"], kw["entropy_cost"], kw["learning_rate"], kw["learning_rate"],
+        kw["clipping_epsilon"], kw["max_grad_norm"])
+
+
+def test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps(tmp_path):
+    """`python -m benchmarks.learning --tiny`: both learners, every seed, evaluated at the same env-step counts;
+    the report's table and verdict come from those rows."""
+    from benchmarks import learning, learning_report
+    from conftest import CACHE
+
+    out = tmp_path / "learning"
+    learning.main(["--tiny", "--seeds", "2", "--evals", "1", "--out", str(out), "--cache-dir", str(CACHE)])
+    rows = [json.loads(line) for line in (out / "rows.jsonl").read_text().splitlines()]
+    task = learning.TASKS["point"]
+    steps = {(r["framework"], r["seed"]): [] for r in rows}
+    for r in rows:
+        steps[(r["framework"], r["seed"])].append(r["env_steps"])
+        assert math.isfinite(r["eval_return"])
+    expected = [0, task.updates_per_eval * task.spec.env_steps_per_update]
+    assert sorted(steps) == [("brax", 0), ("brax", 1), ("cdjax", 0), ("cdjax", 1)]
+    assert all(sorted(v) == expected for v in steps.values())
+    text = learning_report.report([out], str(out / "report.md"))
+    assert "| point | brax-ppo | 2 |" in text and "| point | cdjax default | 2 |" in text
+    assert f"at {expected[-1]:,} env steps" in text and (out / "report.png").exists()
 
 
 @pytest.fixture(scope="module")
