@@ -1,0 +1,176 @@
+"""RESULTS tables and the figure of the path-weight grid, from `cdjax sweep` run directories (or the kept data).
+
+    python -m experiments.consistency_weights.report --runs DIR_ANT DIR_HALFCHEETAH   # keeps their data here
+    python -m experiments.consistency_weights.report                                 # from data/ (kept)
+
+Each task's run has one cd arm whose hyper-parameter grid crosses cc_model (the consistency gradient's
+weight on the model and the encoder) with cc_policy (its weight on the policy, through the actions), alpha
+= 1, seeds vmapped. The cell cc_model = cc_policy = 0 is Mb-Mf: the policy, value and model get exactly
+Mb-Mf's gradients (tests/test_learner.py); only the unused encoder trains. Cells with cc_policy = 0 differ
+from it only in the model, which PPO never reads, so their returns differ from Mb-Mf's only by the GPU's
+floating-point non-determinism: they show how far apart identical learners land.
+
+Statistics are cdjax.plots': IQM over seeds with a 95% stratified-bootstrap interval; "final" is the mean
+of each seed's last 10% of logged updates, "eval" the final deterministic evaluation (mean over its
+episodes), diagnostics are final values.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import json
+import pathlib
+import shutil
+import tempfile
+
+import numpy as np
+
+from cdjax import plots
+from experiments.consistency_weights import TASKS
+
+HERE = pathlib.Path(__file__).resolve().parent
+DIAGNOSTICS = (
+    ("model/openloop_mse_k", "open-loop MSE at k"),
+    ("model/openloop_mse_50", "open-loop MSE at 50"),
+    ("model/onestep_mse", "one-step MSE"),
+    ("loss/consistency", "l_cc"),
+)
+RATIOS = (("grad/consistency/policy", "grad/ppo/policy", "policy: l_cc / PPO"),
+          ("grad/consistency/model", "grad/model_nll/model", "model: l_cc / NLL"))
+SPREAD = "encoder/spread_real"
+
+
+def keep(run_dir: pathlib.Path, task: str) -> pathlib.Path:
+    """Copy run.json, eval.jsonl and metrics.jsonl (gzipped) of a run directory into data/<task>/."""
+    out = HERE / "data" / task
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("run.json", "eval.jsonl"):
+        shutil.copy(run_dir / name, out / name)
+    with open(run_dir / "metrics.jsonl", "rb") as src, open(out / "metrics.jsonl.gz", "wb") as raw, \
+            gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as dst:  # mtime 0: the same bytes on every rebuild
+        shutil.copyfileobj(src, dst)
+    return out
+
+
+def _readable(kept: pathlib.Path) -> pathlib.Path:
+    """A run directory cdjax.plots can read: the kept folder with its metrics unzipped into a temporary copy."""
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix="cdjax-weights-"))
+    for name in ("run.json", "eval.jsonl"):
+        shutil.copy(kept / name, tmp / name)
+    with gzip.open(kept / "metrics.jsonl.gz", "rb") as src, open(tmp / "metrics.jsonl", "wb") as dst:
+        shutil.copyfileobj(src, dst)
+    return tmp
+
+
+def _weights(label: str) -> tuple[float, float]:
+    fields = dict(part.split("=") for part in label.split(","))
+    return float(fields.get("cc_model", 1.0)), float(fields.get("cc_policy", 1.0))
+
+
+def _ci(x: tuple, digits: int = 4) -> str:
+    point, low, high = x[:3]
+    fmt = lambda v: f"{v:.{digits}g}"  # noqa: E731
+    return f"{fmt(point)} [{fmt(low)}, {fmt(high)}]" if np.isfinite(low) else fmt(point)
+
+
+def cells(run_dir: pathlib.Path, reps: int = 2000) -> list[dict]:
+    """One row per grid cell: returns, diagnostics, encoder spread and gradient balance, IQM over seeds."""
+    curves = plots.load_metrics(run_dir)
+    evals = plots.load_eval(run_dir)
+    rows = []
+    for (arm, label), c in curves.items():
+        ev = evals.get((arm, label, True), {}).get("return", np.array([]))
+        row = {"label": label, "weights": _weights(label), "seeds": len(c.seeds),
+               "env_steps": float(np.nanmax(c.env_steps)),
+               "eval": plots.iqm_interval(ev, reps=reps),
+               "final": plots.iqm_interval(plots.per_seed_final(c, plots.RETURN), reps=reps),
+               "auc": plots.iqm_interval(plots.per_seed_auc(c, plots.RETURN), reps=reps)}
+        for name, _ in DIAGNOSTICS:
+            row[name] = plots.iqm_interval(plots.per_seed_final(c, name), reps=reps)
+        spread = c.metrics.get(SPREAD)
+        if spread is not None:
+            first = spread[:, np.argmax(c.updates >= 1)]
+            row["spread_first"] = plots.iqm_interval(first, reps=reps)
+            row["spread_end"] = plots.iqm_interval(plots.per_seed_final(c, SPREAD), reps=reps)
+            row["spread_min"] = float(np.nanmin(spread))
+        for num, den, name in RATIOS:
+            if num in c.metrics and den in c.metrics:
+                ratio = np.nanmean(c.metrics[num] / c.metrics[den], axis=1)
+                row[name] = plots.iqm_interval(ratio, reps=reps)
+        rows.append(row)
+    return sorted(rows, key=lambda r: r["weights"])
+
+
+def tables(task: str, rows: list[dict]) -> str:
+    head = ("| cc_model | cc_policy | seeds | eval return | training return, final | training return, AUC | "
+            + " | ".join(label for _, label in DIAGNOSTICS) + " |")
+    lines = [f"### {task}", "", head, "|" + "---|" * (6 + len(DIAGNOSTICS))]
+    for r in rows:
+        m, p = r["weights"]
+        lines.append(f"| {m:g} | {p:g} | {r['seeds']} | {_ci(r['eval'])} | {_ci(r['final'])} | {_ci(r['auc'])} | "
+                     + " | ".join(_ci(r[name], 3) for name, _ in DIAGNOSTICS) + " |")
+    lines += ["", "| cc_model | cc_policy | encoder spread, update 1 | encoder spread, end | lowest in any run | "
+              + " | ".join(name for _, _, name in RATIOS) + " (gradient norms) |", "|" + "---|" * (5 + len(RATIOS))]
+    for r in rows:
+        m, p = r["weights"]
+        ratios = " | ".join(_ci(r[name], 3) if name in r else "–" for _, _, name in RATIOS)
+        lines.append(f"| {m:g} | {p:g} | {_ci(r['spread_first'], 3)} | {_ci(r['spread_end'], 3)} | "
+                     f"{r['spread_min']:.2g} | {ratios} |")
+    return "\n".join(lines)
+
+
+def figure(results: dict[str, list[dict]], path: pathlib.Path) -> pathlib.Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = (("eval", "eval return (IQM, 95% CI)"), ("model/openloop_mse_50", "open-loop MSE at 50 steps"),
+              ("spread_end", "encoder spread at the end"))
+    fig, axes = plt.subplots(len(results), len(panels), figsize=(4.6 * len(panels), 0.45 * 9 + 1.2 * len(results)),
+                             squeeze=False)
+    for row_axes, (task, rows) in zip(axes, results.items()):
+        labels = [f"{r['weights'][0]:g} / {r['weights'][1]:g}" for r in rows]
+        y = np.arange(len(rows))
+        for ax, (key, title) in zip(row_axes, panels):
+            point = np.array([r[key][0] for r in rows])
+            low = np.array([r[key][1] for r in rows])
+            high = np.array([r[key][2] for r in rows])
+            colors = ["#1f77b4" if r["weights"] == (0.0, 0.0) else "#d62728" for r in rows]
+            ax.errorbar(point, y, xerr=[np.nan_to_num(point - low), np.nan_to_num(high - point)], fmt="none",
+                        ecolor="#999999")
+            ax.scatter(point, y, c=colors, zorder=3)
+            ax.set_yticks(y, labels)
+            ax.set_title(f"{task}: {title}", fontsize=9)
+            if key != "eval":
+                ax.set_xscale("log")
+        row_axes[0].set_ylabel("cc_model / cc_policy (blue: Mb-Mf)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m experiments.consistency_weights.report", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--runs", nargs="*", type=pathlib.Path, help="run directories, one per task in TASKS order")
+    p.add_argument("--out", type=pathlib.Path, default=HERE / "tables.md", help="where the tables go")
+    args = p.parse_args(argv)
+    results, parts = {}, []
+    for i, task in enumerate(TASKS):
+        kept = keep(args.runs[i], task) if args.runs else HERE / "data" / task
+        run = _readable(kept)
+        info = json.loads((run / "run.json").read_text())
+        results[task] = cells(run)
+        parts.append(tables(task, results[task]) + f"\n\nCommand: `{info.get('command', '?')}`\n")
+        shutil.rmtree(run)
+    args.out.write_text("\n".join(parts))
+    figure(results, args.out.with_name("grid.png"))
+    print(args.out.read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
