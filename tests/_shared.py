@@ -5,6 +5,7 @@ import functools
 import jax
 
 from cdjax import Config, HParams, make_trainer
+from cdjax.agents import obs_space
 
 POINT = Config(env="point", num_envs=16, rollout_len=12, horizon=4, num_updates=3, num_epochs=2,
                num_minibatches=2, episode_length=40, policy_hidden=(16,), value_hidden=(16,),
@@ -22,3 +23,9 @@ def compiled(config: Config):
     """(trainer, jit(init), jit(update)) for a config, built once per test session."""
     trainer = make_trainer(config)
     return trainer, jax.jit(trainer.init), jax.jit(trainer.update)
+
+
+@functools.lru_cache(maxsize=None)
+def host_trainer(config: Config):
+    """The observation-space agent of a config as the host side sees it (cdjax.protocol.Trainer)."""
+    return obs_space.make_trainer(config)

@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from cdjax import Config, HParams
+from cdjax import Config, HParams, agents, io
 from cdjax.cli import build_parser, main, sweep_spec
 from cdjax.runner import SweepSpec, prepare
 
@@ -41,7 +41,9 @@ def _fail(capsys, argv) -> str:
 def other_run(tmp_path):
     """A directory that holds a run (run.json only; nothing compiled)."""
     out = tmp_path / "other"
-    prepare(SweepSpec(out=out, config=POINT, seeds=2, total_env_steps=2000), resume=False)
+    _, _, record = prepare(SweepSpec(out=out, config=POINT, seeds=2, total_env_steps=2000), resume=False)
+    io.RunDir(out).create()
+    io.RunDir(out).write(record)
     return out
 
 
@@ -68,7 +70,7 @@ def other_run(tmp_path):
      "MbMfPhase.mpc_horizon must be a positive integer, got 0"),
     (["sweep", "--out", "{d}/a", "--no-mbmf-phase", "--phase-mpc-horizon", "3"], "contradicts"),
     (["sweep", "--out", "{d}/a", "--preset", "point", "--arms", "mbmf", "--phase-random-steps", "10000"],
-     "leaves no PPO updates after the Mb-Mf phase"),
+     "leaves no updates after the Mb-Mf phase"),
 ])
 def test_bad_input_is_one_sentence_and_exit_2(capsys, tmp_path, argv, words):
     line = _fail(capsys, [a.replace("{d}", str(tmp_path)) for a in argv])
@@ -103,7 +105,8 @@ def test_options_are_derived_from_the_dataclasses(capsys):
 
 
 def test_precedence_defaults_then_preset_then_flags():
-    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]))  # noqa: E731
+    obs = agents.get("obs")
+    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]), obs)  # noqa: E731
     spec = parse("--preset", "cpu-smoke", "--num-envs", "16", "--alpha", "0", "0.5", "--seeds", "2")
     assert spec.config.env == "inverted_pendulum" and spec.config.rollout_len == 32  # preset
     assert spec.config.num_envs == 16 and spec.grid["alpha"] == (0.0, 0.5) and spec.seeds == 2  # flags
@@ -120,7 +123,8 @@ def test_precedence_defaults_then_preset_then_flags():
 def test_phase_options():
     from cdjax.mbmf import MbMfPhase
 
-    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]))  # noqa: E731
+    obs = agents.get("obs")
+    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]), obs)  # noqa: E731
     assert parse("--preset", "point").phase is None  # off unless asked for (or a preset says so)
     assert parse("--preset", "point", "--mbmf-phase").phase == MbMfPhase()
     spec = parse("--preset", "point", "--phase-mpc-candidates", "64", "--phase-relabel", "false",
