@@ -3,6 +3,7 @@
 import functools
 
 import jax
+import pytest
 
 from cdjax import Config, HParams, make_trainer
 from cdjax.agents import obs_space
@@ -29,3 +30,22 @@ def compiled(config: Config):
 def host_trainer(config: Config):
     """The observation-space agent of a config as the host side sees it (cdjax.protocol.Trainer)."""
     return obs_space.make_trainer(config)
+
+
+# The point-mass config POINT on the command line, with 2 seeds and 2 updates (of 192 env steps) per chunk.
+TINY_ARGS = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon", "4", "--num-epochs", "2",
+             "--num-minibatches", "2", "--episode-length", "40", "--policy-hidden", "16", "--value-hidden", "16",
+             "--model-hidden", "32", "--encoder-dim", "8", "--eval-horizon", "10", "--eval-envs", "4",
+             "--seeds", "2", "--chunk-updates", "2", "--no-progress"]
+
+
+def fail_in_one_sentence(capsys, main, argv) -> str:
+    """Run main(argv), which must exit with status 2 after one `cdjax: ...` sentence on stderr; return it."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2, err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("cdjax: ") and lines[0].endswith("."), err
+    return lines[0]

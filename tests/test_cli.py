@@ -16,25 +16,15 @@ from cdjax import Config, HParams, agents, io
 from cdjax.cli import build_parser, main, sweep_spec
 from cdjax.runner import SweepSpec, prepare
 
-from _shared import POINT
+from _shared import POINT, TINY_ARGS, fail_in_one_sentence
 from conftest import CACHE
 
-# A tiny point-mass sweep on the command line (2 updates per chunk of 192 env steps).
-TINY = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon", "4", "--num-epochs", "2",
-        "--num-minibatches", "2", "--episode-length", "40", "--policy-hidden", "16", "--value-hidden", "16",
-        "--model-hidden", "32", "--encoder-dim", "8", "--eval-horizon", "10", "--eval-envs", "4",
-        "--seeds", "2", "--chunk-updates", "2", "--no-progress"]
+# A tiny point-mass sweep on the command line (2 updates per chunk of 192 env steps): tests/_shared.TINY_ARGS.
+TINY = TINY_ARGS
 
 
 def _fail(capsys, argv) -> str:
-    with pytest.raises(SystemExit) as info:
-        main(argv)
-    err = capsys.readouterr().err
-    assert info.value.code == 2, err
-    assert "Traceback" not in err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("cdjax: ") and lines[0].endswith("."), err
-    return lines[0]
+    return fail_in_one_sentence(capsys, main, argv)
 
 
 @pytest.fixture

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import math
 import os
@@ -121,10 +122,19 @@ class RunDir:
         """run.json, or {} when the directory has none (plots of hand-made logs)."""
         return self.read() if self.exists() else {}
 
-    def create(self) -> None:
-        """Make the directory (and its parents): RunDirError, one sentence, when that cannot be done."""
+    def check_writable(self) -> None:
+        """RunDirError (one sentence) when the directory could not be made or written; writes nothing."""
         if self.path.exists() and not self.path.is_dir():
             raise RunDirError(f"{self.path} is a file, not a directory; choose another --out.")
+        existing = next(p for p in (self.path, *self.path.absolute().parents) if p.exists())
+        if not existing.is_dir():
+            raise RunDirError(f"cannot write into {self.path}: {os.strerror(errno.ENOTDIR)}; choose another --out.")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise RunDirError(f"cannot write into {self.path}: {os.strerror(errno.EACCES)} ({existing}); choose another --out.")
+
+    def create(self) -> None:
+        """Make the directory (and its parents): RunDirError, one sentence, when that cannot be done."""
+        self.check_writable()
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             probe = self.path / ".cdjax-write-test"

@@ -125,6 +125,13 @@ class Progress:
                      f"return: {ret}")
 
 
+class _QuietFileHandler(logging.FileHandler):
+    """A log file that drops what it cannot write (a full disk) instead of printing logging's own traceback."""
+
+    def handleError(self, record):  # noqa: N802 - logging's name
+        pass
+
+
 @contextlib.contextmanager
 def library_log(path: pathlib.Path | None, say: Callable[[str], None]):
     """Send what the libraries say (Python logging, including absl's and asyncio's; warnings; exceptions in
@@ -136,7 +143,7 @@ def library_log(path: pathlib.Path | None, say: Callable[[str], None]):
     from cdjax.io import CheckpointWarning
 
     root = logging.getLogger()
-    handler = logging.FileHandler(path, delay=True)
+    handler = _QuietFileHandler(path, delay=True)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     saved_handlers, saved_level = root.handlers[:], root.level
     saved_showwarning, saved_hook = warnings.showwarning, threading.excepthook

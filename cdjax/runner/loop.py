@@ -65,8 +65,7 @@ def prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, list, dict]:
         raise io.RunDirError(f"{rd.path} already holds a run; continue it with --resume, or choose another --out.")
     elif rd.path.is_dir() and any(rd.path.iterdir()):
         raise io.RunDirError(f"{rd.path} exists and is not empty; choose another --out.")
-    elif rd.path.exists() and not rd.path.is_dir():
-        raise io.RunDirError(f"{rd.path} is a file, not a directory; choose another --out.")
+    rd.check_writable()
     return spec, plans, record
 
 
@@ -171,7 +170,7 @@ class Loop:
     def intact(self) -> str:
         """Which checkpoints survive a failed write, and how to go on."""
         steps = {a.name: a.ckpt.latest() for a in self.arms if a.ckpt is not None}
-        kept = [f"{name} at {step} updates" for name, step in steps.items() if step is not None]
+        kept = [f"{name} at update {step}" for name, step in steps.items() if step is not None]
         where = (f"the previous checkpoints are intact ({', '.join(kept)})" if kept
                  else "no checkpoint had been written yet")
         return f"{where}; resume with `cdjax sweep --out {self.rd.path} --resume` once that is fixed."
