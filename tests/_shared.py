@@ -1,9 +1,12 @@
 """Configs and compiled functions shared between test modules (MJX compiles slowly on CPU)."""
 
 import functools
+import pathlib
 
 import jax
 import pytest
+
+from cdjax import io
 
 from cdjax import Config, HParams, make_trainer
 from cdjax.agents import obs_space
@@ -49,3 +52,11 @@ def fail_in_one_sentence(capsys, main, argv) -> str:
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("cdjax: ") and lines[0].endswith("."), err
     return lines[0]
+
+
+def logged_rows(run_dir, name: str = "metrics.jsonl") -> list[dict]:
+    """A JSONL log of a run without the wall-clock (the only field that differs between two runs), in a fixed
+    order (arms that resume from different updates interleave their chunks differently)."""
+    rows = [{k: v for k, v in row.items() if k not in ("wall_s", "phase_wall_s")}
+            for row in io.read_jsonl(pathlib.Path(run_dir) / name)]
+    return sorted(rows, key=lambda r: (r["arm"], r["hp"], r["seed"], r.get("update", -1), r.get("deterministic", 0)))

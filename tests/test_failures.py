@@ -3,7 +3,6 @@ keeps every sweep option, a full disk and paths that cannot be written end in on
 previous checkpoint named and intact, and evaluation arguments are checked."""
 
 import errno
-import json
 import os
 import pathlib
 import shutil
@@ -16,7 +15,7 @@ import pytest
 from cdjax import io
 from cdjax.cli import main
 
-from _shared import TINY_ARGS, fail_in_one_sentence
+from _shared import TINY_ARGS, fail_in_one_sentence, logged_rows
 from conftest import CACHE
 
 STEPS = str(4 * 192)  # 4 updates of the tiny point-mass config: 2 chunks
@@ -117,9 +116,7 @@ def test_a_full_disk_names_the_intact_checkpoint_and_a_resume_is_the_same_run(ca
                            f"checkpoints are intact (cd at update 2); resume with `cdjax sweep --out {out} --resume`")
     monkeypatch.setattr(io, "append_jsonl", append)
     main(["sweep", "--out", str(out), "--resume"])
-    strip = lambda rows: sorted(json.dumps({k: v for k, v in r.items() if k != "wall_s"}, sort_keys=True)  # noqa: E731
-                                for r in rows)
-    assert strip(io.read_jsonl(out / "metrics.jsonl")) == strip(io.read_jsonl(whole / "metrics.jsonl"))
+    assert logged_rows(out) == logged_rows(whole)
     assert _eval_rows(out) == _eval_rows(whole) and {r["episodes"] for r in _eval_rows(out)} == {2}
     assert (out / "summary.csv").read_text() == (whole / "summary.csv").read_text()
 

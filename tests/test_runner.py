@@ -12,7 +12,7 @@ import pytest
 from cdjax import HParams, io, make_train
 from cdjax.runner import Interrupted, SweepSpec, plan_arms, prepare, restore_arms, resume_spec, run_sweep
 
-from _shared import POINT
+from _shared import POINT, logged_rows
 
 CHUNK, UPDATES = 2, 6
 SPEC = SweepSpec(out="unset", config=POINT, arms=("mbmf", "cd"), grid={"alpha": (0.0, 1.0)}, seeds=2, seed=7,
@@ -21,11 +21,7 @@ SPEC = SweepSpec(out="unset", config=POINT, arms=("mbmf", "cd"), grid={"alpha": 
 
 
 def _rows(run_dir) -> list[dict]:
-    """metrics.jsonl without the wall-clock (the only field that differs between two runs), in a fixed
-    order (arms that resume from different updates interleave their chunks differently)."""
-    rows = io.read_jsonl(pathlib.Path(run_dir) / "metrics.jsonl")
-    rows = [{k: v for k, v in row.items() if k not in ("wall_s", "phase_wall_s")} for row in rows]
-    return sorted(rows, key=lambda r: (r["arm"], r["hp"], r["seed"], r["update"]))
+    return logged_rows(run_dir)
 
 
 def _write_record(spec) -> None:

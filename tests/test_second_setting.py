@@ -22,6 +22,8 @@ from cdjax.presets import Preset
 from cdjax.protocol import Metrics, Phase, Setting, Trainer
 from cdjax.runner import Interrupted, SweepSpec, restore_arms, resume_spec, run_sweep
 
+from _shared import logged_rows
+
 
 @dataclasses.dataclass(frozen=True)
 class BanditConfig:
@@ -151,12 +153,6 @@ SPEC = SweepSpec(out="unset", setting="bandit", config=BanditConfig(), grid={"lr
                  bootstrap_reps=50)
 
 
-def _rows(run_dir, name="metrics.jsonl"):
-    rows = [{k: v for k, v in r.items() if k not in ("wall_s", "phase_wall_s")}
-            for r in io.read_jsonl(run_dir / name)]
-    return sorted(rows, key=lambda r: (r["arm"], r["hp"], r["seed"], r.get("update", -1), r.get("deterministic", 0)))
-
-
 @pytest.fixture(scope="module")
 def whole(tmp_path_factory):
     out = tmp_path_factory.mktemp("bandit") / "whole"
@@ -171,7 +167,7 @@ def test_the_sweep_runs_a_setting_it_does_not_know(whole):
     assert arms["reinforce"]["num_updates"] == 12 and arms["reinforce"]["phase_env_steps"] == 0
     assert arms["es"]["phase_env_steps"] == 4 and arms["es"]["num_updates"] == round((96 - 4) / 8) == 12
     assert arms["es"]["config"]["learner"] == "es" and arms["es"]["hp_labels"] == ["lr=0.1", "lr=0.3"]
-    rows = _rows(whole)
+    rows = logged_rows(whole)
     assert len([r for r in rows if r["update"] > 0]) == 2 * 2 * 2 * 12  # arms x lr x seeds x updates
     assert {r["arm"] for r in rows if r["update"] == 0} == {"es"}  # the phase, as update 0 of its arm
     runs = {(r["arm"], r["hp"], r["seed"]) for r in rows}
@@ -196,8 +192,8 @@ def test_interrupted_and_resumed_is_the_same_run(whole, tmp_path):
     with pytest.raises(Interrupted):
         run_sweep(dataclasses.replace(SPEC, out=out), after_chunk=lambda chunks, updates: chunks >= 1)
     run_sweep(resume_spec(out, progress=False), resume=True)
-    assert _rows(out) == _rows(whole)
-    assert _rows(out, "eval.jsonl") == _rows(whole, "eval.jsonl")
+    assert logged_rows(out) == logged_rows(whole)
+    assert logged_rows(out, "eval.jsonl") == logged_rows(whole, "eval.jsonl")
     cut, straight = restore_arms(out)[1], restore_arms(whole)[1]
     for a, b in zip(cut, straight):
         np.testing.assert_array_equal(np.asarray(a.state.mean), np.asarray(b.state.mean))

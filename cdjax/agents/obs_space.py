@@ -105,6 +105,7 @@ def _needed_env_leaves(env_name: str, num_envs: int, episode_length: int, action
 def make_trainer(config: Config) -> Trainer:
     agent = make_agent(config)
 
+    @functools.cache
     def saved_leaves():
         """Every leaf of the TrainState but the environment's derived physics data (cdjax.envs.resume)."""
         shapes = jax.eval_shape(agent.init, jax.random.key(0), HParams())
