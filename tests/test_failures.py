@@ -126,6 +126,10 @@ def test_a_full_disk_names_the_intact_checkpoint_and_a_resume_is_the_same_run(ca
     assert "is complete" in capsys.readouterr().err and (out / "eval.jsonl").read_text() == before
     line = fail_in_one_sentence(capsys, main, ["sweep", "--out", str(out), "--resume", "--eval-episodes", "5"])
     assert "--eval-episodes cannot be changed" in line
+    with io.RunDir(out).lock():  # as another process training in it would hold it
+        line = _fails_mid_run(capsys, ["sweep", "--out", str(out), "--resume"])
+    assert line == f"cdjax: {out} is in use by another cdjax process; wait for it to end or choose another --out."
+    assert (out / "eval.jsonl").read_text() == before
 
 
 def test_a_checkpoint_that_cannot_be_written_is_named_with_the_previous_one(capsys, tmp_path, monkeypatch):

@@ -6,6 +6,7 @@
     phase.jsonl                    the pre-update phase's diagnostics per (arm, hp, seed)
     eval.jsonl                     evaluations (cdjax.evaluate.eval_records)
     cdjax.log                      what the libraries (orbax, absl, asyncio, warnings) said during the sweep
+    .lock                          flock-ed by the process that trains in the directory
     tb/<arm>/<hp>/seed<s>/         TensorBoard event files
     checkpoints/<arm>/<updates>/   orbax checkpoints of the arm's state (cdjax.io.checkpoints)
     plots/, summary.md, summary.csv, videos/   cdjax.plots and `cdjax eval --video`
@@ -142,6 +143,23 @@ class RunDir:
             probe.unlink()
         except OSError as err:
             raise RunDirError(f"cannot write into {self.path}: {reason(err)}; choose another --out.") from None
+
+    @contextlib.contextmanager
+    def lock(self):
+        """Hold the directory for one sweep (an advisory lock, released when the process ends, also by kill -9):
+        RunDirError when another process holds it."""
+        import fcntl
+
+        with writing(self.path / ".lock"), open(self.path / ".lock", "a") as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise RunDirError(f"{self.path} is in use by another cdjax process; wait for it to end or choose "
+                                  "another --out.") from None
+            try:
+                yield
+            finally:
+                fcntl.flock(f, fcntl.LOCK_UN)
 
     def write(self, run: dict) -> None:
         """Write run.json atomically (a half-written run.json would make the directory unreadable)."""

@@ -194,13 +194,12 @@ def evaluate_arms(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int,
     return records
 
 
-def finished_evaluation(rd: io.RunDir, arms: list[Arm], episodes: int) -> bool:
+def finished_evaluation(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int) -> bool:
     """Whether eval.jsonl already holds the final (deterministic) evaluation of every run of every arm."""
+    final = {a.name: a.num_updates for a in arms}
     have = {(r.get("arm"), r.get("hp"), r.get("seed")) for r in io.read_jsonl(rd.eval)
-            if r.get("deterministic") and r.get("episodes") == episodes and
-            r.get("update") == next((a.num_updates for a in arms if a.name == r.get("arm")), None)}
-    want = {(a.name, label, s) for a in arms for label in a.plan.labels for s in range(a.num_runs // len(a.plan.labels))}
-    return want <= have
+            if r.get("deterministic") and r.get("episodes") == episodes and r.get("update") == final.get(r.get("arm"))}
+    return all((a.name, label, s) in have for a in arms for label in a.plan.labels for s in range(num_seeds))
 
 
 def nanmean(values) -> float:

@@ -89,16 +89,28 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     states = check_memory(arms, spec)
     for arm in arms:
         arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
+    progress.say(f"Compiling the programs of {', '.join(a.name for a in arms)} (nothing is written before they "
+                 "are compiled and fit in memory).")
     t_compile = time.perf_counter()
     done = {arm.name: _checkpointed(rd, arm.name) for arm in arms} if resume else {}
     compile_all(arms, record["chunk_updates"], done)
     t_compile = time.perf_counter() - t_compile
-    budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms for what, p in arm.programs.items()})
+    # init's output is the state, already counted; the phase and chunk programs donate it and return it
+    budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms for what, p in arm.programs.items()
+                                   if what != "init"})
 
     rd.create()  # the first write: everything above could still refuse
-    rd.write(record)
-    loop = Loop(rd, spec, setting, arms, record["chunk_updates"], progress, after_chunk)
-    with library_log(rd.log, progress.say):
+    with rd.lock():
+        if not resume and rd.exists():  # another process started this run while we compiled
+            raise io.RunDirError(f"{rd.path} already holds a run; continue it with --resume, or choose another --out.")
+        rd.write(record)
+        return _train(Loop(rd, spec, setting, arms, record["chunk_updates"], progress, after_chunk), resume,
+                      t_compile)
+
+
+def _train(loop: "Loop", resume: bool, t_compile: float) -> pathlib.Path:
+    """Run the loop; a failed write names the checkpoints that are intact."""
+    with library_log(loop.rd.log, loop.say):
         try:
             loop.start(resume, t_compile)
             try:
@@ -108,7 +120,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             loop.finish()
         except io.WriteError as err:
             raise io.WriteError(f"{err}; {loop.intact()}") from None
-    return rd.path
+    return loop.rd.path
 
 
 @dataclasses.dataclass
@@ -321,7 +333,7 @@ class Loop:
                      f"compile {self.extra_compile:.1f} s more.")
         if not self.spec.final_eval:
             return
-        if finished_evaluation(self.rd, self.arms, self.spec.eval_episodes):
+        if finished_evaluation(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes):
             self.say("The final evaluation is already in eval.jsonl.")
         else:
             evaluate_arms(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes, True, self.say)
