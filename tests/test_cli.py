@@ -94,6 +94,25 @@ def test_options_are_derived_from_the_dataclasses(capsys):
     assert "cpu-smoke" in text
 
 
+def test_help_comes_from_the_field_comments_read_with_the_tokenizer():
+    import dataclasses as dc
+
+    from cdjax.options import field_docs
+
+    @dc.dataclass
+    class Tricky:
+        text: str = "a # not a comment"  # the comment, not the string
+        widths: tuple[int, ...] = (  # a default over two lines
+            64, 64)
+        bare: int = 1
+
+        def method(self):  # a method's comment is no field's
+            return self.bare
+
+    assert field_docs(Tricky) == {"text": "the comment, not the string", "widths": "a default over two lines",
+                                  "bare": ""}
+
+
 def test_precedence_defaults_then_preset_then_flags():
     obs = agents.get("obs")
     parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]), obs)  # noqa: E731

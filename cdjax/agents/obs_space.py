@@ -131,6 +131,12 @@ def _describe_phase(info: Mapping[str, float]) -> str:
             f"{info.get('dagger/episode_return', math.nan):.1f}.")
 
 
+def preset_of_env(given: Mapping) -> str | None:
+    """Without --preset, the preset named like the env (e.g. `cdjax sweep --env ant` gets the ant settings)."""
+    env = given.get("env", Config.env)
+    return env if env in presets.PRESETS else None
+
+
 MBMF_PHASE = Phase(
     title="Mb-Mf phase", flag="mbmf-phase", spec_type=MbMfPhase, applies=lambda config: config.use_model,
     validate=validate_phase, env_steps=total_env_steps,
@@ -149,7 +155,4 @@ SETTING = Setting(
         ("loss/consistency", "consistency loss", True),
         ("encoder/spread_real", "encoder spread (real)", False),
         ("encoder/spread_imagined", "encoder spread (imagined)", False))),
-    presets=presets.PRESETS,
-    default_preset=lambda given: given.get("env", Config.env) if given.get("env", Config.env) in presets.PRESETS
-    else None,
-    phase=MBMF_PHASE, watch=collapse_warning)
+    presets=presets.PRESETS, default_preset=preset_of_env, phase=MBMF_PHASE, watch=collapse_warning)
