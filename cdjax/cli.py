@@ -23,8 +23,7 @@ import sys
 from typing import Sequence
 
 from cdjax import agents, io, options, runtime
-from cdjax.config import ConfigError
-from cdjax.protocol import Setting
+from cdjax.protocol import ConfigError, Setting
 from cdjax.runner.spec import FLAGS, INT32_MAX, SweepSpec
 
 SPEC_SKIP = ("out", "config", "grid", "phase", "command")  # SweepSpec fields that are not options of their own

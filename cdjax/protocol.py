@@ -25,6 +25,8 @@ from typing import Any, Callable, Mapping
 
 import jax
 
+from cdjax.config import ConfigError  # re-exported: the host side's one-sentence error for input that cannot run
+
 State = Any  # a setting's training state: a pytree (leading run axis in a sweep)
 HP = Any  # a setting's HParams
 ConfigT = Any  # a setting's Config
@@ -95,3 +97,6 @@ class Setting:
     default_preset: Callable[[Mapping[str, Any]], str | None]  # given Config values -> the preset used without --preset
     phase: Phase | None = None
     watch: Callable[[str, ConfigT, Mapping], str | None] | None = None  # (arm, config, chunk metrics [R, n]) -> warning
+
+
+__all__ = ["ConfigError", "Metrics", "Phase", "Setting", "Trainer"]

@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import importlib
 
-from cdjax.config import ConfigError
-from cdjax.protocol import Setting
+from cdjax.protocol import ConfigError, Setting
 
 DEFAULT = "obs"  # the setting of `cdjax sweep` without --setting
 _BUILTIN = {"obs": "cdjax.agents.obs_space"}  # name -> module defining SETTING

@@ -20,7 +20,7 @@ from typing import Sequence
 import jax
 import numpy as np
 
-from cdjax.config import ConfigError
+from cdjax.protocol import ConfigError
 
 
 def tree_bytes(tree) -> int:

@@ -10,8 +10,7 @@ import pathlib
 from typing import Any, Mapping, Sequence
 
 from cdjax import agents, io
-from cdjax.config import ConfigError
-from cdjax.protocol import Setting
+from cdjax.protocol import ConfigError, Setting
 from cdjax.runner.spec import INT32_MAX, SweepSpec, check_bounds
 
 

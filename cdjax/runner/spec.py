@@ -8,7 +8,7 @@ import pathlib
 from typing import Any, Mapping, Sequence
 
 from cdjax import agents
-from cdjax.config import ConfigError
+from cdjax.protocol import ConfigError
 
 INT32_MAX = 2**31 - 1  # update counters are int32 on the device
 SEED_MAX = 2**63 - 1  # jax.random.key takes a 64-bit seed
