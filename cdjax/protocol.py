@@ -44,9 +44,9 @@ class Trainer:
     # num_envs -> the batched env evaluation plays: reset(key) -> state with .obs, step(state, actions) ->
     # (state, cdjax.envs.Step), episode_length (its time-out), as cdjax.envs.BatchedEnv
     eval_env: Callable[[int], Any]
-    # state (abstract) -> pytree of bool like it: the leaves a checkpoint holds; None: all. A leaf left out
+    # () -> pytree of bool shaped like init's state: the leaves a checkpoint holds; None: all. A leaf left out
     # must be one that no later update reads, or one that `init` of the same run gives again bit for bit.
-    saved_leaves: Callable[[State], Any] | None = None
+    saved_leaves: Callable[[], Any] | None = None
     inner: Any = None  # the setting's own learner object, opaque to the host (its phase may use it)
 
 
