@@ -111,16 +111,18 @@ def run_cdjax(name: str, task: Task, variant: str, seeds: int, rows: Rows, seed:
     import jax
     import numpy as np
 
+    from cdjax.agents import obs_space
     from cdjax.evaluate import make_evaluator
     from cdjax.sweep import make_sweep, unpad
 
     cfg_over, hp_over = VARIANTS[variant]
     spec = task.spec
     config = spec.config(arm="model-free", num_updates=task.evals * task.updates_per_eval, **cfg_over)
-    sweep = make_sweep(config)
+    trainer = obs_space.make_trainer(config)
+    sweep = make_sweep(trainer)
     keys, hps = sweep.grid(seed=seed, num_seeds=seeds, hps=[spec.hparams(**hp_over)])
     state = sweep.init(keys, hps)
-    evaluator = make_evaluator(sweep.trainer, episodes=task.eval_episodes, deterministic=True)
+    evaluator = make_evaluator(trainer, episodes=task.eval_episodes, deterministic=True)
     t0 = time.perf_counter()
     program = sweep.lower(state, hps, task.updates_per_eval).compile()
     compile_s = time.perf_counter() - t0
@@ -128,7 +130,7 @@ def run_cdjax(name: str, task: Task, variant: str, seeds: int, rows: Rows, seed:
 
     def evaluate(i: int) -> None:
         eval_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1000 + i))(keys)
-        out = evaluator(state.params, state.norms, eval_keys, hps)
+        out = evaluator(trainer.policy(state), eval_keys, hps)
         returns = np.asarray(unpad(out["return_mean"], seeds))
         steps = i * task.updates_per_eval * spec.env_steps_per_update
         for s in range(seeds):

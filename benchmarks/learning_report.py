@@ -1,7 +1,7 @@
 """The learning benchmark's report: rows.jsonl of one or more runs -> markdown table and curve plot.
 
 Per task and learner (framework + variant): the IQM over seeds of the deterministic evaluation return
-at the last evaluation, with a 95% stratified-bootstrap interval (cdjax's statistics, rliable's
+at the last evaluation, with a 95% stratified-bootstrap interval (cdjax.stats, rliable's
 method), the same for the mean over all evaluations after step 0 (the normalised area under the
 curve), the seeds, and training env steps/s. A verdict compares each cdjax learner with Brax PPO on
 the final IQM: "cdjax >= brax" when cdjax's IQM is at least Brax's, and whether the intervals overlap.
@@ -58,7 +58,7 @@ def _sps(c: dict) -> float:
 
 
 def table(rows: list[dict], reps: int = 2000) -> list[dict]:
-    from cdjax.plots import iqm_interval
+    from cdjax.stats import iqm_interval
 
     out = []
     for (task, learner), c in sorted(curves(rows).items()):
@@ -78,7 +78,7 @@ def table(rows: list[dict], reps: int = 2000) -> list[dict]:
 
 def ablation(rows: list[dict], reps: int = 2000) -> list[dict]:
     """Each cdjax variant at its last complete evaluation, beside cdjax default at the same env steps."""
-    from cdjax.plots import iqm_interval
+    from cdjax.stats import iqm_interval
 
     cs = curves(rows)
     out = []
@@ -132,7 +132,7 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from cdjax.plots import interval_curve
+    from cdjax.stats import interval_curve
 
     cs = curves(rows)
     tasks = sorted({t for t, _ in cs})

@@ -262,8 +262,9 @@ def main(argv=None) -> dict:
         jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
                                    process_id=args.process_id)
     if args.cache:
-        jax.config.update("jax_compilation_cache_dir", args.cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        from cdjax import runtime
+
+        runtime.configure(cache_dir=args.cache)
     from benchmarks.common import device_info
 
     info = device_info()

@@ -5,10 +5,10 @@
     cdjax eval  runs/ant-cd --episodes 100
     cdjax plot  runs/ant-cd
 
-The options of `sweep` are generated from the dataclasses: one option per `Config` field (except `arm`,
-chosen by --arms, and `num_updates`, derived from --steps) and one per `HParams` field, which takes
-one or several values (their Cartesian product is the hyper-parameter grid, vmapped with the seeds).
-Help texts are the field comments of cdjax/config.py. Only the sweep's own options are written here.
+Every option of `sweep` comes from a dataclass field (cdjax.options): the SweepSpec's, one per field of the
+setting's Config (except the fields an arm name sets and `num_updates`, derived from --steps), one per
+HParams field taking one or several values (their Cartesian product is the grid, vmapped with the seeds)
+and one per field of the setting's phase (--phase-<field>). `--setting` picks the agent (cdjax.agents).
 
 Bad input ends with one sentence on stderr and exit status 2; an interrupted sweep exits with 130.
 """
@@ -16,293 +16,187 @@ Bad input ends with one sentence on stderr and exit status 2; an interrupted swe
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import inspect
-import os
 import pathlib
 import re
 import shlex
 import sys
-import typing
-from typing import Any, Literal, Sequence
+from typing import Sequence
 
-from cdjax import io, presets
-from cdjax.config import Config, ConfigError, HParams
+from cdjax import agents, io, options, runtime
+from cdjax.protocol import ConfigError, Setting
+from cdjax.runner.spec import FLAGS, INT32_MAX, SweepSpec
 
-# Config fields that are not options: the arm comes from --arms, the number of updates from --steps.
-NOT_OPTIONS = ("arm", "num_updates")
-# Sweep options that may be given with --resume (everything else is read from run.json).
-RESUME_OPTIONS = ("steps", "eval_every", "eval_episodes")
-# Sweep options (argparse dest) that map onto SweepSpec fields.
-SPEC_OPTIONS = {"arms": "arms", "seeds": "seeds", "seed": "seed", "steps": "total_env_steps",
-                "chunk_updates": "chunk_updates", "checkpoint_every": "checkpoint_every",
-                "eval_every": "eval_every", "eval_episodes": "eval_episodes"}
+SPEC_SKIP = ("out", "config", "grid", "phase", "command")  # SweepSpec fields that are not options of their own
+RESUME_OPTIONS = ("total_env_steps", "progress")  # options a resume may give (the rest is read from run.json)
 
 
 class UsageError(ValueError):
     """Command-line input that cannot run; one sentence."""
 
 
-class _Parser(argparse.ArgumentParser):
+class Parser(argparse.ArgumentParser):
     """argparse that reports errors in one line (no usage block) and exits with status 2."""
 
     def error(self, message: str):
         message = re.sub(r"^unrecognized arguments: ", "unknown option(s): ", message)
-        message = message.replace("\n", " ")
-        raise UsageError(f"{message}; see `{self.prog} --help`.")
+        raise UsageError(f"{message.replace(chr(10), ' ')}; see `{self.prog} --help`.")
 
 
-# ---------------------------------------------------------------------------------------------------
-# Options derived from the dataclasses
+def _runtime_options() -> argparse.ArgumentParser:
+    parent = argparse.ArgumentParser(add_help=False)
+    group = parent.add_argument_group("runtime (cdjax.runtime.configure)")
+    group.add_argument("--cache-dir", metavar="DIR", help="JAX's persistent compilation cache (default "
+                       f"${runtime.CACHE_ENV}, else ~/.cache/cdjax/jax)")
+    group.add_argument("--debug-nans", action="store_true", help="stop at the first operation that makes a NaN")
+    group.add_argument("--disable-jit", action="store_true", help="run op by op (slow; for debugging)")
+    return parent
 
 
-def field_comments(cls) -> dict[str, str]:
-    """The `# comment` after each field of a dataclass, as help text."""
-    out = {}
-    for line in inspect.getsource(cls).splitlines():
-        match = re.match(r"\s+(\w+):[^#]*?=[^#]*#\s*(.+)$", line)
-        if match:
-            out[match.group(1)] = match.group(2).strip()
-    return out
-
-
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
-
-
-def _count(text: str) -> int:
-    """An integer count: 50_000_000, 5e7 or 50000000."""
-    try:
-        return int(text)
-    except ValueError:
-        pass
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not value.is_integer():
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number")
-    return int(value)
-
-
-def _float(text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-
-
-def add_config_options(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("environment and agent (cdjax.config.Config; changing one recompiles)")
-    hints = typing.get_type_hints(Config)
-    comments = field_comments(Config)
-    defaults = Config.__dataclass_fields__
-    for field in dataclasses.fields(Config):
-        if field.name in NOT_OPTIONS:
-            continue
-        hint, default = hints[field.name], defaults[field.name].default
-        kwargs: dict[str, Any] = dict(default=None, dest=f"config.{field.name}")
-        if typing.get_origin(hint) is Literal:
-            kwargs.update(choices=typing.get_args(hint), metavar="{" + ",".join(typing.get_args(hint)) + "}")
-        elif typing.get_origin(hint) is tuple:
-            (item, _) = typing.get_args(hint)
-            kwargs.update(type=item, nargs="+", metavar=item.__name__.upper())
-            default = " ".join(map(str, default))
-        elif hint is bool:
-            kwargs.update(type=_bool, metavar="{true,false}")
-        elif hint in (int, str, float):
-            kwargs.update(type=_count if hint is int else _float if hint is float else str,
-                          metavar=hint.__name__.upper())
-        else:  # pragma: no cover - a new kind of field needs a line here
-            raise TypeError(f"Config.{field.name}: no command-line form for {hint}")
-        help_text = comments.get(field.name, "")
-        group.add_argument(_flag(field.name), help=f"{help_text} (default {default})".replace("%", "%%"), **kwargs)
-
-
-def add_phase_options(parser: argparse.ArgumentParser) -> None:
-    """--mbmf-phase on/off and one --phase-<field> option per MbMfPhase field (any of them turns it on)."""
-    from cdjax.mbmf import MbMfPhase
-
-    group = parser.add_argument_group(
-        "Mb-Mf phase (cdjax.mbmf.MbMfPhase): random data, model, random-shooting MPC, distillation; run by the "
-        "arms with a model before PPO, its env steps counted in --steps")
-    onoff = group.add_mutually_exclusive_group()
-    onoff.add_argument("--mbmf-phase", action="store_true", default=None, dest="phase_on",
-                       help="run the phase (default: as the preset says; off without one)")
-    onoff.add_argument("--no-mbmf-phase", action="store_false", dest="phase_on", help="do not run the phase")
-    hints = typing.get_type_hints(MbMfPhase)
-    comments = field_comments(MbMfPhase)
-    for field in dataclasses.fields(MbMfPhase):
-        hint = hints[field.name]
-        kwargs: dict[str, Any] = dict(default=None, dest=f"phase.{field.name}")
-        if typing.get_origin(hint) is Literal:
-            kwargs.update(choices=typing.get_args(hint), metavar="{" + ",".join(typing.get_args(hint)) + "}")
-        elif hint is bool:
-            kwargs.update(type=_bool, metavar="{true,false}")
-        elif hint in (int, float):
-            kwargs.update(type=_count if hint is int else _float, metavar=hint.__name__.upper())
-        else:  # pragma: no cover - a new kind of field needs a line here
-            raise TypeError(f"MbMfPhase.{field.name}: no command-line form for {hint}")
-        group.add_argument("--phase-" + field.name.replace("_", "-"),
-                           help=f"{comments.get(field.name, '')} (default {field.default})".replace("%", "%%"),
-                           **kwargs)
-
-
-def _bool(text: str) -> bool:
-    if text.lower() in ("true", "1", "yes"):
-        return True
-    if text.lower() in ("false", "0", "no"):
-        return False
-    raise argparse.ArgumentTypeError(f"{text!r} is not true or false")
-
-
-def add_hparam_options(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group(
-        "hyper-parameters (cdjax.config.HParams; traced): several values make a grid, vmapped with the seeds")
-    comments = field_comments(HParams)
-    for field in dataclasses.fields(HParams):
-        group.add_argument(_flag(field.name), type=_float, nargs="+", default=None, metavar="X",
-                           dest=f"hp.{field.name}",
-                           help=f"{comments.get(field.name, '')} (default {field.default})".replace("%", "%%"))
-
-
-# ---------------------------------------------------------------------------------------------------
-# The parser
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="cdjax", allow_abbrev=False,
-                     description="Consistent dynamics models (Sodhani et al., 2019) on MuJoCo-MJX in JAX.")
-    sub = parser.add_subparsers(dest="command", metavar="{sweep,eval,plot}", required=True, parser_class=_Parser)
-
-    preset_lines = "\n".join(f"  {name:<18} {p.about}" for name, p in presets.PRESETS.items())
+def _add_sweep(sub, setting: Setting, runtime_parent) -> None:
+    presets = "\n".join(f"  {name:<18} {p.about}" for name, p in setting.presets.items())
     sweep = sub.add_parser(
         "sweep", help="train arms x hyper-parameter grid x seeds, chunked, with logs and checkpoints",
-        allow_abbrev=False, formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False, formatter_class=argparse.RawDescriptionHelpFormatter, parents=[runtime_parent],
         description="Train every arm (one compiled program each) on the grid of the hyper-parameters given "
                     "as lists times --seeds, vmapped; log, checkpoint and show progress between chunks.\n"
+                    f"Setting {setting.name}: {setting.about}; arms: {setting.arms_help}.\n"
                     "Precedence: defaults < --preset < options given here.",
-        epilog=f"presets:\n{preset_lines}")
-    run = sweep.add_argument_group("sweep")
+        epilog=f"presets:\n{presets}")
+    run = sweep.add_argument_group("sweep (cdjax.runner.SweepSpec)")
     run.add_argument("--out", required=True, metavar="DIR", help="run directory (refuses one that holds another run)")
     run.add_argument("--resume", action="store_true", help="continue the run in --out from its latest checkpoint")
     run.add_argument("--preset", metavar="NAME",
-                     help="named overrides, listed below (default: the preset named like --env, if any)")
-    run.add_argument("--arms", nargs="+", metavar="ARM", default=None,
-                     help="arms to train: model-free, mbmf, cd, or cd-kN for cd with horizon N (default: mbmf cd)")
-    run.add_argument("--seeds", type=_count, default=None, metavar="N", help="seeds per hp combination (default 3)")
-    run.add_argument("--seed", type=_count, default=None, metavar="S", help="base seed (default 0)")
-    run.add_argument("--steps", type=_count, default=None, metavar="N",
-                     help="environment steps per run, e.g. 50_000_000 (default 1_000_000)")
-    run.add_argument("--chunk-updates", type=_count, default=None, metavar="N",
-                     help="updates per compiled chunk (default: about 5%% of the run)")
-    run.add_argument("--checkpoint-every", type=_count, default=None, metavar="K",
-                     help="chunks between checkpoints (default 1)")
-    run.add_argument("--eval-every", type=_count, default=None, metavar="K",
-                     help="chunks between evaluations (default 0: only at the end)")
-    run.add_argument("--eval-episodes", type=_count, default=None, metavar="N",
-                     help="episodes per run in evaluations (default 10)")
-    run.add_argument("--no-progress", action="store_true", help="no progress display")
-    add_config_options(sweep)
-    add_hparam_options(sweep)
-    add_phase_options(sweep)
+                     help="named overrides, listed below (default: the one the setting picks, e.g. named like --env)")
+    options.add_options(run, SweepSpec, dest="spec.", skip=SPEC_SKIP, switches=True, flags=FLAGS,
+                        shown={"arms": setting.default_arms})
+    options.add_options(
+        sweep.add_argument_group(f"environment and agent ({setting.config_type.__module__}."
+                                 f"{setting.config_type.__name__}; changing one recompiles)"),
+        setting.config_type, dest="config.", skip=("num_updates",) + setting.arm_fields)
+    options.add_options(
+        sweep.add_argument_group(f"hyper-parameters ({setting.hparams_type.__module__}.{setting.hparams_type.__name__};"
+                                 " traced): several values make a grid, vmapped with the seeds"),
+        setting.hparams_type, dest="hp.", grid=True)
+    phase = setting.phase
+    if phase is not None:
+        group = sweep.add_argument_group(f"{phase.title} ({phase.spec_type.__module__}.{phase.spec_type.__name__}): "
+                                         "run by the arms it applies to before their updates, its env steps counted "
+                                         "in --steps; any --phase-* option turns it on")
+        onoff = group.add_mutually_exclusive_group()
+        onoff.add_argument(f"--{phase.flag}", action="store_true", default=None, dest="phase_on",
+                           help="run it (default: as the preset says; off without one)")
+        onoff.add_argument(f"--no-{phase.flag}", action="store_false", dest="phase_on", help="do not run it")
+        options.add_options(group, phase.spec_type, dest="phase.", prefix="--phase-")
 
-    ev = sub.add_parser("eval", help="evaluate the saved policies of a run, per seed and per arm", allow_abbrev=False)
+
+def build_parser(setting: Setting | None = None) -> Parser:
+    setting = setting or agents.get(agents.DEFAULT)
+    parser = Parser(prog="cdjax", allow_abbrev=False,
+                    description="Consistent dynamics models (Sodhani et al., 2019) on MuJoCo-MJX in JAX.")
+    sub = parser.add_subparsers(dest="command", metavar="{sweep,eval,plot}", required=True, parser_class=Parser)
+    runtime_parent = _runtime_options()
+    _add_sweep(sub, setting, runtime_parent)
+    ev = sub.add_parser("eval", help="evaluate the saved policies of a run, per seed and per arm", allow_abbrev=False,
+                        parents=[runtime_parent])
     ev.add_argument("run_dir", metavar="RUN_DIR")
-    ev.add_argument("--episodes", type=_count, default=100, metavar="N", help="episodes per run (default 100)")
+    ev.add_argument("--episodes", type=options.count, default=100, metavar="N", help="episodes per run (default 100)")
     ev.add_argument("--stochastic", action="store_true", help="sample actions (default: the mean action)")
     ev.add_argument("--video", action="store_true", help="also render a video of one episode per arm")
-
-    plot = sub.add_parser("plot", help="curves and the summary table again from the logs", allow_abbrev=False)
+    plot = sub.add_parser("plot", help="curves and the summary table again from the logs", allow_abbrev=False,
+                          parents=[runtime_parent])
     plot.add_argument("run_dir", metavar="RUN_DIR")
+    plot.add_argument("--bootstrap-reps", type=options.count, default=2000, metavar="N",
+                      help="bootstrap replications of the 95%% intervals (default 2000)")
     return parser
 
 
-# ---------------------------------------------------------------------------------------------------
-# Parsed options -> SweepSpec
+def setting_of(argv: Sequence[str]) -> Setting:
+    """The setting whose options `cdjax sweep` offers: --setting, else the resumed run's, else the default."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--setting")
+    pre.add_argument("--out")
+    pre.add_argument("--resume", action="store_true")
+    known, _ = pre.parse_known_args(list(argv)[1:] if argv and argv[0] == "sweep" else [])
+    name = known.setting
+    if name is None and known.resume and known.out:
+        try:
+            name = io.RunDir(pathlib.Path(known.out)).read().get("setting")
+        except io.RunDirError:
+            name = None  # said when the sweep reads run.json
+    return agents.get(name or agents.DEFAULT)
 
 
-def _given(args: argparse.Namespace, prefix: str) -> dict[str, Any]:
-    out = {}
-    for dest, value in vars(args).items():
-        if dest.startswith(prefix) and value is not None:
-            out[dest[len(prefix):]] = tuple(value) if isinstance(value, list) else value
-    return out
-
-
-def sweep_spec(args: argparse.Namespace, command: str = ""):
+def sweep_spec(args: argparse.Namespace, setting: Setting, command: str = "") -> SweepSpec:
     """The SweepSpec that the sweep options describe (defaults < preset < explicit options)."""
-    from cdjax.mbmf import MbMfPhase
-    from cdjax.runner import SweepSpec, resume_spec
+    from cdjax.runner import resume_spec
 
-    config_given, hp_given, phase_given = _given(args, "config."), _given(args, "hp."), _given(args, "phase.")
-    spec_given = {field: getattr(args, opt) for opt, field in SPEC_OPTIONS.items() if getattr(args, opt) is not None}
+    config_given, hp_given = options.given(args, "config."), options.given(args, "hp.")
+    phase_given, spec_given = options.given(args, "phase."), options.given(args, "spec.")
+    phase_on = getattr(args, "phase_on", None)
     if args.resume:
-        extra = sorted({_flag(k) for k in config_given} | {_flag(k) for k in hp_given}
-                       | {"--phase-" + k.replace("_", "-") for k in phase_given}
-                       | ({"--mbmf-phase" if args.phase_on else "--no-mbmf-phase"} if args.phase_on is not None else set())
-                       | {_flag(opt) for opt in SPEC_OPTIONS if getattr(args, opt) is not None
-                          and opt not in RESUME_OPTIONS} | ({"--preset"} if args.preset else set()))
+        flag = lambda prefix, name: prefix + name.replace("_", "-")  # noqa: E731
+        extra = sorted({flag("--", k) for k in {**config_given, **hp_given}}
+                       | {flag("--phase-", k) for k in phase_given}
+                       | ({f"--{'' if phase_on else 'no-'}{setting.phase.flag}"} if phase_on is not None else set())
+                       | {FLAGS.get(k, flag("--", k)) for k in spec_given if k not in RESUME_OPTIONS}
+                       | ({"--preset"} if args.preset else set()))
         if extra:
             raise UsageError(f"--resume continues the run recorded in {args.out}/run.json, so {', '.join(extra)} "
-                             f"cannot be changed (only --steps, --eval-every, --eval-episodes, --no-progress).")
-        return resume_spec(args.out, progress=not args.no_progress, **spec_given)
+                             "cannot be changed (only --steps and --no-progress).")
+        return resume_spec(args.out, **spec_given)
 
-    if args.preset is not None:
-        preset = presets.get(args.preset)
-    else:
-        preset = presets.PRESETS.get(config_given.get("env", Config.env))
-    config_values = {**(preset.config if preset else {}), **config_given}
-    config = Config(**config_values)
+    if args.preset is not None and args.preset not in setting.presets:
+        raise ConfigError(f"Unknown preset {args.preset!r}; choose one of: {', '.join(setting.presets)}.")
+    preset = setting.presets.get(args.preset or setting.default_preset(config_given) or "")
+    config = setting.config_type(**{**(preset.config if preset else {}), **config_given})
     grid = {**(preset.hparams if preset else {}), **hp_given}
     spec_values = {**(preset.sweep if preset else {}), **spec_given}
-    if "arms" in spec_values:
-        spec_values["arms"] = tuple(spec_values["arms"])
-    phase_values = {**(preset.phase or {} if preset else {}), **phase_given}
-    on = args.phase_on if args.phase_on is not None else bool(phase_given) or bool(preset and preset.phase is not None)
-    if phase_given and args.phase_on is False:
-        raise UsageError("--no-mbmf-phase contradicts the --phase-* options given.")
-    spec_values["phase"] = MbMfPhase(**phase_values) if on else None
-    return SweepSpec(out=args.out, config=config, grid=grid, progress=not args.no_progress, command=command,
-                     **spec_values)
+    spec_values["arms"] = tuple(spec_values.get("arms", ()))
+    phase = None
+    if setting.phase is not None:
+        on = phase_on if phase_on is not None else bool(phase_given) or bool(preset and preset.phase is not None)
+        if phase_given and phase_on is False:
+            raise UsageError(f"--no-{setting.phase.flag} contradicts the --phase-* options given.")
+        if on:
+            phase = setting.phase.spec_type(**{**((preset.phase or {}) if preset else {}), **phase_given})
+    return SweepSpec(out=args.out, config=config, grid=grid, phase=phase, command=command,
+                     **{"setting": setting.name, **spec_values})
 
 
-# ---------------------------------------------------------------------------------------------------
-# Subcommands
+def cmd_sweep(args: argparse.Namespace, setting: Setting, command: str) -> None:
+    from cdjax.runner import run_sweep
 
-
-def cmd_sweep(args: argparse.Namespace, command: str) -> None:
-    from cdjax import runner
-
-    spec = sweep_spec(args, command)
-    out = runner.run_sweep(spec, resume=args.resume)
+    out = run_sweep(sweep_spec(args, setting, command), resume=args.resume)
     print(f"Done: {out}")
 
 
-def cmd_eval(args: argparse.Namespace) -> None:
-    from cdjax import runner
+def say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
 
-    if not runner._have_evaluate():
-        raise UsageError("cdjax eval needs cdjax.evaluate, which this installation does not have.")
-    spec, arms = runner.restore_arms(args.run_dir)
+
+def cmd_eval(args: argparse.Namespace) -> None:
+    import jax
+
+    from cdjax.evaluate import render_video
+    from cdjax.runner import evaluate_arms, restore_arms
+    from cdjax.runner.console import library_log
+
+    if not 1 <= args.episodes <= INT32_MAX:
+        raise UsageError(f"--episodes must be an integer from 1 to {INT32_MAX:,}, got {args.episodes}.")
     rd = io.RunDir(pathlib.Path(args.run_dir))
-    say = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
-    records = runner.evaluate_arms(rd, arms, spec.seeds, args.episodes, not args.stochastic, say)
+    rd.read()  # a clear error for a directory that holds no run
+    with library_log(rd.log, say):
+        spec, arms = restore_arms(args.run_dir)
+        records = evaluate_arms(rd, arms, spec.seeds, args.episodes, not args.stochastic, say)
     _print_eval(records)
     print(f"Appended {len(records)} records to {rd.eval}")
     if args.video:
-        import jax
-
-        from cdjax.evaluate import render_video
-
         for arm in arms:
             for i, label in enumerate(arm.plan.labels):
-                r = i * spec.seeds  # seed 0 of this hp combination
-                pick = lambda x: x[r]  # noqa: E731
-                path = render_video(arm.sweep.trainer, {"policy": jax.tree.map(pick, arm.state.params["policy"])},
-                                    jax.tree.map(pick, arm.state.norms), jax.random.key(spec.seed),
+                policy = jax.tree.map(lambda x: x[i * spec.seeds], arm.trainer.policy(arm.state))  # seed 0
+                path = render_video(arm.trainer, policy, jax.random.key(spec.seed),
                                     rd.path / "videos" / f"{arm.name}-{label}-seed0.mp4",
-                                    steps=arm.plan.config.episode_length)
+                                    steps=arm.trainer.eval_env(1).episode_length)
                 if path is not None:
                     print(f"Wrote {path}")
 
@@ -323,29 +217,14 @@ def _print_eval(records: list[dict]) -> None:
 
 
 def cmd_plot(args: argparse.Namespace) -> None:
+    from cdjax.plots import plot_run
+
     rd = io.RunDir(pathlib.Path(args.run_dir))
     rd.read()  # a clear error for a directory that holds no run
-    try:
-        from cdjax.plots import plot_run
-    except ImportError:
-        raise UsageError("cdjax plot needs cdjax.plots, which this installation does not have.") from None
-    for path in plot_run(rd.path).values():
+    if not 1 <= args.bootstrap_reps <= INT32_MAX:
+        raise UsageError(f"--bootstrap-reps must be an integer from 1 to {INT32_MAX:,}, got {args.bootstrap_reps}.")
+    for path in plot_run(rd.path, reps=args.bootstrap_reps, say=say).values():
         print(f"Wrote {path}")
-
-
-def setup_jax() -> None:
-    """The persistent compilation cache (CDJAX_JAX_CACHE, default ~/.cache/cdjax/jax), unless already set,
-    and no Brax deprecation notice on every run."""
-    import warnings
-
-    import jax
-
-    warnings.filterwarnings("ignore", message="Brax System", category=UserWarning)
-
-    if not jax.config.jax_compilation_cache_dir:
-        cache = os.environ.get("CDJAX_JAX_CACHE", str(pathlib.Path.home() / ".cache" / "cdjax" / "jax"))
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -353,15 +232,19 @@ def main(argv: Sequence[str] | None = None) -> None:
     from cdjax.runner import Interrupted
 
     try:
+        setting = setting_of(argv)
         try:
-            args = build_parser().parse_args(argv)
+            args = build_parser(setting).parse_args(argv)
         except UsageError as err:  # unknown options are reported by the top parser: name the subcommand
             if argv and argv[0] in ("sweep", "eval", "plot"):
                 raise UsageError(str(err).replace("`cdjax --help`", f"`cdjax {argv[0]} --help`")) from None
             raise
-        setup_jax()
+        import jax
+
+        cache = args.cache_dir or jax.config.jax_compilation_cache_dir or runtime.default_cache_dir()
+        runtime.configure(cache_dir=cache, debug_nans=args.debug_nans, disable_jit=args.disable_jit)
         if args.command == "sweep":
-            cmd_sweep(args, " ".join(["cdjax"] + [shlex.quote(a) for a in argv]))
+            cmd_sweep(args, setting, " ".join(["cdjax"] + [shlex.quote(a) for a in argv]))
         elif args.command == "eval":
             cmd_eval(args)
         else:

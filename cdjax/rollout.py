@@ -60,6 +60,12 @@ class EpisodeStats:
         s = jnp.zeros((), jnp.float32)
         return self.replace(done_count=s, done_ret=s, done_disc_ret=s)
 
+    def mean_returns(self, previous: jax.Array | float = jnp.nan) -> tuple[jax.Array, jax.Array]:
+        """(mean return, mean discounted return) of the episodes finished in this rollout; `previous` when none."""
+        n = jnp.maximum(self.done_count, 1.0)
+        finished = self.done_count > 0
+        return (jnp.where(finished, self.done_ret / n, previous), jnp.where(finished, self.done_disc_ret / n, previous))
+
     def record(self, reward, ended, counted, gamma) -> "EpisodeStats":
         """Add one step; `counted` marks episode ends whose return is reported (not NaN resets)."""
         ret = self.ret + reward
@@ -73,6 +79,18 @@ class EpisodeStats:
             done_ret=self.done_ret + (counted * ret).sum(),
             done_disc_ret=self.done_disc_ret + (counted * disc_ret).sum(),
         )
+
+
+def env_step(env: BatchedEnv, env_state: EnvState, stats: EpisodeStats, action: jax.Array, gamma):
+    """One step of every environment, with the episode statistics recorded: (env_state, stats, Step).
+
+    The step shape both the PPO rollout and the Mb-Mf phase's acting loops are made of. Episodes that
+    end by a non-finite state are reset but not counted in the returns.
+    """
+    env_state, out = env.step(env_state, action)
+    ended = out.terminated | out.truncated | ~out.valid
+    stats = stats.record(out.reward, ended, out.terminated | out.truncated, gamma)
+    return env_state, stats, out
 
 
 ActFn = Callable[[jax.Array, jax.Array], tuple[jax.Array, ...]]
@@ -93,9 +111,7 @@ def closed_loop(env: BatchedEnv, act: ActFn, value: ValueFn, env_state: EnvState
         env_state, stats = carry
         obs = env_state.obs
         action, raw_action, noise, log_prob = act(obs, step_key)
-        env_state, out = env.step(env_state, action)
-        ended = out.terminated | out.truncated | ~out.valid
-        stats = stats.record(out.reward, ended, out.terminated | out.truncated, gamma)
+        env_state, stats, out = env_step(env, env_state, stats, action, gamma)
         tr = Transition(obs=obs, next_obs=out.next_obs, action=action, raw_action=raw_action, noise=noise,
                         log_prob=log_prob, value=None, next_value=None, reward=out.reward,
                         terminated=out.terminated, truncated=out.truncated, valid=out.valid)

@@ -4,13 +4,13 @@ A sweep has R runs (e.g. seeds x an alpha grid). Each run has its own PRNG key a
 `jax.vmap` batches them and `jax.sharding` splits the run axis over all local devices (a 1-D `Mesh`
 named "runs"): each device trains R / num_devices runs, with no communication between them.
 
-    sweep = make_sweep(config)
+    sweep = make_sweep(make_trainer(config))        # any trainer with init(key, hp) and update(state, hp)
     keys, hps = sweep.grid(seed=0, num_seeds=8, hps=[HParams(alpha=0.0), HParams(alpha=1.0)])
     state = sweep.init(keys, hps)                       # leaves [R, ...], sharded over devices
     state, metrics = sweep.run(state, hps, 10)          # 10 updates; metrics leaves [R, 10]
 
 Several hosts: call `jax.distributed.initialize()` in every process before anything else; then
-`jax.devices()` lists every host's devices, `make_sweep(config, mesh=runs_mesh())` builds a mesh over
+`jax.devices()` lists every host's devices, `make_sweep(trainer, mesh=runs_mesh())` builds a mesh over
 all of them and each process feeds the same global arrays (`jax.make_array_from_process_local_data`
 for inputs that differ per host). R must then be a multiple of the global device count; the sweep pads
 it here on one host only.
@@ -20,20 +20,16 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from cdjax.config import Config, HParams, stack_hparams
-from cdjax.train import TrainState, Trainer, make_trainer
-
-if TYPE_CHECKING:
-    from cdjax.mbmf import MbMfPhase
-
 AXIS = "runs"
+State = Any  # the trainer's state pytree
+HP = Any  # the trainer's HParams
 
 
 def runs_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
@@ -41,41 +37,45 @@ def runs_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
     return Mesh(np.asarray(devices if devices is not None else jax.devices()), (AXIS,))
 
 
+def stack(hps: Sequence[HP]) -> HP:
+    """HParams (any flax.struct dataclass of floats) stacked into one with float32 leaves [len(hps)]."""
+    return jax.tree.map(lambda *values: jnp.asarray(values, jnp.float32), *hps)
+
+
 @dataclasses.dataclass(frozen=True)
 class Sweep:
-    config: Config
-    trainer: Trainer
+    trainer: Any  # what it was built from: init(key, hp) and update(state, hp)
     mesh: Mesh
-    init: Callable[[jax.Array, HParams], TrainState]  # (keys [R], hps [R]) -> state [R]
+    init: Callable[[jax.Array, HP], State]  # (keys [R], hps [R]) -> state [R]
     _run: Callable  # jitted (state, hps, num_updates) -> (state, metrics [R, n])
-    _phase: Callable | None = None  # jitted (state, hps) -> (state, info [R]): the Mb-Mf phase of every run
+    _phase: Callable | None = None  # jitted (state, hps) -> (state, info [R]): the pre-update phase of every run
 
     @property
     def num_devices(self) -> int:
         return self.mesh.devices.size
 
-    def run(self, state: TrainState, hps: HParams, num_updates: int):
+    def run(self, state: State, hps: HP, num_updates: int):
         """`num_updates` updates of every run: (state [R], metrics {name: [R, num_updates]})."""
         return self._run(state, hps, num_updates)
 
-    def lower(self, state: TrainState, hps: HParams, num_updates: int):
+    def lower(self, state: State, hps: HP, num_updates: int):
         """The lowered chunk program (call .compile() on it to time compilation apart)."""
         return self._run.lower(state, hps, num_updates)
 
-    def phase(self, state: TrainState, hps: HParams):
-        """The Mb-Mf phase of every run (cdjax.mbmf): (state [R] ready for PPO, info {name: [R]})."""
+    def phase(self, state: State, hps: HP):
+        """The phase of every run: (state [R] ready for the updates, info {name: [R]})."""
         return self._phase_program()(state, hps)
 
-    def lower_phase(self, state: TrainState, hps: HParams):
+    def lower_phase(self, state: State, hps: HP):
         """The lowered phase program (call .compile() on it to time compilation apart)."""
         return self._phase_program().lower(state, hps)
 
     def _phase_program(self) -> Callable:
         if self._phase is None:
-            raise ValueError("this sweep was built without an Mb-Mf phase (make_sweep(config, phase=...))")
+            raise ValueError("this sweep was built without a phase (make_sweep(trainer, phase=...))")
         return self._phase
 
-    def grid(self, seed: int, num_seeds: int, hps: Sequence[HParams]) -> tuple[jax.Array, HParams]:
+    def grid(self, seed: int, num_seeds: int, hps: Sequence[HP]) -> tuple[jax.Array, HP]:
         """Runs for every (hp, seed) pair, hp-major: run r = i * num_seeds + s.
 
         Seed s gets the same key under every hp, so arms are compared on the same seeds. The run axis
@@ -83,7 +83,7 @@ class Sweep:
         """
         seed_keys = jax.random.split(jax.random.key(seed), num_seeds)
         keys = jnp.concatenate([seed_keys] * len(hps))
-        stacked = stack_hparams([h for h in hps for _ in range(num_seeds)])
+        stacked = stack([h for h in hps for _ in range(num_seeds)])
         pad = (-keys.shape[0]) % self.num_devices
         if pad:
             keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, axis=0)])
@@ -97,9 +97,10 @@ def unpad(tree, num_runs: int):
     return jax.tree.map(lambda x: x[:num_runs], tree)
 
 
-def make_sweep(config: Config, mesh: Mesh | None = None, phase: "MbMfPhase | None" = None) -> Sweep:
-    """The sweep programs of `config`; with `phase`, also the Mb-Mf phase (run it before the updates)."""
-    trainer = make_trainer(config)
+def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None) -> Sweep:
+    """The sweep programs of `trainer` (anything with pure init(key, hp) and update(state, hp), e.g.
+    `cdjax.make_trainer(config)`); with `phase` (a pure run(state, hp) -> (state, info)), also that phase,
+    run before the updates."""
     mesh = mesh if mesh is not None else runs_mesh()
     sharded = NamedSharding(mesh, PartitionSpec(AXIS))
 
@@ -120,13 +121,10 @@ def make_sweep(config: Config, mesh: Mesh | None = None, phase: "MbMfPhase | Non
 
     phase_run = None
     if phase is not None:
-        from cdjax.mbmf import make_mbmf_phase
-
-        one_phase = make_mbmf_phase(config, phase, trainer)
 
         @functools.partial(jax.jit, donate_argnums=0)
         def phase_run(state, hps):
-            state, info = jax.vmap(one_phase)(state, hps)
+            state, info = jax.vmap(phase)(state, hps)
             return place(state), place(info)
 
-    return Sweep(config=config, trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run)
+    return Sweep(trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run)

@@ -86,6 +86,17 @@ class Trainer(NamedTuple):
     advantages: Callable  # (params, norms, batch [L, Bs, ...], hp) -> (advantages, returns), current value net
 
 
+def clipped_adam(lr, hp: HParams) -> optax.GradientTransformation:
+    """Adam (epsilon hp.adam_eps) after clipping the gradient's global norm at hp.max_grad_norm."""
+    return optax.chain(optax.clip_by_global_norm(hp.max_grad_norm), optax.adam(lr, eps=hp.adam_eps))
+
+
+def model_target(norms: nz.Norms, obs, next_obs, reward) -> jax.Array:
+    """The dynamics model's target [..., O+1]: the normalised change of state and the normalised reward."""
+    return jnp.concatenate([nz.normalize(norms.delta, next_obs - obs), nz.normalize(norms.reward, reward[..., None])],
+                           axis=-1)
+
+
 def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientTransformation:
     """Adam per parameter group with its own learning rate and gradient clipping.
 
@@ -96,7 +107,7 @@ def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientT
         return optax.adam(lr, eps=hp.adam_eps)
 
     def group(lr):
-        return optax.chain(optax.clip_by_global_norm(hp.max_grad_norm), adam(lr))
+        return clipped_adam(lr, hp)
 
     lrs = {"policy": hp.lr_policy, "value": hp.lr_value, "model": hp.lr_model, "encoder": hp.lr_model}
     transforms = {}
@@ -207,8 +218,7 @@ def make_trainer(config: Config) -> Trainer:
         terms = {"ppo": ppo}
         if model is not None:
             pred_mean, pred_log_std = model.apply(params["model"], obs_n, mb.action)
-            target = jnp.concatenate([nz.normalize(norms.delta, mb.next_obs - mb.obs),
-                                      nz.normalize(norms.reward, mb.reward[..., None])], axis=-1)
+            target = model_target(norms, mb.obs, mb.next_obs, mb.reward)
             terms["model_nll"], model_metrics = losses.model_loss(pred_mean, pred_log_std, target, mb.valid)
             metrics.update(model_metrics)
         if config.use_consistency and with_consistency:
@@ -341,13 +351,12 @@ def make_trainer(config: Config) -> Trainer:
         history = state.history.push(traj)
         if model is not None:  # the model of the last update with the statistics it was trained with
             metrics.update(openloop_metrics(state.params["model"], state.norms, history))
-        count = episodes.done_count
-        last_return = jnp.where(count > 0, episodes.done_ret / jnp.maximum(count, 1.0), state.last_return)
-        last_disc = jnp.where(count > 0, episodes.done_disc_ret / jnp.maximum(count, 1.0), state.last_disc_return)
+        last_return, _ = episodes.mean_returns(state.last_return)
+        _, last_disc = episodes.mean_returns(state.last_disc_return)
         metrics.update({
             "episode/return": last_return,
             "episode/discounted_return": last_disc,
-            "episode/count": count,
+            "episode/count": episodes.done_count,
             "env/reward_mean": losses.masked_mean(traj.reward, traj.valid),
             "env/invalid_fraction": (~traj.valid).astype(jnp.float32).mean(),
             "opt/skipped_updates": opt_state.total_notfinite.astype(jnp.float32),

@@ -10,7 +10,7 @@ import time
 import jax
 import numpy as np
 
-from cdjax import Config, HParams, make_train
+from cdjax import Config, HParams, make_train, runtime
 
 
 def main():
@@ -24,7 +24,7 @@ def main():
     p.add_argument("--alpha", type=float, default=1.0)
     args = p.parse_args()
 
-    jax.config.update("jax_compilation_cache_dir", ".jax_cache")
+    runtime.configure(cache_dir=".jax_cache")
     config = Config(env=args.env, num_envs=args.num_envs, rollout_len=args.rollout_len, horizon=args.horizon,
                     num_updates=args.updates, num_minibatches=4, episode_length=200, model_hidden=(64,),
                     value_hidden=(64, 64), encoder_dim=32)

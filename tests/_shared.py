@@ -1,10 +1,15 @@
 """Configs and compiled functions shared between test modules (MJX compiles slowly on CPU)."""
 
 import functools
+import pathlib
 
 import jax
+import pytest
+
+from cdjax import io
 
 from cdjax import Config, HParams, make_trainer
+from cdjax.agents import obs_space
 
 POINT = Config(env="point", num_envs=16, rollout_len=12, horizon=4, num_updates=3, num_epochs=2,
                num_minibatches=2, episode_length=40, policy_hidden=(16,), value_hidden=(16,),
@@ -22,3 +27,36 @@ def compiled(config: Config):
     """(trainer, jit(init), jit(update)) for a config, built once per test session."""
     trainer = make_trainer(config)
     return trainer, jax.jit(trainer.init), jax.jit(trainer.update)
+
+
+@functools.lru_cache(maxsize=None)
+def host_trainer(config: Config):
+    """The observation-space agent of a config as the host side sees it (cdjax.protocol.Trainer)."""
+    return obs_space.make_trainer(config)
+
+
+# The point-mass config POINT on the command line, with 2 seeds and 2 updates (of 192 env steps) per chunk.
+TINY_ARGS = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon", "4", "--num-epochs", "2",
+             "--num-minibatches", "2", "--episode-length", "40", "--policy-hidden", "16", "--value-hidden", "16",
+             "--model-hidden", "32", "--encoder-dim", "8", "--eval-horizon", "10", "--eval-envs", "4",
+             "--seeds", "2", "--chunk-updates", "2", "--no-progress"]
+
+
+def fail_in_one_sentence(capsys, main, argv) -> str:
+    """Run main(argv), which must exit with status 2 after one `cdjax: ...` sentence on stderr; return it."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2, err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("cdjax: ") and lines[0].endswith("."), err
+    return lines[0]
+
+
+def logged_rows(run_dir, name: str = "metrics.jsonl") -> list[dict]:
+    """A JSONL log of a run without the wall-clock (the only field that differs between two runs), in a fixed
+    order (arms that resume from different updates interleave their chunks differently)."""
+    rows = [{k: v for k, v in row.items() if k not in ("wall_s", "phase_wall_s")}
+            for row in io.read_jsonl(pathlib.Path(run_dir) / name)]
+    return sorted(rows, key=lambda r: (r["arm"], r["hp"], r["seed"], r.get("update", -1), r.get("deterministic", 0)))

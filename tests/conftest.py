@@ -1,11 +1,9 @@
-"""Shared test setup: JAX's persistent compilation cache (MJX compiles slowly on CPU)."""
+"""Shared test setup: JAX's persistent compilation cache (MJX compiles slowly on CPU), through cdjax.runtime."""
 
 import os
 import pathlib
 
-import jax
+from cdjax import runtime
 
-CACHE = pathlib.Path(os.environ.get("CDJAX_JAX_CACHE", pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"))
-CACHE.mkdir(exist_ok=True)
-jax.config.update("jax_compilation_cache_dir", str(CACHE))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+CACHE = pathlib.Path(os.environ.get(runtime.CACHE_ENV, pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"))
+runtime.configure(cache_dir=CACHE)

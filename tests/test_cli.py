@@ -12,36 +12,28 @@ import time
 
 import pytest
 
-from cdjax import Config, HParams
+from cdjax import Config, HParams, agents, io
 from cdjax.cli import build_parser, main, sweep_spec
 from cdjax.runner import SweepSpec, prepare
 
-from _shared import POINT
+from _shared import POINT, TINY_ARGS, fail_in_one_sentence
 from conftest import CACHE
 
-# A tiny point-mass sweep on the command line (2 updates per chunk of 192 env steps).
-TINY = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon", "4", "--num-epochs", "2",
-        "--num-minibatches", "2", "--episode-length", "40", "--policy-hidden", "16", "--value-hidden", "16",
-        "--model-hidden", "32", "--encoder-dim", "8", "--eval-horizon", "10", "--eval-envs", "4",
-        "--seeds", "2", "--chunk-updates", "2", "--no-progress"]
+# A tiny point-mass sweep on the command line (2 updates per chunk of 192 env steps): tests/_shared.TINY_ARGS.
+TINY = TINY_ARGS
 
 
 def _fail(capsys, argv) -> str:
-    with pytest.raises(SystemExit) as info:
-        main(argv)
-    err = capsys.readouterr().err
-    assert info.value.code == 2, err
-    assert "Traceback" not in err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("cdjax: ") and lines[0].endswith("."), err
-    return lines[0]
+    return fail_in_one_sentence(capsys, main, argv)
 
 
 @pytest.fixture
 def other_run(tmp_path):
     """A directory that holds a run (run.json only; nothing compiled)."""
     out = tmp_path / "other"
-    prepare(SweepSpec(out=out, config=POINT, seeds=2, total_env_steps=2000), resume=False)
+    _, _, record = prepare(SweepSpec(out=out, config=POINT, seeds=2, total_env_steps=2000), resume=False)
+    io.RunDir(out).create()
+    io.RunDir(out).write(record)
     return out
 
 
@@ -68,7 +60,7 @@ def other_run(tmp_path):
      "MbMfPhase.mpc_horizon must be a positive integer, got 0"),
     (["sweep", "--out", "{d}/a", "--no-mbmf-phase", "--phase-mpc-horizon", "3"], "contradicts"),
     (["sweep", "--out", "{d}/a", "--preset", "point", "--arms", "mbmf", "--phase-random-steps", "10000"],
-     "leaves no PPO updates after the Mb-Mf phase"),
+     "leaves no updates after the Mb-Mf phase"),
 ])
 def test_bad_input_is_one_sentence_and_exit_2(capsys, tmp_path, argv, words):
     line = _fail(capsys, [a.replace("{d}", str(tmp_path)) for a in argv])
@@ -102,8 +94,28 @@ def test_options_are_derived_from_the_dataclasses(capsys):
     assert "cpu-smoke" in text
 
 
+def test_help_comes_from_the_field_comments_read_with_the_tokenizer():
+    import dataclasses as dc
+
+    from cdjax.options import field_docs
+
+    @dc.dataclass
+    class Tricky:
+        text: str = "a # not a comment"  # the comment, not the string
+        widths: tuple[int, ...] = (  # a default over two lines
+            64, 64)
+        bare: int = 1
+
+        def method(self):  # a method's comment is no field's
+            return self.bare
+
+    assert field_docs(Tricky) == {"text": "the comment, not the string", "widths": "a default over two lines",
+                                  "bare": ""}
+
+
 def test_precedence_defaults_then_preset_then_flags():
-    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]))  # noqa: E731
+    obs = agents.get("obs")
+    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]), obs)  # noqa: E731
     spec = parse("--preset", "cpu-smoke", "--num-envs", "16", "--alpha", "0", "0.5", "--seeds", "2")
     assert spec.config.env == "inverted_pendulum" and spec.config.rollout_len == 32  # preset
     assert spec.config.num_envs == 16 and spec.grid["alpha"] == (0.0, 0.5) and spec.seeds == 2  # flags
@@ -120,7 +132,8 @@ def test_precedence_defaults_then_preset_then_flags():
 def test_phase_options():
     from cdjax.mbmf import MbMfPhase
 
-    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]))  # noqa: E731
+    obs = agents.get("obs")
+    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]), obs)  # noqa: E731
     assert parse("--preset", "point").phase is None  # off unless asked for (or a preset says so)
     assert parse("--preset", "point", "--mbmf-phase").phase == MbMfPhase()
     spec = parse("--preset", "point", "--phase-mpc-candidates", "64", "--phase-relabel", "false",

@@ -1,5 +1,6 @@
 """evaluate / make_evaluator on the point env (hand-worked returns), eval records, videos."""
 
+import dataclasses
 import functools
 import json
 import os
@@ -12,16 +13,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdjax import HParams, plots
-from cdjax.evaluate import append_jsonl, eval_records, evaluate, make_evaluator, render_video
+from cdjax import HParams, io, plots
+from cdjax.envs import BatchedEnv
+from cdjax.envs.point import PointMass
+from cdjax.evaluate import eval_records, evaluate, make_evaluator, render_video
 
-from _shared import POINT, compiled
+from _shared import POINT, compiled, host_trainer
 
 
 def gain_policy(trainer, episode_length):
-    """The trainer with a hand-set linear policy a = clip(gain * x) (params = {"gain": scalar})."""
-    act = lambda params, norms, obs, key: jnp.clip(params["gain"] * obs[:, :2], -1.0, 1.0)  # noqa: E731
-    return trainer._replace(act=act, config=trainer.config.replace(episode_length=episode_length))
+    """The trainer with a hand-set linear policy a = clip(gain * x) (policy = {"gain": scalar}), on point
+    masses that time out after `episode_length` steps."""
+    act = lambda policy, obs, key: jnp.clip(policy["gain"] * obs[:, :2], -1.0, 1.0)  # noqa: E731
+    return dataclasses.replace(trainer, act=act, eval_env=lambda n: BatchedEnv(PointMass(), n, episode_length))
 
 
 def hand_returns(obs0, gain, gamma, episode_length):
@@ -45,16 +49,17 @@ def hand_returns(obs0, gain, gamma, episode_length):
     return np.array(out)
 
 
-def _run(trainer, params, key, **kw):
-    return jax.jit(functools.partial(evaluate, trainer, **kw))(params, None, key)
+def _run(trainer, policy, key, **kw):
+    return jax.jit(functools.partial(evaluate, trainer, **kw))(policy, key)
 
 
 def test_deterministic_evaluation_repeats_and_has_one_result_per_episode():
-    trainer, init, _ = compiled(POINT)
+    _, init, _ = compiled(POINT)
+    trainer = host_trainer(POINT)
     state = init(jax.random.key(0), HParams())
     ev = jax.jit(functools.partial(evaluate, trainer, episodes=6, hp=HParams(), deterministic=True))
-    a = ev(state.params, state.norms, jax.random.key(1))
-    b = ev(state.params, state.norms, jax.random.key(1))
+    a = ev(trainer.policy(state), jax.random.key(1))
+    b = ev(trainer.policy(state), jax.random.key(1))
     for name in ("return", "discounted_return", "length", "terminated", "finished", "valid"):
         assert a[name].shape == (6,), name
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
@@ -63,13 +68,13 @@ def test_deterministic_evaluation_repeats_and_has_one_result_per_episode():
     assert float(a["return_mean"]) == pytest.approx(float(a["return"].mean()))
     # sampled actions change the returns; a different key gives different starts
     stoch = jax.jit(functools.partial(evaluate, trainer, episodes=6, hp=HParams(), deterministic=False))
-    c = stoch(state.params, state.norms, jax.random.key(1))
+    c = stoch(trainer.policy(state), jax.random.key(1))
     np.testing.assert_array_equal(c["initial_obs"], a["initial_obs"])
     assert not np.allclose(c["return"], a["return"])
 
 
 def test_returns_equal_hand_computation():
-    trainer, _, _ = compiled(POINT)
+    trainer = host_trainer(POINT)
     hp = HParams(gamma=0.9)
     # toward the origin for 6 steps: every episode times out
     res = _run(gain_policy(trainer, 6), {"gain": jnp.float32(-3.0)}, jax.random.key(2), episodes=4, hp=hp,
@@ -91,7 +96,7 @@ def test_returns_equal_hand_computation():
 
 
 def test_policy_toward_origin_beats_policy_away_and_max_steps_cuts():
-    trainer = gain_policy(compiled(POINT)[0], POINT.episode_length)
+    trainer = gain_policy(host_trainer(POINT), POINT.episode_length)
     kw = dict(episodes=8, hp=HParams(), deterministic=True)
     good = _run(trainer, {"gain": jnp.float32(-5.0)}, jax.random.key(4), **kw)
     bad = _run(trainer, {"gain": jnp.float32(5.0)}, jax.random.key(4), **kw)
@@ -103,22 +108,22 @@ def test_policy_toward_origin_beats_policy_away_and_max_steps_cuts():
 
 
 def test_make_evaluator_vmaps_over_runs_and_records_round_trip(tmp_path):
-    trainer, init, _ = compiled(POINT)
+    _, init, _ = compiled(POINT)
+    trainer = host_trainer(POINT)
     keys = jax.random.split(jax.random.key(5), 2)
     hps = jax.tree.map(lambda x: jnp.stack([x, x]), HParams(gamma=0.95).as_float32())
     states = [init(k, HParams()) for k in keys]
-    params = jax.tree.map(lambda *x: jnp.stack(x), *[s.params for s in states])
-    norms = jax.tree.map(lambda *x: jnp.stack(x), *[s.norms for s in states])
+    policy = jax.tree.map(lambda *x: jnp.stack(x), *[trainer.policy(s) for s in states])
     eval_keys = jax.random.split(jax.random.key(6), 2)
-    results = make_evaluator(trainer, episodes=3, deterministic=True)(params, norms, eval_keys, hps)
+    results = make_evaluator(trainer, episodes=3, deterministic=True)(policy, eval_keys, hps)
     assert results["return"].shape == (2, 3) and results["return_mean"].shape == (2,)
     alone = jax.jit(functools.partial(evaluate, trainer, episodes=3, hp=HParams(gamma=0.95), deterministic=True))(
-        states[1].params, states[1].norms, eval_keys[1])
+        trainer.policy(states[1]), eval_keys[1])
     np.testing.assert_allclose(results["discounted_return"][1], alone["discounted_return"], rtol=1e-6)
 
     records = eval_records(results, arm="cd-a1", hp_labels=["alpha=1.0"], seeds=[0, 1], deterministic=True,
                            update=7, env_steps=123)
-    path = append_jsonl(tmp_path / "eval.jsonl", records)
+    path = io.append_jsonl(tmp_path / "eval.jsonl", records)
     lines = [json.loads(line) for line in path.read_text().splitlines()]
     assert len(lines) == 2 and lines[1]["seed"] == 1 and lines[1]["update"] == 7 and len(lines[1]["returns"]) == 3
     assert lines[1]["eval/return"] == pytest.approx(float(results["return"][1].mean()), rel=1e-6)
@@ -127,9 +132,10 @@ def test_make_evaluator_vmaps_over_runs_and_records_round_trip(tmp_path):
 
 
 def test_render_video_without_a_model_says_why(tmp_path, capsys):
-    trainer, init, _ = compiled(POINT)
+    _, init, _ = compiled(POINT)
+    trainer = host_trainer(POINT)
     state = init(jax.random.key(0), HParams())
-    assert render_video(trainer, state.params, state.norms, jax.random.key(0), tmp_path / "v.mp4", steps=5) is None
+    assert render_video(trainer, trainer.policy(state), jax.random.key(0), tmp_path / "v.mp4", steps=5) is None
     out = capsys.readouterr().out
     assert "No video" in out and "no MuJoCo model" in out and out.strip().count("\n") == 0
 
@@ -140,14 +146,12 @@ def test_render_video_in_this_process_renders_or_says_how_to_fix(tmp_path, capsy
     sentence naming MUJOCO_GL; the renderer is tried before anything is compiled, so this is cheap."""
     import types
 
-    from cdjax import Config
     from cdjax.envs import make_single_env
 
-    cfg = Config(env="inverted_pendulum", num_envs=4, rollout_len=8, horizon=4, num_minibatches=1, eval_envs=4,
-                 episode_length=20, eval_horizon=8)
-    trainer = types.SimpleNamespace(config=cfg, act=lambda p, n, obs, key: jnp.zeros((obs.shape[0], 1)),
-                                    env=types.SimpleNamespace(env=make_single_env(cfg.env)))
-    path = render_video(trainer, None, None, jax.random.key(0), tmp_path / "v.gif", steps=3, width=32, height=24)
+    single = make_single_env("inverted_pendulum")
+    trainer = types.SimpleNamespace(act=lambda policy, obs, key: jnp.zeros((obs.shape[0], 1)),
+                                    eval_env=lambda n: BatchedEnv(single, n, 20))
+    path = render_video(trainer, None, jax.random.key(0), tmp_path / "v.gif", steps=3, width=32, height=24)
     if path is None:
         out = capsys.readouterr().out
         assert "No video: no OpenGL context" in out and "MUJOCO_GL=egl" in out
@@ -157,19 +161,15 @@ def test_render_video_in_this_process_renders_or_says_how_to_fix(tmp_path, capsy
 
 _RENDER_SCRIPT = textwrap.dedent("""
     import sys, types, jax, jax.numpy as jnp
-    jax.config.update("jax_compilation_cache_dir", sys.argv[2])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    from cdjax import Config
-    from cdjax.envs import make_single_env
+    from cdjax import runtime
+    runtime.configure(cache_dir=sys.argv[2])
+    from cdjax.envs import BatchedEnv, make_single_env
     from cdjax.evaluate import render_video
-    cfg = Config(env="inverted_pendulum", num_envs=4, rollout_len=8, horizon=4, num_minibatches=1, eval_envs=4,
-                 episode_length=50, eval_horizon=8)
-    # render_video uses trainer.config, trainer.act and trainer.env.env only; a stand-in skips make_trainer,
-    # whose BatchedEnv runs an eager MJX reset to read observation_size (tens of seconds on a busy CPU)
-    act = lambda p, n, obs, key: jnp.zeros((obs.shape[0], 1)) + p
-    trainer = types.SimpleNamespace(config=cfg, act=act, env=types.SimpleNamespace(env=make_single_env(cfg.env)))
-    path = render_video(trainer, jnp.float32(0.0), None, jax.random.key(0), sys.argv[1], steps=12, width=96,
-                        height=64)
+    # render_video uses trainer.act and trainer.eval_env only; a stand-in skips building the agent
+    single = make_single_env("inverted_pendulum")
+    act = lambda policy, obs, key: jnp.zeros((obs.shape[0], 1)) + policy
+    trainer = types.SimpleNamespace(act=act, eval_env=lambda n: BatchedEnv(single, n, 50))
+    path = render_video(trainer, jnp.float32(0.0), jax.random.key(0), sys.argv[1], steps=12, width=96, height=64)
     print("RESULT", path)
 """)
 

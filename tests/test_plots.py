@@ -9,7 +9,7 @@ import pytest
 import scipy.stats
 from rliable import metrics as rly_metrics
 
-from cdjax import plots
+from cdjax import plots, stats
 
 UPDATES = 20
 STEPS_PER_UPDATE = 512
@@ -80,7 +80,9 @@ def test_files_exist(run_dir):
 
 def test_load_metrics_shapes_and_nans(run_dir):
     run, _, table = run_dir
-    curves = plots.load_metrics(run)
+    said = []
+    curves = plots.load_metrics(run, say=said.append)
+    assert len(said) == 1 and "left out 1 line(s) that do not parse" in said[0]  # the torn last line, said
     assert list(curves) == [(name, "alpha=1.0") for name in ARMS]  # run.json order
     good = curves[("good", "alpha=1.0")]
     assert good.metrics["episode/return"].shape == (5, UPDATES) and good.arm_type == "cd"
@@ -114,7 +116,7 @@ def test_csv_iqm_equals_hand_computation(run_dir):
 def test_iqm_columns_matches_rliable():
     scores = RNG.normal(size=(7, 1, 6))
     expected = [rly_metrics.aggregate_iqm(scores[..., p]) for p in range(6)]
-    np.testing.assert_allclose(plots.iqm_columns(scores), expected)
+    np.testing.assert_allclose(stats.iqm_columns(scores), expected)
 
 
 def test_model_csv_mean_across_seeds(run_dir):
@@ -175,13 +177,13 @@ def test_single_seed_and_empty_metrics(tmp_path):
 
 def test_fallback_bootstrap_matches_rliable():
     """The local bootstrap (used when rliable.library cannot import) reproduces rliable's numbers."""
-    if plots.rly is None:
-        pytest.skip(f"rliable.library does not import here ({plots.RLIABLE_ERROR}); pin pandas<3 to use it")
+    if stats.rly is None:
+        pytest.skip(f"rliable.library does not import here ({stats.RLIABLE_ERROR}); pin pandas<3 to use it")
     scores = RNG.normal(size=(6, 1, 4))
     np.random.seed(1)
-    point, interval = plots.rly.get_interval_estimates({"x": scores}, plots.iqm_columns, reps=300)
+    point, interval = stats.rly.get_interval_estimates({"x": scores}, stats.iqm_columns, reps=300)
     np.random.seed(1)
-    point2, interval2 = plots.stratified_bootstrap(scores, plots.iqm_columns, reps=300)
+    point2, interval2 = stats.stratified_bootstrap(scores, stats.iqm_columns, reps=300)
     np.testing.assert_allclose(point2, point["x"])
     np.testing.assert_allclose(interval2, interval["x"])
 

@@ -12,8 +12,9 @@
   finite is reset, its transition is marked `valid=False` and its numbers are replaced by zeros,
   so that no NaN reaches a loss or a parameter.
 
-Brax prints that its environments are no longer maintained; replacing them means replacing this
-module (and `swimmer.py`, `point.py` beside it), nothing else.
+Beside it: `render.py` (videos from MuJoCo's renderer), `resume.py` (which leaves of the state a
+resumed run needs), `swimmer.py` and `point.py` (tasks). Brax prints that its environments are no longer
+maintained; replacing them means replacing this package, nothing else.
 """
 
 from __future__ import annotations
@@ -50,20 +51,13 @@ def _brax_env(name: str, **kwargs):
 
 
 def _swimmer(**kwargs):
-    from cdjax.envs.swimmer import Swimmer
-
-    return Swimmer(**kwargs)
+    return _quiet_import("cdjax.envs.swimmer").Swimmer(**kwargs)
 
 
 def _registry() -> dict[str, Callable[..., Any]]:
     table: dict[str, Callable[..., Any]] = {name: functools.partial(_brax_env, name) for name in BRAX_MJX_ENVS}
     table["point"] = PointMass  # tiny deterministic pure-JAX system for plumbing tests
-    try:
-        _quiet_import("cdjax.envs.swimmer")
-
-        table["swimmer"] = _swimmer
-    except ImportError:  # pragma: no cover - the swimmer module is optional until it lands
-        pass
+    table["swimmer"] = _swimmer  # an MJX swimmer (cdjax/envs/swimmer.py)
     return table
 
 

@@ -10,7 +10,7 @@ Mb-Mf's gradients (tests/test_learner.py); only the unused encoder trains. Cells
 from it only in the model, which PPO never reads, so their returns differ from Mb-Mf's only by the GPU's
 floating-point non-determinism: they show how far apart identical learners land.
 
-Statistics are cdjax.plots': IQM over seeds with a 95% stratified-bootstrap interval; "final" is the mean
+Statistics are cdjax.stats': IQM over seeds with a 95% stratified-bootstrap interval; "final" is the mean
 of each seed's last 10% of logged updates, "eval" the final deterministic evaluation (mean over its
 episodes), diagnostics are final values.
 """
@@ -26,7 +26,7 @@ import tempfile
 
 import numpy as np
 
-from cdjax import plots
+from cdjax import plots, stats
 from experiments.consistency_weights import TASKS
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -83,21 +83,21 @@ def cells(run_dir: pathlib.Path, reps: int = 2000) -> list[dict]:
         ev = evals.get((arm, label, True), {}).get("return", np.array([]))
         row = {"label": label, "weights": _weights(label), "seeds": len(c.seeds),
                "env_steps": float(np.nanmax(c.env_steps)),
-               "eval": plots.iqm_interval(ev, reps=reps),
-               "final": plots.iqm_interval(plots.per_seed_final(c, plots.RETURN), reps=reps),
-               "auc": plots.iqm_interval(plots.per_seed_auc(c, plots.RETURN), reps=reps)}
+               "eval": stats.iqm_interval(ev, reps=reps),
+               "final": stats.iqm_interval(plots.per_seed_final(c, plots.RETURN), reps=reps),
+               "auc": stats.iqm_interval(plots.per_seed_auc(c, plots.RETURN), reps=reps)}
         for name, _ in DIAGNOSTICS:
-            row[name] = plots.iqm_interval(plots.per_seed_final(c, name), reps=reps)
+            row[name] = stats.iqm_interval(plots.per_seed_final(c, name), reps=reps)
         spread = c.metrics.get(SPREAD)
         if spread is not None:
             first = spread[:, np.argmax(c.updates >= 1)]
-            row["spread_first"] = plots.iqm_interval(first, reps=reps)
-            row["spread_end"] = plots.iqm_interval(plots.per_seed_final(c, SPREAD), reps=reps)
+            row["spread_first"] = stats.iqm_interval(first, reps=reps)
+            row["spread_end"] = stats.iqm_interval(plots.per_seed_final(c, SPREAD), reps=reps)
             row["spread_min"] = float(np.nanmin(spread))
         for num, den, name in RATIOS:
             if num in c.metrics and den in c.metrics:
                 ratio = np.nanmean(c.metrics[num] / c.metrics[den], axis=1)
-                row[name] = plots.iqm_interval(ratio, reps=reps)
+                row[name] = stats.iqm_interval(ratio, reps=reps)
         rows.append(row)
     return sorted(rows, key=lambda r: r["weights"])
 

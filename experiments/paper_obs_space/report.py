@@ -2,7 +2,7 @@
 
 Arms are compared at the same environment-step budget: when a run was stopped early (e.g. by a time
 limit), every arm of that task is cut at the largest env-step count that all of its arms reached, and the
-table says so. Statistics are cdjax.plots': IQM over seeds with 95% stratified-bootstrap intervals
+table says so. Statistics are cdjax.stats' (through cdjax.plots' curves): IQM over seeds with 95% stratified-bootstrap intervals
 (rliable), final = mean of the last 10% of each seed's logged points, AUC = env-step weighted mean of
 each seed's curve.
 """
@@ -22,7 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
-from cdjax import plots
+from cdjax import io, plots, stats
 from experiments.paper_obs_space import ABLATION_TASKS, ARMS, TASKS
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -84,7 +84,7 @@ def load_task(run_dir: pathlib.Path, name: str) -> Task | None:
     source, run_dir = run_dir, _unpacked(run_dir)
     if not (run_dir / "metrics.jsonl").exists():
         return None
-    info = plots.read_run_info(run_dir)
+    info = io.RunDir(run_dir).read()
     machine_path = run_dir / "machine.json"
     machine = json.loads(machine_path.read_text()) if machine_path.exists() else {}
     curves = {arm: c for (arm, _), c in plots.load_metrics(run_dir).items()}
@@ -137,15 +137,15 @@ def arm_rows(task: Task, reps: int = 2000) -> list[dict]:
         for stat, fn in (("final", plots.per_seed_final), ("auc", plots.per_seed_auc)):
             for target, name in (("return", RETURN), ("disc_return", DISC)):
                 values = fn(c, name)
-                row[f"{stat}_{target}"] = plots.iqm_interval(values, reps)[:3]
+                row[f"{stat}_{target}"] = stats.iqm_interval(values, reps)[:3]
                 row[f"{stat}_{target}_seeds"] = [None if not np.isfinite(v) else round(float(v), 4) for v in values]
         count = c.metrics.get("episode/count")
         row["episodes"] = float(np.nanmean(np.nansum(np.where(c.present, count, 0.0), axis=1))) \
             if count is not None else math.nan
         ev = next((v for (a, _, det), v in task.evals.items() if a == arm and det), None)
-        row["eval_return"] = plots.iqm_interval(ev["return"], reps)[:3] if ev else (math.nan,) * 3
+        row["eval_return"] = stats.iqm_interval(ev["return"], reps)[:3] if ev else (math.nan,) * 3
         for name, _ in DIAGNOSTICS:
-            row[name] = plots.iqm_interval(plots.per_seed_final(c, name), reps)[:3] if name in c.metrics \
+            row[name] = stats.iqm_interval(plots.per_seed_final(c, name), reps)[:3] if name in c.metrics \
                 else (math.nan,) * 3
         rows.append(row)
     return rows
@@ -198,7 +198,7 @@ def _series(c: plots.Curves, name: str, reps: int, max_points: int = 120):
     if values is None or not np.isfinite(values).any():
         return None
     idx = np.unique(np.linspace(0, len(c.updates) - 1, min(max_points, len(c.updates))).round().astype(int))
-    point, low, high, n = plots.interval_curve(values[:, idx], "iqm", reps)
+    point, low, high, n = stats.interval_curve(values[:, idx], "iqm", reps)
     return c.env_steps[idx], point, low, high, n
 
 
@@ -261,7 +261,7 @@ def keep_data(task: Task, out: pathlib.Path) -> pathlib.Path:
         return target
     target.mkdir(parents=True, exist_ok=True)
     with gzip.open(target / "metrics.jsonl.gz", "wt") as f:
-        for row in plots._read_jsonl(task.files / "metrics.jsonl"):
+        for row in io.read_jsonl(task.files / "metrics.jsonl"):
             f.write(json.dumps({k: row[k] for k in KEEP if k in row}) + "\n")
     for name in ("run.json", "machine.json", "phase.jsonl", "eval.jsonl"):
         if (task.files / name).exists():

@@ -1,0 +1,378 @@
+"""The run directory: every file a sweep reads or writes, and every failure to write as one sentence.
+
+    run.json                       the sweep (version 2): setting, the whole SweepSpec, the arms with their
+                                   configs, hparams and hp labels, budgets, metric names, the command
+    metrics.jsonl                  one object per (arm, hp, seed, update); NaN written as null
+    phase.jsonl                    the pre-update phase's diagnostics per (arm, hp, seed)
+    eval.jsonl                     evaluations (cdjax.evaluate.eval_records)
+    cdjax.log                      what the libraries (orbax, absl, asyncio, warnings) said during the sweep
+    .lock                          flock-ed by the process that trains in the directory
+    tb/<arm>/<hp>/seed<s>/         TensorBoard event files
+    checkpoints/<arm>/<updates>/   orbax checkpoints of the arm's state (cdjax.io.checkpoints)
+    plots/, summary.md, summary.csv, videos/   cdjax.plots and `cdjax eval --video`
+
+Writes that fail (a full disk, a read-only place) raise `WriteError`, a `RunDirError` whose message says
+which file and why in one sentence; JSONL readers skip a torn line (a process killed while writing)
+and count it, so that callers can say so.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import errno
+import json
+import math
+import os
+import pathlib
+import re
+import time
+from typing import Any, Iterable, Mapping, Sequence
+
+import jax
+import numpy as np
+
+RUN_VERSION = 2
+READABLE_VERSIONS = (1, 2)  # run.json versions that plots and evaluation read; only RUN_VERSION resumes
+
+
+class RunDirError(ValueError):
+    """A run directory that cannot be used as asked; the message is one sentence meant for the user."""
+
+
+class WriteError(RunDirError):
+    """Writing into the run directory failed (disk full, no permission); one sentence."""
+
+
+def reason(err: BaseException) -> str:
+    """What an OS-level failure was, in words: "No space left on device" also from orbax's wrapped errors."""
+    if isinstance(err, OSError) and err.strerror:
+        return err.strerror
+    code = re.search(r"os_error_code='?(\d+)", str(err))
+    if code:
+        return os.strerror(int(code.group(1)))
+    text = str(err).splitlines()[0] if str(err) else type(err).__name__
+    return text[:200]
+
+
+@contextlib.contextmanager
+def writing(path: str | os.PathLike):
+    """Turn an OSError raised inside into a WriteError naming `path`."""
+    try:
+        yield
+    except OSError as err:
+        raise WriteError(f"cannot write {path}: {reason(err)}") from None
+
+
+# ---------------------------------------------------------------------------------------------------
+# Paths and run.json
+
+
+@dataclasses.dataclass(frozen=True)
+class RunDir:
+    path: pathlib.Path
+
+    @property
+    def run_json(self) -> pathlib.Path:
+        return self.path / "run.json"
+
+    @property
+    def metrics(self) -> pathlib.Path:
+        return self.path / "metrics.jsonl"
+
+    @property
+    def eval(self) -> pathlib.Path:
+        return self.path / "eval.jsonl"
+
+    @property
+    def phase(self) -> pathlib.Path:
+        """Diagnostics of the pre-update phase (the update-0 rows of metrics.jsonl, kept apart for reading)."""
+        return self.path / "phase.jsonl"
+
+    @property
+    def log(self) -> pathlib.Path:
+        return self.path / "cdjax.log"
+
+    def tb(self, arm: str, hp: str, seed: int) -> pathlib.Path:
+        return self.path / "tb" / arm / hp / f"seed{seed}"
+
+    def checkpoints(self, arm: str) -> pathlib.Path:
+        return self.path / "checkpoints" / arm
+
+    def exists(self) -> bool:
+        return self.run_json.is_file()
+
+    def read(self) -> dict:
+        """run.json (RunDirError when there is none, it is not JSON, or its version is not readable)."""
+        if not self.exists():
+            raise RunDirError(f"{self.path} holds no run (no run.json); "
+                              f"start one with `cdjax sweep --out {self.path}`.")
+        try:
+            run = json.loads(self.run_json.read_text())
+        except json.JSONDecodeError as err:
+            raise RunDirError(f"{self.run_json} is not valid JSON ({err.msg} at line {err.lineno}).") from None
+        except OSError as err:
+            raise RunDirError(f"cannot read {self.run_json}: {reason(err)}.") from None
+        if not isinstance(run, dict) or run.get("version") not in READABLE_VERSIONS:
+            version = run.get("version") if isinstance(run, dict) else None
+            raise RunDirError(f"{self.run_json} has version {version!r}; this cdjax reads versions "
+                              f"{', '.join(map(str, READABLE_VERSIONS))}.")
+        return run
+
+    def read_if_present(self) -> dict:
+        """run.json, or {} when the directory has none (plots of hand-made logs)."""
+        return self.read() if self.exists() else {}
+
+    def check_writable(self) -> None:
+        """RunDirError (one sentence) when the directory could not be made or written; writes nothing."""
+        if self.path.exists() and not self.path.is_dir():
+            raise RunDirError(f"{self.path} is a file, not a directory; choose another --out.")
+        existing = next(p for p in (self.path, *self.path.absolute().parents) if p.exists())
+        if not existing.is_dir():
+            raise RunDirError(f"cannot write into {self.path}: {os.strerror(errno.ENOTDIR)}; choose another --out.")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise RunDirError(f"cannot write into {self.path}: {os.strerror(errno.EACCES)} ({existing}); choose another --out.")
+
+    def create(self) -> None:
+        """Make the directory (and its parents): RunDirError, one sentence, when that cannot be done."""
+        self.check_writable()
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            probe = self.path / ".cdjax-write-test"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as err:
+            raise RunDirError(f"cannot write into {self.path}: {reason(err)}; choose another --out.") from None
+
+    @contextlib.contextmanager
+    def lock(self):
+        """Hold the directory for one sweep (an advisory lock, released when the process ends, also by kill -9):
+        RunDirError when another process holds it."""
+        import fcntl
+
+        with writing(self.path / ".lock"), open(self.path / ".lock", "a") as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise RunDirError(f"{self.path} is in use by another cdjax process; wait for it to end or choose "
+                                  "another --out.") from None
+            try:
+                yield
+            finally:
+                fcntl.flock(f, fcntl.LOCK_UN)
+
+    def write(self, run: dict) -> None:
+        """Write run.json atomically (a half-written run.json would make the directory unreadable)."""
+        tmp = self.run_json.with_suffix(".json.tmp")
+        with writing(self.run_json):
+            tmp.write_text(json.dumps(run, indent=2) + "\n")
+            tmp.replace(self.run_json)
+
+
+def json_float(x) -> float | None:
+    """A float for JSON: NaN and infinities become None (null)."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def dataclass_to_json(obj) -> dict:
+    """A (frozen) dataclass of scalars and tuples as JSON fields (tuples become lists)."""
+    return {f.name: (list(v) if isinstance(v := getattr(obj, f.name), tuple) else v) for f in dataclasses.fields(obj)}
+
+
+def dataclass_from_json(cls, fields: Mapping[str, Any], where: str = "run.json"):
+    """Inverse of dataclass_to_json: unknown names are an error (RunDirError), missing ones default."""
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(fields) - known)
+    if unknown:
+        raise RunDirError(f"{where} names {cls.__name__} fields this cdjax does not know: {', '.join(unknown)}.")
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+
+
+def hparams_to_json(hp) -> dict:
+    return {f.name: float(getattr(hp, f.name)) for f in dataclasses.fields(hp)}
+
+
+# ---------------------------------------------------------------------------------------------------
+# JSONL logs
+
+
+class Rows(list):
+    """Rows of a JSONL file; `skipped` counts the lines that did not parse (a torn last line)."""
+
+    skipped: int = 0
+
+
+def read_jsonl(path: str | os.PathLike) -> Rows:
+    """The objects of a JSONL file ([] when it does not exist); unreadable lines are skipped and counted."""
+    rows = Rows()
+    path = pathlib.Path(path)
+    if not path.exists():
+        return rows
+    for line in path.read_text().splitlines():
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            row = None
+        if isinstance(row, dict):
+            rows.append(row)
+        else:
+            rows.skipped += 1
+    return rows
+
+
+def append_jsonl(path: str | os.PathLike, rows: Iterable[dict]) -> pathlib.Path:
+    """Append rows, one JSON object per line (NaN written as null), in one write; WriteError on failure."""
+    path = pathlib.Path(path)
+    text = "".join(json.dumps(row, allow_nan=False) + "\n" for row in rows)
+    with writing(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("a") as f:
+            f.write(text)
+            f.flush()
+    return path
+
+
+def truncate_jsonl(path: pathlib.Path, done: Mapping[str, int]) -> tuple[int, int]:
+    """Keep the rows of each arm up to `done[arm]` updates (those the restored checkpoints hold).
+
+    Drops the rows a killed process wrote after its last checkpoint, and torn lines. Returns (rows
+    dropped, of which torn lines).
+    """
+    if not path.exists():
+        return 0, 0
+    kept, dropped, torn = [], 0, 0
+    for line in path.read_text().splitlines(keepends=True):
+        try:
+            row = json.loads(line)
+            keep = line.endswith("\n") and row["update"] <= done.get(row["arm"], 0)
+        except (json.JSONDecodeError, KeyError, TypeError):
+            keep, torn = False, torn + 1
+        if keep:
+            kept.append(line)
+        else:
+            dropped += 1
+    if dropped:
+        tmp = path.with_suffix(".jsonl.tmp")
+        with writing(path):
+            tmp.write_text("".join(kept))
+            tmp.replace(path)
+    return dropped, torn
+
+
+def metric_rows(arm: str, labels: Sequence[str], num_seeds: int, metrics: Mapping, first_update: int,
+                steps_per_update: int, wall_start: float, wall_end: float, steps_offset: int = 0) -> list[dict]:
+    """Rows of metrics.jsonl for one chunk of one arm.
+
+    metrics: {name: [R, n]} on the host, runs hp-major (run r = i * num_seeds + s). `update` counts the
+    updates done (1-based), `env_steps` the environment steps of that run so far (`steps_offset`: those
+    of a phase before the first update), `wall_s` the training wall-clock of the sweep (compile
+    excluded), interpolated linearly inside the chunk.
+    """
+    names = sorted(metrics)
+    n = next(iter(metrics.values())).shape[1]
+    rows = []
+    for i, label in enumerate(labels):
+        for s in range(num_seeds):
+            r = i * num_seeds + s
+            for j in range(n):
+                update = first_update + j + 1
+                row = {"arm": arm, "hp": label, "seed": s, "update": update,
+                       "env_steps": steps_offset + update * steps_per_update,
+                       "wall_s": round(wall_start + (wall_end - wall_start) * (j + 1) / n, 3)}
+                row.update({name: json_float(metrics[name][r, j]) for name in names})
+                rows.append(row)
+    return rows
+
+
+def phase_rows(arm: str, labels: Sequence[str], num_seeds: int, info: Mapping, env_steps: int, wall_start: float,
+               wall_end: float, as_metrics: Mapping[str, str]) -> list[dict]:
+    """Rows (update 0) of a phase of one arm: info {name: [R]} on the host, runs hp-major.
+
+    Every diagnostic is kept under "phase/<name>"; those named in `as_metrics` are also the row's metric
+    of the given name (e.g. the distilled policy's return is the first point of the return curve).
+    """
+    rows = []
+    for i, label in enumerate(labels):
+        for s in range(num_seeds):
+            r = i * num_seeds + s
+            row = {"arm": arm, "hp": label, "seed": s, "update": 0, "env_steps": env_steps,
+                   "wall_s": round(wall_end, 3), "phase_wall_s": round(wall_end - wall_start, 3)}
+            row.update({f"phase/{name}": json_float(value[r]) for name, value in sorted(info.items())})
+            row.update({new: json_float(info[old][r]) for old, new in as_metrics.items() if old in info})
+            rows.append(row)
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------------
+# TensorBoard
+
+
+class TensorBoard:
+    """One TensorBoard event file per run (step = env steps of the run), written synchronously.
+
+    tensorboardX's SummaryWriter writes from a thread and closes at exit, so a full disk surfaces there as
+    tracebacks; here each chunk's events are written and flushed by the caller's thread (WriteError on
+    failure). A resumed run starts its files with a purge event at the restored step: TensorBoard then
+    hides the events an interrupted process wrote past it.
+    """
+
+    def __init__(self, run_dir: RunDir, purge_steps: Mapping[str, int] | None = None):
+        self.run_dir = run_dir
+        self.purge_steps = dict(purge_steps or {})
+        self.writers: dict[tuple, Any] = {}
+
+    def _writer(self, arm: str, hp: str, seed: int):
+        from tensorboardX.event_file_writer import EventsWriter
+        from tensorboardX.proto.event_pb2 import Event, SessionLog
+
+        key = (arm, hp, seed)
+        if key not in self.writers:
+            directory = self.run_dir.tb(arm, hp, seed)
+            directory.mkdir(parents=True, exist_ok=True)
+            writer = EventsWriter(str(directory / "events"), filename_suffix=f".{time.time_ns()}")  # a resumed run adds a file
+            purge = self.purge_steps.get(arm)
+            if purge:
+                writer.write_event(Event(step=purge, wall_time=time.time(),
+                                         session_log=SessionLog(status=SessionLog.START)))
+            self.writers[key] = writer
+        return self.writers[key]
+
+    def write(self, rows: Iterable[dict]) -> None:
+        from tensorboardX.proto.event_pb2 import Event
+        from tensorboardX.summary import scalar
+
+        skip = {"arm", "hp", "seed", "update", "env_steps"}
+        with writing(self.run_dir.path / "tb"):
+            touched = set()
+            for row in rows:
+                writer = self._writer(row["arm"], row["hp"], row["seed"])
+                touched.add(id(writer))
+                now = time.time()
+                for name, value in row.items():
+                    if name not in skip and value is not None:
+                        writer.write_event(Event(wall_time=now, step=int(row["env_steps"]),
+                                                 summary=scalar(name, float(value))))
+            for writer in self.writers.values():
+                if id(writer) in touched:
+                    writer.flush()
+
+    def close(self) -> None:
+        writers, self.writers = list(self.writers.values()), {}
+        for writer in writers:
+            with contextlib.suppress(OSError):  # a failed flush was reported when it happened
+                writer.close()
+
+
+def host(tree):
+    """Device arrays -> numpy (blocks until they are computed)."""
+    return jax.tree.map(np.asarray, jax.device_get(tree))
+
+
+from cdjax.io.checkpoints import CheckpointWarning, Checkpoints  # noqa: E402  (it uses the errors above)
+
+__all__ = ["RunDir", "RunDirError", "WriteError", "CheckpointWarning", "Checkpoints", "TensorBoard", "Rows",
+           "read_jsonl", "append_jsonl", "truncate_jsonl", "metric_rows", "phase_rows", "json_float",
+           "dataclass_to_json", "dataclass_from_json", "hparams_to_json", "host", "reason", "writing"]

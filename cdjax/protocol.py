@@ -1,0 +1,102 @@
+"""The contract between a setting (one of the paper's agents) and the host side of cdjax.
+
+The sweep, the checkpoints, the evaluation, the logs, the plots and the `cdjax` command are written
+against these types alone. A setting plugs in by registering a `Setting` (cdjax.agents.register):
+
+    Setting(name="obs", config_type=Config, hparams_type=HParams, make_trainer=..., arm_config=..., ...)
+
+Its Config is a frozen dataclass (hashed into the compiled programs) with a `num_updates: int` field and an
+`env_steps_per_update` attribute; its HParams is a `flax.struct` dataclass of float32 scalars (vmapped with
+the seeds). `make_trainer(config)` gives a `Trainer`: pure functions, never jitted or vmapped here.
+
+    trainer = setting.make_trainer(config)
+    state = trainer.init(key, hp)                        # any pytree
+    state, metrics = trainer.update(state, hp)           # metrics: {name: scalar}
+    actions = trainer.act(trainer.policy(state), obs, key)   # key None: the deterministic action
+
+An optional `Phase` is a program a setting's arms may run once per run before their updates (the Mb-Mf
+model-based phase of the observation-space setting); its env steps are charged to the arm's budget.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Mapping
+
+import jax
+
+from cdjax.config import ConfigError  # re-exported: the host side's one-sentence error for input that cannot run
+
+State = Any  # a setting's training state: a pytree (leading run axis in a sweep)
+HP = Any  # a setting's HParams
+ConfigT = Any  # a setting's Config
+
+
+@dataclasses.dataclass(frozen=True)
+class Trainer:
+    """What the host side needs of a learner built for one Config; every function is pure."""
+
+    config: ConfigT  # the Config it was built from
+    init: Callable[[jax.Array, HP], State]  # (key, hp) -> state
+    update: Callable[[State, HP], tuple[State, dict]]  # (state, hp) -> (state, {metric name: scalar}), one update
+    policy: Callable[[State], Any]  # state -> what `act` needs of it (parameters, normalisation), a pytree
+    act: Callable[[Any, jax.Array, jax.Array | None], jax.Array]  # (policy, obs [B, ...], key | None) -> actions [B, ...]
+    # num_envs -> the batched env evaluation plays: reset(key) -> state with .obs, step(state, actions) ->
+    # (state, cdjax.envs.Step), episode_length (its time-out), as cdjax.envs.BatchedEnv
+    eval_env: Callable[[int], Any]
+    # () -> pytree of bool shaped like init's state: the leaves a checkpoint holds; None: all. A leaf left out
+    # must be one that no later update reads, or one that `init` of the same run gives again bit for bit.
+    saved_leaves: Callable[[], Any] | None = None
+    inner: Any = None  # the setting's own learner object, opaque to the host (its phase may use it)
+
+
+@dataclasses.dataclass(frozen=True)
+class Phase:
+    """A program run once per run before the updates, by the arms it applies to."""
+
+    title: str  # how messages name it, e.g. "Mb-Mf phase"
+    flag: str  # the command line's on/off option, --<flag> / --no-<flag>; its fields are --phase-<field>
+    spec_type: type  # frozen dataclass of its static sizes (recorded in run.json)
+    applies: Callable[[ConfigT], bool]  # whether the arm with this config runs it
+    validate: Callable[[ConfigT, Any], None]  # (config, spec) -> None, or ConfigError (one sentence)
+    env_steps: Callable[[ConfigT, Any], int]  # (config, spec) -> env steps it takes per run, statically
+    make: Callable[[Trainer, Any], Callable[[State, HP], tuple[State, dict]]]  # -> run(state, hp) -> (state, info)
+    describe: Callable[[Mapping[str, float]], str]  # info averaged over runs -> a console sentence
+    as_metrics: Mapping[str, str] = dataclasses.field(default_factory=dict)  # info name -> metric name (update 0)
+
+
+@dataclasses.dataclass(frozen=True)
+class Metrics:
+    """Metric names the host reads (progress, summaries, plots)."""
+
+    ret: str  # the undiscounted return of finished episodes
+    discounted_ret: str  # the discounted return
+    panels: tuple[tuple[str, str, bool], ...] = ()  # (metric, title, log scale) of the diagnostics figure
+
+
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    """One of the paper's settings as the host sees it."""
+
+    name: str  # registry key, recorded in run.json
+    about: str  # one line for `cdjax sweep --help`
+    config_type: type  # frozen dataclass: shapes, loop lengths, env; has `num_updates` and `env_steps_per_update`
+    hparams_type: type  # flax.struct dataclass of float scalars
+    make_trainer: Callable[[ConfigT], Trainer]
+    arm_config: Callable[[str, ConfigT], ConfigT]  # (arm name, base config) -> the arm's config, or ConfigError
+    arm_fields: tuple[str, ...]  # Config fields set by the arm name (not command-line options)
+    arms_help: str  # how arms are named, for help and messages
+    default_arms: tuple[str, ...]
+    # (arm config, runs a phase) -> {hp name: value} the arm does not use: kept out of its grid, set to the
+    # value (None: the field's default) so that they do not multiply its runs
+    unused_hparams: Callable[[ConfigT, bool], Mapping[str, float | None]]
+    shown_hparams: Callable[[ConfigT], tuple[str, ...]]  # hp names every run label of the arm shows
+    check_hparam: Callable[[str, float], None]  # (name, value) -> None, or ConfigError (one sentence)
+    metrics: Metrics
+    presets: Mapping[str, Any]  # name -> cdjax.presets.Preset (about, config, hparams, sweep, phase)
+    default_preset: Callable[[Mapping[str, Any]], str | None]  # given Config values -> the preset used without --preset
+    phase: Phase | None = None
+    watch: Callable[[str, ConfigT, Mapping], str | None] | None = None  # (arm, config, chunk metrics [R, n]) -> warning
+
+
+__all__ = ["ConfigError", "Metrics", "Phase", "Setting", "Trainer"]

@@ -1,0 +1,207 @@
+"""One arm on the host side: its trainer and compiled programs, its runs' state and progress; building,
+compiling, restoring and evaluating arms."""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import math
+import os
+import pathlib
+import time
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from cdjax import agents, io
+from cdjax.evaluate import eval_records, make_evaluator
+from cdjax.protocol import Setting, Trainer
+from cdjax.runner import budget
+from cdjax.runner.plan import ArmPlan, plan_arms, resume_spec
+from cdjax.runner.spec import SweepSpec
+from cdjax.sweep import Sweep, make_sweep
+
+EVAL_TAG = 0x0E7A1  # folded into each run's training key to get its evaluation key
+
+
+@dataclasses.dataclass
+class Arm:
+    """One arm's host-side state during a sweep."""
+
+    plan: ArmPlan
+    trainer: Trainer
+    sweep: Sweep
+    keys: jax.Array  # [R_padded] the runs' training keys
+    hps: Any  # HParams with leaves [R_padded]
+    num_runs: int  # R: hp combinations x seeds (without the device padding)
+    ckpt: io.Checkpoints | None = None
+    state: Any = None  # the runs' state [R_padded], committed (logged)
+    abstract: Any = None  # ShapeDtypeStructs (with shardings) of `state`
+    updates: int = 0  # updates done (and logged)
+    saved: int = -1  # updates held by the newest checkpoint
+    wall_offset: float = 0.0  # training seconds of earlier processes (restored)
+    pending: tuple | None = None  # (new_state, metrics, n, wall_start) dispatched, not yet logged
+    programs: dict = dataclasses.field(default_factory=dict)  # "init", "phase", n -> compiled program
+    last_return: float = float("nan")
+    phase_done: bool = True  # False until this arm's phase has run (or been restored)
+    warned: bool = False  # the setting's watch has spoken (once per arm and process)
+
+    @property
+    def name(self) -> str:
+        return self.plan.name
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.plan.config.env_steps_per_update
+
+    @property
+    def num_updates(self) -> int:
+        return self.plan.config.num_updates
+
+    def env_steps(self, updates: int | None = None) -> int:
+        """Env steps per run after `updates` updates (default: those done), the phase included."""
+        return self.plan.phase_steps + (self.updates if updates is None else updates) * self.steps_per_update
+
+    def phase_program(self):
+        """The compiled phase (compiled now if it was not in advance, e.g. every checkpoint was unreadable)."""
+        if "phase" not in self.programs:
+            self.programs["phase"] = self.sweep.lower_phase(self.abstract, self.hps).compile()
+        return self.programs.pop("phase")
+
+    def chunk_program(self, n: int):
+        """The compiled program of n updates (compiled now if it was not in advance)."""
+        if n not in self.programs:
+            self.programs[n] = self.sweep.lower(self.abstract, self.hps, n).compile()
+        return self.programs[n]
+
+
+def build(plan: ArmPlan, spec: SweepSpec, setting: Setting) -> Arm:
+    """The arm's trainer and (uncompiled) programs; nothing is allocated on the devices yet."""
+    trainer = setting.make_trainer(plan.config)
+    phase = setting.phase.make(trainer, plan.phase) if plan.phase is not None else None
+    sweep = make_sweep(trainer, phase=phase)
+    return Arm(plan, trainer, sweep, keys=None, hps=None, num_runs=len(plan.hparams) * spec.seeds,
+               phase_done=plan.phase is None)
+
+
+def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
+    """budget.check_states from the shapes of one run's state and evaluation; returns the states' bytes."""
+    key = jax.random.key(0)
+    rows = []
+    for arm in arms:
+        hp = arm.plan.hparams[0]
+        state = budget.tree_bytes(jax.eval_shape(arm.trainer.init, key, hp))
+        env = arm.trainer.eval_env(spec.eval_episodes)
+        evaluation = budget.tree_bytes(jax.eval_shape(env.reset, key)) if spec.final_eval or spec.eval_every else 0
+        rows.append((arm.name, arm.num_runs, state, evaluation))
+    return budget.check_states(rows, jax.device_count())
+
+
+def compile_workers() -> int:
+    """Threads compiling the arms' programs at once: half the CPU cores (XLA compiles in C++, without the
+    GIL; on a 2-core machine one, i.e. one after the other)."""
+    return max(1, (os.cpu_count() or 1) // 2)
+
+
+def _compile(jobs: list[tuple[Arm, Any, Any]]) -> None:
+    workers = min(len(jobs), compile_workers())
+    if workers > 1:
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+            programs = list(pool.map(lambda job: job[2].compile(), jobs))
+    else:
+        programs = [job[2].compile() for job in jobs]
+    for (arm, what, _), program in zip(jobs, programs):
+        arm.programs[what] = program
+
+
+def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
+    """Compile every arm's init, its phase (if it has yet to run) and its chunk programs (the first and
+    the last, shorter chunk from `done[arm]` updates on: those of the checkpoint a resume expects to
+    restore), in parallel threads, from shapes alone."""
+    _compile([(arm, "init", arm.sweep.init.lower(arm.keys, arm.hps)) for arm in arms])
+    jobs = []
+    for arm in arms:
+        shapes = jax.eval_shape(arm.sweep.init, arm.keys, arm.hps)
+        arm.abstract = jax.tree.map(lambda s, sh: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sh), shapes,
+                                    arm.programs["init"].output_shardings)
+        start = done.get(arm.name, -1)  # updates of the checkpoint a resume will restore (-1: none)
+        if not arm.phase_done and start < 0:
+            jobs.append((arm, "phase", arm.sweep.lower_phase(arm.abstract, arm.hps)))
+        left = arm.num_updates - max(start, 0)
+        sizes = {min(chunk, left), left % chunk} if left > 0 else set()
+        jobs += [(arm, n, arm.sweep.lower(arm.abstract, arm.hps, n)) for n in sorted(sizes - {0})]
+    _compile(jobs)
+
+
+def restore(arm: Arm, delete_bad: bool = True) -> bool:
+    """Put the newest readable checkpoint into arm.state (a fresh init of the same runs fills what it does
+    not hold); False when there is none."""
+    restored = arm.ckpt.restore(arm.state, delete_bad=delete_bad)
+    if restored is None:
+        return False
+    arm.state, progress = restored
+    arm.updates = arm.saved = int(progress["updates"])
+    arm.wall_offset = float(progress.get("wall_s", 0.0))
+    arm.phase_done = True
+    return True
+
+
+def restore_arms(run_dir: str | pathlib.Path) -> tuple[SweepSpec, list[Arm]]:
+    """The spec of a run directory and its arms at the newest readable checkpoint (state leaves [R_padded])."""
+    spec = resume_spec(run_dir, progress=False)
+    setting = agents.get(spec.setting)
+    rd = io.RunDir(pathlib.Path(run_dir))
+    arms = []
+    for plan in plan_arms(spec):
+        arm = build(plan, spec, setting)
+        arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, plan.hparams)
+        arm.state = arm.sweep.init(arm.keys, arm.hps)
+        arm.ckpt = io.Checkpoints(rd.checkpoints(plan.name))
+        try:
+            found = restore(arm, delete_bad=False)
+        finally:
+            arm.ckpt.close()
+        if not found:
+            raise io.RunDirError(f"{rd.path} holds no checkpoint of arm {plan.name!r} yet.")
+        arms.append(arm)
+    return spec, arms
+
+
+def evaluate_arms(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int, deterministic: bool,
+                  say: Callable[[str], None]) -> list[dict]:
+    """Evaluate every run of every arm at its current state; append the records to eval.jsonl.
+
+    One jit(vmap) program per arm over its runs (cdjax.evaluate.make_evaluator), fed only the policy
+    part of the state. Each run's evaluation key is its training key folded with EVAL_TAG.
+    """
+    t0 = time.perf_counter()
+    records = []
+    for arm in arms:
+        evaluator = make_evaluator(arm.trainer, episodes=episodes, deterministic=deterministic)
+        keys = jax.vmap(lambda k: jax.random.fold_in(k, EVAL_TAG))(arm.keys)
+        results = evaluator(arm.trainer.policy(arm.state), keys, arm.hps)
+        records += eval_records(results, arm=arm.name, hp_labels=list(arm.plan.labels), seeds=range(num_seeds),
+                                deterministic=deterministic, update=arm.updates, env_steps=arm.env_steps())
+    io.append_jsonl(rd.eval, records)
+    means: dict[str, list[float]] = {}
+    for row in records:
+        if row.get("eval/return") is not None:
+            means.setdefault(row["arm"], []).append(row["eval/return"])
+    text = "  ".join(f"{arm} {np.mean(v):.1f}" for arm, v in means.items())
+    say(f"Evaluation ({episodes} episodes per run, {'mean' if deterministic else 'sampled'} actions, "
+        f"{time.perf_counter() - t0:.1f} s): return {text}")
+    return records
+
+
+def finished_evaluation(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int) -> bool:
+    """Whether eval.jsonl already holds the final (deterministic) evaluation of every run of every arm."""
+    final = {a.name: a.num_updates for a in arms}
+    have = {(r.get("arm"), r.get("hp"), r.get("seed")) for r in io.read_jsonl(rd.eval)
+            if r.get("deterministic") and r.get("episodes") == episodes and r.get("update") == final.get(r.get("arm"))}
+    return all((a.name, label, s) in have for a in arms for label in a.plan.labels for s in range(num_seeds))
+
+
+def nanmean(values) -> float:
+    values = np.asarray(values, float)
+    return float(np.nanmean(values)) if np.isfinite(values).any() else math.nan

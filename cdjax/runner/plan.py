@@ -1,0 +1,174 @@
+"""Planning a sweep: arms with their configs, hyper-parameter grids and budgets; the run.json record; what a
+resume may and may not change. Nothing here compiles, allocates or writes."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+import pathlib
+from typing import Any, Mapping, Sequence
+
+from cdjax import agents, io
+from cdjax.protocol import ConfigError, Setting
+from cdjax.runner.spec import INT32_MAX, SweepSpec, check_bounds
+
+
+@dataclasses.dataclass(frozen=True)
+class ArmPlan:
+    name: str  # e.g. "cd" or "cd-k5"
+    config: Any  # the arm's config (its arm fields and num_updates set)
+    hparams: tuple  # one HParams per hp combination
+    labels: tuple[str, ...]  # "alpha=1.0,lr_model=0.001"; "default" when nothing varies
+    phase: Any = None  # the phase spec this arm runs before its updates
+    phase_steps: int = 0  # env steps of that phase per run
+
+    @property
+    def total_env_steps(self) -> int:
+        return self.phase_steps + self.config.num_updates * self.config.env_steps_per_update
+
+
+def validate_grid(setting: Setting, grid: Mapping[str, Sequence[float]]) -> dict[str, tuple[float, ...]]:
+    """Check names and values of a hyper-parameter grid (ConfigError, one sentence)."""
+    fields = {f.name for f in dataclasses.fields(setting.hparams_type)}
+    out = {}
+    for name, values in grid.items():
+        if name not in fields:
+            raise ConfigError(f"Unknown hyper-parameter {name!r}; choose from: {', '.join(sorted(fields))}.")
+        values = tuple(float(v) for v in (values if isinstance(values, (list, tuple)) else (values,)))
+        if not values:
+            raise ConfigError(f"{name} needs at least one value.")
+        if len(set(values)) != len(values):
+            raise ConfigError(f"{name} lists a value twice: {list(values)}.")
+        for v in values:
+            setting.check_hparam(name, v)
+        out[name] = values
+    return out
+
+
+def _label(value: float) -> str:
+    return repr(float(value))
+
+
+def plan_arms(spec: SweepSpec) -> list[ArmPlan]:
+    """The arms of a (resolved) spec; ConfigError (one sentence) for anything that cannot run."""
+    setting = agents.get(spec.setting)
+    spec = spec.resolved()
+    check_bounds(spec)
+    grid = validate_grid(setting, spec.grid)
+    if spec.phase is not None and setting.phase is None:
+        raise ConfigError(f"The {setting.name} setting has no pre-update phase.")
+    return [_plan_arm(setting, spec, name, grid) for name in spec.arms]
+
+
+def _plan_arm(setting: Setting, spec: SweepSpec, name: str, grid: dict) -> ArmPlan:
+    config = setting.arm_config(name, spec.config)
+    phase = spec.phase if spec.phase is not None and setting.phase.applies(config) else None
+    phase_steps = 0
+    if phase is not None:
+        setting.phase.validate(config, phase)
+        phase_steps = setting.phase.env_steps(config, phase)
+        if phase_steps >= spec.total_env_steps:
+            raise ConfigError(f"--steps={spec.total_env_steps:,} leaves no updates after the {setting.phase.title}'s "
+                              f"{phase_steps:,} env steps; raise --steps or shrink the phase.")
+    # Whole updates: rounded up without a phase; with one, to the nearest count (at least 1), so the arm's
+    # total is within half an update of the arms without the phase.
+    left = (spec.total_env_steps - phase_steps) / config.env_steps_per_update
+    num_updates = math.ceil(left) if phase is None else max(1, round(left))
+    if num_updates > INT32_MAX:
+        raise ConfigError(f"--steps={spec.total_env_steps:,} is {num_updates:,} updates of arm {name!r}, more than "
+                          f"the {INT32_MAX:,} its update counter (int32) holds.")
+    unused = setting.unused_hparams(config, phase is not None)
+    own = {k: v for k, v in grid.items() if k not in unused}
+    fixed = {k: v for k, v in unused.items() if v is not None}
+    names = list(own)
+    always = setting.shown_hparams(config)
+    shown = [k for k in names if len(own[k]) > 1 or k in always]
+    shown = [k for k in always if k not in names] + shown
+    hps, labels = [], []
+    for combo in itertools.product(*(own[k] for k in names)):
+        hp = setting.hparams_type(**dict(zip(names, combo)), **fixed)
+        hps.append(hp)
+        labels.append(",".join(f"{k}={_label(getattr(hp, k))}" for k in shown) or "default")
+    return ArmPlan(name, dataclasses.replace(config, num_updates=num_updates), tuple(hps), tuple(labels), phase,
+                   phase_steps)
+
+
+def chunk_size(spec: SweepSpec, num_updates: int) -> int:
+    """Updates per chunk: as given, else about 5% of the run (at least 1)."""
+    return spec.chunk_updates or max(1, math.ceil(num_updates / 20))
+
+
+def run_record(spec: SweepSpec, plans: list[ArmPlan]) -> dict:
+    """run.json of a resolved spec: the whole spec, each arm's plan, the metric names, the command."""
+    setting = agents.get(spec.setting)
+    num_updates = max(p.config.num_updates for p in plans)
+    m = setting.metrics
+    return {
+        "version": io.RUN_VERSION,
+        "setting": spec.setting,
+        "base_config": io.dataclass_to_json(dataclasses.replace(spec.config, num_updates=num_updates)),
+        "arms": [{"name": p.name, "arm": getattr(p.config, "arm", p.name), "config": io.dataclass_to_json(p.config),
+                  "hparams": [io.hparams_to_json(h) for h in p.hparams], "hp_labels": list(p.labels),
+                  "num_updates": p.config.num_updates, "phase_env_steps": p.phase_steps,
+                  "total_env_steps": p.total_env_steps} for p in plans],
+        "grid": {k: list(v) for k, v in validate_grid(setting, spec.grid).items()},
+        "seeds": spec.seeds,
+        "seed": spec.seed,
+        "phase": io.dataclass_to_json(spec.phase) if spec.phase is not None else None,
+        "total_env_steps": max(p.total_env_steps for p in plans),
+        "requested_env_steps": spec.total_env_steps,
+        "num_updates": num_updates,
+        "env_steps_per_update": spec.config.env_steps_per_update,
+        "chunk_updates": chunk_size(spec, math.ceil(spec.total_env_steps / spec.config.env_steps_per_update)),
+        "checkpoint_every": spec.checkpoint_every,
+        "eval_every": spec.eval_every,
+        "eval_episodes": spec.eval_episodes,
+        "final_eval": spec.final_eval,
+        "bootstrap_reps": spec.bootstrap_reps,
+        "metrics": {"return": m.ret, "discounted_return": m.discounted_ret, "panels": [list(p) for p in m.panels]},
+        "command": spec.command,
+    }
+
+
+# What may differ between the run.json of a directory and the spec that resumes it: the length of the run.
+MAY_CHANGE = ("command", "total_env_steps", "requested_env_steps", "num_updates")
+ARM_MAY_CHANGE = ("num_updates", "total_env_steps")
+
+
+def same_run(old: dict, new: dict) -> bool:
+    def strip(run):
+        out = {k: v for k, v in run.items() if k not in MAY_CHANGE}
+        out["base_config"] = {k: v for k, v in run["base_config"].items() if k != "num_updates"}
+        out["arms"] = [{**{k: v for k, v in a.items() if k not in ARM_MAY_CHANGE},
+                        "config": {k: v for k, v in a["config"].items() if k != "num_updates"}} for a in run["arms"]]
+        return out
+
+    return strip(old) == strip(new)
+
+
+def spec_of(run: dict, out: str | pathlib.Path, **changes) -> SweepSpec:
+    """The SweepSpec a run.json records (version 1 records: the options they lack take their defaults)."""
+    defaults = SweepSpec(out=out)
+    try:
+        setting = agents.get(run.get("setting", agents.DEFAULT))
+        phase = run.get("phase")
+        if phase is not None:
+            phase = io.dataclass_from_json(setting.phase.spec_type, phase)
+        spec = SweepSpec(
+            out=out, setting=setting.name, config=io.dataclass_from_json(setting.config_type, run["base_config"]),
+            arms=tuple(a["name"] for a in run["arms"]), grid={k: tuple(v) for k, v in run["grid"].items()},
+            seeds=run["seeds"], seed=run["seed"], total_env_steps=run["requested_env_steps"],
+            chunk_updates=run["chunk_updates"], checkpoint_every=run["checkpoint_every"],
+            eval_every=run.get("eval_every", defaults.eval_every),
+            eval_episodes=run.get("eval_episodes", defaults.eval_episodes),
+            final_eval=run.get("final_eval", defaults.final_eval), phase=phase, command=run.get("command", ""),
+            bootstrap_reps=run.get("bootstrap_reps", defaults.bootstrap_reps))
+    except (KeyError, TypeError, AttributeError, ConfigError) as err:
+        raise io.RunDirError(f"{out}/run.json is not a run this cdjax can read ({type(err).__name__}: {err}).") from None
+    return dataclasses.replace(spec, **changes)
+
+
+def resume_spec(out: str | pathlib.Path, **changes) -> SweepSpec:
+    """The SweepSpec recorded in `out`/run.json (RunDirError if there is none), with `changes` applied."""
+    return spec_of(io.RunDir(pathlib.Path(out)).read(), out, **changes)

@@ -1,0 +1,67 @@
+"""`SweepSpec`: what a sweep is asked to do (recorded whole in run.json, so that a resumed sweep is the same
+run), and the bounds of its counts."""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from typing import Any, Mapping, Sequence
+
+from cdjax import agents
+from cdjax.protocol import ConfigError
+
+INT32_MAX = 2**31 - 1  # update counters are int32 on the device
+SEED_MAX = 2**63 - 1  # jax.random.key takes a 64-bit seed
+
+
+@dataclasses.dataclass
+class SweepSpec:
+    """Everything a sweep needs; the CLI only parses into this, a notebook can build it directly."""
+
+    out: str | pathlib.Path  # the run directory
+    setting: str = agents.DEFAULT  # the agent (cdjax.agents): its Config, HParams, arms, presets and phase
+    config: Any = None  # the setting's base Config (None: its defaults); arms set their fields, --steps num_updates
+    arms: tuple[str, ...] = ()  # arms to train, each its own compiled program (empty: the setting's default arms)
+    grid: Mapping[str, Sequence[float]] = dataclasses.field(default_factory=dict)  # HParams field -> values
+    seeds: int = 3  # runs per hyper-parameter combination; seed s has the same key in every arm
+    seed: int = 0  # base seed: seed s uses jax.random.split(jax.random.key(seed), seeds)[s]
+    total_env_steps: int = 1_000_000  # environment steps per run, e.g. 50_000_000; rounded to whole updates
+    chunk_updates: int = 0  # updates per compiled chunk; 0 = about 5% of the run
+    checkpoint_every: int = 1  # chunks between checkpoints (a killed process loses at most this many)
+    eval_every: int = 0  # chunks between evaluations; 0 = only at the end
+    eval_episodes: int = 10  # episodes per run in evaluations
+    final_eval: bool = True  # evaluate and plot when the sweep ends
+    bootstrap_reps: int = 2000  # bootstrap replications of the 95% intervals in the final plots and summary
+    phase: Any = None  # the setting's pre-update phase (e.g. cdjax.mbmf.MbMfPhase), run by the arms it applies to
+    progress: bool = True  # show a progress display (a line per chunk when stderr is not a terminal)
+    command: str = ""  # the command line, recorded in run.json
+
+    def resolved(self) -> "SweepSpec":
+        """The spec with the setting's defaults filled in (base config, arms)."""
+        setting = agents.get(self.setting)
+        return dataclasses.replace(self, config=self.config if self.config is not None else setting.config_type(),
+                                   arms=tuple(self.arms) or setting.default_arms)
+
+
+# SweepSpec field -> command-line option, where they differ.
+FLAGS = {"total_env_steps": "--steps"}
+
+
+def flag(name: str) -> str:
+    return FLAGS.get(name, "--" + name.replace("_", "-"))
+
+
+def check_bounds(spec: SweepSpec) -> None:
+    """ConfigError (one sentence) for a count out of range; the sizes are checked against memory later."""
+    counts = {"seeds": (1, INT32_MAX), "seed": (0, SEED_MAX), "total_env_steps": (1, None),
+              "chunk_updates": (0, INT32_MAX), "checkpoint_every": (1, INT32_MAX), "eval_every": (0, INT32_MAX),
+              "eval_episodes": (1, INT32_MAX), "bootstrap_reps": (1, INT32_MAX)}
+    for name, (low, high) in counts.items():
+        value = getattr(spec, name)
+        if not isinstance(value, int) or isinstance(value, bool) or value < low or (high is not None and value > high):
+            what = f"an integer from {low:,} to {high:,}" if high is not None else f"an integer of at least {low:,}"
+            raise ConfigError(f"{flag(name)} must be {what}, got {value!r}.")
+    if not spec.arms:
+        raise ConfigError("--arms needs at least one arm.")
+    if len(set(spec.arms)) != len(spec.arms):
+        raise ConfigError(f"--arms lists an arm twice: {' '.join(spec.arms)}.")
