@@ -1,0 +1,363 @@
+"""The model-based phase of the hybrid Mb-Mf (Nagabandi et al., 2017), as one pure function.
+
+`make_mbmf_phase(config, phase) -> run(state, hp) -> (state, info)`; the caller jits `run` (it compiles
+once; it also vmaps over seeds). In the phase's own `phase.num_envs` environments:
+
+1. random data: `random_steps` steps per env of uniform actions in [-1, 1];
+2. model: params["model"] (Gaussian over the normalised delta-s and reward) trained with Adam(hp.lr_model),
+   `model_epochs` shuffled epochs of minibatches over a ring buffer of real transitions (objective:
+   `model_objective` below); the running statistics (state.norms) are updated from the new data first;
+3. aggregation, `aggregation_iters` times: random-shooting MPC (cdjax.mpc) on the learned model acts for
+   `mpc_steps_per_iter` steps, its transitions are appended to the buffer, the model is retrained;
+4. distillation: the aggregation states are re-planned with the final model (`relabel`), the policy's
+   deterministic action tanh(mu(s)) is regressed (MSE) on those MPC actions, then `distill_iters` DAgger
+   rounds: the (stochastic) policy acts, MPC labels the states it visits, the pairs are aggregated, the
+   policy is retrained;
+5. the value is fitted to TD(lambda) returns of the DAgger rollouts (`value_epochs`, optional), the
+   PPO environments are reset, and the TrainState goes back ready for `trainer.update`, with PPO's
+   optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every env step taken.
+
+Why MSE on tanh(mu) rather than the Gaussian likelihood of atanh(action): random-shooting actions are
+uniform samples, often near the box edge where atanh is ill-conditioned (a 0.999 label is 3.8 in
+pre-squash space and dominates the loss), and the likelihood would also fit log_std to the scatter of
+the controller's noisy labels. The MSE fits the action the policy executes at zero noise (as in
+Nagabandi et al.'s code) and leaves log_std at hp.init_log_std for PPO's exploration.
+
+Normalisation: the statistics are updated from the random and MPC data only (each time before the model
+is retrained), and frozen during distillation, so that the model the MPC labels come from and the
+policy being distilled see the same normalisation as at the end of the phase.
+
+The program is a factory (`make_mbmf_phase`) whose closures are its stages; each stage is a function of
+named state (`Acting`, `Fitted`, `ModelStage`, `PolicyStage`) and stays under ~80 lines.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from cdjax import losses, mpc, networks
+from cdjax import normalize as nz
+from cdjax.config import Config, HParams
+from cdjax.envs import BatchedEnv, EnvState, make_single_env, strong_types
+from cdjax.mbmf.data import Labelled, Rollout, Transitions, model_objective
+from cdjax.mbmf.spec import MbMfPhase, validate_phase
+from cdjax.replay import RingBuffer, fit
+from cdjax.rollout import EpisodeStats, env_step
+from cdjax.train import TrainState, Trainer, clipped_adam, make_trainer, model_target, refresh_norms
+
+
+def _first_last(values: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """First and last entries of a per-round metric [R] (NaN when there were no rounds)."""
+    if values.shape[0] == 0:
+        nan = jnp.full((), jnp.nan, jnp.float32)
+        return nan, nan
+    return values[0], values[-1]
+
+
+# ----------------------------------------------------------------------------------------------------
+# The phase's state between stages.
+# ----------------------------------------------------------------------------------------------------
+
+
+@struct.dataclass
+class Acting:
+    """The phase's environments: their state, the running episode statistics, the env steps taken."""
+
+    env_state: EnvState
+    stats: EpisodeStats
+    env_steps: jax.Array  # [] int32 (physics steps: x action_repeat)
+
+
+@struct.dataclass
+class Fitted:
+    """A network being fitted: its parameters and its optimiser's state."""
+
+    params: Any
+    opt_state: Any
+
+
+@struct.dataclass
+class ModelStage:
+    """What the aggregation rounds carry: acting, the model, the statistics and both datasets."""
+
+    acting: Acting
+    model: Fitted
+    norms: nz.Norms
+    transitions: RingBuffer  # of Transitions: the model's data
+    labelled: RingBuffer  # of Labelled: (state, MPC action) pairs for the distillation
+    fit_metrics: dict  # the last model fit's metrics
+
+
+@struct.dataclass
+class PolicyStage:
+    """What the DAgger rounds carry: acting, the policy being distilled and its dataset."""
+
+    acting: Acting
+    policy: Fitted
+    labelled: RingBuffer
+
+
+# ----------------------------------------------------------------------------------------------------
+# The phase.
+# ----------------------------------------------------------------------------------------------------
+
+
+def phase_env(config: Config, phase: MbMfPhase, trainer: Trainer) -> BatchedEnv:
+    """The environments the phase acts in: the trainer's when the sizes agree, else a new BatchedEnv."""
+    B = phase.envs(config)
+    if B == config.num_envs:
+        return trainer.env
+    return BatchedEnv(make_single_env(config.env), B, config.episode_length, config.action_repeat,
+                      config.reset_mode)
+
+
+def make_mpc_controller(trainer: Trainer, phase: MbMfPhase) -> Callable:
+    """controller(model_params, norms, obs [B, O], key) -> MPC actions [B, A] on the learned model."""
+    A = trainer.env.action_size
+
+    def controller(model_params, norms, obs, key):
+        step_fn = lambda s, a: trainer.model_step(model_params, norms, s, a)  # noqa: E731  [O], [A] -> [O], []
+        actions, _ = mpc.batched_random_shooting(key, step_fn, obs, horizon=phase.mpc_horizon,
+                                                 num_candidates=phase.mpc_candidates, action_size=A,
+                                                 discount=phase.mpc_discount)
+        return actions
+
+    return controller
+
+
+def make_mbmf_phase(config: Config, phase: MbMfPhase, trainer: Trainer | None = None
+                    ) -> Callable[[TrainState, HParams], tuple[TrainState, dict]]:
+    """run(state, hp) -> (state ready for PPO, info dict of scalars); pure, jit (and vmap) it yourself.
+
+    `state` is what trainer.init returns (or any TrainState of `config`); params["model"] and
+    params["policy"] come back trained, params["value"] fitted (value_epochs > 0), norms updated, the PPO
+    environments reset, episode statistics fresh, opt_state and the encoder untouched.
+    info["env_steps"] (int32) counts the env steps the phase took: charge them to the arm's budget.
+    """
+    validate_phase(config, phase)
+    trainer = trainer if trainer is not None else make_trainer(config)
+    env = phase_env(config, phase, trainer)
+    B, O, A = env.num_envs, env.observation_size, env.action_size
+    modules = networks.build(config, O, A)
+    model, policy, value = modules["model"], modules["policy"], modules["value"]
+    controller = make_mpc_controller(trainer, phase)
+
+    def rollout(acting: Acting, choose: Callable, key: jax.Array, length: int, gamma) -> tuple[Acting, Rollout]:
+        """`length` steps of choose(obs [B, O], key) -> (action, label), both [B, A]: (acting, Rollout [L, B])."""
+
+        def step(acting: Acting, step_key):
+            obs = acting.env_state.obs
+            action, label = choose(obs, step_key)
+            env_state, stats, out = env_step(env, acting.env_state, acting.stats, action, gamma)
+            tr = Rollout(obs=obs, action=action, label=label, next_obs=out.next_obs, reward=out.reward,
+                         terminated=out.terminated, ended=out.terminated | out.truncated | ~out.valid, valid=out.valid)
+            return Acting(env_state, stats, acting.env_steps + B * config.action_repeat), tr
+
+        start = acting.replace(stats=acting.stats.start_rollout())
+        return jax.lax.scan(step, start, jax.random.split(key, length))
+
+    def update_norms(norms: nz.Norms, data: Transitions) -> nz.Norms:
+        return refresh_norms(norms, data.obs, data.next_obs, data.reward, data.valid)
+
+    def model_batch_loss(model_params, batch: Transitions, norms):
+        mean, log_std = model.apply(model_params, nz.normalize(norms.obs, batch.obs), batch.action)
+        target = model_target(norms, batch.obs, batch.next_obs, batch.reward)
+        return model_objective(mean, log_std, target, batch.valid, phase.model_objective)
+
+    def distill_loss(policy_params, batch: Labelled, norms):
+        mean, _ = policy.apply(policy_params, nz.normalize(norms.obs, batch.obs))
+        err = networks.squash(mean) - batch.action
+        mse = losses.masked_mean((err**2).mean(-1), batch.valid)
+        return mse, {"distill/mse": mse, "distill/abs_error": losses.masked_mean(jnp.abs(err).mean(-1), batch.valid)}
+
+    def buffer_abs_error(policy_params, norms, buffer: RingBuffer) -> jax.Array:
+        """Mean |tanh(mu(s)) - a_MPC| over the filled, valid part of the distillation buffer."""
+        data = buffer.data.replace(valid=buffer.data.valid & (jnp.arange(buffer.size) < buffer.filled))
+        return distill_loss(policy_params, data, norms)[1]["distill/abs_error"]
+
+    def fit_model(model_fit: Fitted, norms, data: RingBuffer, tx, key) -> tuple[Fitted, dict]:
+        loss = functools.partial(model_batch_loss, norms=norms)
+        params, opt_state, metrics = fit(loss, model_fit.params, model_fit.opt_state, tx, data, phase.model_epochs,
+                                         phase.model_minibatch, key)
+        return Fitted(params, opt_state), metrics
+
+    def fit_policy(policy_fit: Fitted, norms, data: RingBuffer, tx, key) -> Fitted:
+        loss = functools.partial(distill_loss, norms=norms)
+        params, opt_state, _ = fit(loss, policy_fit.params, policy_fit.opt_state, tx, data, phase.distill_epochs,
+                                   phase.distill_minibatch, key)
+        return Fitted(params, opt_state)
+
+    def relabel(model_params, norms, buffer: RingBuffer, key: jax.Array) -> RingBuffer:
+        """Re-plan the actions of the aggregation states with the final model, `relabel_chunk` states at once.
+
+        The MPC that acted during aggregation round i planned with the model of round i; relabelling makes
+        every cloning target come from one controller, the one the DAgger rounds query.
+        """
+        n = min(buffer.size, B * phase.aggregation_iters * phase.mpc_steps_per_iter)  # the filled slots
+        chunk = min(phase.relabel_chunk, n)
+        n_chunks = -(-n // chunk)
+        obs = jnp.zeros((n_chunks * chunk, O), jnp.float32).at[:n].set(buffer.data.obs[:n])
+        keys = jax.random.split(key, n_chunks)
+        plan = lambda inp: controller(model_params, norms, inp[0], inp[1])  # noqa: E731
+        labels = jax.lax.map(plan, (obs.reshape(n_chunks, chunk, O), keys)).reshape(-1, A)[:n]
+        return buffer.replace(data=buffer.data.replace(action=buffer.data.action.at[:n].set(labels)))
+
+    def fit_value(value_params, norms, traj: Rollout, hp: HParams, key: jax.Array):
+        """Regress V on TD(lambda) returns of traj [L, N] (recomputed with the current V every epoch)."""
+        L, N = traj.reward.shape
+        obs_n, next_n = nz.normalize(norms.obs, traj.obs), nz.normalize(norms.obs, traj.next_obs)
+        mb = min(phase.distill_minibatch, L * N)
+        n_mb = (L * N) // mb
+        tx = clipped_adam(hp.lr_value, hp)
+        flat = lambda x: x.reshape((L * N,) + x.shape[2:])  # noqa: E731
+
+        def loss_fn(vp, batch):
+            obs, target, valid = batch
+            loss = 0.5 * losses.masked_mean((value.apply(vp, obs) - target) ** 2, valid)
+            return loss, loss
+
+        def epoch(carry, key):
+            vp, opt_state = carry
+            _, returns = losses.gae(traj.reward * hp.reward_scale, value.apply(vp, obs_n), value.apply(vp, next_n),
+                                    traj.valid & ~traj.terminated, traj.ended, hp.gamma, hp.gae_lambda, traj.valid)
+            perm = jax.random.permutation(key, L * N)[: n_mb * mb].reshape(n_mb, mb)
+            data = (flat(obs_n), flat(jax.lax.stop_gradient(returns)), flat(traj.valid))
+
+            def step(inner, idx):
+                vp, opt_state = inner
+                grads, loss = jax.grad(loss_fn, has_aux=True)(vp, jax.tree.map(lambda d: d[idx], data))
+                updates, opt_state = tx.update(grads, opt_state, vp)
+                return (optax.apply_updates(vp, updates), opt_state), loss
+
+            (vp, opt_state), loss = jax.lax.scan(step, (vp, opt_state), perm)
+            return (vp, opt_state), loss.mean()
+
+        (value_params, _), loss = jax.lax.scan(epoch, (value_params, tx.init(value_params)),
+                                               jax.random.split(key, phase.value_epochs))
+        return value_params, loss[-1]
+
+    def models_stage(state: TrainState, hp: HParams, model_tx, keys) -> tuple[ModelStage, dict]:
+        """Steps 1-3: random data, the first model, then the MPC aggregation rounds."""
+        key_reset, key_random, key_model, key_agg = keys
+        info = {}
+
+        def uniform(obs, key):
+            action = jax.random.uniform(key, (B, A), minval=-1.0, maxval=1.0)
+            return action, action
+
+        acting = Acting(env.reset(key_reset), EpisodeStats.create(B), jnp.zeros((), jnp.int32))
+        acting, traj = rollout(acting, uniform, key_random, phase.random_steps, hp.gamma)
+        info["random/reward_mean"] = losses.masked_mean(traj.reward, traj.valid)
+        info["random/episode_return"] = acting.stats.mean_returns()[0]
+        data = Transitions.of(traj)
+        norms = update_norms(state.norms, data)
+        transitions = RingBuffer.create(jax.tree.map(lambda x: x[0], data), phase.model_capacity(config)).add(data)
+        labelled = RingBuffer.create(
+            Labelled(jnp.zeros((O,), jnp.float32), jnp.zeros((A,), jnp.float32), jnp.zeros((), bool)),
+            phase.distill_capacity(config))
+        model_params = state.params["model"]
+        model_fit, fit_metrics = fit_model(Fitted(model_params, model_tx.init(model_params)), norms, transitions,
+                                           model_tx, key_model)
+
+        def aggregate(stage: ModelStage, key):
+            key_roll, key_fit = jax.random.split(key)
+
+            def plan(obs, key):
+                action = controller(stage.model.params, stage.norms, obs, key)
+                return action, action
+
+            acting, traj = rollout(stage.acting, plan, key_roll, phase.mpc_steps_per_iter, hp.gamma)
+            data = Transitions.of(traj)
+            _, heldout = model_batch_loss(stage.model.params, data, stage.norms)  # fresh on-policy data, not trained on
+            norms = update_norms(stage.norms, data)
+            transitions = stage.transitions.add(data)
+            model_fit, fit_metrics = fit_model(stage.model, norms, transitions, model_tx, key_fit)
+            metrics = {"reward_mean": losses.masked_mean(traj.reward, traj.valid),
+                       "episode_return": acting.stats.mean_returns()[0],
+                       "heldout_mse": heldout["model/onestep_mse"],
+                       "heldout_reward_mse": heldout["model/reward_mse"]}
+            return ModelStage(acting, model_fit, norms, transitions, stage.labelled.add(Labelled.of(traj)),
+                              fit_metrics), metrics
+
+        stage = ModelStage(acting, model_fit, norms, transitions, labelled, fit_metrics)
+        stage, agg = jax.lax.scan(aggregate, stage, jax.random.split(key_agg, phase.aggregation_iters))
+        info["mpc/reward_mean_first"], info["mpc/reward_mean_last"] = _first_last(agg["reward_mean"])
+        info["mpc/episode_return"] = _first_last(agg["episode_return"])[1]
+        info["model/heldout_mse_first"], info["model/heldout_mse_last"] = _first_last(agg["heldout_mse"])
+        info["model/heldout_reward_mse_last"] = _first_last(agg["heldout_reward_mse"])[1]
+        info["model/train_mse"] = stage.fit_metrics["model/onestep_mse"]
+        info["model/train_reward_mse"] = stage.fit_metrics["model/reward_mse"]
+        info["model/train_nll"] = stage.fit_metrics["loss/model_nll"]
+        return stage, info
+
+    def policy_stage(state: TrainState, stage: ModelStage, hp: HParams, keys) -> tuple[PolicyStage, Rollout, dict]:
+        """Step 4: behaviour cloning of the (relabelled) MPC actions, then the DAgger rounds."""
+        key_relabel, key_distill, key_dagger = keys
+        model_params, norms = stage.model.params, stage.norms
+        policy_tx = clipped_adam(hp.lr_distill, hp)
+        labelled = stage.labelled
+        if phase.relabel and phase.aggregation_iters > 0:
+            labelled = relabel(model_params, norms, labelled, key_relabel)
+        info = {"distill/abs_error_before": buffer_abs_error(state.params["policy"], norms, labelled)}
+        policy_params = state.params["policy"]
+        policy_fit = fit_policy(Fitted(policy_params, policy_tx.init(policy_params)), norms, labelled, policy_tx,
+                                key_distill)
+
+        def dagger(stage: PolicyStage, key):
+            key_roll, key_fit = jax.random.split(key)
+
+            def act_and_label(obs, key):
+                key_act, key_plan = jax.random.split(key)
+                action = trainer.act({"policy": stage.policy.params}, norms, obs, key_act)
+                return action, controller(model_params, norms, obs, key_plan)
+
+            acting, traj = rollout(stage.acting, act_and_label, key_roll, phase.distill_steps_per_iter, hp.gamma)
+            new = Labelled.of(traj)
+            _, new_error = distill_loss(stage.policy.params, new, norms)  # the policy's own states, before training
+            labelled = stage.labelled.add(new)
+            policy_fit = fit_policy(stage.policy, norms, labelled, policy_tx, key_fit)
+            metrics = {"reward_mean": losses.masked_mean(traj.reward, traj.valid),
+                       "episode_return": acting.stats.mean_returns()[0],
+                       "abs_error_new": new_error["distill/abs_error"]}
+            return PolicyStage(acting, policy_fit, labelled), (metrics, traj)
+
+        stage = PolicyStage(stage.acting, policy_fit, labelled)
+        stage, (dag, trajs) = jax.lax.scan(dagger, stage, jax.random.split(key_dagger, phase.distill_iters))
+        info["distill/abs_error"] = buffer_abs_error(stage.policy.params, norms, stage.labelled)
+        info["dagger/abs_error_new_first"], info["dagger/abs_error_new_last"] = _first_last(dag["abs_error_new"])
+        info["dagger/reward_mean_first"], info["dagger/reward_mean_last"] = _first_last(dag["reward_mean"])
+        info["dagger/episode_return"] = _first_last(dag["episode_return"])[1]
+        return stage, trajs, info
+
+    def run(state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
+        hp = hp.as_float32()
+        (key, key_reset, key_random, key_model, key_agg, key_relabel, key_distill, key_dagger, key_value,
+         key_final) = jax.random.split(state.key, 10)
+        model_tx = clipped_adam(hp.lr_model, hp)
+        models, info = models_stage(state, hp, model_tx, (key_reset, key_random, key_model, key_agg))
+        policies, trajs, policy_info = policy_stage(state, models, hp, (key_relabel, key_distill, key_dagger))
+        info.update(policy_info)
+
+        # 5. The value on the DAgger rollouts ([R, L, B] -> [L, R*B]: each round a separate segment).
+        value_params = state.params["value"]
+        if phase.value_epochs > 0 and phase.distill_iters > 0:
+            segments = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape((x.shape[1], -1) + x.shape[3:]), trajs)
+            value_params, info["value/loss"] = fit_value(value_params, models.norms, segments, hp, key_value)
+        else:
+            info["value/loss"] = jnp.full((), jnp.nan, jnp.float32)
+
+        info["env_steps"] = policies.acting.env_steps
+        params = dict(state.params, model=models.model.params, policy=policies.policy.params, value=value_params)
+        new_state = state.replace(params=params, norms=models.norms, env_state=trainer.env.reset(key_final),
+                                  episodes=EpisodeStats.create(config.num_envs), key=key)
+        return strong_types(new_state), info
+
+    return run
+
+
