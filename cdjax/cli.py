@@ -16,6 +16,7 @@ Bad input ends with one sentence on stderr and exit status 2; an interrupted swe
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import re
 import shlex
@@ -227,7 +228,19 @@ def cmd_plot(args: argparse.Namespace) -> None:
         print(f"Wrote {path}")
 
 
+def _quiet_exit_noise() -> None:
+    """After the one sentence, send what is still written to stderr to /dev/null: a sweep stopped by a write
+    error can leave a library's background threads (orbax's asyncio loop) printing tracebacks while the
+    interpreter shuts down, and none of that is for the user."""
+    sys.stderr.flush()
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
+    """The `cdjax` command; argv None: this process's arguments (and the process ends after it)."""
+    as_program = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     from cdjax.runner import Interrupted
 
@@ -251,6 +264,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             cmd_plot(args)
     except (UsageError, ConfigError, io.RunDirError) as err:
         print(f"cdjax: {err}", file=sys.stderr)
+        if as_program:
+            _quiet_exit_noise()
         raise SystemExit(2) from None
     except Interrupted as err:
         done = ", ".join(f"{arm} {n}" for arm, n in err.updates.items())

@@ -21,9 +21,8 @@ Encoders (`KINDS`):
   mean_j max(0, SPREAD_FLOOR - std_j). l_cc alone lets a trainable encoder shrink every encoding to
   one point (measured on ant: spread 1e-5 within ~20 updates), which makes l_cc vanish without a
   consistent model; the hinge makes shrinking cost, and the reconstruction makes ignoring the input
-  cost. (Tried first and rejected: a per-window normalisation of the encodings with the reconstruction
-  alone, which still collapsed on ant, spread 0.97 -> 0.04 in 3 updates; and a per-feature batch
-  standardisation, which kept the information but let the GRU's raw outputs shrink on a tiny task.)
+  cost. The reconstruction alone does not suffice, even with the encodings normalised per window: on ant
+  that encoder's spread fell from 0.97 to 0.04 in 3 updates (experiments/consistency_weights).
 - `gru`: the paper's GRU, trained by l_cc alone (it may collapse; its output spread is logged).
 - `frozen-gru`: a random GRU that is never trained.
 - `l2`: no encoder, the per-step L2 distance in normalised state space averaged over the k steps
@@ -145,6 +144,17 @@ def _feature_std(x: jax.Array, mask: jax.Array) -> jax.Array:
     return jnp.sqrt((((x - mean) ** 2) * m).sum(0) / n + 1e-12)
 
 
+def grounding_loss(encoder, encoder_params, h_re: jax.Array, real: jax.Array, mask: jax.Array) -> tuple:
+    """The grounded encoder's auxiliary loss on the real encodings h_re [W, H] of the windows real [k, W, D]:
+    the decoded window's mean squared error plus the spread floor's hinge -> (loss, metrics)."""
+    W = h_re.shape[0]
+    target = jnp.swapaxes(real, 0, 1).reshape(W, -1)  # [W, k*D], step-major per row
+    decoded = encoder.apply(encoder_params, h_re, method="decode")
+    reconstruction = masked_mean(((decoded - jax.lax.stop_gradient(target)) ** 2).mean(-1), mask)
+    floor = jax.nn.relu(SPREAD_FLOOR - _feature_std(h_re, mask)).mean()
+    return reconstruction + floor, {"loss/encoder_reconstruction": reconstruction, "loss/encoder_spread_floor": floor}
+
+
 def _spread(x: jax.Array, mask: jax.Array) -> jax.Array:
     """Mean over features of the standard deviation across the unmasked rows of x [W, D]."""
     return _feature_std(x, mask).mean()
@@ -214,12 +224,7 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     terms["consistency"] = masked_mean(per_window, mask)
     aux_metrics = {}
     if recon:
-        target = jnp.swapaxes(normalize(real_next), 0, 1).reshape(W, -1)  # [W, k*O], step-major per row
-        decoded = encoder.apply(encoder_params, h_re, method="decode")
-        reconstruction = masked_mean(((decoded - jax.lax.stop_gradient(target)) ** 2).mean(-1), mask)
-        floor = jax.nn.relu(SPREAD_FLOOR - _feature_std(h_re, mask)).mean()
-        terms["encoder_aux"] = reconstruction + floor
-        aux_metrics = {"loss/encoder_reconstruction": reconstruction, "loss/encoder_spread_floor": floor}
+        terms["encoder_aux"], aux_metrics = grounding_loss(encoder, encoder_params, h_re, normalize(real_next), mask)
     e_re, e_im = (h_re, h_im) if use_gru else (normalize(real_next[-1]), normalize(s_im))
     final_err = ((normalize(real_next[-1]) - normalize(s_im)) ** 2).mean(-1)
     metrics = {

@@ -64,7 +64,8 @@ class EpisodeStats:
         """(mean return, mean discounted return) of the episodes finished in this rollout; `previous` when none."""
         n = jnp.maximum(self.done_count, 1.0)
         finished = self.done_count > 0
-        return (jnp.where(finished, self.done_ret / n, previous), jnp.where(finished, self.done_disc_ret / n, previous))
+        return (jnp.where(finished, self.done_ret / n, previous),
+                jnp.where(finished, self.done_disc_ret / n, previous))
 
     def record(self, reward, ended, counted, gamma) -> "EpisodeStats":
         """Add one step; `counted` marks episode ends whose return is reported (not NaN resets)."""

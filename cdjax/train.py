@@ -30,6 +30,7 @@ from cdjax import consistency, losses, networks
 from cdjax import normalize as nz
 from cdjax.config import Config, HParams
 from cdjax.envs import EnvState, make_env, strong_types
+from cdjax.optim import make_optimizer
 from cdjax.rollout import EpisodeStats, Transition, closed_loop, open_loop
 
 
@@ -86,44 +87,10 @@ class Trainer(NamedTuple):
     advantages: Callable  # (params, norms, batch [L, Bs, ...], hp) -> (advantages, returns), current value net
 
 
-def clipped_adam(lr, hp: HParams) -> optax.GradientTransformation:
-    """Adam (epsilon hp.adam_eps) after clipping the gradient's global norm at hp.max_grad_norm."""
-    return optax.chain(optax.clip_by_global_norm(hp.max_grad_norm), optax.adam(lr, eps=hp.adam_eps))
-
-
 def model_target(norms: nz.Norms, obs, next_obs, reward) -> jax.Array:
     """The dynamics model's target [..., O+1]: the normalised change of state and the normalised reward."""
     return jnp.concatenate([nz.normalize(norms.delta, next_obs - obs), nz.normalize(norms.reward, reward[..., None])],
                            axis=-1)
-
-
-def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientTransformation:
-    """Adam per parameter group with its own learning rate and gradient clipping.
-
-    The frozen-GRU encoder gets zero updates. A step whose gradients are not finite is skipped.
-    """
-
-    def adam(lr):
-        return optax.adam(lr, eps=hp.adam_eps)
-
-    def group(lr):
-        return clipped_adam(lr, hp)
-
-    lrs = {"policy": hp.lr_policy, "value": hp.lr_value, "model": hp.lr_model, "encoder": hp.lr_model}
-    transforms = {}
-    for name in params:
-        frozen = name == "encoder" and config.encoder == "frozen-gru"
-        transforms[name] = optax.set_to_zero() if frozen else group(lrs[name])
-    labels = lambda p: {name: jax.tree.map(lambda _: name, sub) for name, sub in p.items()}  # noqa: E731
-    tx = optax.multi_transform(transforms, labels)
-    if config.clip_scope == "policy-value":  # one clip over policy and value together, then Adam per group
-        transforms.update(policy=adam(hp.lr_policy), value=adam(hp.lr_value))
-        joint = lambda p: {name: jax.tree.map(lambda _: "ppo" if name in ("policy", "value") else "rest", sub)  # noqa: E731
-                           for name, sub in p.items()}
-        clip = optax.multi_transform({"ppo": optax.clip_by_global_norm(hp.max_grad_norm),
-                                      "rest": optax.identity()}, joint)
-        tx = optax.chain(clip, optax.multi_transform(transforms, labels))
-    return optax.apply_if_finite(tx, max_consecutive_errors=1_000_000)
 
 
 # The parameter groups each loss term can reach (the gradient-norm metrics report these pairs).
@@ -150,42 +117,50 @@ def to_segments(x: jax.Array, segment: int) -> jax.Array:
     return jnp.swapaxes(x.reshape((S, segment, B) + x.shape[2:]), 0, 1).reshape((segment, S * B) + x.shape[2:])
 
 
-def make_trainer(config: Config) -> Trainer:
-    env = make_env(config)
-    O, A = env.observation_size, env.action_size
-    T, L, k, M = config.rollout_len, config.segment, config.horizon, config.num_minibatches
-    modules = networks.build(config, O, A)
-    policy, value = modules["policy"], modules["value"]
-    model = modules.get("model")
-    encoder = modules.get("encoder")
+class ObsAgent:
+    """The observation-space agent of one Config: its environments, networks and every piece of its update.
 
-    def model_step(model_params, norms, obs, action):
-        mean, _ = model.apply(model_params, nz.normalize(norms.obs, obs), action)
+    Not a pytree (it holds modules and the env): close over its bound methods, which are pure functions of
+    their arguments. `make_trainer(config)` hands them out as a `Trainer`.
+    """
+
+    def __init__(self, config: Config):
+        self.config = config
+        self.env = make_env(config)
+        self.O, self.A = self.env.observation_size, self.env.action_size
+        self.T, self.L, self.k, self.M = config.rollout_len, config.segment, config.horizon, config.num_minibatches
+        self.modules = networks.build(config, self.O, self.A)
+        self.policy, self.value = self.modules["policy"], self.modules["value"]
+        self.model = self.modules.get("model")
+        self.encoder = self.modules.get("encoder")
+
+    def model_step(self, model_params, norms, obs, action):
+        mean, _ = self.model.apply(model_params, nz.normalize(norms.obs, obs), action)
         next_obs = obs + nz.denormalize(norms.delta, mean[..., :-1])
         reward = nz.denormalize(norms.reward, mean[..., -1:])[..., 0]
         return next_obs, reward
 
-    def act(params, norms, obs, key):
-        mean, std = policy.apply(params["policy"], nz.normalize(norms.obs, obs))
+    def act(self, params, norms, obs, key):
+        mean, std = self.policy.apply(params["policy"], nz.normalize(norms.obs, obs))
         if key is None:
             return networks.squash(mean)
         return networks.act_from_noise(mean, std, jax.random.normal(key, mean.shape))
 
-    def init(key: jax.Array, hp: HParams) -> TrainState:
+    def init(self, key: jax.Array, hp: HParams) -> TrainState:
         hp = hp.as_float32()
         key_env, key_params, key_train = jax.random.split(key, 3)
-        env_state = env.reset(key_env)
-        params = networks.init_params(modules, key_params, O, A, hp.init_log_std)
-        opt_state = make_optimizer(config, params, hp).init(params)
+        env_state = self.env.reset(key_env)
+        params = networks.init_params(self.modules, key_params, self.O, self.A, hp.init_log_std)
+        opt_state = make_optimizer(self.config, params, hp).init(params)
         nan = jnp.full((), jnp.nan, jnp.float32)
         state = TrainState(
-            params=params, opt_state=opt_state, norms=nz.Norms.create(O), env_state=env_state,
-            episodes=EpisodeStats.create(config.num_envs),
-            history=History.create(config.history_len - 1, config.eval_envs, O, A),
+            params=params, opt_state=opt_state, norms=nz.Norms.create(self.O), env_state=env_state,
+            episodes=EpisodeStats.create(self.config.num_envs),
+            history=History.create(self.config.history_len - 1, self.config.eval_envs, self.O, self.A),
             last_return=nan, last_disc_return=nan, key=key_train, update_step=jnp.zeros((), jnp.int32))
         return strong_types(state)
 
-    def advantages(params, norms, mb: "Batch", hp, values=None):
+    def advantages(self, params, norms, mb: "Batch", hp, values=None):
         """GAE of a minibatch of sequences [L, Bs] with the current value net (no gradient through it);
         `values` [L, Bs]: the value net's output on mb.obs when the caller has it already.
 
@@ -194,62 +169,63 @@ def make_trainer(config: Config) -> Trainer:
         time-outs use it). The last step bootstraps on the current value of next_obs[L-1].
         """
         if values is None:
-            values = value.apply(params["value"], nz.normalize(norms.obs, mb.obs))
+            values = self.value.apply(params["value"], nz.normalize(norms.obs, mb.obs))
         v = jax.lax.stop_gradient(values)
-        v_last = jax.lax.stop_gradient(value.apply(params["value"], nz.normalize(norms.obs, mb.next_obs[-1])))
+        v_last = jax.lax.stop_gradient(self.value.apply(params["value"], nz.normalize(norms.obs, mb.next_obs[-1])))
         v_next = jnp.concatenate([jnp.where(mb.ended[:-1], mb.next_value[:-1], v[1:]), v_last[None]])
         return losses.gae(mb.reward * hp.reward_scale, v, v_next, mb.valid & ~mb.terminated, mb.ended, hp.gamma,
                           hp.gae_lambda, mb.valid)
 
-    def loss_terms(params, norms, mb: "Batch", offsets, hp, with_consistency: bool = True):
+    def loss_terms(self, params, norms, mb: "Batch", offsets, hp, with_consistency: bool = True):
         """The named loss terms of one minibatch mb (leaves [L, Bs, ...]) -> ({name: scalar}, metrics)."""
         obs_n = nz.normalize(norms.obs, mb.obs)
-        mean, std = policy.apply(params["policy"], obs_n)
-        values = value.apply(params["value"], obs_n)
-        if config.gae_in_loss:
-            adv, returns = advantages(params, norms, mb, hp, values)
+        mean, std = self.policy.apply(params["policy"], obs_n)
+        values = self.value.apply(params["value"], obs_n)
+        if self.config.gae_in_loss:
+            adv, returns = self.advantages(params, norms, mb, hp, values)
         else:
             adv, returns = mb.advantages, mb.returns
-        entropy_noise = mb.noise if config.entropy == "squashed" else None
+        entropy_noise = mb.noise if self.config.entropy == "squashed" else None
         ppo, metrics = losses.ppo_loss(mean, std, values, mb.raw_action, mb.log_prob, adv, returns, mb.valid,
                                        hp, entropy_noise)
         metrics["loss/ppo"] = ppo
         metrics["policy/std"] = losses.masked_mean(std.mean(-1), mb.valid)
         terms = {"ppo": ppo}
-        if model is not None:
-            pred_mean, pred_log_std = model.apply(params["model"], obs_n, mb.action)
+        if self.model is not None:
+            pred_mean, pred_log_std = self.model.apply(params["model"], obs_n, mb.action)
             target = model_target(norms, mb.obs, mb.next_obs, mb.reward)
             terms["model_nll"], model_metrics = losses.model_loss(pred_mean, pred_log_std, target, mb.valid)
             metrics.update(model_metrics)
-        if config.use_consistency and with_consistency:
+        if self.config.use_consistency and with_consistency:
             actions = networks.act_from_noise(mean, std, mb.noise)  # [L, Bs, A], carries d/dphi
             s0, window_actions, real_next, mask = consistency.windows(mb.obs, mb.next_obs, actions, mb.ended,
-                                                                      mb.valid, offsets, k)
+                                                                      mb.valid, offsets, self.k)
             cc_terms, cc_metrics = consistency.consistency_loss(
-                lambda p, s, a: model_step(p, norms, s, a)[0], params["model"], s0, window_actions, real_next, mask,
-                kind=config.encoder, normalize=functools.partial(nz.normalize, norms.obs),
-                weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=encoder,
-                encoder_params=params.get("encoder"), unroll=config.cc_unroll)
+                lambda p, s, a: self.model_step(p, norms, s, a)[0], params["model"], s0, window_actions, real_next,
+                mask,
+                kind=self.config.encoder, normalize=functools.partial(nz.normalize, norms.obs),
+                weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=self.encoder,
+                encoder_params=params.get("encoder"), unroll=self.config.cc_unroll)
             terms.update(cc_terms)
             metrics.update(cc_metrics)
         return terms, metrics
 
-    def loss_fn(params, norms, mb, offsets, hp, with_consistency: bool = True):
+    def loss(self, params, norms, mb, offsets, hp, with_consistency: bool = True):
         """Total loss of one minibatch mb (leaves [L, Bs, ...]) -> (loss, metrics): the named terms times
         `term_weights(hp)`."""
-        terms, metrics = loss_terms(params, norms, mb, offsets, hp, with_consistency)
+        terms, metrics = self.loss_terms(params, norms, mb, offsets, hp, with_consistency)
         weights = term_weights(hp)
         total = sum(weights[name] * term for name, term in terms.items())
         metrics["loss/total"] = total
         return total, metrics
 
-    def grad_norms(params, norms, mb, offsets, hp) -> dict:
+    def grad_norms(self, params, norms, mb, offsets, hp) -> dict:
         """The gradient norm of every weighted loss term on each parameter group it reaches (TERM_GROUPS), and of
         their sum on every group: metrics "grad/<term>/<group>", so the balance of the terms is visible."""
         weights = term_weights(hp)
 
         def weighted(p):
-            terms, _ = loss_terms(p, norms, mb, offsets, hp)
+            terms, _ = self.loss_terms(p, norms, mb, offsets, hp)
             return {name: weights[name] * term for name, term in terms.items()}
 
         out, pullback = jax.vjp(weighted, params)
@@ -266,73 +242,73 @@ def make_trainer(config: Config) -> Trainer:
             metrics[f"grad/total/{group}"] = optax.global_norm(g)
         return metrics
 
-    def openloop_metrics(model_params, norms, history: History) -> dict:
+    def openloop_metrics(self, model_params, norms, history: History) -> dict:
         """Open-loop MSE (normalised space) of the model at k and at eval_horizon steps on real data."""
-        step = lambda s, a: model_step(model_params, norms, s, a)[0]  # noqa: E731
+        step = lambda s, a: self.model_step(model_params, norms, s, a)[0]  # noqa: E731
         _, imagined = open_loop(step, history.obs[0], history.action)
         out = {}
-        for name, j in (("k", k), ("50", config.eval_horizon)):
+        for name, j in (("k", self.k), ("50", self.config.eval_horizon)):
             ok = (history.filled >= j) & ~history.ended[: j - 1].any(0) & history.valid[:j].all(0)
             err = ((nz.normalize(norms.obs, imagined[j - 1]) - nz.normalize(norms.obs, history.next_obs[j - 1])) ** 2).mean(-1)
             n = ok.sum()
             out[f"model/openloop_mse_{name}"] = jnp.where(n > 0, losses.masked_mean(err, ok), jnp.nan)
         return out
 
-    def collect(state: TrainState, hp: HParams, key: jax.Array):
+    def collect(self, state: TrainState, hp: HParams, key: jax.Array):
         """Closed-loop rollout with the current policy, then GAE. -> (env_state, episodes, traj, batch)."""
         hp = hp.as_float32()
         params, norms = state.params, state.norms
 
         def behaviour(obs, key):
-            mean, std = policy.apply(params["policy"], nz.normalize(norms.obs, obs))
+            mean, std = self.policy.apply(params["policy"], nz.normalize(norms.obs, obs))
             noise = jax.random.normal(key, mean.shape)
             raw = mean + std * noise
             log_prob = networks.action_distribution(mean, std).log_prob(raw)
             return networks.squash(raw), raw, noise, log_prob
 
         def value_of(obs):
-            return value.apply(params["value"], nz.normalize(norms.obs, obs))
+            return self.value.apply(params["value"], nz.normalize(norms.obs, obs))
 
-        (env_state, episodes), traj = closed_loop(env, behaviour, value_of, state.env_state, state.episodes,
-                                                  key, T, hp.gamma)
+        (env_state, episodes), traj = closed_loop(self.env, behaviour, value_of, state.env_state, state.episodes,
+                                                  key, self.T, hp.gamma)
         adv, returns = losses.gae(traj.reward * hp.reward_scale, traj.value, traj.next_value,
                                   traj.valid & ~traj.terminated, traj.ended, hp.gamma, hp.gae_lambda, traj.valid)
         batch = Batch(traj.obs, traj.next_obs, traj.action, traj.raw_action, traj.noise, traj.log_prob,
                       traj.reward, traj.terminated, traj.ended, traj.valid, traj.next_value, adv, returns)
         return env_state, episodes, traj, batch
 
-    def sgd(params, opt_state, norms, data: "Batch", hp: HParams, key: jax.Array):
+    def sgd(self, params, opt_state, norms, data: "Batch", hp: HParams, key: jax.Array):
         """Epochs x minibatches of Adam steps on the loss; minibatches are shuffled sequences of L steps."""
-        tx = make_optimizer(config, params, hp)
-        segments = jax.tree.map(lambda x: to_segments(x, L), data)  # [L, N, ...]
-        N = config.num_segments
-        Bs = config.minibatch_seqs
+        tx = make_optimizer(self.config, params, hp)
+        segments = jax.tree.map(lambda x: to_segments(x, self.L), data)  # [L, N, ...]
+        N = self.config.num_segments
+        Bs = self.config.minibatch_seqs
 
         def minibatch(carry, inp, with_consistency):
             params, opt_state = carry
             mb, key = inp
-            offsets = consistency.window_offsets(key, L, k, config.num_windows)
-            grads, metrics = jax.grad(loss_fn, has_aux=True)(params, norms, mb, offsets, hp, with_consistency)
+            offsets = consistency.window_offsets(key, self.L, self.k, self.config.num_windows)
+            grads, metrics = jax.grad(self.loss, has_aux=True)(params, norms, mb, offsets, hp, with_consistency)
             updates, opt_state = tx.update(grads, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), metrics
 
         def epoch(carry, key, with_consistency):
             key_perm, key_mb = jax.random.split(key)
             perm = jax.random.permutation(key_perm, N)
-            split = lambda x: jnp.swapaxes(x[:, perm].reshape((L, M, Bs) + x.shape[2:]), 0, 1)  # noqa: E731
+            split = lambda x: jnp.swapaxes(x[:, perm].reshape((self.L, self.M, Bs) + x.shape[2:]), 0, 1)  # noqa: E731
             step = functools.partial(minibatch, with_consistency=with_consistency)
-            return jax.lax.scan(step, carry, (jax.tree.map(split, segments), jax.random.split(key_mb, M)))
+            return jax.lax.scan(step, carry, (jax.tree.map(split, segments), jax.random.split(key_mb, self.M)))
 
         # Epochs with the consistency term first, then (cc_epochs > 0) the rest without it.
         key_diag, key_epochs = jax.random.split(key)
         first = jax.tree.map(lambda x: x[:, :Bs], segments)
-        diagnostics = grad_norms(params, norms, first, consistency.window_offsets(key_diag, L, k, config.num_windows),
-                                 hp)
-        epoch_keys = jax.random.split(key_epochs, config.num_epochs)
-        n_cc = config.num_epochs if config.cc_epochs == 0 else config.cc_epochs
+        offsets = consistency.window_offsets(key_diag, self.L, self.k, self.config.num_windows)
+        diagnostics = self.grad_norms(params, norms, first, offsets, hp)
+        epoch_keys = jax.random.split(key_epochs, self.config.num_epochs)
+        n_cc = self.config.num_epochs if self.config.cc_epochs == 0 else self.config.cc_epochs
         carry, metrics = jax.lax.scan(functools.partial(epoch, with_consistency=True), (params, opt_state),
                                       epoch_keys[:n_cc])
-        if n_cc < config.num_epochs:
+        if n_cc < self.config.num_epochs:
             carry, rest = jax.lax.scan(functools.partial(epoch, with_consistency=False), carry, epoch_keys[n_cc:])
             metrics = {name: jnp.concatenate([value, rest[name]]) if name in rest else value
                        for name, value in metrics.items()}
@@ -340,17 +316,17 @@ def make_trainer(config: Config) -> Trainer:
         metrics.update(diagnostics)
         return carry, metrics
 
-    def update(state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
+    def update(self, state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
         hp = hp.as_float32()
         key, key_roll, key_sgd = jax.random.split(state.key, 3)
-        env_state, episodes, traj, data = collect(state, hp, key_roll)
+        env_state, episodes, traj, data = self.collect(state, hp, key_roll)
         # The rollout joins the statistics before SGD: the first update already learns on normalised data.
         norms = refresh_norms(state.norms, traj.obs, traj.next_obs, traj.reward, traj.valid)
-        (params, opt_state), metrics = sgd(state.params, state.opt_state, norms, data, hp, key_sgd)
+        (params, opt_state), metrics = self.sgd(state.params, state.opt_state, norms, data, hp, key_sgd)
 
         history = state.history.push(traj)
-        if model is not None:  # the model of the last update with the statistics it was trained with
-            metrics.update(openloop_metrics(state.params["model"], state.norms, history))
+        if self.model is not None:  # the model of the last update with the statistics it was trained with
+            metrics.update(self.openloop_metrics(state.params["model"], state.norms, history))
         last_return, _ = episodes.mean_returns(state.last_return)
         _, last_disc = episodes.mean_returns(state.last_disc_return)
         metrics.update({
@@ -367,8 +343,13 @@ def make_trainer(config: Config) -> Trainer:
             update_step=state.update_step + 1)
         return strong_types(new_state), metrics
 
-    return Trainer(config=config, init=init, update=update, collect=collect, loss=loss_fn, act=act,
-                   model_step=model_step, env=env, grad_norms=grad_norms, loss_terms=loss_terms, advantages=advantages)
+
+def make_trainer(config: Config) -> Trainer:
+    """The pieces of the observation-space agent for `config` (see `Trainer`); nothing is jitted here."""
+    agent = ObsAgent(config)
+    return Trainer(config=config, init=agent.init, update=agent.update, collect=agent.collect, loss=agent.loss,
+                   act=agent.act, model_step=agent.model_step, env=agent.env, grad_norms=agent.grad_norms,
+                   loss_terms=agent.loss_terms, advantages=agent.advantages)
 
 
 @struct.dataclass

@@ -104,11 +104,15 @@ def make_trainer(config: Config) -> Trainer:
 
     @functools.cache
     def saved_leaves():
-        """Every leaf of the TrainState but the environment's derived physics data (cdjax.envs.resume)."""
+        """Every leaf of the TrainState but the environment's derived physics data (cdjax.envs.resume) and its
+        reset targets."""
         shapes = jax.eval_shape(agent.init, jax.random.key(0), HParams())
         every = jax.tree.map(lambda _: True, shapes)
         env = _needed_env_leaves(config.env, config.num_envs, config.episode_length, config.action_repeat,
                                  config.reset_mode)
+        # Each env's reset target (`first`) is set by init and never changes (the Mb-Mf phase acts in its own
+        # environments): a restore fills it from the fresh init of the same keys, so it is not stored.
+        env = env.replace(first=jax.tree.map(lambda _: False, env.first))
         return every.replace(env_state=env)
 
     def eval_env(num_envs: int) -> envs.BatchedEnv:

@@ -13,9 +13,10 @@ once; it also vmaps over seeds). In the phase's own `phase.num_envs` environment
    deterministic action tanh(mu(s)) is regressed (MSE) on those MPC actions, then `distill_iters` DAgger
    rounds: the (stochastic) policy acts, MPC labels the states it visits, the pairs are aggregated, the
    policy is retrained;
-5. the value is fitted to TD(lambda) returns of the DAgger rollouts (`value_epochs`, optional), the
-   PPO environments are reset, and the TrainState goes back ready for `trainer.update`, with PPO's
-   optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every env step taken.
+5. the value is fitted to TD(lambda) returns of the DAgger rollouts (`value_epochs`, optional), and the
+   TrainState goes back ready for `trainer.update`, its PPO environments as they were (the phase acts in
+   its own), PPO's optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every
+   env step taken.
 
 Why MSE on tanh(mu) rather than the Gaussian likelihood of atanh(action): random-shooting actions are
 uniform samples, often near the box edge where atanh is ill-conditioned (a 0.999 label is 3.8 in
@@ -47,9 +48,10 @@ from cdjax.config import Config, HParams
 from cdjax.envs import BatchedEnv, EnvState, make_single_env, strong_types
 from cdjax.mbmf.data import Labelled, Rollout, Transitions, model_objective
 from cdjax.mbmf.spec import MbMfPhase, validate_phase
+from cdjax.optim import clipped_adam
 from cdjax.replay import RingBuffer, fit
 from cdjax.rollout import EpisodeStats, env_step
-from cdjax.train import TrainState, Trainer, clipped_adam, make_trainer, model_target, refresh_norms
+from cdjax.train import TrainState, Trainer, make_trainer, model_target, refresh_norms
 
 
 def _first_last(values: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -131,100 +133,100 @@ def make_mpc_controller(trainer: Trainer, phase: MbMfPhase) -> Callable:
     return controller
 
 
-def make_mbmf_phase(config: Config, phase: MbMfPhase, trainer: Trainer | None = None
-                    ) -> Callable[[TrainState, HParams], tuple[TrainState, dict]]:
-    """run(state, hp) -> (state ready for PPO, info dict of scalars); pure, jit (and vmap) it yourself.
+class MbMfProgram:
+    """The phase of one Config and MbMfPhase: its environments, networks, controller and stages.
 
-    `state` is what trainer.init returns (or any TrainState of `config`); params["model"] and
-    params["policy"] come back trained, params["value"] fitted (value_epochs > 0), norms updated, the PPO
-    environments reset, episode statistics fresh, opt_state and the encoder untouched.
-    info["env_steps"] (int32) counts the env steps the phase took: charge them to the arm's budget.
+    Not a pytree: close over its bound methods. `run(state, hp)` is the whole phase.
     """
-    validate_phase(config, phase)
-    trainer = trainer if trainer is not None else make_trainer(config)
-    env = phase_env(config, phase, trainer)
-    B, O, A = env.num_envs, env.observation_size, env.action_size
-    modules = networks.build(config, O, A)
-    model, policy, value = modules["model"], modules["policy"], modules["value"]
-    controller = make_mpc_controller(trainer, phase)
 
-    def rollout(acting: Acting, choose: Callable, key: jax.Array, length: int, gamma) -> tuple[Acting, Rollout]:
+    def __init__(self, config: Config, phase: MbMfPhase, trainer: Trainer | None = None):
+        validate_phase(config, phase)
+        self.config, self.phase = config, phase
+        self.trainer = trainer if trainer is not None else make_trainer(config)
+        self.env = phase_env(config, phase, self.trainer)
+        self.B, self.O, self.A = self.env.num_envs, self.env.observation_size, self.env.action_size
+        self.modules = networks.build(config, self.O, self.A)
+        self.model, self.policy, self.value = self.modules["model"], self.modules["policy"], self.modules["value"]
+        self.controller = make_mpc_controller(self.trainer, phase)
+
+    def rollout(self, acting: Acting, choose: Callable, key: jax.Array, length: int, gamma) -> tuple[Acting, Rollout]:
         """`length` steps of choose(obs [B, O], key) -> (action, label), both [B, A]: (acting, Rollout [L, B])."""
 
         def step(acting: Acting, step_key):
             obs = acting.env_state.obs
             action, label = choose(obs, step_key)
-            env_state, stats, out = env_step(env, acting.env_state, acting.stats, action, gamma)
+            env_state, stats, out = env_step(self.env, acting.env_state, acting.stats, action, gamma)
             tr = Rollout(obs=obs, action=action, label=label, next_obs=out.next_obs, reward=out.reward,
                          terminated=out.terminated, ended=out.terminated | out.truncated | ~out.valid, valid=out.valid)
-            return Acting(env_state, stats, acting.env_steps + B * config.action_repeat), tr
+            return Acting(env_state, stats, acting.env_steps + self.B * self.config.action_repeat), tr
 
         start = acting.replace(stats=acting.stats.start_rollout())
         return jax.lax.scan(step, start, jax.random.split(key, length))
 
-    def update_norms(norms: nz.Norms, data: Transitions) -> nz.Norms:
+    def update_norms(self, norms: nz.Norms, data: Transitions) -> nz.Norms:
         return refresh_norms(norms, data.obs, data.next_obs, data.reward, data.valid)
 
-    def model_batch_loss(model_params, batch: Transitions, norms):
-        mean, log_std = model.apply(model_params, nz.normalize(norms.obs, batch.obs), batch.action)
+    def model_batch_loss(self, model_params, batch: Transitions, norms):
+        mean, log_std = self.model.apply(model_params, nz.normalize(norms.obs, batch.obs), batch.action)
         target = model_target(norms, batch.obs, batch.next_obs, batch.reward)
-        return model_objective(mean, log_std, target, batch.valid, phase.model_objective)
+        return model_objective(mean, log_std, target, batch.valid, self.phase.model_objective)
 
-    def distill_loss(policy_params, batch: Labelled, norms):
-        mean, _ = policy.apply(policy_params, nz.normalize(norms.obs, batch.obs))
+    def distill_loss(self, policy_params, batch: Labelled, norms):
+        mean, _ = self.policy.apply(policy_params, nz.normalize(norms.obs, batch.obs))
         err = networks.squash(mean) - batch.action
         mse = losses.masked_mean((err**2).mean(-1), batch.valid)
         return mse, {"distill/mse": mse, "distill/abs_error": losses.masked_mean(jnp.abs(err).mean(-1), batch.valid)}
 
-    def buffer_abs_error(policy_params, norms, buffer: RingBuffer) -> jax.Array:
+    def buffer_abs_error(self, policy_params, norms, buffer: RingBuffer) -> jax.Array:
         """Mean |tanh(mu(s)) - a_MPC| over the filled, valid part of the distillation buffer."""
         data = buffer.data.replace(valid=buffer.data.valid & (jnp.arange(buffer.size) < buffer.filled))
-        return distill_loss(policy_params, data, norms)[1]["distill/abs_error"]
+        return self.distill_loss(policy_params, data, norms)[1]["distill/abs_error"]
 
-    def fit_model(model_fit: Fitted, norms, data: RingBuffer, tx, key) -> tuple[Fitted, dict]:
-        loss = functools.partial(model_batch_loss, norms=norms)
-        params, opt_state, metrics = fit(loss, model_fit.params, model_fit.opt_state, tx, data, phase.model_epochs,
-                                         phase.model_minibatch, key)
+    def fit_model(self, model_fit: Fitted, norms, data: RingBuffer, tx, key) -> tuple[Fitted, dict]:
+        loss = functools.partial(self.model_batch_loss, norms=norms)
+        params, opt_state, metrics = fit(loss, model_fit.params, model_fit.opt_state, tx, data, self.phase.model_epochs,
+                                         self.phase.model_minibatch, key)
         return Fitted(params, opt_state), metrics
 
-    def fit_policy(policy_fit: Fitted, norms, data: RingBuffer, tx, key) -> Fitted:
-        loss = functools.partial(distill_loss, norms=norms)
-        params, opt_state, _ = fit(loss, policy_fit.params, policy_fit.opt_state, tx, data, phase.distill_epochs,
-                                   phase.distill_minibatch, key)
+    def fit_policy(self, policy_fit: Fitted, norms, data: RingBuffer, tx, key) -> Fitted:
+        loss = functools.partial(self.distill_loss, norms=norms)
+        params, opt_state, _ = fit(loss, policy_fit.params, policy_fit.opt_state, tx, data, self.phase.distill_epochs,
+                                   self.phase.distill_minibatch, key)
         return Fitted(params, opt_state)
 
-    def relabel(model_params, norms, buffer: RingBuffer, key: jax.Array) -> RingBuffer:
+    def relabel(self, model_params, norms, buffer: RingBuffer, key: jax.Array) -> RingBuffer:
         """Re-plan the actions of the aggregation states with the final model, `relabel_chunk` states at once.
 
-        The MPC that acted during aggregation round i planned with the model of round i; relabelling makes
-        every cloning target come from one controller, the one the DAgger rounds query.
+        The MPC that acted during aggregation round i planned with the self.model of round i; relabelling makes
+        every cloning target come from one self.controller, the one the DAgger rounds query.
         """
-        n = min(buffer.size, B * phase.aggregation_iters * phase.mpc_steps_per_iter)  # the filled slots
-        chunk = min(phase.relabel_chunk, n)
+        n = min(buffer.size, self.B * self.phase.aggregation_iters * self.phase.mpc_steps_per_iter)  # the filled slots
+        chunk = min(self.phase.relabel_chunk, n)
         n_chunks = -(-n // chunk)
-        obs = jnp.zeros((n_chunks * chunk, O), jnp.float32).at[:n].set(buffer.data.obs[:n])
+        obs = jnp.zeros((n_chunks * chunk, self.O), jnp.float32).at[:n].set(buffer.data.obs[:n])
         keys = jax.random.split(key, n_chunks)
-        plan = lambda inp: controller(model_params, norms, inp[0], inp[1])  # noqa: E731
-        labels = jax.lax.map(plan, (obs.reshape(n_chunks, chunk, O), keys)).reshape(-1, A)[:n]
+        plan = lambda inp: self.controller(model_params, norms, inp[0], inp[1])  # noqa: E731
+        labels = jax.lax.map(plan, (obs.reshape(n_chunks, chunk, self.O), keys)).reshape(-1, self.A)[:n]
         return buffer.replace(data=buffer.data.replace(action=buffer.data.action.at[:n].set(labels)))
 
-    def fit_value(value_params, norms, traj: Rollout, hp: HParams, key: jax.Array):
+    def fit_value(self, value_params, norms, traj: Rollout, hp: HParams, key: jax.Array):
         """Regress V on TD(lambda) returns of traj [L, N] (recomputed with the current V every epoch)."""
         L, N = traj.reward.shape
         obs_n, next_n = nz.normalize(norms.obs, traj.obs), nz.normalize(norms.obs, traj.next_obs)
-        mb = min(phase.distill_minibatch, L * N)
+        mb = min(self.phase.distill_minibatch, L * N)
         n_mb = (L * N) // mb
         tx = clipped_adam(hp.lr_value, hp)
         flat = lambda x: x.reshape((L * N,) + x.shape[2:])  # noqa: E731
 
         def loss_fn(vp, batch):
             obs, target, valid = batch
-            loss = 0.5 * losses.masked_mean((value.apply(vp, obs) - target) ** 2, valid)
+            loss = 0.5 * losses.masked_mean((self.value.apply(vp, obs) - target) ** 2, valid)
             return loss, loss
 
         def epoch(carry, key):
             vp, opt_state = carry
-            _, returns = losses.gae(traj.reward * hp.reward_scale, value.apply(vp, obs_n), value.apply(vp, next_n),
+            v, v_next = self.value.apply(vp, obs_n), self.value.apply(vp, next_n)
+            _, returns = losses.gae(traj.reward * hp.reward_scale, v, v_next,
                                     traj.valid & ~traj.terminated, traj.ended, hp.gamma, hp.gae_lambda, traj.valid)
             perm = jax.random.permutation(key, L * N)[: n_mb * mb].reshape(n_mb, mb)
             data = (flat(obs_n), flat(jax.lax.stop_gradient(returns)), flat(traj.valid))
@@ -239,45 +241,47 @@ def make_mbmf_phase(config: Config, phase: MbMfPhase, trainer: Trainer | None = 
             return (vp, opt_state), loss.mean()
 
         (value_params, _), loss = jax.lax.scan(epoch, (value_params, tx.init(value_params)),
-                                               jax.random.split(key, phase.value_epochs))
+                                               jax.random.split(key, self.phase.value_epochs))
         return value_params, loss[-1]
 
-    def models_stage(state: TrainState, hp: HParams, model_tx, keys) -> tuple[ModelStage, dict]:
+    def models_stage(self, state: TrainState, hp: HParams, model_tx, keys) -> tuple[ModelStage, dict]:
         """Steps 1-3: random data, the first model, then the MPC aggregation rounds."""
         key_reset, key_random, key_model, key_agg = keys
         info = {}
 
         def uniform(obs, key):
-            action = jax.random.uniform(key, (B, A), minval=-1.0, maxval=1.0)
+            action = jax.random.uniform(key, (self.B, self.A), minval=-1.0, maxval=1.0)
             return action, action
 
-        acting = Acting(env.reset(key_reset), EpisodeStats.create(B), jnp.zeros((), jnp.int32))
-        acting, traj = rollout(acting, uniform, key_random, phase.random_steps, hp.gamma)
+        acting = Acting(self.env.reset(key_reset), EpisodeStats.create(self.B), jnp.zeros((), jnp.int32))
+        acting, traj = self.rollout(acting, uniform, key_random, self.phase.random_steps, hp.gamma)
         info["random/reward_mean"] = losses.masked_mean(traj.reward, traj.valid)
         info["random/episode_return"] = acting.stats.mean_returns()[0]
         data = Transitions.of(traj)
-        norms = update_norms(state.norms, data)
-        transitions = RingBuffer.create(jax.tree.map(lambda x: x[0], data), phase.model_capacity(config)).add(data)
+        norms = self.update_norms(state.norms, data)
+        capacity = self.phase.model_capacity(self.config)
+        transitions = RingBuffer.create(jax.tree.map(lambda x: x[0], data), capacity).add(data)
         labelled = RingBuffer.create(
-            Labelled(jnp.zeros((O,), jnp.float32), jnp.zeros((A,), jnp.float32), jnp.zeros((), bool)),
-            phase.distill_capacity(config))
+            Labelled(jnp.zeros((self.O,), jnp.float32), jnp.zeros((self.A,), jnp.float32), jnp.zeros((), bool)),
+            self.phase.distill_capacity(self.config))
         model_params = state.params["model"]
-        model_fit, fit_metrics = fit_model(Fitted(model_params, model_tx.init(model_params)), norms, transitions,
+        model_fit, fit_metrics = self.fit_model(Fitted(model_params, model_tx.init(model_params)), norms, transitions,
                                            model_tx, key_model)
 
         def aggregate(stage: ModelStage, key):
             key_roll, key_fit = jax.random.split(key)
 
             def plan(obs, key):
-                action = controller(stage.model.params, stage.norms, obs, key)
+                action = self.controller(stage.model.params, stage.norms, obs, key)
                 return action, action
 
-            acting, traj = rollout(stage.acting, plan, key_roll, phase.mpc_steps_per_iter, hp.gamma)
+            acting, traj = self.rollout(stage.acting, plan, key_roll, self.phase.mpc_steps_per_iter, hp.gamma)
             data = Transitions.of(traj)
-            _, heldout = model_batch_loss(stage.model.params, data, stage.norms)  # fresh on-policy data, not trained on
-            norms = update_norms(stage.norms, data)
+            # fresh on-policy data, not trained on yet
+            _, heldout = self.model_batch_loss(stage.model.params, data, stage.norms)
+            norms = self.update_norms(stage.norms, data)
             transitions = stage.transitions.add(data)
-            model_fit, fit_metrics = fit_model(stage.model, norms, transitions, model_tx, key_fit)
+            model_fit, fit_metrics = self.fit_model(stage.model, norms, transitions, model_tx, key_fit)
             metrics = {"reward_mean": losses.masked_mean(traj.reward, traj.valid),
                        "episode_return": acting.stats.mean_returns()[0],
                        "heldout_mse": heldout["model/onestep_mse"],
@@ -286,7 +290,7 @@ def make_mbmf_phase(config: Config, phase: MbMfPhase, trainer: Trainer | None = 
                               fit_metrics), metrics
 
         stage = ModelStage(acting, model_fit, norms, transitions, labelled, fit_metrics)
-        stage, agg = jax.lax.scan(aggregate, stage, jax.random.split(key_agg, phase.aggregation_iters))
+        stage, agg = jax.lax.scan(aggregate, stage, jax.random.split(key_agg, self.phase.aggregation_iters))
         info["mpc/reward_mean_first"], info["mpc/reward_mean_last"] = _first_last(agg["reward_mean"])
         info["mpc/episode_return"] = _first_last(agg["episode_return"])[1]
         info["model/heldout_mse_first"], info["model/heldout_mse_last"] = _first_last(agg["heldout_mse"])
@@ -296,17 +300,18 @@ def make_mbmf_phase(config: Config, phase: MbMfPhase, trainer: Trainer | None = 
         info["model/train_nll"] = stage.fit_metrics["loss/model_nll"]
         return stage, info
 
-    def policy_stage(state: TrainState, stage: ModelStage, hp: HParams, keys) -> tuple[PolicyStage, Rollout, dict]:
+    def policy_stage(self, state: TrainState, stage: ModelStage, hp: HParams, keys
+                     ) -> tuple[PolicyStage, Rollout, dict]:
         """Step 4: behaviour cloning of the (relabelled) MPC actions, then the DAgger rounds."""
         key_relabel, key_distill, key_dagger = keys
         model_params, norms = stage.model.params, stage.norms
         policy_tx = clipped_adam(hp.lr_distill, hp)
         labelled = stage.labelled
-        if phase.relabel and phase.aggregation_iters > 0:
-            labelled = relabel(model_params, norms, labelled, key_relabel)
-        info = {"distill/abs_error_before": buffer_abs_error(state.params["policy"], norms, labelled)}
+        if self.phase.relabel and self.phase.aggregation_iters > 0:
+            labelled = self.relabel(model_params, norms, labelled, key_relabel)
+        info = {"distill/abs_error_before": self.buffer_abs_error(state.params["policy"], norms, labelled)}
         policy_params = state.params["policy"]
-        policy_fit = fit_policy(Fitted(policy_params, policy_tx.init(policy_params)), norms, labelled, policy_tx,
+        policy_fit = self.fit_policy(Fitted(policy_params, policy_tx.init(policy_params)), norms, labelled, policy_tx,
                                 key_distill)
 
         def dagger(stage: PolicyStage, key):
@@ -314,50 +319,62 @@ def make_mbmf_phase(config: Config, phase: MbMfPhase, trainer: Trainer | None = 
 
             def act_and_label(obs, key):
                 key_act, key_plan = jax.random.split(key)
-                action = trainer.act({"policy": stage.policy.params}, norms, obs, key_act)
-                return action, controller(model_params, norms, obs, key_plan)
+                action = self.trainer.act({"policy": stage.policy.params}, norms, obs, key_act)
+                return action, self.controller(model_params, norms, obs, key_plan)
 
-            acting, traj = rollout(stage.acting, act_and_label, key_roll, phase.distill_steps_per_iter, hp.gamma)
+            acting, traj = self.rollout(stage.acting, act_and_label, key_roll, self.phase.distill_steps_per_iter,
+                                        hp.gamma)
             new = Labelled.of(traj)
-            _, new_error = distill_loss(stage.policy.params, new, norms)  # the policy's own states, before training
+            _, new_error = self.distill_loss(stage.policy.params, new, norms)  # the policy's own states, untrained on
             labelled = stage.labelled.add(new)
-            policy_fit = fit_policy(stage.policy, norms, labelled, policy_tx, key_fit)
+            policy_fit = self.fit_policy(stage.policy, norms, labelled, policy_tx, key_fit)
             metrics = {"reward_mean": losses.masked_mean(traj.reward, traj.valid),
                        "episode_return": acting.stats.mean_returns()[0],
                        "abs_error_new": new_error["distill/abs_error"]}
             return PolicyStage(acting, policy_fit, labelled), (metrics, traj)
 
         stage = PolicyStage(stage.acting, policy_fit, labelled)
-        stage, (dag, trajs) = jax.lax.scan(dagger, stage, jax.random.split(key_dagger, phase.distill_iters))
-        info["distill/abs_error"] = buffer_abs_error(stage.policy.params, norms, stage.labelled)
+        stage, (dag, trajs) = jax.lax.scan(dagger, stage, jax.random.split(key_dagger, self.phase.distill_iters))
+        info["distill/abs_error"] = self.buffer_abs_error(stage.policy.params, norms, stage.labelled)
         info["dagger/abs_error_new_first"], info["dagger/abs_error_new_last"] = _first_last(dag["abs_error_new"])
         info["dagger/reward_mean_first"], info["dagger/reward_mean_last"] = _first_last(dag["reward_mean"])
         info["dagger/episode_return"] = _first_last(dag["episode_return"])[1]
         return stage, trajs, info
 
-    def run(state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
+    def run(self, state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
         hp = hp.as_float32()
         (key, key_reset, key_random, key_model, key_agg, key_relabel, key_distill, key_dagger, key_value,
-         key_final) = jax.random.split(state.key, 10)
+         _) = jax.random.split(state.key, 10)
         model_tx = clipped_adam(hp.lr_model, hp)
-        models, info = models_stage(state, hp, model_tx, (key_reset, key_random, key_model, key_agg))
-        policies, trajs, policy_info = policy_stage(state, models, hp, (key_relabel, key_distill, key_dagger))
+        models, info = self.models_stage(state, hp, model_tx, (key_reset, key_random, key_model, key_agg))
+        policies, trajs, policy_info = self.policy_stage(state, models, hp, (key_relabel, key_distill, key_dagger))
         info.update(policy_info)
 
         # 5. The value on the DAgger rollouts ([R, L, B] -> [L, R*B]: each round a separate segment).
         value_params = state.params["value"]
-        if phase.value_epochs > 0 and phase.distill_iters > 0:
+        if self.phase.value_epochs > 0 and self.phase.distill_iters > 0:
             segments = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape((x.shape[1], -1) + x.shape[3:]), trajs)
-            value_params, info["value/loss"] = fit_value(value_params, models.norms, segments, hp, key_value)
+            value_params, info["value/loss"] = self.fit_value(value_params, models.norms, segments, hp, key_value)
         else:
             info["value/loss"] = jnp.full((), jnp.nan, jnp.float32)
 
         info["env_steps"] = policies.acting.env_steps
         params = dict(state.params, model=models.model.params, policy=policies.policy.params, value=value_params)
-        new_state = state.replace(params=params, norms=models.norms, env_state=trainer.env.reset(key_final),
-                                  episodes=EpisodeStats.create(config.num_envs), key=key)
+        # The PPO environments are as init left them (the phase acted in its own): each keeps the reset target
+        # it was created with, which a checkpoint therefore need not store.
+        new_state = state.replace(params=params, norms=models.norms, env_state=state.env_state,
+                                  episodes=EpisodeStats.create(self.config.num_envs), key=key)
         return strong_types(new_state), info
 
-    return run
 
+def make_mbmf_phase(config: Config, phase: MbMfPhase, trainer: Trainer | None = None
+                    ) -> Callable[[TrainState, HParams], tuple[TrainState, dict]]:
+    """run(state, hp) -> (state ready for PPO, info dict of scalars); pure, jit (and vmap) it yourself.
 
+    `state` is what trainer.init returns (or any TrainState of `config`); params["model"] and
+    params["policy"] come back trained, params["value"] fitted (value_epochs > 0), norms updated, the PPO
+    environments and opt_state untouched (the phase acts in environments of its own), episode statistics fresh,
+    the encoder untouched.
+    info["env_steps"] (int32) counts the env steps the phase took: charge them to the arm's budget.
+    """
+    return MbMfProgram(config, phase, trainer).run
