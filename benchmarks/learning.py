@@ -75,7 +75,7 @@ TASKS = {
 
 # cdjax learner options, each set back to its previous value (before the learner issue): the ablation.
 PREVIOUS = {"activation": "tanh", "policy_std": "global", "entropy": "gaussian", "gae_in_loss": False,
-            "segment_len": 0}
+            "segment_len": 0, "weight_init": "orthogonal"}
 VARIANTS: dict[str, tuple[dict, dict]] = {  # name -> (Config overrides, HParams overrides)
     "default": ({}, {}),
     "tanh": ({"activation": "tanh"}, {}),
@@ -84,10 +84,12 @@ VARIANTS: dict[str, tuple[dict, dict]] = {  # name -> (Config overrides, HParams
     "gae-once": ({"gae_in_loss": False}, {}),
     "env-minibatches": ({"segment_len": 0}, {}),
     "adam-eps-1e-5": ({}, {"adam_eps": 1e-5}),
-    # Brax's choices that cdjax does not default to (candidates when cdjax trails Brax)
+    "orthogonal-init": ({"weight_init": "orthogonal"}, {}),
+    # Brax's choices, tried against the gap on ant (lecun-uniform weights are now the default)
     "lecun-init": ({"weight_init": "lecun"}, {}),
     "joint-clip": ({"clip_scope": "policy-value"}, {}),
     "lecun-joint-clip": ({"weight_init": "lecun", "clip_scope": "policy-value"}, {}),
+    "lecun-global-std": ({"weight_init": "lecun", "policy_std": "global"}, {}),
     "previous": (PREVIOUS, {"adam_eps": 1e-5, "init_log_std": -0.5}),
 }
 

@@ -47,7 +47,7 @@ class Config:
     activation: str = "swish"  # activation of the policy and value MLPs (a flax.linen name: swish, tanh, ...)
     policy_std: PolicyStd = "state"  # policy std: state (softplus head, as Brax) or global (one log-std per dim)
     entropy: Entropy = "squashed"  # entropy bonus: of the tanh-squashed action (one-sample) or of the Gaussian
-    weight_init: Init = "orthogonal"  # policy/value weights: orthogonal (gain sqrt 2, small policy head) or lecun-uniform (Brax)
+    weight_init: Init = "lecun"  # policy/value weights: lecun-uniform (Brax) or orthogonal (gain sqrt 2, small policy head)
     clip_scope: ClipScope = "group"  # gradient clipping: per parameter group, or policy and value together (Brax)
     policy_hidden: tuple[int, ...] = (64, 64)  # policy MLP widths
     value_hidden: tuple[int, ...] = (256, 256)  # value MLP widths

@@ -7,7 +7,7 @@ import numpy as np
 
 from cdjax.envs import BatchedEnv, make_single_env
 from cdjax.envs.point import PointMass
-from cdjax.envs.resume import leaf_dependencies, needed_leaves
+from cdjax.envs.resume import leaf_dependencies, needed_leaves, scan_split
 from cdjax.io.checkpoints import named_leaves
 
 
@@ -20,6 +20,23 @@ def test_dependencies_follow_loops_and_branches_leaf_by_leaf():
 
     masks = leaf_dependencies(f, *(jnp.float32(1.0),) * 4)
     assert masks == [0b0011, 0b0100, 0b1101, 0b1000]
+
+
+def test_scan_split_from_shapes_equals_the_parameters():
+    # JAX releases rename the scan's parameters (jax 0.11 has no num_consts): the split read from the shapes
+    # must equal the one the parameters give, with consts, carries and scanned inputs of clashing shapes.
+    def f(c, h, xs, ys):
+        def body(carry, x):
+            (a, b), (xt, yt) = carry, x
+            return (a + c * xt, b * ys[0].sum()), (xt * a + yt, a)
+        return jax.lax.scan(body, (h, h), (xs, ys))
+
+    v = jnp.ones(3)
+    jaxpr = jax.make_jaxpr(f)(v, v, jnp.ones((5, 3)), jnp.ones((5, 3)))
+    (eqn,) = [e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan"]
+    bare = eqn.replace(params={k: v for k, v in eqn.params.items() if k not in ("num_consts", "num_carry")})
+    assert scan_split(bare) == scan_split(eqn) == (eqn.params["num_consts"], eqn.params["num_carry"])
+    assert eqn.params["num_carry"] == 2
 
 
 def _needed(env):

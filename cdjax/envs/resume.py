@@ -52,11 +52,40 @@ def _inner(closed, inputs: list[int]) -> list[int]:
     return _walk(jaxpr, inputs)
 
 
+def scan_split(eqn) -> tuple[int, int]:
+    """(number of consts, number of carries) of a scan equation.
+
+    Read from the parameters when they are there; otherwise (their names have changed between JAX
+    releases) from the shapes, which every release keeps: a carry has the same shape outside and inside
+    the body, a scanned input or output has the trip count in front of the body's shape. So the carries
+    are the leading outputs whose shape the body keeps, and the scanned inputs the trailing inputs that
+    lose their leading axis in the body; the consts are the rest.
+    """
+    params = eqn.params
+    body = getattr(params["jaxpr"], "jaxpr", params["jaxpr"])
+    n_carry = params.get("num_carry")
+    if n_carry is None:
+        n_carry = 0
+        for outer, inner in zip(eqn.outvars, body.outvars):
+            if outer.aval.shape != inner.aval.shape:
+                break
+            n_carry += 1
+    n_consts = params.get("num_consts")
+    if n_consts is None:
+        n_xs = 0
+        for outer, inner in zip(reversed(eqn.invars), reversed(body.invars)):
+            if outer.aval.shape[1:] != inner.aval.shape or outer.aval.ndim != inner.aval.ndim + 1:
+                break
+            n_xs += 1
+        n_consts = len(eqn.invars) - n_carry - n_xs
+    return n_consts, n_carry
+
+
 def _primitive(eqn, ins: list[int]) -> list[int]:
     """Output masks of one equation from its input masks."""
     params, n_out = eqn.params, len(eqn.outvars)
     if eqn.primitive.name == "scan":
-        consts, n_carry = params["num_consts"], params["num_carry"]
+        consts, n_carry = scan_split(eqn)
         carry, xs = ins[consts:consts + n_carry], ins[consts + n_carry:]
         while True:
             outs = _inner(params["jaxpr"], ins[:consts] + carry + xs)
@@ -65,11 +94,13 @@ def _primitive(eqn, ins: list[int]) -> list[int]:
                 return carry + outs[n_carry:]
             carry = grown
     if eqn.primitive.name == "while":
-        n_cond, n_body = params["cond_nconsts"], params["body_nconsts"]
+        # cond_jaxpr takes (cond consts, carry), body_jaxpr (body consts, carry); the carry is the output.
+        cond_jaxpr, body_jaxpr = (getattr(params[k], "jaxpr", params[k]) for k in ("cond_jaxpr", "body_jaxpr"))
+        n_cond, n_body = len(cond_jaxpr.invars) - n_out, len(body_jaxpr.invars) - n_out
         cond, body, carry = ins[:n_cond], ins[n_cond:n_cond + n_body], ins[n_cond + n_body:]
         while True:
-            stop = _inner(params["cond_jaxpr"], cond + carry)[0]  # the trip count touches every output
-            grown = [a | b | stop for a, b in zip(carry, _inner(params["body_jaxpr"], body + carry))]
+            stop = _inner(cond_jaxpr, cond + carry)[0]  # the trip count touches every output
+            grown = [a | b | stop for a, b in zip(carry, _inner(body_jaxpr, body + carry))]
             if grown == carry:
                 return carry
             carry = grown
