@@ -195,7 +195,8 @@ def set_initial_std(policy: Policy, params: dict, init_log_std) -> dict:
     if policy.std_mode == "global":
         p = dict(p, log_std=jnp.full_like(p["log_std"], init_log_std))
         return {"params": p}
-    # state: the std head's bias b with softplus(b) + floor = exp(init_log_std) (its weights start near 0).
+    # state: the std head's bias b with softplus(b) + floor = exp(init_log_std): the std in every state when the
+    # head's weights start near 0 (orthogonal init), the std where the features are 0 with lecun (as Brax).
     A = policy.action_size
     target = jnp.maximum(jnp.exp(init_log_std) - MIN_POLICY_STD, 1e-6)
     bias = target + jnp.log(-jnp.expm1(-target))  # softplus^-1, stable for small and large targets

@@ -284,13 +284,18 @@ class ObsAgent:
         N = self.config.num_segments
         Bs = self.config.minibatch_seqs
 
+        names = {}  # with_consistency -> the metric names, in the order of the stacked vector (set when traced)
+
         def minibatch(carry, inp, with_consistency):
             params, opt_state = carry
             mb, key = inp
             offsets = consistency.window_offsets(key, self.L, self.k, self.config.num_windows)
             grads, metrics = jax.grad(self.loss, has_aux=True)(params, norms, mb, offsets, hp, with_consistency)
             updates, opt_state = tx.update(grads, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), metrics
+            # one stacked vector per minibatch, not one output per metric: on a GPU each scan output is a
+            # small write of its own in every one of the epochs x minibatches steps
+            names[with_consistency] = list(metrics)
+            return (optax.apply_updates(params, updates), opt_state), jnp.stack(list(metrics.values()))
 
         def epoch(carry, key, with_consistency):
             key_perm, key_mb = jax.random.split(key)
@@ -306,13 +311,14 @@ class ObsAgent:
         diagnostics = self.grad_norms(params, norms, first, offsets, hp)
         epoch_keys = jax.random.split(key_epochs, self.config.num_epochs)
         n_cc = self.config.num_epochs if self.config.cc_epochs == 0 else self.config.cc_epochs
-        carry, metrics = jax.lax.scan(functools.partial(epoch, with_consistency=True), (params, opt_state),
+        carry, stacked = jax.lax.scan(functools.partial(epoch, with_consistency=True), (params, opt_state),
                                       epoch_keys[:n_cc])
-        if n_cc < self.config.num_epochs:
-            carry, rest = jax.lax.scan(functools.partial(epoch, with_consistency=False), carry, epoch_keys[n_cc:])
-            metrics = {name: jnp.concatenate([value, rest[name]]) if name in rest else value
-                       for name, value in metrics.items()}
-        metrics = jax.tree.map(jnp.mean, metrics)
+        metrics = dict(zip(names[True], stacked.mean((0, 1))))
+        if n_cc < self.config.num_epochs:  # a metric of both parts: the mean over all epochs
+            carry, stacked = jax.lax.scan(functools.partial(epoch, with_consistency=False), carry, epoch_keys[n_cc:])
+            n_rest = self.config.num_epochs - n_cc
+            for name, value in zip(names[False], stacked.mean((0, 1))):
+                metrics[name] = (n_cc * metrics[name] + n_rest * value) / self.config.num_epochs
         metrics.update(diagnostics)
         return carry, metrics
 

@@ -77,12 +77,18 @@ def test_env_steps_and_hand_over(setup):
     from cdjax import networks
     from cdjax import normalize as nz
 
-    policy = networks.Policy(2, CONFIG.policy_hidden, CONFIG.activation, CONFIG.policy_std, CONFIG.weight_init)
-    obs = jax.random.uniform(jax.random.key(9), (64, 4), minval=-1.0, maxval=1.0)
-    _, std = policy.apply(state.params["policy"], nz.normalize(state.norms.obs, obs))
-    np.testing.assert_allclose(std, np.exp(HParams().init_log_std), rtol=0.05)
     head = lambda p: p["params"]["MLP_0"][f"Dense_{len(CONFIG.policy_hidden)}"]  # noqa: E731
     np.testing.assert_array_equal(head(state.params["policy"])["kernel"][:, 2:], head(start.params["policy"])["kernel"][:, 2:])
+    np.testing.assert_array_equal(head(state.params["policy"])["bias"][2:], head(start.params["policy"])["bias"][2:])
+    # the std head's bias is the one init_log_std set: std = exp(init_log_std) where its weights read zero features
+    np.testing.assert_allclose(jax.nn.softplus(head(state.params["policy"])["bias"][2:]) + networks.MIN_POLICY_STD,
+                               np.exp(HParams().init_log_std), rtol=1e-5)
+    # with small head weights (orthogonal init) the std is exp(init_log_std) in every state
+    small = networks.Policy(2, CONFIG.policy_hidden, CONFIG.activation, CONFIG.policy_std, "orthogonal")
+    params = networks.set_initial_std(small, small.init(jax.random.key(3), jnp.zeros((1, 4))), HParams().init_log_std)
+    obs = jax.random.uniform(jax.random.key(9), (64, 4), minval=-1.0, maxval=1.0)
+    _, std = small.apply(params, nz.normalize(state.norms.obs, obs))
+    np.testing.assert_allclose(std, np.exp(HParams().init_log_std), rtol=0.05)
     assert float(state.norms.obs.count) == 16 * (25 + 2 * 20)  # random + MPC data, not the DAgger rollouts
     np.testing.assert_array_equal(state.env_state.t, 0)
     assert int(state.update_step) == 0 and float(state.episodes.done_count) == 0

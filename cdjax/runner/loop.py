@@ -337,7 +337,10 @@ class Loop:
             self.say("The final evaluation is already in eval.jsonl.")
         else:
             evaluate_arms(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes, True, self.say)
-        from cdjax.plots import plot_run
-
+        try:
+            from cdjax.plots import plot_run
+        except ImportError as err:  # an install without the plotting stack (e.g. a bare GPU image)
+            self.say(f"No plots or summary: {err}; `cdjax plot {self.rd.path}` makes them where it is installed.")
+            return
         written = plot_run(self.rd.path, reps=self.spec.bootstrap_reps, say=self.say)
         self.say(f"Wrote {', '.join(str(p) for p in written.values())}.")
