@@ -99,11 +99,14 @@ ValueFn = Callable[[jax.Array], jax.Array]
 
 
 def closed_loop(env: BatchedEnv, act: ActFn, value: ValueFn, env_state: EnvState, stats: EpisodeStats,
-                key: jax.Array, length: int, gamma) -> tuple[tuple[EnvState, EpisodeStats], Transition]:
+                key: jax.Array, length: int, gamma,
+                timeouts_only: bool = False) -> tuple[tuple[EnvState, EpisodeStats], Transition]:
     """Run the policy for `length` steps in all B environments.
 
     act(obs [B, O], key) -> (action, raw_action, noise [B, A], log_prob [B]).
-    value(obs [N, O]) -> [N]: not applied per step but after the scan, in one batched pass (`_values`).
+    value(obs [N, O]) -> [N]: not applied per step but after the scan, in one batched pass (`_values`);
+    with `timeouts_only` only on the final observations of time-outs (`timeout_values`: the one thing a
+    learner that recomputes GAE with its current value net needs from acting time), value left None.
     Returns ((env_state, stats), Transition with leaves [length, B, ...]).
     """
     assert env_state.obs.shape == (env.num_envs, env.observation_size), env_state.obs.shape
@@ -119,8 +122,25 @@ def closed_loop(env: BatchedEnv, act: ActFn, value: ValueFn, env_state: EnvState
         return (env_state, stats), tr
 
     carry, traj = jax.lax.scan(step, (env_state, stats.start_rollout()), jax.random.split(key, length))
+    if timeouts_only:
+        return carry, traj.replace(next_value=timeout_values(value, traj, env.max_timeouts(length)))
     v_obs, v_next = _values(value, traj, env.restart_obs(env_state))
     return carry, traj.replace(value=v_obs, next_value=v_next)
+
+
+def timeout_values(value: ValueFn, traj: Transition, max_timeouts: int) -> jax.Array:
+    """[T, B]: value(next_obs) where the step timed out (the final observation, bootstrapped), 0 elsewhere.
+
+    An env times out at most `max_timeouts` times in T steps, so only that many rows per env are valued
+    (one for T up to the episode length) instead of T: each env's time-out steps are sorted to the front.
+    """
+    T, B, O = traj.next_obs.shape
+    m = min(max_timeouts, T)
+    steps = jnp.argsort(~traj.truncated, axis=0, stable=True)[:m]  # [m, B]: time-out steps first, in order
+    rows = jnp.take_along_axis(traj.next_obs, steps[..., None], axis=0)
+    hit = jnp.take_along_axis(traj.truncated, steps, axis=0)
+    v = jnp.where(hit, value(rows.reshape(m * B, O)).reshape(m, B), 0.0)
+    return jnp.zeros((T, B), jnp.float32).at[steps, jnp.arange(B)[None]].set(v)
 
 
 def _values(value: ValueFn, traj: Transition, restart_obs: jax.Array | None) -> tuple[jax.Array, jax.Array]:

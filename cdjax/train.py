@@ -160,9 +160,10 @@ class ObsAgent:
             last_return=nan, last_disc_return=nan, key=key_train, update_step=jnp.zeros((), jnp.int32))
         return strong_types(state)
 
-    def advantages(self, params, norms, mb: "Batch", hp, values=None):
+    def advantages(self, params, norms, mb: "Batch", hp, values=None, v_last=None):
         """GAE of a minibatch of sequences [L, Bs] with the current value net (no gradient through it);
-        `values` [L, Bs]: the value net's output on mb.obs when the caller has it already.
+        `values` [L, Bs], `v_last` [Bs]: the value net's output on mb.obs and on mb.next_obs[-1] when the
+        caller has them already.
 
         V(obs[t+1]) is the current value of the next row except where the episode ended after t: there
         the bootstrap target is V(next_obs[t]), the final observation, taken from the rollout (only
@@ -170,8 +171,9 @@ class ObsAgent:
         """
         if values is None:
             values = self.value.apply(params["value"], nz.normalize(norms.obs, mb.obs))
-        v = jax.lax.stop_gradient(values)
-        v_last = jax.lax.stop_gradient(self.value.apply(params["value"], nz.normalize(norms.obs, mb.next_obs[-1])))
+        if v_last is None:
+            v_last = self.value.apply(params["value"], nz.normalize(norms.obs, mb.next_obs[-1]))
+        v, v_last = jax.lax.stop_gradient(values), jax.lax.stop_gradient(v_last)
         v_next = jnp.concatenate([jnp.where(mb.ended[:-1], mb.next_value[:-1], v[1:]), v_last[None]])
         return losses.gae(mb.reward * hp.reward_scale, v, v_next, mb.valid & ~mb.terminated, mb.ended, hp.gamma,
                           hp.gae_lambda, mb.valid)
@@ -180,10 +182,13 @@ class ObsAgent:
         """The named loss terms of one minibatch mb (leaves [L, Bs, ...]) -> ({name: scalar}, metrics)."""
         obs_n = nz.normalize(norms.obs, mb.obs)
         mean, std = self.policy.apply(params["policy"], obs_n)
-        values = self.value.apply(params["value"], obs_n)
-        if self.config.gae_in_loss:
-            adv, returns = self.advantages(params, norms, mb, hp, values)
+        if self.config.gae_in_loss:  # one value pass over the sequences and the row each bootstraps on
+            rows = jnp.concatenate([obs_n, nz.normalize(norms.obs, mb.next_obs[-1:])])
+            values_all = self.value.apply(params["value"], rows)
+            values = values_all[:-1]
+            adv, returns = self.advantages(params, norms, mb, hp, values, values_all[-1])
         else:
+            values = self.value.apply(params["value"], obs_n)
             adv, returns = mb.advantages, mb.returns
         entropy_noise = mb.noise if self.config.entropy == "squashed" else None
         ppo, metrics = losses.ppo_loss(mean, std, values, mb.raw_action, mb.log_prob, adv, returns, mb.valid,
@@ -269,10 +274,14 @@ class ObsAgent:
         def value_of(obs):
             return self.value.apply(params["value"], nz.normalize(norms.obs, obs))
 
+        # GAE recomputed in each minibatch needs of acting time only the bootstrap values of time-outs
+        in_loss = self.config.gae_in_loss
         (env_state, episodes), traj = closed_loop(self.env, behaviour, value_of, state.env_state, state.episodes,
-                                                  key, self.T, hp.gamma)
-        adv, returns = losses.gae(traj.reward * hp.reward_scale, traj.value, traj.next_value,
-                                  traj.valid & ~traj.terminated, traj.ended, hp.gamma, hp.gae_lambda, traj.valid)
+                                                  key, self.T, hp.gamma, timeouts_only=in_loss)
+        adv = returns = None
+        if not in_loss:
+            adv, returns = losses.gae(traj.reward * hp.reward_scale, traj.value, traj.next_value,
+                                      traj.valid & ~traj.terminated, traj.ended, hp.gamma, hp.gae_lambda, traj.valid)
         batch = Batch(traj.obs, traj.next_obs, traj.action, traj.raw_action, traj.noise, traj.log_prob,
                       traj.reward, traj.terminated, traj.ended, traj.valid, traj.next_value, adv, returns)
         return env_state, episodes, traj, batch
@@ -373,8 +382,8 @@ class Batch:
     ended: jax.Array
     valid: jax.Array
     next_value: jax.Array  # V(next_obs) at acting time: the bootstrap of time-outs inside a sequence
-    advantages: jax.Array  # GAE over the whole rollout at acting time (used when gae_in_loss is off)
-    returns: jax.Array
+    advantages: jax.Array | None  # GAE over the whole rollout at acting time (None when gae_in_loss)
+    returns: jax.Array | None
 
 
 def make_train(config: Config) -> Callable[[jax.Array, HParams], tuple[TrainState, dict]]:

@@ -8,7 +8,7 @@ import optax
 import pytest
 
 from cdjax import HParams, consistency
-from cdjax.train import TERM_GROUPS, refresh_norms, term_weights, to_segments
+from cdjax.train import TERM_GROUPS, make_trainer, refresh_norms, term_weights, to_segments
 
 from _shared import POINT, compiled
 
@@ -122,12 +122,15 @@ def test_sequence_minibatches_update_runs_and_learns_the_model():
 
 def test_gae_in_the_loss_equals_the_rollout_gae_with_the_same_value_net(point_batch):
     """With the rollout's own parameters and statistics, recomputing GAE inside a minibatch of whole-rollout
-    sequences gives the advantages computed at acting time (time-outs bootstrap on the final observation)."""
+    sequences (from a rollout that valued only the time-outs' final observations) gives the advantages that
+    GAE once per rollout computes at acting time (time-outs bootstrap on the final observation)."""
     trainer, state, traj, batch, _ = point_batch
-    assert bool(traj.truncated.any()) or bool(traj.terminated.any())
+    assert bool(traj.truncated.any()) and batch.advantages is None
+    once = make_trainer(POINT.replace(gae_in_loss=False))
+    _, _, _, full = jax.jit(once.collect)(state, HP, jax.random.key(7))  # the same rollout
     adv, ret = jax.jit(trainer.advantages)(state.params, state.norms, batch, HP)
-    np.testing.assert_allclose(adv, batch.advantages, rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(ret, batch.returns, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(adv, full.advantages, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(ret, full.returns, rtol=1e-4, atol=1e-5)
 
 
 def test_time_out_counts_physics_steps_with_action_repeat():

@@ -160,7 +160,7 @@ def test_rollout_values_are_values_of_obs_and_next_obs(reset_mode):
     from cdjax import networks
     from cdjax import normalize as nz
 
-    config = POINT.replace(arm="model-free", episode_length=5, reset_mode=reset_mode)
+    config = POINT.replace(arm="model-free", episode_length=5, reset_mode=reset_mode, gae_in_loss=False)
     trainer = make_trainer(config)
     state = jax.jit(trainer.init)(jax.random.key(2), HParams())
     env_state = state.env_state
@@ -173,3 +173,12 @@ def test_rollout_values_are_values_of_obs_and_next_obs(reset_mode):
         state.params["value"], nz.normalize(state.norms.obs, obs))
     np.testing.assert_allclose(traj.value, value(traj.obs), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(traj.next_value, value(traj.next_obs), rtol=1e-6, atol=1e-6)
+    # GAE in the loss: only the time-outs' final observations are valued at acting time
+    in_loss = make_trainer(config.replace(gae_in_loss=True))
+    assert in_loss.env.max_timeouts(config.rollout_len) == -(-config.rollout_len // 5) >= 2
+    _, _, lean, batch = jax.jit(in_loss.collect)(state, HParams(), jax.random.key(5))
+    assert lean.value is None and batch.advantages is None
+    assert int(lean.truncated.sum(0).max()) >= 2  # some env timed out more than once
+    np.testing.assert_array_equal(lean.truncated, traj.truncated)
+    np.testing.assert_allclose(lean.next_value, np.where(traj.truncated, value(traj.next_obs), 0.0), rtol=1e-6,
+                               atol=1e-6)

@@ -139,6 +139,12 @@ class BatchedEnv:
         self.observation_size = int(shapes.obs.shape[-1])
         self.action_size = int(env.action_size)
 
+    def max_timeouts(self, steps: int) -> int:
+        """The most time-outs one env can have in `steps` agent steps: each needs a whole episode of agent
+        steps since the env's last reset, the first of them possibly begun before."""
+        agent_steps = -(-self.episode_length // self.action_repeat)
+        return -(-steps // max(agent_steps, 1))
+
     def _reset_core(self, key):
         return strong_types(jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs)))
 
