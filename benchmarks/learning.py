@@ -197,11 +197,14 @@ def main(argv=None) -> int:
                    help="JAX's persistent compilation cache (Brax's seeds after the first reuse its programs)")
     p.add_argument("--report", nargs="+", metavar="DIR", help="make the table and plot from these directories")
     p.add_argument("--write", help="with --report: write the markdown here (and the plot beside it)")
+    p.add_argument("--parity-variants", nargs="+", default=["default"], metavar="VARIANT",
+                   help="with --report: the cdjax variants set against Brax PPO in the first table (default: default)")
     args = p.parse_args(argv)
     if args.report:
         from benchmarks import learning_report
 
-        text = learning_report.report([pathlib.Path(d) for d in args.report], args.write)
+        text = learning_report.report([pathlib.Path(d) for d in args.report], args.write,
+                                      tuple(args.parity_variants))
         print(text)
         return 0
     if args.tiny:

@@ -155,11 +155,14 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
     plt.close(fig)
 
 
-def report(dirs: list[pathlib.Path], write: str | None = None) -> str:
+def report(dirs: list[pathlib.Path], write: str | None = None, parity_variants: tuple[str, ...] = ("default",)) -> str:
+    """The markdown (and with `write` the file and the plot beside it); `parity_variants`: the cdjax variants
+    set against Brax PPO in the first table (the others appear in the ablation beside cdjax default)."""
     rows, metas = load(dirs)
     entries = table(rows)
-    parity = [e for e in entries if e["learner"] in ("brax-ppo", "cdjax default")]
-    lines = ["### cdjax model-free (defaults) against Brax PPO", "",
+    wanted = {"brax-ppo"} | {f"cdjax {v}" for v in parity_variants}
+    parity = [e for e in entries if e["learner"] in wanted]
+    lines = ["### cdjax model-free against Brax PPO", "",
              "| task | learner | seeds | env steps | final return IQM [95% CI] | mean over evals IQM [95% CI] | "
              "train env steps/s | device | final per seed |", "|---|---|---:|---:|---|---|---:|---|---|"]
     for e in parity:

@@ -2,6 +2,9 @@
 
     python -m experiments.consistency_weights.report --runs DIR_ANT DIR_HALFCHEETAH   # keeps their data here
     python -m experiments.consistency_weights.report                                 # from data/ (kept)
+    python -m experiments.consistency_weights.report --data data-gru-recon --out tables-gru-recon.md \
+        --figure grid-gru-recon.png                                                  # the first encoder's grid
+    python -m experiments.consistency_weights.report --default-sweep DIR             # + the issue's default sweep
 
 Each task's run has one cd arm whose hyper-parameter grid crosses cc_model (the consistency gradient's
 weight on the model and the encoder) with cc_policy (its weight on the policy, through the actions), alpha
@@ -41,9 +44,9 @@ RATIOS = (("grad/consistency/policy", "grad/ppo/policy", "policy: l_cc / PPO"),
 SPREAD = "encoder/spread_real"
 
 
-def keep(run_dir: pathlib.Path, task: str) -> pathlib.Path:
-    """Copy run.json, eval.jsonl and metrics.jsonl (gzipped) of a run directory into data/<task>/."""
-    out = HERE / "data" / task
+def keep(run_dir: pathlib.Path, task: str, data: pathlib.Path) -> pathlib.Path:
+    """Copy run.json, eval.jsonl and metrics.jsonl (gzipped) of a run directory into <data>/<task>/."""
+    out = data / task
     out.mkdir(parents=True, exist_ok=True)
     for name in ("run.json", "eval.jsonl"):
         shutil.copy(run_dir / name, out / name)
@@ -120,6 +123,28 @@ def tables(task: str, rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def default_sweep(run_dir: pathlib.Path, reps: int = 2000) -> str:
+    """The issue's check at the defaults (arms mbmf and cd on ant): each arm's evaluation, and for cd the encoder
+    spread at update 1 and at the end of every run (their ratio must stay >= 0.1) and the gradient balance."""
+    curves, evals = plots.load_metrics(run_dir), plots.load_eval(run_dir)
+    lines = ["| arm | seeds | eval return, IQM [95% CI] | per seed | encoder spread: end / update 1, per seed | "
+             "lowest spread | policy: l_cc / PPO | model: l_cc / NLL |", "|" + "---|" * 8]
+    for (arm, label), c in sorted(curves.items()):
+        ev = evals.get((arm, label, True), {}).get("return", np.array([]))
+        cols = [arm, str(len(c.seeds)), _ci(stats.iqm_interval(ev, reps=reps)), ", ".join(f"{v:.0f}" for v in ev)]
+        spread = c.metrics.get(SPREAD)
+        if spread is None:
+            cols += ["–", "–", "–", "–"]
+        else:
+            first = spread[:, np.argmax(c.updates >= 1)]
+            ratio = plots.per_seed_final(c, SPREAD) / first
+            cols += [", ".join(f"{v:.2f}" for v in ratio), f"{np.nanmin(spread):.2g}"]
+            for num, den, _ in RATIOS:
+                cols.append(_ci(stats.iqm_interval(np.nanmean(c.metrics[num] / c.metrics[den], axis=1), reps=reps), 3))
+        lines.append("| " + " | ".join(cols) + " |")
+    return "\n".join(lines)
+
+
 def figure(results: dict[str, list[dict]], path: pathlib.Path) -> pathlib.Path:
     import matplotlib
 
@@ -156,19 +181,34 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.consistency_weights.report", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--runs", nargs="*", type=pathlib.Path, help="run directories, one per task in TASKS order")
+    p.add_argument("--data", type=pathlib.Path, default=HERE / "data", help="where the kept data is (or goes)")
     p.add_argument("--out", type=pathlib.Path, default=HERE / "tables.md", help="where the tables go")
+    p.add_argument("--figure", type=pathlib.Path, default=HERE / "grid.png", help="where the figure goes")
+    p.add_argument("--default-sweep", type=pathlib.Path,
+                   help="run directory of `cdjax sweep --env ant --arms mbmf cd` at the defaults (kept as "
+                        "<data>/ant-defaults); without it, the kept one is reported when there is one")
     args = p.parse_args(argv)
+    data = args.data if args.data.is_absolute() else HERE / args.data
+    out = args.out if args.out.is_absolute() or args.out.parent != pathlib.Path(".") else HERE / args.out
+    fig = args.figure if args.figure.is_absolute() or args.figure.parent != pathlib.Path(".") else HERE / args.figure
     results, parts = {}, []
     for i, task in enumerate(TASKS):
-        kept = keep(args.runs[i], task) if args.runs else HERE / "data" / task
+        kept = keep(args.runs[i], task, data) if args.runs else data / task
         run = _readable(kept)
         info = json.loads((run / "run.json").read_text())
         results[task] = cells(run)
         parts.append(tables(task, results[task]) + f"\n\nCommand: `{info.get('command', '?')}`\n")
         shutil.rmtree(run)
-    args.out.write_text("\n".join(parts))
-    figure(results, args.out.with_name("grid.png"))
-    print(args.out.read_text())
+    sweep = keep(args.default_sweep, "ant-defaults", data) if args.default_sweep else data / "ant-defaults"
+    if sweep.exists():
+        run = _readable(sweep)
+        info = json.loads((run / "run.json").read_text())
+        parts.append("### ant, the defaults: Mb-Mf against CD\n\n" + default_sweep(run)
+                     + f"\n\nCommand: `{info.get('command', '?')}`\n")
+        shutil.rmtree(run)
+    out.write_text("\n".join(parts))
+    figure(results, fig)
+    print(out.read_text())
     return 0
 
 
