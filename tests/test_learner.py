@@ -145,3 +145,23 @@ def test_time_out_counts_physics_steps_with_action_repeat():
         state, out = step(state, jnp.zeros((2, 2)))
         truncated.append(bool(out.truncated.all()))
     assert truncated == [False, False, True, False]  # 3 agent steps x 2 physics steps = 6
+
+
+def test_skip_if_not_finite_equals_optax_apply_if_finite():
+    """The select-based skip gives optax.apply_if_finite's updates and state over finite and non-finite steps."""
+    from cdjax.optim import skip_if_not_finite
+
+    params = {"w": jnp.arange(3.0), "b": jnp.ones((2, 2))}
+    inner = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1))
+    ours, ref = skip_if_not_finite(inner), optax.apply_if_finite(inner, max_consecutive_errors=1_000_000)
+    s_ours, s_ref = ours.init(params), ref.init(params)
+    grads = [{"w": jnp.array([1.0, -2.0, 0.5]), "b": jnp.full((2, 2), 0.3)},
+             {"w": jnp.array([jnp.nan, 1.0, 0.0]), "b": jnp.ones((2, 2))},
+             {"w": jnp.array([0.1, 0.2, jnp.inf]), "b": jnp.ones((2, 2))},
+             {"w": jnp.array([-1.0, 0.5, 2.0]), "b": jnp.full((2, 2), -0.7)}]
+    for g in grads:
+        (u_ours, s_ours), (u_ref, s_ref) = jax.jit(ours.update)(g, s_ours, params), ref.update(g, s_ref, params)
+        for a, b in zip(jax.tree.leaves((u_ours, s_ours)), jax.tree.leaves((u_ref, s_ref))):
+            np.testing.assert_array_equal(a, b)
+    assert int(s_ours.total_notfinite) == 2 and int(s_ours.notfinite_count) == 0
+    assert jax.tree.structure(s_ours) == jax.tree.structure(s_ref)
