@@ -66,7 +66,8 @@ def test_interrupted_and_resumed_is_the_same_run(whole, tmp_path):
 @pytest.mark.skipif(ale_available(), reason="ale-py is installed: the ALE games are offered")
 def test_without_the_extra_an_ale_game_says_what_to_install(tmp_path, capsys):
     with pytest.raises(SystemExit):
-        main(["sweep", "--setting", "atari", "--env", "ale-breakout", "--out", str(tmp_path / "ale")])
+        main(["sweep", "--setting", "atari", "--preset", "seaquest", "--out", str(tmp_path / "ale")])
     err = capsys.readouterr().err
     assert 'pip install -e ".[atari]"' in err and err.count("\n") <= 2, err
-    assert agents.get("atari").presets  # the MinAtar presets are there without the extra
+    assert not (tmp_path / "ale").exists()
+    assert {"breakout", "seaquest", "mspacman", "frostbite", "minatar-breakout"} <= set(agents.get("atari").presets)

@@ -15,11 +15,12 @@ from flax import struct
 from cdjax.consistency import KINDS
 from cdjax.protocol import ConfigError
 
+from cdjax.agents.atari import ale
 from cdjax.agents.atari.minatar import GAMES
 
 ARMS = ("a2c", "a2c-model", "a2c-cd")
-ALE_PREFIX = "ale-"  # env names of the real games: ale-breakout, ale-seaquest, ale-mspacman, ale-frostbite
-ALE_INSTALL = ("The ALE games need the optional extra `atari` (ale-py, GPL-2.0): pip install -e \".[atari]\".")
+ALE_PREFIX = "ale-"  # env names of the real games: ale-breakout, ale-seaquest, ale-mspacman, ale-frostbite, ...
+ALE_INSTALL = ale.INSTALL
 
 
 def ale_available() -> bool:
@@ -34,7 +35,7 @@ def ale_available() -> bool:
 class AtariConfig:
     """What fixes shapes or the graph; every field is a command-line option of `cdjax sweep --setting atari`."""
 
-    env: str = "breakout"  # MinAtar game (breakout, seaquest, asterix, freeway, space_invaders) or ALE game (ale-<game>)
+    env: str = "breakout"  # MinAtar game (breakout, seaquest, asterix, freeway, space_invaders) or ALE game (ale-breakout, ...)
     arm: Literal["a2c", "a2c-model", "a2c-cd"] = "a2c-cd"  # set by the arm name
     num_envs: int = 64  # parallel environments per run
     rollout_len: int = 16  # steps per environment per update: n of the n-step returns, and the windows' sequence
@@ -58,6 +59,8 @@ class AtariConfig:
         if self.is_ale:
             if not ale_available():
                 raise ConfigError(f"env={self.env!r}: {ALE_INSTALL}")
+            if self.env not in ale.GAMES:
+                raise ConfigError(f"Unknown ALE game {self.env!r}; choose one of {', '.join(ale.GAMES)}.")
         elif self.env not in GAMES:
             raise ConfigError(f"Unknown env {self.env!r}; choose a MinAtar game ({', '.join(GAMES)}) or "
                               "ale-<game> (e.g. ale-breakout).")

@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# A2C vs A2C + consistency on MinAtar games, 10 seeds vmapped per arm, stopped after a time limit; logs,
+# an evaluation over 100 episodes per run, the report (table + figure) and a tarball of the run directories.
+#
+#   bash experiments/atari/device.sh OUT SECONDS [GAME ...] [-- extra `cdjax sweep` options]
+#
+# GAMEs are MinAtar games (default: breakout seaquest); each runs `python -m cdjax.cli sweep --setting atari
+# --preset minatar-GAME`, on GPU i mod (number of GPUs); games sharing a GPU split its memory. Training gets
+# SECONDS minus 240 (at least 60): then it gets SIGINT, finishes the chunk in flight, saves a checkpoint and
+# its logs; a run stopped early is then evaluated at its last checkpoint (`cdjax eval --episodes 100`).
+# The whole script takes about SECONDS. gymnax is installed from ./.whl when the image lacks it.
+# OUT/GAME.log: the output of each game; OUT/runs/GAME: the run directory; OUT/report: RESULTS table and figure.
+set -u
+out=$1; limit=$2; shift 2
+games=(); while [ $# -gt 0 ] && [ "$1" != "--" ]; do games+=("$1"); shift; done
+[ "${1:-}" = "--" ] && shift
+[ ${#games[@]} -eq 0 ] && games=(breakout seaquest)
+train=$(( limit - 240 )); [ "$train" -lt 60 ] && train=60
+mkdir -p "$out/runs"
+if ! python -c "import gymnax" 2>/dev/null; then
+  pip install --quiet --no-index --no-deps --find-links .whl gymnax==1.0.1 gymnasium==1.3.0 \
+    farama-notifications==0.0.6 seaborn==0.13.2 cloudpickle==3.1.2 || { echo "gymnax is missing: carry .whl"; exit 1; }
+fi
+ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -lt 1 ] && ngpu=1
+share=$(( (${#games[@]} + ngpu - 1) / ngpu ))
+fraction=$(python -c "print(round(0.9 / $share, 2))")
+t0=$(date +%s)
+pids=()
+for i in "${!games[@]}"; do
+  g=${games[$i]}
+  CUDA_VISIBLE_DEVICES=$(( i % ngpu )) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction timeout -s INT -k 60 "$train" \
+    python -m cdjax.cli sweep --setting atari --preset "minatar-$g" --out "$out/runs/$g" --no-progress "$@" \
+    >"$out/$g.log" 2>&1 &
+  pids+=($!)
+done
+for p in "${pids[@]}"; do wait "$p"; done
+echo "training took $(( $(date +%s) - t0 )) s"
+for i in "${!games[@]}"; do
+  g=${games[$i]}
+  if ! grep -q '"episodes": 100' "$out/runs/$g/eval.jsonl" 2>/dev/null; then  # stopped before its final evaluation
+    CUDA_VISIBLE_DEVICES=$(( i % ngpu )) timeout -k 30 150 python -m cdjax.cli eval "$out/runs/$g" --episodes 100 \
+      >>"$out/$g.log" 2>&1
+  fi
+  echo "== $g"; tail -n 5 "$out/$g.log"
+done
+python -m experiments.atari.report "$out"/runs/* --out "$out/report" 2>&1 | tail -n 30
+tar -czf "$out/runs.tar.gz" --exclude=checkpoints --exclude=tb -C "$out" runs
+echo "total $(( $(date +%s) - t0 )) s"

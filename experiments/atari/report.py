@@ -1,0 +1,157 @@
+"""Table and sample-efficiency figure of the Atari experiments, from the run directories of `device.sh`.
+
+    python -m experiments.atari.report RUN_DIR [RUN_DIR ...] --out DIR     # writes DIR/results.md, DIR/curves.png
+
+One run directory per game (`cdjax sweep --setting atari`). Arms are compared at the same budget: a game whose
+runs were stopped by a time limit is cut at the largest env-step count that all of its arms reached, and the
+table says so. Statistics are cdjax.stats': IQM over seeds with a 95% stratified-bootstrap interval (rliable);
+final = mean of the last 10% of each seed's logged training returns up to the budget; AUC = env-step weighted
+mean of each seed's training-return curve up to the budget (sample efficiency); eval = the mean return of each
+seed's latest evaluation (100 episodes, greedy actions under sticky actions). Throughput: env steps per second
+of wall time of each arm over all of its runs (the arms of a game alternate chunks in one process).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+import numpy as np
+
+from cdjax import io, stats
+
+RETURN = "episode/return"
+COLORS = {"a2c": "#1f77b4", "a2c-model": "#7f7f7f", "a2c-cd": "#d62728"}
+BINS = 50  # points of the figure's curves: each seed's returns averaged within env-step bins
+
+
+def load(run_dir: pathlib.Path) -> dict:
+    """{"game", "arms": {arm: {"steps" [U], "returns" [S, U], "wall" [S, U]}}, "evals": {arm: [S]}} of a run dir."""
+    run = json.loads((run_dir / "run.json").read_text())
+    rows = io.read_jsonl(run_dir / "metrics.jsonl")
+    arms = {}
+    for arm in [a["name"] for a in run["arms"]]:
+        mine = [r for r in rows if r["arm"] == arm and r["update"] > 0]
+        updates = sorted({r["update"] for r in mine})
+        index = {u: i for i, u in enumerate(updates)}
+        steps = np.zeros(len(updates))
+        returns = np.full((run["seeds"], len(updates)), np.nan)
+        wall = np.full((run["seeds"], len(updates)), np.nan)
+        for r in mine:
+            i = index[r["update"]]
+            steps[i] = r["env_steps"]
+            value = r.get(RETURN)
+            returns[r["seed"], i] = np.nan if value is None else value
+            wall[r["seed"], i] = r["wall_s"]
+        arms[arm] = {"steps": steps, "returns": returns, "wall": wall}
+    evals: dict[str, dict[int, tuple]] = {}
+    for e in io.read_jsonl(run_dir / "eval.jsonl"):
+        seen = evals.setdefault(e["arm"], {})
+        if e["seed"] not in seen or e["update"] >= seen[e["seed"]][0]:
+            seen[e["seed"]] = (e["update"], e["eval/return"], e["episodes"], e["env_steps"])
+    return {"game": run["base_config"]["env"], "seeds": run["seeds"], "arms": arms, "evals": evals}
+
+
+def budget(data: dict) -> float:
+    """The largest env-step count every arm reached."""
+    return min(a["steps"][-1] for a in data["arms"].values() if a["steps"].size)
+
+
+def table_rows(data: dict, reps: int) -> list[dict]:
+    cut = budget(data)
+    out = []
+    for arm, a in data["arms"].items():
+        keep = a["steps"] <= cut
+        steps, returns = a["steps"][keep], a["returns"][:, keep]
+        present = np.ones(returns.shape, bool)  # every update logged a point (NaN before a first episode end)
+        final = stats.final_values(returns, present)
+        auc = stats.area_under_curve(returns, present, steps)
+        ev = data["evals"].get(arm, {})
+        eval_values = [ev[s][1] for s in sorted(ev) if ev[s][1] is not None]
+        wall = np.nanmax(a["wall"][:, keep])
+        out.append({
+            "game": data["game"], "arm": arm, "seeds": int(returns.shape[0]), "budget": cut,
+            "final": stats.iqm_interval(final, reps), "auc": stats.iqm_interval(auc, reps),
+            "eval": stats.iqm_interval(eval_values, reps),
+            "eval_steps": sorted({ev[s][3] for s in ev}), "eval_episodes": sorted({ev[s][2] for s in ev}),
+            "steps_per_s": steps[-1] * returns.shape[0] / wall if wall > 0 else np.nan,
+        })
+    return out
+
+
+def _cell(x: tuple) -> str:
+    point, low, high, n = x
+    return "n/a" if n == 0 else (f"{point:.2f} [{low:.2f}, {high:.2f}]" if n > 1 else f"{point:.2f}")
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| game | arm | seeds | env steps (budget) | final return | AUC return | eval return | eval at env steps "
+             "| env steps/s (all runs) |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['game']} | {r['arm']} | {r['seeds']} | {r['budget']:.3g} | {_cell(r['final'])} | "
+                     f"{_cell(r['auc'])} | {_cell(r['eval'])} ({'/'.join(map(str, r['eval_episodes']))} episodes) | "
+                     f"{', '.join(f'{s:.3g}' for s in r['eval_steps'])} | {r['steps_per_s']:,.0f} |")
+    lines.append("")
+    lines.append("IQM over seeds [95% stratified-bootstrap interval]. final: last 10% of the logged training returns "
+                 "up to the budget; AUC: env-step weighted mean of the training-return curve up to the budget; eval: "
+                 "latest evaluation of each seed (greedy actions, sticky actions as in training).")
+    return "\n".join(lines) + "\n"
+
+
+def binned(steps: np.ndarray, returns: np.ndarray, cut: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each seed's returns averaged within BINS equal env-step bins up to `cut`: (bin ends [P], values [S, P])."""
+    edges = np.linspace(0.0, cut, BINS + 1)
+    which = np.clip(np.searchsorted(edges, steps, side="left") - 1, 0, BINS - 1)
+    values = np.full((returns.shape[0], BINS), np.nan)
+    for b in range(BINS):
+        cols = (which == b) & (steps <= cut)
+        if cols.any():
+            values[:, b] = stats.nan_reduce(np.nanmean, returns[:, cols], axis=1)
+    return edges[1:], values
+
+
+def figure(datas: list[dict], path: pathlib.Path, reps: int) -> pathlib.Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(datas), figsize=(5 * len(datas), 3.6), squeeze=False)
+    for ax, data in zip(axes[0], datas):
+        cut = budget(data)
+        for arm, a in data["arms"].items():
+            x, values = binned(a["steps"], a["returns"], cut)
+            point, low, high, _ = stats.interval_curve(values, "iqm", reps)
+            ax.plot(x, point, color=COLORS.get(arm), label=arm)
+            ax.fill_between(x, low, high, color=COLORS.get(arm), alpha=0.2, linewidth=0)
+        ax.set_title(f"MinAtar {data['game']} ({data['seeds']} seeds)")
+        ax.set_xlabel("env steps per run")
+        ax.set_ylabel("training episode return (IQM, 95% CI)")
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dirs", nargs="+", type=pathlib.Path)
+    parser.add_argument("--out", type=pathlib.Path, required=True)
+    parser.add_argument("--bootstrap-reps", type=int, default=2000)
+    args = parser.parse_args(argv)
+    datas = [load(d) for d in args.run_dirs if (d / "metrics.jsonl").exists()]
+    if not datas:
+        raise SystemExit(f"No run directory with logged updates among {', '.join(map(str, args.run_dirs))}.")
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = [row for data in datas for row in table_rows(data, args.bootstrap_reps)]
+    text = markdown(rows)
+    (args.out / "results.md").write_text(text)
+    figure(datas, args.out / "curves.png", args.bootstrap_reps)
+    print(text)
+    print(f"Wrote {args.out / 'results.md'} and {args.out / 'curves.png'}")
+
+
+if __name__ == "__main__":
+    main()
