@@ -1,24 +1,21 @@
-"""The Atari setting on the CPU: A2C's returns and losses against hand-worked numbers, the MinAtar wrapper's
-ends and NaN guard, learning on MinAtar Breakout, vmap over seeds against each seed alone, a NaN run that
-poisons no other run, and an update that compiles once. Every jitted program is built once (module fixtures)."""
+"""The Atari setting's pieces on the CPU: A2C's returns and losses against hand-worked numbers, the MinAtar
+wrapper's ends and NaN guard, the arms as switches of one loss and the two consistency paths. Learning, vmap over
+seeds, compile-once and resume run through the command line in test_atari_cli.py."""
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from cdjax.agents.atari import AtariConfig, AtariHParams, MinAtarEnv, make_trainer
+from cdjax.agents.atari.learner import Batch
 from cdjax.agents.atari.losses import a2c_loss, latent_model_loss, n_step_returns
-from cdjax.evaluate import make_evaluator
 
 # The cpu-minatar preset's sizes: MinAtar Breakout, 16 envs x 8 steps per update.
-CONFIG = AtariConfig(env="breakout", arm="a2c-cd", num_envs=16, rollout_len=8, horizon=4, conv_channels=8, latent=64,
+CONFIG = AtariConfig(env="breakout", arm="a2c", num_envs=16, rollout_len=8, horizon=4, conv_channels=8, latent=64,
                      model_hidden=64, encoder_dim=16, episode_length=500)
 HP = AtariHParams(lr=3e-3)
-CHUNK = 4  # updates per call of the vmapped program
-CHUNKS = 80  # 320 updates, 40,960 env steps per run
 
 
 def test_n_step_returns_by_hand():
@@ -114,62 +111,39 @@ def test_minatar_ends_are_kept_apart_and_a_nan_is_contained():
     assert not np.asarray(out.terminated | out.truncated)[[1, 4]].any()
 
 
-@pytest.fixture(scope="module")
-def trained():
-    """Three vmapped runs of CONFIG: seeds 0 and 1, and seed 0 with a NaN entropy weight (every step skipped)."""
-    trainer = make_trainer(CONFIG)
-    keys = jax.random.split(jax.random.key(7), 2)
-    keys = jnp.concatenate([keys, keys[:1]])
-    hps = jax.tree.map(lambda x: jnp.full((3,), x, jnp.float32), HP)
-    hps = hps.replace(ent_coef=hps.ent_coef.at[2].set(jnp.nan))
-    init = jax.jit(jax.vmap(trainer.init))
+def test_the_arms_are_switches_and_each_consistency_path_reaches_only_its_own_parameters():
+    """On one rollout: the model's own loss never reaches the agent (a2c-model's agent gradient is a2c's); with
+    cc_policy = 0 the consistency term adds nothing to the agent's gradient, with cc_policy > 0 it does (through
+    the straight-through actions); with cc_model = 0 it adds nothing to the model's."""
+    configs = {arm: CONFIG.replace(arm=arm) for arm in ("a2c-model", "a2c-cd")}
+    learners = {arm: make_trainer(c).inner for arm, c in configs.items()}
+    params = jax.jit(learners["a2c-cd"].init_params)(jax.random.key(3))
+    # a batch of random frames, actions and ends (what the gradients reach does not depend on the data)
+    key_obs, key_next, key_act, key_reward, key_end = jax.random.split(jax.random.key(4), 5)
+    T, B, shape = CONFIG.rollout_len, CONFIG.num_envs, (10, 10, 4)
+    ended = jax.random.uniform(key_end, (T, B)) < 0.1
+    batch = Batch(obs=jax.random.bernoulli(key_obs, 0.2, (T, B) + shape).astype(jnp.float32),
+                  action=jax.random.randint(key_act, (T, B), 0, 3),
+                  reward=jax.random.bernoulli(key_reward, 0.2, (T, B)).astype(jnp.float32),
+                  next_obs=jax.random.bernoulli(key_next, 0.2, (T, B) + shape).astype(jnp.float32),
+                  terminated=ended, ended=ended, valid=jnp.ones((T, B), bool))
+    offsets = jnp.arange(CONFIG.rollout_len - CONFIG.horizon + 1)
 
-    @jax.jit
-    def chunk(state, hps):
-        return jax.vmap(lambda s, h: jax.lax.scan(lambda s, _: trainer.update(s, h), s, None, length=CHUNK))(
-            state, hps)
+    def grads(arm, hp):
+        mine = {k: v for k, v in params.items() if k in jax.eval_shape(learners[arm].init_params, jax.random.key(0))}
+        return jax.jit(jax.grad(learners[arm].loss, has_aux=True))(mine, batch, offsets, hp)[0]
 
-    start = init(keys, hps)
-    state, first = chunk(start, hps)
-    after_first = state
-    returns = [first["episode/return"]]
-    for _ in range(CHUNKS - 1):
-        state, metrics = chunk(state, hps)
-        returns.append(metrics["episode/return"])
-    return dict(trainer=trainer, keys=keys, hps=hps, start=start, after_first=after_first, first=first,
-                state=state, returns=np.concatenate([np.asarray(r) for r in returns], axis=1))
-
-
-def test_minatar_breakout_learns_clearly_above_random(trained):
-    trainer, hps = trained["trainer"], trained["hps"]
-    evaluator = make_evaluator(trainer, episodes=32, deterministic=False)
-    keys = jax.random.split(jax.random.key(11), 3)
-    untrained = np.asarray(evaluator(trainer.policy(trained["start"]), keys, hps)["return_mean"])[:2]
-    learnt = np.asarray(evaluator(trainer.policy(trained["state"]), keys, hps)["return_mean"])[:2]
-    # the initial policy is uniform (logit weights with gain 0.01): a random player scores ~0.5 a game
-    assert (untrained < 1.0).all(), untrained
-    assert (learnt > 3 * untrained).all(), (untrained, learnt)
-    late = np.nanmean(trained["returns"][:2, -40:], axis=1)
-    assert (late > 3 * untrained).all(), late  # the training returns say the same
-
-
-def test_vmap_over_seeds_equals_each_seed_alone_and_a_nan_run_poisons_nothing(trained):
-    trainer, keys, hps = trained["trainer"], trained["keys"], trained["hps"]
-    init, update = jax.jit(trainer.init), jax.jit(trainer.update)
-    for r in range(2):
-        hp = jax.tree.map(lambda x: x[r], hps)
-        state = init(keys[r], hp)
-        for i in range(CHUNK):
-            state, metrics = update(state, hp)
-            for name in ("loss/total", "loss/consistency", "model/latent_mse", "episode/return"):
-                np.testing.assert_allclose(trained["first"][name][r, i], metrics[name], rtol=2e-5, atol=1e-6,
-                                           err_msg=name)
-        for a, b in zip(jax.tree.leaves(trained["after_first"].params), jax.tree.leaves(state.params)):
-            np.testing.assert_allclose(a[r], b, rtol=2e-5, atol=1e-6)
-    assert update._cache_size() == 1  # the update compiles once: its output state has its input's types
-    assert not np.allclose(trained["first"]["loss/total"][0], trained["first"]["loss/total"][1])  # seeds differ
-    # the NaN run: every gradient was non-finite, every step skipped; its parameters are init's, finite
-    assert not np.isfinite(trained["first"]["loss/total"][2]).any()
-    for a, b in zip(jax.tree.leaves(trained["state"].params), jax.tree.leaves(trained["start"].params)):
-        np.testing.assert_array_equal(a[2], b[2])
-        assert np.isfinite(a[2]).all()
+    base = grads("a2c-cd", HP.replace(alpha=0.0))  # the a2c-model baseline inside the a2c-cd program
+    no_policy = grads("a2c-cd", HP.replace(cc_policy=0.0, cc_model=1.0))
+    no_model = grads("a2c-cd", HP.replace(cc_policy=1.0, cc_model=0.0))
+    for a, b in zip(jax.tree.leaves(grads("a2c-model", HP)), jax.tree.leaves({"agent": base["agent"],
+                                                                             "model": base["model"]})):
+        np.testing.assert_allclose(a, b, rtol=2e-5, atol=1e-7)  # another program: rounding only
+    for a, b in zip(jax.tree.leaves(no_policy["agent"]), jax.tree.leaves(base["agent"])):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(jax.tree.leaves(no_model["model"]), jax.tree.leaves(base["model"])):
+        np.testing.assert_array_equal(a, b)
+    for path, group in ((no_model, "agent"), (no_policy, "model")):
+        moved = [np.abs(np.asarray(a) - np.asarray(b)).max() for a, b in
+                 zip(jax.tree.leaves(path[group]), jax.tree.leaves(base[group]))]
+        assert max(moved) > 1e-6, group  # the other path is there
