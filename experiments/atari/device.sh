@@ -4,8 +4,10 @@
 #
 #   bash experiments/atari/device.sh OUT SECONDS [GAME ...] [-- extra `cdjax sweep` options]
 #
-# GAMEs are MinAtar games (default: breakout seaquest); each runs `python -m cdjax.cli sweep --setting atari
-# --preset minatar-GAME`, on GPU i mod (number of GPUs); games sharing a GPU split its memory. Training gets
+# GAMEs are MinAtar games (default: breakout seaquest), each run as `python -m cdjax.cli sweep --setting atari
+# --preset minatar-GAME`, or ALE games named ale-GAME (ale-breakout, ale-seaquest, ale-mspacman, ale-frostbite: one
+# seed, `--preset GAME`; ale-py is installed from ./.whl when missing). Game i runs on GPU i mod (number of GPUs);
+# games sharing a GPU split its memory. Extra options after -- go to every sweep (e.g. -- --steps 2000000). Training gets
 # SECONDS minus 240 (at least 60): then it gets SIGINT, finishes the chunk in flight, saves a checkpoint and
 # its logs; a run stopped early is then evaluated at its last checkpoint (`cdjax eval --episodes 100`).
 # The whole script takes about SECONDS. gymnax is installed from ./.whl when the image lacks it.
@@ -21,6 +23,9 @@ if ! python -c "import gymnax" 2>/dev/null; then
   pip install --quiet --no-index --no-deps --find-links .whl gymnax==1.0.1 gymnasium==1.3.0 \
     farama-notifications==0.0.6 seaborn==0.13.2 cloudpickle==3.1.2 || { echo "gymnax is missing: carry .whl"; exit 1; }
 fi
+if printf '%s\n' "${games[@]}" | grep -q '^ale-' && ! python -c "import ale_py" 2>/dev/null; then
+  pip install --quiet --no-index --no-deps --find-links .whl ale-py==0.12.1 || { echo "ale-py is missing: carry .whl"; exit 1; }
+fi
 ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -lt 1 ] && ngpu=1
 share=$(( (${#games[@]} + ngpu - 1) / ngpu ))
 fraction=$(python -c "print(round(0.9 / $share, 2))")
@@ -28,8 +33,9 @@ t0=$(date +%s)
 pids=()
 for i in "${!games[@]}"; do
   g=${games[$i]}
+  case $g in ale-*) preset=${g#ale-} ;; *) preset=minatar-$g ;; esac
   CUDA_VISIBLE_DEVICES=$(( i % ngpu )) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction timeout -s INT -k 60 "$train" \
-    python -m cdjax.cli sweep --setting atari --preset "minatar-$g" --out "$out/runs/$g" --no-progress "$@" \
+    python -m cdjax.cli sweep --setting atari --preset "$preset" --out "$out/runs/$g" --no-progress "$@" \
     >"$out/$g.log" 2>&1 &
   pids+=($!)
 done

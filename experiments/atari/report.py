@@ -125,7 +125,8 @@ def figure(datas: list[dict], path: pathlib.Path, reps: int) -> pathlib.Path:
             point, low, high, _ = stats.interval_curve(values, "iqm", reps)
             ax.plot(x, point, color=COLORS.get(arm), label=arm)
             ax.fill_between(x, low, high, color=COLORS.get(arm), alpha=0.2, linewidth=0)
-        ax.set_title(f"MinAtar {data['game']} ({data['seeds']} seeds)")
+        name = data["game"] if data["game"].startswith("ale-") else f"MinAtar {data['game']}"
+        ax.set_title(f"{name} ({data['seeds']} seeds)")
         ax.set_xlabel("env steps per run")
         ax.set_ylabel("training episode return (IQM, 95% CI)")
         ax.legend()
