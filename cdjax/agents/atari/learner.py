@@ -207,10 +207,10 @@ class A2C:
         ret = stats.mean_returns(state.last_return)[0]
         disc_ret = stats.mean_returns(state.last_disc_return)[1]
         metrics.update({f"grad/{name}": optax.global_norm(g) for name, g in grads.items()})
-        metrics.update({"episode/return": ret, "episode/discounted_return": disc_ret,
-                        "episode/count": stats.done_count,
-                        "train/reward": batch.reward.mean(), "train/skipped_step": (~jnp.isfinite(
-                            optax.global_norm(grads))).astype(jnp.float32)})
+        metrics.update({
+            "episode/return": ret, "episode/discounted_return": disc_ret, "episode/count": stats.done_count,
+            "train/reward": batch.reward.mean(), "env/invalid_fraction": 1.0 - batch.valid.astype(jnp.float32).mean(),
+            "train/skipped_step": (~jnp.isfinite(optax.global_norm(grads))).astype(jnp.float32)})
         new = state.replace(params=params, opt_state=opt_state, env_state=env_state, stats=stats, last_return=ret,
                             last_disc_return=disc_ret, key=key, step=state.step + 1)
         return new, metrics
