@@ -27,12 +27,15 @@ BINS = 50  # points of the figure's curves: each seed's returns averaged within 
 
 
 def load(run_dir: pathlib.Path) -> dict:
-    """{"game", "arms": {arm: {"steps" [U], "returns" [S, U], "wall" [S, U]}}, "evals": {arm: [S]}} of a run dir."""
+    """{"game", "seeds", "arms": {label: {"steps" [U], "returns" [S, U], "wall" [S, U]}}, "evals": {label: {seed:
+    (update, return, episodes, env steps)}}} of a run dir; a label is the arm, with its hyper-parameters when the
+    arm ran a grid (e.g. "a2c-cd alpha=1.0,lr=0.002")."""
     run = json.loads((run_dir / "run.json").read_text())
     rows = io.read_jsonl(run_dir / "metrics.jsonl")
     arms = {}
-    for arm in [a["name"] for a in run["arms"]]:
-        mine = [r for r in rows if r["arm"] == arm and r["update"] > 0]
+    for arm, hp in [(a["name"], h) for a in run["arms"] for h in a["hp_labels"]]:
+        label = _label(run, arm, hp)
+        mine = [r for r in rows if r["arm"] == arm and r["hp"] == hp and r["update"] > 0]
         updates = sorted({r["update"] for r in mine})
         index = {u: i for i, u in enumerate(updates)}
         steps = np.zeros(len(updates))
@@ -44,13 +47,19 @@ def load(run_dir: pathlib.Path) -> dict:
             value = r.get(RETURN)
             returns[r["seed"], i] = np.nan if value is None else value
             wall[r["seed"], i] = r["wall_s"]
-        arms[arm] = {"steps": steps, "returns": returns, "wall": wall}
+        arms[label] = {"arm": arm, "steps": steps, "returns": returns, "wall": wall}
     evals: dict[str, dict[int, tuple]] = {}
     for e in io.read_jsonl(run_dir / "eval.jsonl"):
-        seen = evals.setdefault(e["arm"], {})
+        seen = evals.setdefault(_label(run, e["arm"], e["hp"]), {})
         if e["seed"] not in seen or e["update"] >= seen[e["seed"]][0]:
             seen[e["seed"]] = (e["update"], e["eval/return"], e["episodes"], e["env_steps"])
     return {"game": run["base_config"]["env"], "seeds": run["seeds"], "arms": arms, "evals": evals}
+
+
+def _label(run: dict, arm: str, hp: str) -> str:
+    """The arm's name, and its hyper-parameter label where the arm has more than one combination."""
+    labels = next(a["hp_labels"] for a in run["arms"] if a["name"] == arm)
+    return arm if len(labels) == 1 else f"{arm} {hp}"
 
 
 def budget(data: dict) -> float:
@@ -61,6 +70,9 @@ def budget(data: dict) -> float:
 def table_rows(data: dict, reps: int) -> list[dict]:
     cut = budget(data)
     out = []
+    runs: dict[str, int] = {}
+    for a in data["arms"].values():
+        runs[a["arm"]] = runs.get(a["arm"], 0) + a["returns"].shape[0]
     for arm, a in data["arms"].items():
         keep = a["steps"] <= cut
         steps, returns = a["steps"][keep], a["returns"][:, keep]
@@ -75,7 +87,8 @@ def table_rows(data: dict, reps: int) -> list[dict]:
             "final": stats.iqm_interval(final, reps), "auc": stats.iqm_interval(auc, reps),
             "eval": stats.iqm_interval(eval_values, reps),
             "eval_steps": sorted({ev[s][3] for s in ev}), "eval_episodes": sorted({ev[s][2] for s in ev}),
-            "steps_per_s": steps[-1] * returns.shape[0] / wall if wall > 0 else np.nan,
+            # the arm's program runs all of its hyper-parameter combinations x seeds together
+            "steps_per_s": steps[-1] * runs[a["arm"]] / wall if wall > 0 else np.nan,
         })
     return out
 
@@ -87,7 +100,7 @@ def _cell(x: tuple) -> str:
 
 def markdown(rows: list[dict]) -> str:
     lines = ["| game | arm | seeds | env steps (budget) | final return | AUC return | eval return | eval at env steps "
-             "| env steps/s (all runs) |", "|---|---|---|---|---|---|---|---|---|"]
+             "| env steps/s (the arm's runs) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['game']} | {r['arm']} | {r['seeds']} | {r['budget']:.3g} | {_cell(r['final'])} | "
                      f"{_cell(r['auc'])} | {_cell(r['eval'])} ({'/'.join(map(str, r['eval_episodes']))} episodes) | "
@@ -123,8 +136,9 @@ def figure(datas: list[dict], path: pathlib.Path, reps: int) -> pathlib.Path:
         for arm, a in data["arms"].items():
             x, values = binned(a["steps"], a["returns"], cut)
             point, low, high, _ = stats.interval_curve(values, "iqm", reps)
-            ax.plot(x, point, color=COLORS.get(arm), label=arm)
-            ax.fill_between(x, low, high, color=COLORS.get(arm), alpha=0.2, linewidth=0)
+            color = COLORS.get(arm) if arm in COLORS else None
+            (line,) = ax.plot(x, point, color=color, label=arm)
+            ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
         name = data["game"] if data["game"].startswith("ale-") else f"MinAtar {data['game']}"
         ax.set_title(f"{name} ({data['seeds']} seeds)")
         ax.set_xlabel("env steps per run")
