@@ -35,6 +35,7 @@ from cdjax.agents.atari.config import AtariConfig, AtariHParams
 from cdjax.agents.atari.minatar import MinAtarEnv
 from cdjax.agents.atari.networks import ActorCritic, LatentModel, torso_of
 from cdjax.networks import Encoder, init_encoder
+from cdjax.optim import skip_if_not_finite
 from cdjax.rollout import EpisodeStats
 
 TERMS = ("a2c", "model", "consistency", "encoder_aux")
@@ -117,7 +118,7 @@ class A2C:
                   "encoder": (optax.set_to_zero() if self.config.encoder == "frozen-gru"
                               else clipped(optax.adam(hp.lr_model)))}
         labels = lambda params: {name: jax.tree.map(lambda _: name, sub) for name, sub in params.items()}  # noqa: E731
-        return optax.apply_if_finite(optax.multi_transform(groups, labels), max_consecutive_errors=1_000_000)
+        return skip_if_not_finite(optax.multi_transform(groups, labels))
 
     def init(self, key: jax.Array, hp: AtariHParams) -> A2CState:
         key_params, key_env, key_next = jax.random.split(key, 3)
