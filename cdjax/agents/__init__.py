@@ -14,7 +14,7 @@ import importlib
 from cdjax.protocol import ConfigError, Setting
 
 DEFAULT = "obs"  # the setting of `cdjax sweep` without --setting
-_BUILTIN = {"obs": "cdjax.agents.obs_space"}  # name -> module defining SETTING
+_BUILTIN = {"obs": "cdjax.agents.obs_space", "pixel": "cdjax.agents.pixel"}  # name -> module defining SETTING
 _REGISTRY: dict[str, Setting] = {}
 
 
