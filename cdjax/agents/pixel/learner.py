@@ -95,17 +95,17 @@ class PixelLearner:
                              heldout=jax.tree.map(lambda _: False, shapes.heldout))
 
     # --- losses --------------------------------------------------------------------------------
-    def consistency_terms(self, params, filtered, actions, hp, key) -> tuple[dict, dict]:
-        """l_cc over `cc_windows` random k-step windows of each sequence (filtered [L, B, ...], actions [L, B, A])."""
+    def consistency_terms(self, params, states, actions, eps, offsets, hp) -> tuple[dict, dict]:
+        """l_cc over the k-step windows starting at `offsets` [n] of each sequence.
+
+        states [L, B, 2H]: the closed loop's (h, c) (the caller stops their gradient); actions [L, B, A] the
+        expert's; eps [L-1, B, Z]: the prior's noise at each time step (a window starting at t0 uses
+        eps[t0..t0+k-1], so every window imagines from the same noise at the same time).
+        """
         c = self.config
         H = c.hidden
-        key_offsets, key_eps = jax.random.split(key)
-        states = jax.lax.stop_gradient(jnp.concatenate([filtered.h, filtered.c], -1))  # [L, B, 2H]
-        L, B = actions.shape[:2]
-        offsets = consistency.window_offsets(key_offsets, L - 1, c.horizon, c.cc_windows)
-        eps = jax.random.normal(key_eps, (L - 1, B, c.latent))
         extended = jnp.concatenate([actions[:-1], eps], -1)  # the prior's noise travels with the actions
-        ended = jnp.zeros((L - 1, B), bool)
+        ended = jnp.zeros(eps.shape[:2], bool)
         s0, steps, real, mask = consistency.windows(states[:-1], states[1:], extended, ended, ~ended, offsets,
                                                     c.horizon)
         policy_params = consistency.scale_gradient(params["policy"], hp.cc_policy)
@@ -135,7 +135,11 @@ class PixelLearner:
                    "model/kl_per_frame": parts["kl"].mean(), "loss/imitation": imitation,
                    "model/posterior_std": filtered.post_std.mean(), "model/prior_std": filtered.prior_std.mean()}
         if self.config.use_consistency:
-            cc_terms, cc_metrics = self.consistency_terms(params, filtered, actions, hp, key_cc)
+            key_offsets, key_eps = jax.random.split(key_cc)
+            states = jax.lax.stop_gradient(jnp.concatenate([filtered.h, filtered.c], -1))
+            offsets = consistency.window_offsets(key_offsets, L - 1, self.config.horizon, self.config.cc_windows)
+            eps = jax.random.normal(key_eps, (L - 1,) + filtered.z.shape[1:])
+            cc_terms, cc_metrics = self.consistency_terms(params, states, actions, eps, offsets, hp)
             terms.update(cc_terms)
             weights.update(consistency=hp.alpha, encoder_aux=hp.enc_aux_coef)
             metrics.update(cc_metrics)
@@ -144,12 +148,11 @@ class PixelLearner:
 
     def heldout_metrics(self, params, heldout: Dataset, key) -> dict:
         c = self.config
-        key_pick, key_ol, key_elbo = jax.random.split(key, 3)
+        key_pick, key_ol = jax.random.split(key)
         pick = jax.random.choice(key_pick, heldout.actions.shape[0], (min(HELDOUT_BATCH, c.heldout_sequences),),
                                  replace=False)
         frames, actions = time_major(heldout.frames[pick]), time_major(heldout.actions[pick])
-        loglik, _ = self.model.openloop_loglik(params, frames, actions, key_ol, c.context)
-        elbo, _, filtered = self.model.elbo(params, frames, actions, key_elbo)
+        loglik, _, elbo, filtered = self.model.openloop_loglik(params, frames, actions, key_ol, c.context)
         return {"heldout/loglik_k": loglik[:c.horizon].mean(), "heldout/loglik_50": loglik.mean(),
                 "heldout/elbo_per_frame": elbo.mean() / actions.shape[0],
                 "heldout/imitation": ((self.model.act(params, filtered.h) - actions) ** 2).mean()}

@@ -243,18 +243,21 @@ class LtqModel:
         return -(nll + kl).sum(0), {"nll": nll, "kl": kl}, out
 
     def openloop_loglik(self, params, frames, actions, key, context: int):
-        """log p(f | open loop) of each frame after `context` filtered steps: frames [C+K+F-1, B, ...],
-        actions [C+K, B, A] -> [K, B] nats per frame (z from the prior: a one-sample estimate of a lower
-        bound of the open loop's marginal likelihood), and the predicted means [K, B, S, S, 3]."""
+        """The open loop's log-likelihood of real frames after `context` filtered steps, and the closed loop
+        over the same sequences: frames [C+K+F-1, B, ...], actions [C+K, B, A] ->
+        (log p(f_t | open loop) [K, B] nats per frame, predicted means [K, B, S, S, 3], ELBO [B], filtered).
+
+        The closed loop filters every step, but the open loop starts from its state after the C context
+        observations (the filter is causal: that state has read frames f_0..f_{C+F-2} only) and imagines K
+        steps with latents from the prior under the real actions. log p with z from the prior is a one-sample
+        estimate of a lower bound of the open loop's marginal log-likelihood."""
         F, C = self.config.frame_stack, context
-        K, B = actions.shape[0] - C, actions.shape[1]
+        K = actions.shape[0] - C
         key_filter, key_imagine = jax.random.split(key)
+        elbo, _, out = self.elbo(params, frames, actions, key_filter)
         prev = jnp.concatenate([jnp.zeros_like(actions[:1]), actions[:-1]])
-        obs = stack_frames(frames[:C + F - 1], F)  # only the context's frames are read
-        eps = jax.random.normal(key_filter, (C, B, self.config.latent))
-        out = self.filter(params, self.embed(params, obs), prev[:C], eps)
-        eps = jax.random.normal(key_imagine, (K, B, self.config.latent))
-        h, _, z = self.imagine(params, out.h[-1], out.c[-1], prev[C:], eps)
+        eps = jax.random.normal(key_imagine, (K,) + out.z.shape[1:])
+        h, _, z = self.imagine(params, out.h[C - 1], out.c[C - 1], prev[C:], eps)
         mean, std = self.decode(params, h, z)
         target = newest_frames(frames, F)[C:]
-        return gaussian_log_prob(target, mean, std).sum((-3, -2, -1)), mean
+        return gaussian_log_prob(target, mean, std).sum((-3, -2, -1)), mean, elbo, out

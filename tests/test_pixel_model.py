@@ -1,0 +1,182 @@
+"""The pixel setting's model and update (cdjax.agents.pixel) on synthetic frames (no physics: fast to compile).
+
+The world here is a stand-in for the rendered expert data: random frames, and expert actions that are a fixed
+function of the newest frame, so that imitation is learnable."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cdjax.agents.pixel import PRESETS, PixelConfig, PixelHParams, PixelLearner
+from cdjax.agents.pixel.data import Dataset
+from cdjax.agents.pixel.model import stack_frames
+
+TINY = PixelConfig(**PRESETS["pixel-tiny"].config, arm="ltq-cd")
+HP = PixelHParams(lr=3e-3, imitation_coef=100.0)  # imitation weighed against the summed ELBO
+A = 2
+
+
+class SyntheticWorld:
+    """generate(key, n, length) like cdjax.agents.pixel.data.PixelWorld, from noise instead of physics."""
+
+    action_size = A
+
+    def __init__(self, config):
+        self.config = config
+
+    def generate(self, key, n, length):
+        """Frames of noise dimmed by a random brightness per frame; the expert's action is a function of the
+        newest frame's brightness."""
+        S, F = self.config.image_size, self.config.frame_stack
+        key_noise, key_brightness = jax.random.split(key)
+        brightness = jax.random.uniform(key_brightness, (n, length + F - 1))
+        noise = jax.random.uniform(key_noise, (n, length + F - 1, S, S, 3))
+        frames = jnp.round(255 * noise * brightness[..., None, None, None]).astype(jnp.uint8)
+        b = brightness[:, F - 1:]
+        actions = 0.9 * jnp.stack([2 * b - 1, jnp.cos(6 * b)], -1)
+        return Dataset(frames=frames, actions=actions, reward=jnp.zeros((), jnp.float32))
+
+
+def learner_for(config=TINY):
+    return PixelLearner(config, world=SyntheticWorld(config))
+
+
+@pytest.fixture(scope="module")
+def learner():
+    return learner_for()
+
+
+@pytest.fixture(scope="module")
+def traced():
+    return {"count": 0}
+
+
+@pytest.fixture(scope="module")
+def update(learner, traced):
+    def counted(state, hp):
+        traced["count"] += 1
+        return learner.update(state, hp)
+
+    return jax.jit(counted)
+
+
+@pytest.fixture(scope="module")
+def state(learner):
+    return jax.jit(learner.init)(jax.random.key(0), HP)
+
+
+def test_elbo_of_an_untrained_model_equals_a_hand_computation(learner):
+    model, c = learner.model, learner.config
+    T, B, F = 3, 2, c.frame_stack
+    key_frames, key_params, key_eps = jax.random.split(jax.random.key(1), 3)
+    frames = np.asarray(jax.random.randint(key_frames, (T + F - 1, B, c.image_size, c.image_size, 3), 0, 256), np.uint8)
+    actions = np.asarray(jax.random.uniform(key_frames, (T, B, A), minval=-1, maxval=1), np.float32)
+    params = model.init(key_params)
+    elbo, parts, _ = jax.jit(model.elbo)(params, frames, actions, key_eps)
+
+    eps = np.asarray(jax.random.normal(key_eps, (T, B, c.latent)))
+    encode = jax.jit(lambda x: model.encoder.apply(params["encoder"], x))
+    prior = jax.jit(lambda h, a: model.core.apply(params["core"], h, a, method="prior"))
+    posterior = jax.jit(lambda e, h, a: model.core.apply(params["core"], e, h, a, method="posterior"))
+    transition = jax.jit(lambda h, cell, z, a: model.core.apply(params["core"], h, cell, z, a, method="transition"))
+    decode = jax.jit(lambda x: model.decoder.apply(params["decoder"], x))
+    h = cell = np.zeros((B, c.hidden), np.float32)
+    a_prev = np.zeros((B, A), np.float32)
+    total = np.zeros(B)
+    for t in range(T):
+        obs = np.concatenate([frames[t + i] for i in range(F)], -1).astype(np.float32) / 255.0
+        e = encode(obs)
+        pm, ps = (np.asarray(x, np.float64) for x in prior(h, a_prev))
+        qm, qs = (np.asarray(x, np.float64) for x in posterior(e, h, a_prev))
+        z = (qm + qs * eps[t]).astype(np.float32)
+        h, cell = transition(h, cell, z, a_prev)
+        mean, std = (np.asarray(x, np.float64) for x in decode(np.concatenate([h, z], -1)))
+        x = frames[t + F - 1].astype(np.float64) / 255.0
+        log_p = (-0.5 * ((x - mean) / std) ** 2 - np.log(std) - 0.5 * math.log(2 * math.pi)).sum((1, 2, 3))
+        kl = (np.log(ps / qs) + (qs**2 + (qm - pm) ** 2) / (2 * ps**2) - 0.5).sum(-1)
+        np.testing.assert_allclose(parts["kl"][t], kl, rtol=1e-4, atol=1e-4)
+        total += log_p - kl
+        a_prev = actions[t]
+    # summed over pixels, latents and steps (about 3 steps x 768 pixel terms here), not averaged
+    np.testing.assert_allclose(np.asarray(elbo), total, rtol=1e-5)
+    assert abs(total.mean()) > T * c.image_size**2 * 3 * 0.1
+
+
+def test_open_loop_draws_from_the_prior_and_never_reads_the_frames_it_predicts(learner, state):
+    model, c = learner.model, learner.config
+    params = state.params
+    frames = jnp.swapaxes(state.heldout.frames, 0, 1).astype(jnp.float32)  # [C+K+F-1, M, S, S, 3], differentiable
+    actions = jnp.swapaxes(state.heldout.actions, 0, 1)
+    read = c.context + c.frame_stack - 1  # frames of the context's observations
+    grads = jax.jit(jax.grad(lambda f: model.openloop_loglik(params, f, actions, jax.random.key(2), c.context)[1].sum()))(
+        frames)
+    assert np.all(np.asarray(grads[read:]) == 0.0)  # the predicted frames: exactly no influence
+    assert np.abs(np.asarray(grads[:read])).sum() > 0  # the context: read
+
+    B = 3
+    h0 = jax.random.normal(jax.random.key(3), (B, c.hidden))
+    c0 = jax.random.normal(jax.random.key(4), (B, c.hidden))
+    acts = jax.random.uniform(jax.random.key(5), (4, B, A), minval=-1, maxval=1)
+    eps = jax.random.normal(jax.random.key(6), (4, B, c.latent))
+    h_im, _, z_im = jax.jit(model.imagine)(params, h0, c0, acts, eps)
+    prior = jax.jit(lambda h, a: model.core.apply(params["core"], h, a, method="prior"))
+    transition = jax.jit(lambda h, cell, z, a: model.core.apply(params["core"], h, cell, z, a, method="transition"))
+    h, cell = h0, c0
+    for t in range(4):  # z_t = prior mean + prior std * eps_t, then the transition
+        mean, std = prior(h, acts[t])
+        np.testing.assert_allclose(z_im[t], mean + std * eps[t], rtol=1e-5, atol=1e-5)
+        h, cell = transition(h, cell, mean + std * eps[t], acts[t])
+        np.testing.assert_allclose(h_im[t], h, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("encoder,imagine", [("grounded-gru", "policy"), ("gru", "expert"), ("l2", "policy")])
+def test_consistency_is_zero_when_the_two_pathways_coincide(encoder, imagine):
+    config = TINY.replace(encoder=encoder, imagine_actions=imagine)
+    learner = learner_for(config)
+    model = learner.model
+    params = model.init(jax.random.key(7))
+    L, B, H = 6, 3, config.hidden
+    actions = jax.random.uniform(jax.random.key(8), (L, B, A), minval=-1, maxval=1)
+    eps = jax.random.normal(jax.random.key(9), (L - 1, B, config.latent))
+    h0 = jax.random.normal(jax.random.key(10), (B, H))
+    c0 = jax.random.normal(jax.random.key(11), (B, H))
+    policy = (lambda h: model.act(params, h)) if imagine == "policy" else None
+    h, cell, _ = model.imagine(params, h0, c0, None if policy else actions[:-1], eps, policy=policy)
+    # a "closed loop" that is itself the open loop under the same noise: every window imagines it exactly
+    states = jnp.concatenate([jnp.concatenate([h0, c0], -1)[None], jnp.concatenate([h, cell], -1)])
+    offsets = jnp.arange(L - 1 - config.horizon + 1)
+    terms = jax.jit(learner.consistency_terms)
+    same, _ = terms(params, states, actions, eps, offsets, HP)
+    np.testing.assert_allclose(float(same["consistency"]), 0.0, atol=1e-6)
+    moved, _ = terms(params, states.at[1:].add(0.1), actions, eps, offsets, HP)
+    assert float(moved["consistency"]) > 1e-3
+
+
+def test_the_update_compiles_once_and_imitation_loss_falls(state, update, traced):
+    losses = []
+    for _ in range(240):
+        state, metrics = update(state, HP)
+        losses.append(float(metrics["loss/imitation"]))
+    assert traced["count"] == 1
+    assert np.isfinite(losses).all()
+    assert np.mean(losses[-20:]) < 0.7 * np.mean(losses[:20]), losses[::20]
+    for name in ("heldout/loglik_k", "heldout/loglik_50", "heldout/imitation", "loss/consistency", "model/elbo_per_frame"):
+        assert np.isfinite(float(metrics[name])), name
+
+
+def test_vmap_over_seeds_equals_each_seed_alone(learner, update):
+    keys = jax.random.split(jax.random.key(12), 2)
+    hps = jax.tree.map(lambda x: jnp.full((2,), x, jnp.float32), HP)
+    states = jax.jit(jax.vmap(learner.init))(keys, hps)
+    batched, metrics = jax.jit(jax.vmap(learner.update))(states, hps)
+    for i in range(2):
+        alone, alone_metrics = update(jax.tree.map(lambda x: x[i], states), HP)
+        for a, b in zip(jax.tree.leaves(alone.params), jax.tree.leaves(batched.params)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=2e-5, atol=2e-6)
+        for name, value in alone_metrics.items():
+            np.testing.assert_allclose(float(value), float(metrics[name][i]), rtol=2e-4, atol=1e-5, err_msg=name)
