@@ -1,33 +1,71 @@
-"""The pixel setting's model and update (cdjax.agents.pixel) on synthetic frames (no physics: fast to compile).
+"""The pixel setting's model, update and sweep (cdjax.agents.pixel) on synthetic frames (no physics: fast to compile;
+tests/test_pixels.py renders the real tasks).
 
-The world here is a stand-in for the rendered expert data: random frames, and expert actions that are a fixed
-function of the newest frame, so that imitation is learnable."""
+The world here is a stand-in for the rendered expert data: frames of noise with a random brightness, expert
+actions that are a fixed function of the newest frame's brightness (imitation is learnable), and a scene whose
+brightness follows the action for the evaluation episodes. Every test shares one compiled `update`."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 
+import imageio.v3 as iio
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import struct
 
+from cdjax import agents, io
+from cdjax.agents import pixel
 from cdjax.agents.pixel import PRESETS, PixelConfig, PixelHParams, PixelLearner
-from cdjax.agents.pixel.data import Dataset
-from cdjax.agents.pixel.model import stack_frames
+from cdjax.agents.pixel.data import Dataset, PixelEvalEnv
+from cdjax.agents.pixel.strips import write_strips
+from cdjax.cli import main
+from cdjax.runner import restore_arms
 
-TINY = PixelConfig(**PRESETS["pixel-tiny"].config, arm="ltq-cd")
+from _shared import logged_rows
+
+# ltq-cd with the l2 encoder: the whole update (ELBO, imitation, consistency) with the smallest program to compile;
+# the GRU encoders (the default is grounded-gru) are checked in the consistency test.
+TINY = PixelConfig(**PRESETS["pixel-tiny"].config, arm="ltq-cd", encoder="l2")
 HP = PixelHParams(lr=3e-3, imitation_coef=100.0)  # imitation weighed against the summed ELBO
 A = 2
 
 
+@struct.dataclass
+class Core:
+    obs: jax.Array  # [B, 1] brightness of the scene
+    reward: jax.Array  # [B]
+    done: jax.Array  # [B]
+
+
 class SyntheticWorld:
-    """generate(key, n, length) like cdjax.agents.pixel.data.PixelWorld, from noise instead of physics."""
+    """cdjax.agents.pixel.data.PixelWorld's interface without physics: generate(key, n, length) gives frames of
+    noise, and a scene whose brightness follows the action (reward: closeness of the action to 0.5) plays
+    the evaluation episodes."""
 
     action_size = A
 
     def __init__(self, config):
         self.config = config
+
+    def reset(self, key, n):
+        obs = jax.random.uniform(key, (n, 1))
+        return Core(obs, jnp.zeros((n,), jnp.float32), jnp.zeros((n,), jnp.float32))
+
+    def step(self, core, action):
+        obs = jnp.clip(0.8 * core.obs + 0.2 * (action[:, :1] + 1) / 2, 0.0, 1.0)
+        return Core(obs, -jnp.abs(action[:, 0] - 0.5), jnp.zeros_like(core.done))
+
+    def frame(self, core):
+        S = self.config.image_size
+        return jnp.broadcast_to(jnp.round(255 * core.obs)[:, :, None, None], (core.obs.shape[0], S, S, 3)).astype(jnp.uint8)
+
+    def eval_env(self, num_envs):
+        return PixelEvalEnv(self, num_envs)
 
     def generate(self, key, n, length):
         """Frames of noise dimmed by a random brightness per frame; the expert's action is a function of the
@@ -66,8 +104,13 @@ def update(learner, traced):
 
 
 @pytest.fixture(scope="module")
-def state(learner):
-    return jax.jit(learner.init)(jax.random.key(0), HP)
+def init(learner):
+    return jax.jit(learner.init)
+
+
+@pytest.fixture(scope="module")
+def state(init):
+    return init(jax.random.key(0), HP)
 
 
 def test_elbo_of_an_untrained_model_equals_a_hand_computation(learner):
@@ -169,14 +212,43 @@ def test_the_update_compiles_once_and_imitation_loss_falls(state, update, traced
         assert np.isfinite(float(metrics[name])), name
 
 
-def test_vmap_over_seeds_equals_each_seed_alone(learner, update):
-    keys = jax.random.split(jax.random.key(12), 2)
-    hps = jax.tree.map(lambda x: jnp.full((2,), x, jnp.float32), HP)
-    states = jax.jit(jax.vmap(learner.init))(keys, hps)
-    batched, metrics = jax.jit(jax.vmap(learner.update))(states, hps)
+SYNTHETIC = dataclasses.replace(pixel.SETTING, name="pixel-synthetic",
+                                make_trainer=lambda config: pixel.trainer_of(learner_for(config)))
+agents.register(SYNTHETIC)
+
+
+def test_a_sweep_through_the_cli_resumes_and_equals_each_seed_alone(tmp_path, learner, init, update, traced):
+    """`cdjax sweep` of the pixel setting (on the synthetic world) with a resume in the middle: logs, checkpoints,
+    evaluation from pixels, plots; and its 2 seeds, vmapped in compiled chunks, end where each seed's own
+    updates (init and `update` of this module, one at a time) end."""
+    out = tmp_path / "px"
+    flags = ["--setting", "pixel-synthetic", "--preset", "pixel-tiny", "--arms", "ltq-cd", "--encoder", "l2", "--lr",
+             str(HP.lr), "--imitation-coef", str(HP.imitation_coef), "--bootstrap-reps", "50", "--no-progress"]
+    main(["sweep", *flags, "--steps", str(3 * 12), "--no-final-eval", "--out", str(out)])  # 3 updates of 12 frames
+    run = json.loads((out / "run.json").read_text())
+    assert run["setting"] == "pixel-synthetic" and run["metrics"]["return"] == "heldout/loglik_k"
+    main(["sweep", "--out", str(out), "--resume", "--steps", str(6 * 12), "--no-progress"])
+    main(["eval", str(out), "--episodes", "2"])  # the imitation policy from frames (the spec has no final eval)
+    main(["plot", str(out), "--bootstrap-reps", "50"])
+    rows = logged_rows(out)
+    assert sorted({r["update"] for r in rows}) == list(range(1, 7)) and len(rows) == 2 * 6  # 2 seeds x 6 updates
+    assert all(np.isfinite(r[n]) for r in rows for n in ("heldout/loglik_k", "heldout/loglik_50", "loss/consistency"))
+    evals = io.read_jsonl(out / "eval.jsonl")
+    assert len(evals) == 2 and all(e["update"] == 6 and e["lengths"] == [3, 3] for e in evals)  # the time-out
+    assert (out / "summary.md").exists() and (out / "plots" / "model.png").exists()
+
+    _, (arm,) = restore_arms(out)
     for i in range(2):
-        alone, alone_metrics = update(jax.tree.map(lambda x: x[i], states), HP)
-        for a, b in zip(jax.tree.leaves(alone.params), jax.tree.leaves(batched.params)):
-            np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=2e-5, atol=2e-6)
-        for name, value in alone_metrics.items():
-            np.testing.assert_allclose(float(value), float(metrics[name][i]), rtol=2e-4, atol=1e-5, err_msg=name)
+        np.testing.assert_allclose(float(arm.hps.lr[i]), HP.lr, rtol=1e-6)
+        key = jax.random.wrap_key_data(np.asarray(jax.random.key_data(arm.keys[i])))  # off the sweep's mesh
+        alone = init(key, HP)
+        for _ in range(6):
+            alone, _ = update(alone, HP)
+        for a, b in zip(jax.tree.leaves(alone.params), jax.tree.leaves(arm.state.params)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=2e-4, atol=2e-5)
+    assert traced["count"] == 1  # the module's update was compiled once for every use
+
+    one = jax.tree.map(lambda x: x[0], arm.state)
+    path = write_strips(arm.trainer.inner, one.params, one.heldout, jax.random.key(0), tmp_path / "strip.png")
+    c = arm.plan.config
+    assert iio.imread(path).shape == (2 * 3 * (c.image_size + 2), (c.context + c.eval_horizon) * (c.image_size + 2), 3)

@@ -98,3 +98,32 @@ def test_body_silhouette_matches_mujoco(task, mujoco_masks):
         twice = np.asarray(render(jax.tree.map(lambda *x: np.stack(x), datas[i], datas[i])))
         np.testing.assert_allclose(twice[0], frames[i], atol=1e-6)
         np.testing.assert_allclose(twice[1], frames[i], atol=1e-6)
+
+
+def test_expert_data_is_rendered_from_the_task_in_jit():
+    """PixelWorld.generate on MJX reacher at 16x16 (the untrained expert acting by its mean, no burn-in): the
+    first frame of each sequence is the rendering of its reset state, the arm moves, and the actions are
+    the expert's (in [-1, 1], different between sequences)."""
+    from cdjax.agents.pixel import PRESETS, PixelConfig
+    from cdjax.agents.pixel.data import PixelWorld
+    from cdjax.agents.pixel.expert import actor, untrained_expert
+
+    config = PixelConfig(**PRESETS["pixel-tiny"].config).replace(burn_in=0, expert_sample=False)
+    world = PixelWorld(config, actor(untrained_expert("reacher", jax.random.key(1))))
+    key = jax.random.key(5)
+    n, length, F = 2, 4, config.frame_stack
+
+    @jax.jit
+    def probe(key):
+        data = world.generate(key, n, length)
+        first = world.frame(world.reset(jax.random.split(key)[0], n))  # generate's reset key
+        return data, first
+
+    data, first = probe(key)
+    frames, actions = np.asarray(data.frames), np.asarray(data.actions)
+    assert frames.shape == (n, length + F - 1, 16, 16, 3) and frames.dtype == np.uint8
+    assert actions.shape == (n, length, world.action_size) and np.abs(actions).max() <= 1.0
+    np.testing.assert_array_equal(frames[:, 0], np.asarray(first))
+    assert (frames[:, -1] != frames[:, 0]).any()  # the arm moved
+    assert not np.allclose(actions[0], actions[1])  # two episodes, two observations
+    assert np.isfinite(float(data.reward))

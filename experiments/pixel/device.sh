@@ -1,28 +1,32 @@
 #!/usr/bin/env bash
 # The pixel setting on a GPU machine: experts, expert data, Learning to Query vs Learning to Query + consistency.
 #
-#   bash experiments/pixel/device.sh OUT SECONDS [TASK ...]        # tasks: halfcheetah reacher pusher (default all)
+#   bash experiments/pixel/device.sh WORK RESULTS SECONDS [TASK ...]   # tasks: halfcheetah reacher pusher (default all)
 #
-# Everything stops before SECONDS (wall clock of this call) and can be continued: call it again with the same
-# OUT and it resumes where it stopped (experts already exported are kept; the pixel sweeps run with --resume).
+# WORK holds the runs (checkpoints included; e.g. runs/pixel, kept between calls on the same machine), RESULTS
+# receives what to keep (each task's run directories without checkpoints and TensorBoard files, the logs, the
+# strips, report.md and figures/). Everything stops before SECONDS (wall clock of this call) and can be
+# continued: call it again with the same WORK and it resumes where it stopped (experts already exported are
+# kept; the pixel sweeps run with --resume; the JAX compilation cache in ~/.cache/cdjax/jax is reused).
 # With >= 3 GPUs the tasks run side by side (task i on GPU i); with fewer, one after another, each with its share.
-# Per task, in OUT/TASK/:
+# Per task, in WORK/TASK/:
 #   1. expert-run/   cdjax's model-free arm on the state (obs setting, the task's preset, 1 seed), stopped by
 #                    SIGINT at EXPERT_SHARE of the task's time; evaluated; its policy -> expert.msgpack
-#   2. cost.json     data_cost: the dataset kept on the device vs rendered on the fly (10 runs vmapped)
-#   3. pixel/        cdjax sweep --setting pixel --preset pixel-TASK (arms ltq and ltq-cd, 10 seeds vmapped,
+#   2. pixel/        cdjax sweep --setting pixel --preset pixel-TASK (arms ltq and ltq-cd, 10 seeds vmapped,
 #                    k = 10 halfcheetah, 5 reacher/pusher), stopped by SIGINT before the limit, then evaluated
 #                    (the imitation policy from pixels) and plotted
+#   3. cost.json     data_cost: the dataset kept on the device vs rendered on the fly (10 runs vmapped), in the
+#                    call after the one that started the pixel sweep
 #   4. strips/       PNG strips of held-out sequences (real / reconstructed / open loop) of seed 0 of each arm
-# then OUT/report.md and OUT/figures/ (python -m experiments.pixel.report OUT). OUT/TASK.log holds the output.
+# then WORK/report.md and WORK/figures/ (python -m experiments.pixel.report WORK). WORK/TASK.log holds the output.
 # The GPU image has no `cdjax` console script: everything runs as python -m.
 set -u
-out=$1; limit=$2; shift 2
+out=$1; results=$2; limit=$3; shift 3
 tasks=("$@"); [ ${#tasks[@]} -eq 0 ] && tasks=(halfcheetah reacher pusher)
 EXPERT_SHARE=${EXPERT_SHARE:-30}   # percent of a task's time for its expert (first call only)
 EXPERT_STEPS=${EXPERT_STEPS:-20000000}  # the expert's env-step budget (the SIGINT usually comes first)
 start=$(date +%s)
-mkdir -p "$out"
+mkdir -p "$out" "$results"
 ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -ge 1 ] || ngpu=1
 parallel=0; [ "$ngpu" -ge "${#tasks[@]}" ] && parallel=1
 
@@ -46,11 +50,10 @@ run_task() {  # TASK GPU SECONDS
       python -m cdjax.cli eval "$d/expert-run" --episodes 16
     python -m cdjax.agents.pixel.expert "$d/expert-run" "$d/expert.msgpack" || return 1
   fi
-  if [ ! -f "$d/cost.json" ] && [ "$(task_left)" -gt 300 ]; then
-    timeout -k 30 240 python -m experiments.pixel.data_cost --env "$t" --expert "$d/expert.msgpack" --runs 10 \
-      --out "$d/cost.json" || echo "data_cost did not finish"
-  fi
-  local pix_s=$(( $(task_left) - 150 ))  # room for the evaluation, the plots and the strips
+  local reserve=220  # the evaluation, the plots and the strips
+  # the data-cost measurement (up to 240 s) in the call after the one that started the sweep
+  [ -f "$d/cost.json" ] || [ ! -f "$d/pixel/run.json" ] || reserve=470
+  local pix_s=$(( $(task_left) - reserve ))
   if [ "$pix_s" -gt 60 ]; then
     if [ -f "$d/pixel/run.json" ]; then
       timeout -s INT -k 60 "$pix_s" python -m cdjax.cli sweep --out "$d/pixel" --resume --no-progress
@@ -58,6 +61,10 @@ run_task() {  # TASK GPU SECONDS
       timeout -s INT -k 60 "$pix_s" python -m cdjax.cli sweep --setting pixel --preset "pixel-$t" \
         --expert "$d/expert.msgpack" --no-progress --no-final-eval --out "$d/pixel"
     fi
+  fi
+  if [ ! -f "$d/cost.json" ] && [ "$(task_left)" -gt 420 ]; then
+    timeout -k 20 220 python -m experiments.pixel.data_cost --env "$t" --expert "$d/expert.msgpack" --runs 10 \
+      --out "$d/cost.json" || echo "data_cost did not finish"
   fi
   if [ -f "$d/pixel/run.json" ]; then
     timeout -k 30 120 python -m cdjax.cli eval "$d/pixel" --episodes 4 || echo "evaluation did not finish"
@@ -81,4 +88,9 @@ else
   done
 fi
 python -m experiments.pixel.report "$out" || echo "report failed"
-for t in "${tasks[@]}"; do echo "== $t"; tail -n 4 "$out/$t.log"; done
+cp -r "$out/report.md" "$out/figures" "$results/" 2>/dev/null
+for t in "${tasks[@]}"; do
+  cp "$out/$t.log" "$results/"
+  [ -d "$out/$t" ] && tar -czf "$results/$t.tar.gz" --exclude=checkpoints --exclude=tb -C "$out" "$t"
+  echo "== $t"; tail -n 4 "$out/$t.log"
+done

@@ -48,14 +48,18 @@ def check_hparam(name: str, value: float) -> None:
 
 
 def make_trainer(config: PixelConfig) -> Trainer:
-    learner = PixelLearner(config)
-    return Trainer(config=config, init=learner.init, update=learner.update, policy=learner.policy,
+    return trainer_of(PixelLearner(config))
+
+
+def trainer_of(learner: PixelLearner) -> Trainer:
+    """The protocol's view of a learner (e.g. one built on another world than the rendered task)."""
+    return Trainer(config=learner.config, init=learner.init, update=learner.update, policy=learner.policy,
                    act=learner.act, eval_env=learner.world.eval_env, saved_leaves=learner.saved_leaves, inner=learner)
 
 
 def _preset(env: str, *, horizon: int, frames: int, about: str) -> Preset:
     return Preset(about=about, config=dict(env=env, horizon=horizon),
-                  hparams={}, sweep=dict(arms=ARMS, seeds=10, total_env_steps=frames, eval_episodes=4))
+                  hparams={}, sweep=dict(arms=ARMS, seeds=10, total_env_steps=frames, chunk_updates=200, eval_episodes=4))
 
 
 PRESETS = {
@@ -96,4 +100,5 @@ SETTING = Setting(
         ("encoder/spread_real", "encoder spread (real)", False))),
     presets=PRESETS, default_preset=preset_of_env, watch=collapse_warning)
 
-__all__ = ["ARMS", "PRESETS", "SETTING", "PixelConfig", "PixelHParams", "PixelLearner", "arm_config", "make_trainer"]
+__all__ = ["ARMS", "PRESETS", "SETTING", "PixelConfig", "PixelHParams", "PixelLearner", "arm_config", "make_trainer",
+           "trainer_of"]

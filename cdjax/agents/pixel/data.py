@@ -54,7 +54,11 @@ class PixelWorld:
         return to_uint8(jax.vmap(self.renderer.render)(core.pipeline_state))
 
     def reset(self, key: jax.Array, n: int):
+        """n fresh episodes: the task's batched state (with .obs, .reward, .done)."""
         return strong_types(jax.vmap(self.env.reset)(jax.random.split(key, n)))
+
+    def step(self, core, action: jax.Array):
+        return strong_types(jax.vmap(self.env.step)(core, action))
 
     def generate(self, key: jax.Array, n: int, length: int) -> Dataset:
         """n expert sequences of `length` observations (length + F - 1 frames) after `burn_in` steps.
@@ -78,7 +82,7 @@ class PixelWorld:
             recording = i >= c.burn_in
             frame = jax.lax.cond(recording, self.frame, lambda _: frames[0], core)
             action = self.expert_act(core.obs.astype(jnp.float32), step_key if c.expert_sample else None)
-            core = strong_types(jax.vmap(self.env.step)(core, action))
+            core = self.step(core, action)
             frames = jax.lax.dynamic_update_index_in_dim(frames, frame, j, 0)
             actions = jax.lax.dynamic_update_index_in_dim(actions, action, j, 0)
             reward = reward + jnp.where(recording, core.reward.astype(jnp.float32).mean(), 0.0)
@@ -105,7 +109,8 @@ class PixelEvalEnv:
 
     action_repeat = 1
 
-    def __init__(self, world: PixelWorld, num_envs: int):
+    def __init__(self, world, num_envs: int):
+        """world: a PixelWorld, or anything with its config, action_size, reset, step and frame."""
         self.world, self.num_envs = world, num_envs
         self.episode_length = world.config.eval_episode_length
         self.hidden, self.A = world.config.hidden, world.action_size
@@ -122,7 +127,7 @@ class PixelEvalEnv:
         A, H = self.A, self.hidden
         assert agent_out.shape == (self.num_envs, A + 2 * H), agent_out.shape
         action = agent_out[:, :A]
-        core = strong_types(jax.vmap(self.world.env.step)(state.core, action))
+        core = self.world.step(state.core, action)
         frames = jnp.concatenate([state.obs["frames"][:, 1:], self.world.frame(core)[:, None]], axis=1)
         obs = {"frames": frames, "h": agent_out[:, A:A + H], "c": agent_out[:, A + H:], "a": action}
         reward = core.reward.astype(jnp.float32)

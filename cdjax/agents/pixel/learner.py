@@ -60,7 +60,8 @@ def optimizer(hp) -> optax.GradientTransformation:
 class PixelLearner:
     """Learning to Query (+ consistency) with imitation, for one PixelConfig. Not a pytree: close over it."""
 
-    def __init__(self, config, world: PixelWorld | None = None):
+    def __init__(self, config, world=None):
+        """world: the rendered task with the expert (PixelWorld, the default), or a stand-in with its interface."""
         self.config = config
         self.world = world or PixelWorld(config, actor(expert_for(config.env, config.expert)))
         self.A = self.world.action_size

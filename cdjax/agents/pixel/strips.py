@@ -19,14 +19,14 @@ from cdjax.agents.pixel.model import newest_frames
 
 
 def strip_images(learner, params, frames, actions, key) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(real, reconstructed, open-loop) [T, B, S, S, 3] float in [0, 1] of time-major held-out sequences
+    """(real, reconstructed, open-loop) [T, B, S, S, 3] in [0, 1] of time-major held-out sequences
     frames [T+F-1, B, S, S, 3] uint8, actions [T, B, A]."""
     model, C = learner.model, learner.config.context
     _, predicted, _, filtered = model.openloop_loglik(params, frames, actions, key, C)
     recon, _ = model.decode(params, filtered.h, filtered.z)
     real = newest_frames(frames, learner.config.frame_stack)
     imagined = jnp.concatenate([recon[:C], predicted])
-    return tuple(np.clip(np.asarray(x), 0.0, 1.0) for x in (real, recon, imagined))
+    return tuple(jnp.clip(x, 0.0, 1.0) for x in (real, recon, imagined))
 
 
 def _row(images: np.ndarray, context: int, pad: int = 1) -> np.ndarray:
@@ -48,7 +48,8 @@ def write_strips(learner, params, heldout, key, path, sequences: int = 2) -> pat
     n = min(sequences, heldout.actions.shape[0])
     frames = jnp.swapaxes(heldout.frames[:n], 0, 1)
     actions = jnp.swapaxes(heldout.actions[:n], 0, 1)
-    real, recon, imagined = jax.jit(lambda p, f, a, k: strip_images(learner, p, f, a, k))(params, frames, actions, key)
+    images = jax.jit(lambda p, f, a, k: strip_images(learner, p, f, a, k))(params, frames, actions, key)
+    real, recon, imagined = (np.asarray(x) for x in images)
     C = learner.config.context
     rows = []
     for b in range(n):
