@@ -30,7 +30,8 @@ from _shared import logged_rows
 
 # ltq-cd with the l2 encoder: the whole update (ELBO, imitation, consistency) with the smallest program to compile;
 # the GRU encoders (the default is grounded-gru) are checked in the consistency test.
-TINY = PixelConfig(**PRESETS["pixel-tiny"].config, arm="ltq-cd", encoder="l2")
+# Two convolutions instead of four (the model is size-generic): a smaller program to compile.
+TINY = PixelConfig(**PRESETS["pixel-tiny"].config, arm="ltq-cd", encoder="l2").replace(conv_layers=2)
 HP = PixelHParams(lr=3e-3, imitation_coef=100.0)  # imitation weighed against the summed ELBO
 A = 2
 
@@ -222,7 +223,7 @@ def test_a_sweep_through_the_cli_resumes_and_equals_each_seed_alone(tmp_path, le
     evaluation from pixels, plots; and its 2 seeds, vmapped in compiled chunks, end where each seed's own
     updates (init and `update` of this module, one at a time) end."""
     out = tmp_path / "px"
-    flags = ["--setting", "pixel-synthetic", "--preset", "pixel-tiny", "--arms", "ltq-cd", "--encoder", "l2", "--lr",
+    flags = ["--setting", "pixel-synthetic", "--preset", "pixel-tiny", "--arms", "ltq-cd", "--encoder", "l2", "--conv-layers", "2", "--lr",
              str(HP.lr), "--imitation-coef", str(HP.imitation_coef), "--bootstrap-reps", "50", "--no-progress"]
     main(["sweep", *flags, "--steps", str(3 * 12), "--no-final-eval", "--out", str(out)])  # 3 updates of 12 frames
     run = json.loads((out / "run.json").read_text())

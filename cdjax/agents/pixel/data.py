@@ -42,8 +42,9 @@ def to_uint8(frame: jax.Array) -> jax.Array:
 class PixelWorld:
     """The task of a pixel Config, its renderer and the expert acting in it. Not a pytree: close over it."""
 
-    def __init__(self, config, expert_act: Callable[[jax.Array, jax.Array | None], jax.Array]):
-        self.config = config
+    def __init__(self, config, expert_act: Callable[[jax.Array, jax.Array | None], jax.Array], action_repeat: int = 1):
+        """action_repeat: physics steps per agent step (the expert's, e.g. 4 for Brax's reacher settings)."""
+        self.config, self.action_repeat = config, action_repeat
         self.env = make_single_env(config.env)
         self.renderer = pixels.make_renderer(self.env.sys.mj_model, pixels.camera_for(config.env), config.image_size)
         self.expert_act = expert_act
@@ -58,7 +59,17 @@ class PixelWorld:
         return strong_types(jax.vmap(self.env.reset)(jax.random.split(key, n)))
 
     def step(self, core, action: jax.Array):
-        return strong_types(jax.vmap(self.env.step)(core, action))
+        """One agent step: the action held for `action_repeat` physics steps; .reward is their sum."""
+        def physics(carry, _):
+            core, reward = carry
+            core = strong_types(jax.vmap(self.env.step)(core, action))
+            return (core, reward + core.reward.astype(jnp.float32)), None
+
+        if self.action_repeat == 1:
+            return strong_types(jax.vmap(self.env.step)(core, action))
+        zeros = jnp.zeros(action.shape[:1], jnp.float32)
+        (core, reward), _ = jax.lax.scan(physics, (core, zeros), None, length=self.action_repeat)  # one compiled step
+        return core.replace(reward=reward)
 
     def generate(self, key: jax.Array, n: int, length: int) -> Dataset:
         """n expert sequences of `length` observations (length + F - 1 frames) after `burn_in` steps.

@@ -63,7 +63,10 @@ class PixelLearner:
     def __init__(self, config, world=None):
         """world: the rendered task with the expert (PixelWorld, the default), or a stand-in with its interface."""
         self.config = config
-        self.world = world or PixelWorld(config, actor(expert_for(config.env, config.expert)))
+        if world is None:
+            expert = expert_for(config.env, config.expert)
+            world = PixelWorld(config, actor(expert), action_repeat=expert.config.action_repeat)
+        self.world = world
         self.A = self.world.action_size
         self.model = LtqModel(config, self.A)
 
