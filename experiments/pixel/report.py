@@ -3,7 +3,7 @@
     python -m experiments.pixel.report OUT                       # OUT/report.md, OUT/report.csv, OUT/figures/*.png
     python -m experiments.pixel.report --strips RUN_DIR STRIPS   # PNG strips of seed 0 of each arm of a pixel sweep
 
-Per task (OUT/TASK/pixel) and arm, each seed's score is its mean over the last WINDOW logged updates up to
+Per task (OUT/TASK/pixel), arm and hyper-parameter label (ltq-cd runs alpha 100 and 1000), each seed's score is its mean over the last WINDOW logged updates up to
 the last update every arm reached (the paper: "averaged over the last 50 batches of training"); the table
 gives the IQM over seeds with a 95% bootstrap interval (cdjax.stats.iqm_interval) of
   heldout/loglik_k   open-loop log-likelihood of held-out expert frames over the first k predicted steps,
@@ -75,14 +75,14 @@ def task_report(task_dir: pathlib.Path, reps: int = 2000) -> tuple[list[dict], d
     run = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").exists() else {}
     last = common_last_update(rows)
     table = []
-    arms = sorted({r["arm"] for r in rows})
+    groups = sorted({(r["arm"], r["hp"]) for r in rows})
     evals = io.read_jsonl(run_dir / "eval.jsonl") if (run_dir / "eval.jsonl").exists() else []
-    for arm in arms:
-        line = {"task": task_dir.name, "arm": arm, "update": last}
+    for arm, hp in groups:
+        line = {"task": task_dir.name, "arm": arm if hp == "default" else f"{arm} {hp}", "update": last}
         for metric, _ in SCORES:
-            scores = [v for (a, _, _), v in seed_scores(rows, metric, last).items() if a == arm]
+            scores = [v for (a, h, _), v in seed_scores(rows, metric, last).items() if (a, h) == (arm, hp)]
             line[metric] = iqm_interval(scores, reps=reps)
-        mine = [e for e in evals if e["arm"] == arm and e["deterministic"]]
+        mine = [e for e in evals if e["arm"] == arm and e["hp"] == hp and e["deterministic"]]
         newest = max((e["update"] for e in mine), default=None)
         line["eval/return"] = iqm_interval([e["eval/return"] for e in mine if e["update"] == newest], reps=reps)
         table.append(line)
