@@ -64,15 +64,16 @@ def trainer_of(learner: PixelLearner) -> Trainer:
 ALPHAS = (100.0, 1000.0)
 
 
-def _preset(env: str, *, horizon: int, frames: int, about: str) -> Preset:
-    return Preset(about=about, config=dict(env=env, horizon=horizon),
+def _preset(env: str, *, horizon: int, frames: int, about: str, **config) -> Preset:
+    return Preset(about=about, config=dict(env=env, horizon=horizon, **config),
                   hparams={"alpha": ALPHAS}, sweep=dict(arms=ARMS, seeds=10, total_env_steps=frames, chunk_updates=200, eval_episodes=4))
 
 
 PRESETS = {
     "pixel-halfcheetah": _preset("halfcheetah", horizon=10, frames=8_000_000,
                                  about="paper, pixels: halfcheetah, ltq vs ltq-cd (k=10, alpha 100 and 1000) x 10 seeds, 10k updates"),
-    "pixel-reacher": _preset("reacher", horizon=5, frames=8_000_000,
+    # reacher's expert acts every 4 physics steps (cdjax's reacher preset): its episodes are 250 agent steps
+    "pixel-reacher": _preset("reacher", horizon=5, frames=8_000_000, eval_episode_length=250,
                              about="paper, pixels: reacher, ltq vs ltq-cd (k=5, alpha 100 and 1000) x 10 seeds, 10k updates"),
     "pixel-pusher": _preset("pusher", horizon=5, frames=8_000_000,
                             about="paper, pixels: pusher (Fetch-Push stand-in), ltq vs ltq-cd (k=5, alpha 100 and 1000) x 10 seeds"),
