@@ -26,7 +26,7 @@ from cdjax.agents.pixel.strips import write_strips
 from cdjax.cli import main
 from cdjax.runner import restore_arms
 
-from _shared import logged_rows
+from _shared import TINY_ARGS, logged_rows
 
 # ltq-cd with the l2 encoder: the whole update (ELBO, imitation, consistency) with the smallest program to compile;
 # the GRU encoders (the default is grounded-gru) are checked in the consistency test.
@@ -253,3 +253,23 @@ def test_a_sweep_through_the_cli_resumes_and_equals_each_seed_alone(tmp_path, le
     path = write_strips(arm.trainer.inner, one.params, one.heldout, jax.random.key(0), tmp_path / "strip.png")
     c = arm.plan.config
     assert iio.imread(path).shape == (2 * 3 * (c.image_size + 2), (c.context + c.eval_horizon) * (c.image_size + 2), 3)
+
+
+def test_the_expert_is_the_best_evaluated_policy_of_a_model_free_sweep(tmp_path):
+    """export_expert (what device.sh runs between the expert's sweep and the pixel sweep) on the pure-JAX point
+    mass: the saved policy and statistics are the restored ones of the run with the best deterministic evaluation."""
+    from cdjax.agents.pixel.expert import load_expert
+    from cdjax.agents.pixel.export_expert import main as export
+
+    run = tmp_path / "expert-run"
+    main(["sweep", "--setting", "obs", *TINY_ARGS, "--arms", "model-free", "--steps", "384", "--eval-episodes", "2",
+          "--bootstrap-reps", "20", "--out", str(run)])  # the shared tiny point-mass sweep (tests/_shared.py)
+    export([str(run), str(tmp_path / "point.msgpack")])
+    expert = load_expert(tmp_path / "point.msgpack")
+    evals = [e for e in io.read_jsonl(run / "eval.jsonl") if e["deterministic"]]
+    best = max(evals, key=lambda e: e["eval/return"])
+    assert expert.eval_return == best["eval/return"] and expert.config.env == "point"
+    _, (arm,) = restore_arms(run)
+    for a, b in zip(jax.tree.leaves(expert.policy), jax.tree.leaves(arm.state.params["policy"])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[best["seed"]])
+    np.testing.assert_array_equal(np.asarray(expert.norms.obs.mean), np.asarray(arm.state.norms.obs.mean)[best["seed"]])

@@ -25,6 +25,8 @@ out=$1; results=$2; limit=$3; shift 3
 tasks=("$@"); [ ${#tasks[@]} -eq 0 ] && tasks=(halfcheetah reacher pusher)
 EXPERT_SHARE=${EXPERT_SHARE:-30}   # percent of a task's time for its expert (first call only)
 EXPERT_STEPS=${EXPERT_STEPS:-20000000}  # the expert's env-step budget (the SIGINT usually comes first)
+EXPERT_ARGS=${EXPERT_ARGS:-}  # more options of the expert's sweep (a CPU smoke test shrinks it)
+PIXEL_ARGS=${PIXEL_ARGS:-}    # more options of the pixel sweep (e.g. --preset pixel-tiny --seeds 2 --steps 72)
 start=$(date +%s)
 mkdir -p "$out" "$results"
 ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -ge 1 ] || ngpu=1
@@ -44,11 +46,11 @@ run_task() {  # TASK GPU SECONDS
       timeout -s INT -k 60 "$expert_s" python -m cdjax.cli sweep --out "$d/expert-run" --resume --no-progress
     else
       timeout -s INT -k 60 "$expert_s" python -m cdjax.cli sweep --setting obs --preset "$t" --arms model-free \
-        --seeds 1 --steps "$EXPERT_STEPS" --no-progress --out "$d/expert-run"
+        --seeds 1 --steps "$EXPERT_STEPS" --no-progress --out "$d/expert-run" $EXPERT_ARGS
     fi
     grep -q '"deterministic": true' "$d/expert-run/eval.jsonl" 2>/dev/null || \
       python -m cdjax.cli eval "$d/expert-run" --episodes 16
-    python -m cdjax.agents.pixel.expert "$d/expert-run" "$d/expert.msgpack" || return 1
+    python -m cdjax.agents.pixel.export_expert "$d/expert-run" "$d/expert.msgpack" || return 1
   fi
   local reserve=220  # the evaluation, the plots and the strips
   # the data-cost measurement (up to 240 s) in the call after the one that started the sweep
@@ -59,7 +61,7 @@ run_task() {  # TASK GPU SECONDS
       timeout -s INT -k 60 "$pix_s" python -m cdjax.cli sweep --out "$d/pixel" --resume --no-progress
     else
       timeout -s INT -k 60 "$pix_s" python -m cdjax.cli sweep --setting pixel --preset "pixel-$t" \
-        --expert "$d/expert.msgpack" --no-progress --no-final-eval --out "$d/pixel"
+        --expert "$d/expert.msgpack" --no-progress --no-final-eval --out "$d/pixel" $PIXEL_ARGS
     fi
   fi
   if [ ! -f "$d/cost.json" ] && [ "$(task_left)" -gt 420 ]; then

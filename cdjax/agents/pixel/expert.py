@@ -2,7 +2,7 @@
 (the observation-space setting, PPO on the state), saved to one file.
 
     cdjax sweep --setting obs --preset halfcheetah --arms model-free --seeds 1 --out runs/expert-hc
-    python -m cdjax.agents.pixel.expert runs/expert-hc experts/halfcheetah.msgpack   # the best run's policy
+    python -m cdjax.agents.pixel.export_expert runs/expert-hc experts/halfcheetah.msgpack   # the best run's policy
     cdjax sweep --setting pixel --preset pixel-halfcheetah --expert experts/halfcheetah.msgpack ...
 
 The file holds the observation-space Config (JSON), the policy's parameters, the observation statistics and
@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import pathlib
-import sys
 from typing import Any, Callable
 
 import jax
@@ -58,7 +57,7 @@ def save_expert(path: str | pathlib.Path, expert: Expert) -> pathlib.Path:
 def load_expert(path: str | pathlib.Path) -> Expert:
     path = pathlib.Path(path)
     if not path.is_file():
-        raise ConfigError(f"--expert {str(path)!r} is not a file (write one with python -m cdjax.agents.pixel.expert).")
+        raise ConfigError(f"--expert {str(path)!r} is not a file (write one with python -m cdjax.agents.pixel.export_expert).")
     blob = serialization.msgpack_restore(path.read_bytes())
     fields = {k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(blob["config"]).items()}
     config = Config(**fields)
@@ -99,14 +98,8 @@ def export_from_run(run_dir: str | pathlib.Path, path: str | pathlib.Path, arm: 
     seeds = sorted({e["seed"] for e in evals})
     best = max(evals, key=lambda e: e["eval/return"])
     run = labels.index(best["hp"]) * len(seeds) + seeds.index(best["seed"])
-    state = jax.tree.map(lambda x: np.asarray(x)[run], found.state)
-    expert = Expert(found.plan.config, state.params["policy"], state.norms, float(best["eval/return"]))
+    policy, norms = jax.device_get(jax.tree.map(lambda x: x[run], (found.state.params["policy"], found.state.norms)))
+    expert = Expert(found.plan.config, policy, norms, float(best["eval/return"]))
     save_expert(path, expert)
     return expert
 
-
-if __name__ == "__main__":
-    if len(sys.argv) != 3:
-        sys.exit("usage: python -m cdjax.agents.pixel.expert OBS_RUN_DIR EXPERT_FILE")
-    done = export_from_run(sys.argv[1], sys.argv[2])
-    print(f"Expert of {done.config.env} (evaluation return {done.eval_return:.1f}) written to {sys.argv[2]}.")
