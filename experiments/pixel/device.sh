@@ -17,7 +17,10 @@
 #                    (the imitation policy from pixels) and plotted
 #   3. cost.json     data_cost: the dataset kept on the device vs rendered on the fly (10 runs vmapped), in the
 #                    call after the one that started the pixel sweep
-#   4. strips/       PNG strips of held-out sequences (real / reconstructed / open loop) of seed 0 of each arm
+#   4. strips/       PNG strips of held-out sequences (real / reconstructed / open loop) of seed 0 of each arm,
+#                    in the calls after the data-cost measurement
+# Schedule at SECONDS = 560 (10-minute commands): call 1 trains the experts (~30%) and starts the pixel sweeps,
+# call 2 continues them and measures the data cost, call 3 and later continue them and draw the strips.
 # then WORK/report.md and WORK/figures/ (python -m experiments.pixel.report WORK). WORK/TASK.log holds the output.
 # The GPU image has no `cdjax` console script: everything runs as python -m.
 set -u
@@ -52,9 +55,11 @@ run_task() {  # TASK GPU SECONDS
       python -m cdjax.cli eval "$d/expert-run" --episodes 16
     python -m cdjax.agents.pixel.export_expert "$d/expert-run" "$d/expert.msgpack" || return 1
   fi
-  local reserve=220  # the evaluation, the plots and the strips
-  # the data-cost measurement (up to 240 s) in the call after the one that started the sweep
-  [ -f "$d/cost.json" ] || [ ! -f "$d/pixel/run.json" ] || reserve=470
+  # after the sweep: the evaluation and the plots (150 s); in the call after the one that started the sweep the
+  # data-cost measurement (240 s), in later calls the strips (160 s: restoring a sweep renders its data again)
+  local reserve=150 cost_due=0 strips_due=0
+  if [ -f "$d/pixel/run.json" ] && [ ! -f "$d/cost.json" ]; then cost_due=1; reserve=$(( reserve + 240 )); fi
+  if [ -f "$d/cost.json" ]; then strips_due=1; reserve=$(( reserve + 160 )); fi
   local pix_s=$(( $(task_left) - reserve ))
   if [ "$pix_s" -gt 60 ]; then
     if [ -f "$d/pixel/run.json" ]; then
@@ -64,14 +69,16 @@ run_task() {  # TASK GPU SECONDS
         --expert "$d/expert.msgpack" --no-progress --no-final-eval --out "$d/pixel" $PIXEL_ARGS
     fi
   fi
-  if [ ! -f "$d/cost.json" ] && [ "$(task_left)" -gt 420 ]; then
+  if [ "$cost_due" = 1 ] && [ "$(task_left)" -gt 360 ]; then
     timeout -k 20 220 python -m experiments.pixel.data_cost --env "$t" --expert "$d/expert.msgpack" --runs 10 \
       --out "$d/cost.json" || echo "data_cost did not finish"
   fi
   if [ -f "$d/pixel/run.json" ]; then
     timeout -k 30 120 python -m cdjax.cli eval "$d/pixel" --episodes 4 || echo "evaluation did not finish"
     python -m cdjax.cli plot "$d/pixel" || true
-    timeout -k 10 60 python -m experiments.pixel.report --strips "$d/pixel" "$d/strips" || echo "no strips"
+    if [ "$strips_due" = 1 ] && [ "$(task_left)" -gt 160 ]; then
+      timeout -k 10 150 python -m experiments.pixel.report --strips "$d/pixel" "$d/strips" || echo "no strips"
+    fi
   fi
 }
 
@@ -93,6 +100,6 @@ python -m experiments.pixel.report "$out" || echo "report failed"
 cp -r "$out/report.md" "$out/figures" "$results/" 2>/dev/null
 for t in "${tasks[@]}"; do
   cp "$out/$t.log" "$results/"
-  [ -d "$out/$t" ] && tar -czf "$results/$t.tar.gz" --exclude=checkpoints --exclude=tb -C "$out" "$t"
+  [ -d "$out/$t" ] && tar -czf "$results/$t.tar.gz" --exclude=checkpoints --exclude=tb --exclude=.lock -C "$out" "$t"
   echo "== $t"; tail -n 4 "$out/$t.log"
 done
