@@ -20,7 +20,7 @@ import jax
 import numpy as np
 from flax import serialization
 
-from cdjax.config import Config, ConfigError, HParams
+from cdjax.config import Config, ConfigError
 from cdjax.normalize import Norms
 
 
