@@ -1,0 +1,92 @@
+"""Static configuration and traced hyper-parameters of the pixel setting (Learning to Query + imitation)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from flax import struct
+
+from cdjax.config import ENCODERS, ConfigError
+
+Arm = Literal["ltq", "ltq-cd"]
+ImagineActions = Literal["policy", "expert"]
+PIXEL_ENVS = ("halfcheetah", "reacher", "pusher")
+
+
+@dataclasses.dataclass(frozen=True)
+class PixelConfig:
+    """Everything that fixes a shape, a loop length or the graph of the compiled update."""
+
+    env: str = "halfcheetah"  # MJX task rendered to pixels: halfcheetah, reacher or pusher
+    arm: Arm = "ltq-cd"  # ltq: the state-space model and imitation; ltq-cd: plus the consistency term
+    expert: str = ""  # file written by cdjax.agents.pixel.expert.save_expert; "" = an untrained policy (tests)
+    expert_sample: bool = True  # the expert samples its Gaussian policy in the data (False: acts by its mean)
+    image_size: int = 64  # S: frames are S x S x 3 (a multiple of 2^conv_layers)
+    frame_stack: int = 4  # frames per observation (the encoder's input has 3 x frame_stack channels)
+    conv_layers: int = 4  # convolutions of the encoder (4x4 kernels, stride 2), mirrored by the decoder
+    conv_channels: int = 64  # channels of every convolution
+    embed_dim: int = 256  # e(o): the encoder's output size
+    hidden: int = 256  # LSTM state size (h and c each)
+    latent: int = 100  # z: per-step latent size
+    mlp: int = 256  # width of the prior's and the posterior's hidden layer
+    policy_hidden: tuple[int, ...] = (256,)  # imitation policy MLP on the LSTM output h
+    min_std: float = 0.01  # floor of every predicted standard deviation (latents and pixels)
+    num_sequences: int = 512  # N: expert training sequences kept on the device per run
+    heldout_sequences: int = 32  # M: held-out expert sequences (metrics and strips)
+    seq_len: int = 50  # L: steps per training sequence
+    batch_size: int = 16  # sequences per update
+    burn_in: int = 50  # expert steps after a reset before a sequence starts (unrendered)
+    context: int = 5  # held-out: filtered steps before the open-loop prediction starts
+    eval_horizon: int = 50  # held-out: open-loop steps (the paper's long-horizon test: 50)
+    horizon: int = 10  # k: open-loop length of the consistency windows and of the "at k" likelihood
+    cc_windows: int = 4  # consistency windows per training sequence (random starts)
+    encoder: str = "grounded-gru"  # consistency encoder: grounded-gru, gru, frozen-gru or l2 (cdjax.consistency)
+    encoder_dim: int = 64  # GRU size of the consistency encoder
+    imagine_actions: ImagineActions = "policy"  # actions of the consistency's open loop: the policy's on the
+    # imagined states (the authors' code; the only way l_cc reaches the policy) or the expert's
+    eval_episode_length: int = 1000  # agent steps of an evaluation episode (the imitation policy from pixels)
+    num_updates: int = 1000  # updates of one run
+
+    def __post_init__(self):
+        if self.env not in PIXEL_ENVS:
+            raise ConfigError(f"--env {self.env!r} has no pixel camera; choose one of {', '.join(PIXEL_ENVS)}.")
+        if self.image_size % (2 ** self.conv_layers):
+            raise ConfigError(f"--image-size {self.image_size} must be a multiple of 2^conv_layers = "
+                              f"{2 ** self.conv_layers}.")
+        if self.encoder not in ENCODERS:
+            raise ConfigError(f"--encoder {self.encoder!r}: choose one of {', '.join(ENCODERS)}.")
+        if not 1 <= self.horizon < self.seq_len:
+            raise ConfigError(f"--horizon {self.horizon} must be at least 1 and below --seq-len {self.seq_len}.")
+        if not self.horizon <= self.eval_horizon:
+            raise ConfigError(f"--horizon {self.horizon} must not exceed --eval-horizon {self.eval_horizon}.")
+        for name in ("frame_stack", "num_sequences", "heldout_sequences", "batch_size", "context", "cc_windows",
+                     "eval_episode_length", "hidden", "latent", "embed_dim"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}.")
+
+    @property
+    def use_consistency(self) -> bool:
+        return self.arm == "ltq-cd"
+
+    @property
+    def env_steps_per_update(self) -> int:
+        """Frames an update trains on (the sweep's budget counts these)."""
+        return self.batch_size * self.seq_len
+
+    def replace(self, **kw) -> "PixelConfig":
+        return dataclasses.replace(self, **kw)
+
+
+@struct.dataclass
+class PixelHParams:
+    """Traced float32 scalars (vmappable with the seeds)."""
+
+    lr: float = 1e-4  # Adam step size (the authors' code: 1e-4)
+    clip: float = 1.0  # gradient clipping by value (the authors' code: 1.0)
+    imitation_coef: float = 1.0  # weight of the imitation loss (mean squared error of the expert's actions)
+    alpha: float = 1.0  # weight of l_cc (ltq-cd only)
+    cc_model: float = 1.0  # multiplier of l_cc's gradient into the transition and the encoder (paper: 1)
+    cc_policy: float = 1.0  # multiplier of l_cc's gradient into the policy through imagined actions (paper: 1)
+    enc_aux_coef: float = 1.0  # weight of the grounded encoder's own loss (reconstruction + spread floor)
+    gamma: float = 0.99  # discount of the evaluation's discounted return

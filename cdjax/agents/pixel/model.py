@@ -1,0 +1,263 @@
+"""The "Learning to Query" stochastic state-space model (Buesing et al. 2018) as Sodhani et al. describe it.
+
+Time indexing. A sequence holds frames f_0..f_{L+F-2} (uint8 [S, S, 3]) and actions a_0..a_{L-1}; the
+observation o_t is the stack of the F frames f_t..f_{t+F-1} (F = 4), and a_t is what the expert did after
+seeing o_t. With s_{-1} = 0 and a_{-1} = 0 (s = the LSTM state (h, c)):
+
+    prior      p(z_t | s_{t-1}, a_{t-1})          diagonal Gaussian (an MLP on [h_{t-1}, a_{t-1}])
+    posterior  q(z_t | e(o_t), s_{t-1}, a_{t-1})  diagonal Gaussian (an MLP on [e(o_t), h_{t-1}, a_{t-1}])
+    transition s_t = LSTM([z_t, a_{t-1}], s_{t-1})
+    decoder    p(f_{t+F-1} | h_t, z_t)            diagonal Gaussian over the newest frame's pixels in [0, 1]
+    policy     a_t ~= pi(h_t)                     tanh MLP, trained by imitation (mean squared error)
+
+e: 4 convolutions (4x4, stride 2, 64 channels, ReLU) and a dense layer to 256; the decoder mirrors it with
+transposed convolutions. The closed loop (`filter`) samples z from the posterior (it reads the frames);
+the open loop (`imagine`) samples z from the prior and never reads a frame. The ELBO is summed over the
+pixels, the latent dimensions and the time steps (not averaged per element, the authors' bug), in nats.
+Every standard deviation is softplus(raw) + min_std, from its own output (not from the mean, another bug).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from cdjax.networks import Encoder as SequenceEncoder
+from cdjax.networks import init_encoder
+
+LOG_2PI = math.log(2 * math.pi)
+
+
+def gaussian_log_prob(x, mean, std):
+    """Elementwise log N(x; mean, std^2), nats."""
+    return -0.5 * ((x - mean) / std) ** 2 - jnp.log(std) - 0.5 * LOG_2PI
+
+
+def gaussian_kl(mean_q, std_q, mean_p, std_p):
+    """Elementwise KL(N(mean_q, std_q^2) || N(mean_p, std_p^2)), nats."""
+    return jnp.log(std_p / std_q) + (std_q**2 + (mean_q - mean_p) ** 2) / (2 * std_p**2) - 0.5
+
+
+def stack_frames(frames: jax.Array, stack: int) -> jax.Array:
+    """frames [T+F-1, B, S, S, 3] uint8 -> observations [T, B, S, S, 3F] float32 in [0, 1] (oldest first)."""
+    T = frames.shape[0] - stack + 1
+    x = jnp.concatenate([frames[i:i + T] for i in range(stack)], axis=-1)
+    return x.astype(jnp.float32) / 255.0
+
+
+def newest_frames(frames: jax.Array, stack: int) -> jax.Array:
+    """frames [T+F-1, B, S, S, 3] uint8 -> the newest frame of each observation [T, B, S, S, 3] in [0, 1]."""
+    return frames[stack - 1:].astype(jnp.float32) / 255.0
+
+
+class ConvEncoder(nn.Module):
+    layers: int
+    channels: int
+    features: int
+
+    @nn.compact
+    def __call__(self, x):  # [N, S, S, C] -> [N, features]
+        for _ in range(self.layers):
+            x = nn.relu(nn.Conv(self.channels, (4, 4), strides=(2, 2), padding="SAME")(x))
+        return nn.Dense(self.features)(x.reshape(x.shape[0], -1))
+
+
+class ConvDecoder(nn.Module):
+    size: int
+    layers: int
+    channels: int
+    min_std: float
+
+    @nn.compact
+    def __call__(self, x):  # [N, D] -> (mean, std) [N, S, S, 3]
+        start = self.size // 2 ** self.layers
+        y = nn.relu(nn.Dense(start * start * self.channels)(x)).reshape(-1, start, start, self.channels)
+        for _ in range(self.layers - 1):
+            y = nn.relu(nn.ConvTranspose(self.channels, (4, 4), strides=(2, 2), padding="SAME")(y))
+        y = nn.ConvTranspose(6, (4, 4), strides=(2, 2), padding="SAME")(y)
+        return y[..., :3], nn.softplus(y[..., 3:]) + self.min_std
+
+
+class Core(nn.Module):
+    """Prior, posterior and the LSTM transition."""
+
+    hidden: int
+    latent: int
+    mlp: int
+    min_std: float
+
+    def setup(self):
+        self.prior_hidden, self.prior_out = nn.Dense(self.mlp), nn.Dense(2 * self.latent)
+        self.post_hidden, self.post_out = nn.Dense(self.mlp), nn.Dense(2 * self.latent)
+        self.cell = nn.OptimizedLSTMCell(self.hidden)
+
+    def _gaussian(self, out):
+        mean, raw = jnp.split(out, 2, axis=-1)
+        return mean, nn.softplus(raw) + self.min_std
+
+    def prior(self, h, a):
+        return self._gaussian(self.prior_out(nn.relu(self.prior_hidden(jnp.concatenate([h, a], -1)))))
+
+    def posterior(self, e, h, a):
+        return self._gaussian(self.post_out(nn.relu(self.post_hidden(jnp.concatenate([e, h, a], -1)))))
+
+    def transition(self, h, c, z, a):
+        (c, h), _ = self.cell((c, h), jnp.concatenate([z, a], -1))
+        return h, c
+
+    def __call__(self, e, h, c, a):  # touches every part (for init)
+        mean, std = self.posterior(e, h, a)
+        self.prior(h, a)
+        return self.transition(h, c, mean, a)
+
+
+class Policy(nn.Module):
+    hidden: tuple[int, ...]
+    actions: int
+
+    @nn.compact
+    def __call__(self, h):
+        for width in self.hidden:
+            h = nn.relu(nn.Dense(width)(h))
+        return jnp.tanh(nn.Dense(self.actions)(h))
+
+
+class Filtered(NamedTuple):
+    """The closed loop over T steps of B sequences; leaves [T, B, ...]."""
+
+    h: jax.Array
+    c: jax.Array
+    z: jax.Array
+    post_mean: jax.Array
+    post_std: jax.Array
+    prior_mean: jax.Array
+    prior_std: jax.Array
+
+
+class LtqModel:
+    """The modules of one Config and the pure functions of the two pathways."""
+
+    def __init__(self, config, action_size: int):
+        self.config, self.A = config, action_size
+        c = config
+        self.encoder = ConvEncoder(c.conv_layers, c.conv_channels, c.embed_dim)
+        self.decoder = ConvDecoder(c.image_size, c.conv_layers, c.conv_channels, c.min_std)
+        self.core = Core(c.hidden, c.latent, c.mlp, c.min_std)
+        self.policy = Policy(tuple(c.policy_hidden), action_size)
+        self.cc_encoder = None
+        if c.use_consistency and c.encoder != "l2":
+            self.cc_encoder = SequenceEncoder(c.encoder_dim, c.horizon * c.hidden if c.encoder == "grounded-gru" else 0)
+
+    def init(self, key: jax.Array) -> dict:
+        c = self.config
+        k_enc, k_dec, k_core, k_pol, k_cc = jax.random.split(key, 5)
+        h = jnp.zeros((1, c.hidden), jnp.float32)
+        a = jnp.zeros((1, self.A), jnp.float32)
+        params = {
+            "encoder": self.encoder.init(k_enc, jnp.zeros((1, c.image_size, c.image_size, 3 * c.frame_stack))),
+            "decoder": self.decoder.init(k_dec, jnp.zeros((1, c.hidden + c.latent))),
+            "core": self.core.init(k_core, jnp.zeros((1, c.embed_dim)), h, h, a),
+            "policy": self.policy.init(k_pol, h),
+        }
+        if self.cc_encoder is not None:
+            params["cc_encoder"] = init_encoder(self.cc_encoder, k_cc, c.hidden)
+        return params
+
+    # --- pieces ------------------------------------------------------------------------------------
+    def embed(self, params, obs):
+        """obs [T, B, S, S, 3F] -> e(o) [T, B, E]."""
+        flat = obs.reshape((-1,) + obs.shape[2:])
+        return self.encoder.apply(params["encoder"], flat).reshape(obs.shape[:2] + (-1,))
+
+    def decode(self, params, h, z):
+        """h [..., H], z [..., Z] -> (mean, std) [..., S, S, 3] of the newest frame."""
+        lead = h.shape[:-1]
+        x = jnp.concatenate([h, z], -1).reshape(-1, h.shape[-1] + z.shape[-1])
+        mean, std = self.decoder.apply(params["decoder"], x)
+        return mean.reshape(lead + mean.shape[1:]), std.reshape(lead + std.shape[1:])
+
+    def act(self, params, h):
+        return self.policy.apply(params["policy"], h)
+
+    def prior_step(self, core_params, h, c, a, eps):
+        """One open-loop step: z = prior mean + std * eps, then the transition -> (h', c', z)."""
+        mean, std = self.core.apply(core_params, h, a, method="prior")
+        z = mean + std * eps
+        h, c = self.core.apply(core_params, h, c, z, a, method="transition")
+        return h, c, z
+
+    # --- the two pathways --------------------------------------------------------------------------
+    def filter(self, params, embeds, prev_actions, eps, h0=None, c0=None) -> Filtered:
+        """Closed loop: embeds [T, B, E] of the frames, prev_actions [T, B, A] (a_{t-1}), eps [T, B, Z]."""
+        T, B = embeds.shape[:2]
+        zeros = jnp.zeros((B, self.config.hidden), jnp.float32)
+        h0 = zeros if h0 is None else h0
+        c0 = zeros if c0 is None else c0
+        core = params["core"]
+
+        def step(carry, inp):
+            h, c = carry
+            e, a, noise = inp
+            p_mean, p_std = self.core.apply(core, h, a, method="prior")
+            q_mean, q_std = self.core.apply(core, e, h, a, method="posterior")
+            z = q_mean + q_std * noise
+            h, c = self.core.apply(core, h, c, z, a, method="transition")
+            return (h, c), Filtered(h, c, z, q_mean, q_std, p_mean, p_std)
+
+        _, out = jax.lax.scan(step, (h0, c0), (embeds, prev_actions, eps))
+        return out
+
+    def imagine(self, params, h0, c0, actions, eps, policy: Callable | None = None):
+        """Open loop from (h0, c0) [B, H] with latents from the prior: eps [K, B, Z]; actions [K, B, A] are
+        a_{t-1} of each step, or None with `policy(h) -> a` acting on the imagined states.
+        Returns (h, c, z) [K, B, ...]. Reads no frame."""
+
+        def step(carry, inp):
+            h, c = carry
+            a, noise = inp
+            a = policy(h) if policy is not None else a
+            h, c, z = self.prior_step(params["core"], h, c, a, noise)
+            return (h, c), (h, c, z)
+
+        if actions is None:
+            actions = jnp.zeros(eps.shape[:2] + (self.A,), jnp.float32)
+        _, out = jax.lax.scan(step, (h0, c0), (actions, eps))
+        return out
+
+    # --- the ELBO ----------------------------------------------------------------------------------
+    def elbo(self, params, frames, actions, key) -> tuple[jax.Array, dict, Filtered]:
+        """frames [T+F-1, B, S, S, 3] uint8, actions [T, B, A] -> (ELBO [B] summed over t and elements,
+        {"nll": [T, B], "kl": [T, B]} per step, the filtered states)."""
+        F = self.config.frame_stack
+        T, B = actions.shape[:2]
+        prev = jnp.concatenate([jnp.zeros_like(actions[:1]), actions[:-1]])
+        eps = jax.random.normal(key, (T, B, self.config.latent))
+        out = self.filter(params, self.embed(params, stack_frames(frames, F)), prev, eps)
+        mean, std = self.decode(params, out.h, out.z)
+        nll = -gaussian_log_prob(newest_frames(frames, F), mean, std).sum((-3, -2, -1))
+        kl = gaussian_kl(out.post_mean, out.post_std, out.prior_mean, out.prior_std).sum(-1)
+        return -(nll + kl).sum(0), {"nll": nll, "kl": kl}, out
+
+    def openloop_loglik(self, params, frames, actions, key, context: int):
+        """The open loop's log-likelihood of real frames after `context` filtered steps, and the closed loop
+        over the same sequences: frames [C+K+F-1, B, ...], actions [C+K, B, A] ->
+        (log p(f_t | open loop) [K, B] nats per frame, predicted means [K, B, S, S, 3], ELBO [B], filtered).
+
+        The closed loop filters every step, but the open loop starts from its state after the C context
+        observations (the filter is causal: that state has read frames f_0..f_{C+F-2} only) and imagines K
+        steps with latents from the prior under the real actions. log p with z from the prior is a one-sample
+        estimate of a lower bound of the open loop's marginal log-likelihood."""
+        F, C = self.config.frame_stack, context
+        K = actions.shape[0] - C
+        key_filter, key_imagine = jax.random.split(key)
+        elbo, _, out = self.elbo(params, frames, actions, key_filter)
+        prev = jnp.concatenate([jnp.zeros_like(actions[:1]), actions[:-1]])
+        eps = jax.random.normal(key_imagine, (K,) + out.z.shape[1:])
+        h, _, z = self.imagine(params, out.h[C - 1], out.c[C - 1], prev[C:], eps)
+        mean, std = self.decode(params, h, z)
+        target = newest_frames(frames, F)[C:]
+        return gaussian_log_prob(target, mean, std).sum((-3, -2, -1)), mean, elbo, out

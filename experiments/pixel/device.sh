@@ -1,0 +1,105 @@
+#!/usr/bin/env bash
+# The pixel setting on a GPU machine: experts, expert data, Learning to Query vs Learning to Query + consistency.
+#
+#   bash experiments/pixel/device.sh WORK RESULTS SECONDS [TASK ...]   # tasks: halfcheetah reacher pusher (default all)
+#
+# WORK holds the runs (checkpoints included; e.g. runs/pixel, kept between calls on the same machine), RESULTS
+# receives what to keep (each task's run directories without checkpoints and TensorBoard files, the logs, the
+# strips, report.md and figures/). Everything stops before SECONDS (wall clock of this call) and can be
+# continued: call it again with the same WORK and it resumes where it stopped (experts already exported are
+# kept; the pixel sweeps run with --resume; the JAX compilation cache in ~/.cache/cdjax/jax is reused).
+# With >= 3 GPUs the tasks run side by side (task i on GPU i); with fewer, one after another, each with its share.
+# Per task, in WORK/TASK/:
+#   1. expert-run/   cdjax's model-free arm on the state (obs setting, the task's preset, 1 seed), stopped by
+#                    SIGINT at EXPERT_SHARE of the task's time; evaluated; its policy -> expert.msgpack
+#   2. pixel/        cdjax sweep --setting pixel --preset pixel-TASK (arms ltq and ltq-cd, 10 seeds vmapped,
+#                    k = 10 halfcheetah, 5 reacher/pusher), stopped by SIGINT before the limit, then evaluated
+#                    (the imitation policy from pixels) and plotted
+#   3. cost.json     data_cost: the dataset kept on the device vs rendered on the fly (10 runs vmapped), in the
+#                    call after the one that started the pixel sweep
+#   4. strips/       PNG strips of held-out sequences (real / reconstructed / open loop) of seed 0 of each arm,
+#                    in the calls after the data-cost measurement
+# Schedule at SECONDS = 560 (10-minute commands): call 1 trains the experts (~30%) and starts the pixel sweeps,
+# call 2 continues them and measures the data cost, call 3 and later continue them and draw the strips.
+# then WORK/report.md and WORK/figures/ (python -m experiments.pixel.report WORK). WORK/TASK.log holds the output.
+# The GPU image has no `cdjax` console script: everything runs as python -m.
+set -u
+out=$1; results=$2; limit=$3; shift 3
+tasks=("$@"); [ ${#tasks[@]} -eq 0 ] && tasks=(halfcheetah reacher pusher)
+EXPERT_SHARE=${EXPERT_SHARE:-30}   # percent of a task's time for its expert (first call only)
+EXPERT_STEPS=${EXPERT_STEPS:-20000000}  # the expert's env-step budget (the SIGINT usually comes first)
+EXPERT_ARGS=${EXPERT_ARGS:-}  # more options of the expert's sweep (a CPU smoke test shrinks it)
+PIXEL_ARGS=${PIXEL_ARGS:-}    # more options of the pixel sweep (e.g. --preset pixel-tiny --seeds 2 --steps 72)
+start=$(date +%s)
+mkdir -p "$out" "$results"
+ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -ge 1 ] || ngpu=1
+parallel=0; [ "$ngpu" -ge "${#tasks[@]}" ] && parallel=1
+
+left() { echo $(( $1 - ($(date +%s) - start) )); }
+
+run_task() {  # TASK GPU SECONDS
+  local t=$1 gpu=$2 budget=$3 t0 d expert_s
+  t0=$(date +%s); d="$out/$t"; mkdir -p "$d"
+  export CUDA_VISIBLE_DEVICES=$gpu
+  task_left() { echo $(( budget - ($(date +%s) - t0) )); }
+  if [ ! -f "$d/expert.msgpack" ]; then
+    expert_s=$(( budget * EXPERT_SHARE / 100 ))
+    local resume=(); [ -f "$d/expert-run/run.json" ] && resume=(--resume)
+    if [ ${#resume[@]} -gt 0 ]; then
+      timeout -s INT -k 60 "$expert_s" python -m cdjax.cli sweep --out "$d/expert-run" --resume --no-progress
+    else
+      timeout -s INT -k 60 "$expert_s" python -m cdjax.cli sweep --setting obs --preset "$t" --arms model-free \
+        --seeds 1 --steps "$EXPERT_STEPS" --no-progress --out "$d/expert-run" $EXPERT_ARGS
+    fi
+    grep -q '"deterministic": true' "$d/expert-run/eval.jsonl" 2>/dev/null || \
+      python -m cdjax.cli eval "$d/expert-run" --episodes 16
+    python -m cdjax.agents.pixel.export_expert "$d/expert-run" "$d/expert.msgpack" || return 1
+  fi
+  # after the sweep: the evaluation and the plots (150 s); in the call after the one that started the sweep the
+  # data-cost measurement (240 s), in later calls the strips (160 s: restoring a sweep renders its data again)
+  local reserve=150 cost_due=0 strips_due=0
+  if [ -f "$d/pixel/run.json" ] && [ ! -f "$d/cost.json" ]; then cost_due=1; reserve=$(( reserve + 240 )); fi
+  if [ -f "$d/cost.json" ]; then strips_due=1; reserve=$(( reserve + 160 )); fi
+  local pix_s=$(( $(task_left) - reserve ))
+  if [ "$pix_s" -gt 60 ]; then
+    if [ -f "$d/pixel/run.json" ]; then
+      timeout -s INT -k 60 "$pix_s" python -m cdjax.cli sweep --out "$d/pixel" --resume --no-progress
+    else
+      timeout -s INT -k 60 "$pix_s" python -m cdjax.cli sweep --setting pixel --preset "pixel-$t" \
+        --expert "$d/expert.msgpack" --no-progress --no-final-eval --out "$d/pixel" $PIXEL_ARGS
+    fi
+  fi
+  if [ "$cost_due" = 1 ] && [ "$(task_left)" -gt 360 ]; then
+    timeout -k 20 220 python -m experiments.pixel.data_cost --env "$t" --expert "$d/expert.msgpack" --runs 10 \
+      --out "$d/cost.json" || echo "data_cost did not finish"
+  fi
+  if [ -f "$d/pixel/run.json" ]; then
+    timeout -k 30 120 python -m cdjax.cli eval "$d/pixel" --episodes 4 || echo "evaluation did not finish"
+    python -m cdjax.cli plot "$d/pixel" || true
+    if [ "$strips_due" = 1 ] && [ "$(task_left)" -gt 160 ]; then
+      timeout -k 10 150 python -m experiments.pixel.report --strips "$d/pixel" "$d/strips" || echo "no strips"
+    fi
+  fi
+}
+
+if [ "$parallel" = 1 ]; then
+  pids=()
+  for i in "${!tasks[@]}"; do
+    run_task "${tasks[$i]}" "$i" "$(( $(left "$limit") - 30 ))" >"$out/${tasks[$i]}.log" 2>&1 &
+    pids+=($!)
+  done
+  for p in "${pids[@]}"; do wait "$p"; done
+else
+  n=${#tasks[@]}
+  for i in "${!tasks[@]}"; do
+    share=$(( ($(left "$limit") - 30) / (n - i) ))
+    run_task "${tasks[$i]}" 0 "$share" >"$out/${tasks[$i]}.log" 2>&1
+  done
+fi
+python -m experiments.pixel.report "$out" || echo "report failed"
+cp -r "$out/report.md" "$out/figures" "$results/" 2>/dev/null
+for t in "${tasks[@]}"; do
+  cp "$out/$t.log" "$results/"
+  [ -d "$out/$t" ] && tar -czf "$results/$t.tar.gz" --exclude=checkpoints --exclude=tb --exclude=.lock -C "$out" "$t"
+  echo "== $t"; tail -n 4 "$out/$t.log"
+done

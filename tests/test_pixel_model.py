@@ -1,0 +1,275 @@
+"""The pixel setting's model, update and sweep (cdjax.agents.pixel) on synthetic frames (no physics: fast to compile;
+tests/test_pixels.py renders the real tasks).
+
+The world here is a stand-in for the rendered expert data: frames of noise with a random brightness, expert
+actions that are a fixed function of the newest frame's brightness (imitation is learnable), and a scene whose
+brightness follows the action for the evaluation episodes. Every test shares one compiled `update`."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import imageio.v3 as iio
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import struct
+
+from cdjax import agents, io
+from cdjax.agents import pixel
+from cdjax.agents.pixel import PRESETS, PixelConfig, PixelHParams, PixelLearner
+from cdjax.agents.pixel.data import Dataset, PixelEvalEnv
+from cdjax.agents.pixel.strips import write_strips
+from cdjax.cli import main
+from cdjax.runner import restore_arms
+
+from _shared import TINY_ARGS, logged_rows
+
+# ltq-cd with the l2 encoder: the whole update (ELBO, imitation, consistency) with the smallest program to compile;
+# the GRU encoders (the default is grounded-gru) are checked in the consistency test.
+# Two convolutions instead of four (the model is size-generic): a smaller program to compile.
+TINY = PixelConfig(**PRESETS["pixel-tiny"].config, arm="ltq-cd", encoder="l2").replace(conv_layers=2)
+HP = PixelHParams(lr=3e-3, imitation_coef=100.0)  # imitation weighed against the summed ELBO
+A = 2
+
+
+@struct.dataclass
+class Core:
+    obs: jax.Array  # [B, 1] brightness of the scene
+    reward: jax.Array  # [B]
+    done: jax.Array  # [B]
+
+
+class SyntheticWorld:
+    """cdjax.agents.pixel.data.PixelWorld's interface without physics: generate(key, n, length) gives frames of
+    noise, and a scene whose brightness follows the action (reward: closeness of the action to 0.5) plays
+    the evaluation episodes."""
+
+    action_size = A
+
+    def __init__(self, config):
+        self.config = config
+
+    def reset(self, key, n):
+        obs = jax.random.uniform(key, (n, 1))
+        return Core(obs, jnp.zeros((n,), jnp.float32), jnp.zeros((n,), jnp.float32))
+
+    def step(self, core, action):
+        obs = jnp.clip(0.8 * core.obs + 0.2 * (action[:, :1] + 1) / 2, 0.0, 1.0)
+        return Core(obs, -jnp.abs(action[:, 0] - 0.5), jnp.zeros_like(core.done))
+
+    def frame(self, core):
+        S = self.config.image_size
+        return jnp.broadcast_to(jnp.round(255 * core.obs)[:, :, None, None], (core.obs.shape[0], S, S, 3)).astype(jnp.uint8)
+
+    def eval_env(self, num_envs):
+        return PixelEvalEnv(self, num_envs)
+
+    def generate(self, key, n, length):
+        """Frames of noise dimmed by a random brightness per frame; the expert's action is a function of the
+        newest frame's brightness."""
+        S, F = self.config.image_size, self.config.frame_stack
+        key_noise, key_brightness = jax.random.split(key)
+        brightness = jax.random.uniform(key_brightness, (n, length + F - 1))
+        noise = jax.random.uniform(key_noise, (n, length + F - 1, S, S, 3))
+        frames = jnp.round(255 * noise * brightness[..., None, None, None]).astype(jnp.uint8)
+        b = brightness[:, F - 1:]
+        actions = 0.9 * jnp.stack([2 * b - 1, jnp.cos(6 * b)], -1)
+        return Dataset(frames=frames, actions=actions, reward=jnp.zeros((), jnp.float32))
+
+
+def learner_for(config=TINY):
+    return PixelLearner(config, world=SyntheticWorld(config))
+
+
+@pytest.fixture(scope="module")
+def learner():
+    return learner_for()
+
+
+@pytest.fixture(scope="module")
+def traced():
+    return {"count": 0}
+
+
+@pytest.fixture(scope="module")
+def update(learner, traced):
+    def counted(state, hp):
+        traced["count"] += 1
+        return learner.update(state, hp)
+
+    return jax.jit(counted)
+
+
+@pytest.fixture(scope="module")
+def init(learner):
+    return jax.jit(learner.init)
+
+
+@pytest.fixture(scope="module")
+def state(init):
+    return init(jax.random.key(0), HP)
+
+
+def test_elbo_of_an_untrained_model_equals_a_hand_computation(learner):
+    model, c = learner.model, learner.config
+    T, B, F = 3, 2, c.frame_stack
+    key_frames, key_params, key_eps = jax.random.split(jax.random.key(1), 3)
+    frames = np.asarray(jax.random.randint(key_frames, (T + F - 1, B, c.image_size, c.image_size, 3), 0, 256), np.uint8)
+    actions = np.asarray(jax.random.uniform(key_frames, (T, B, A), minval=-1, maxval=1), np.float32)
+    params = model.init(key_params)
+    elbo, parts, _ = jax.jit(model.elbo)(params, frames, actions, key_eps)
+
+    eps = np.asarray(jax.random.normal(key_eps, (T, B, c.latent)))
+    encode = jax.jit(lambda x: model.encoder.apply(params["encoder"], x))
+    prior = jax.jit(lambda h, a: model.core.apply(params["core"], h, a, method="prior"))
+    posterior = jax.jit(lambda e, h, a: model.core.apply(params["core"], e, h, a, method="posterior"))
+    transition = jax.jit(lambda h, cell, z, a: model.core.apply(params["core"], h, cell, z, a, method="transition"))
+    decode = jax.jit(lambda x: model.decoder.apply(params["decoder"], x))
+    h = cell = np.zeros((B, c.hidden), np.float32)
+    a_prev = np.zeros((B, A), np.float32)
+    total = np.zeros(B)
+    for t in range(T):
+        obs = np.concatenate([frames[t + i] for i in range(F)], -1).astype(np.float32) / 255.0
+        e = encode(obs)
+        pm, ps = (np.asarray(x, np.float64) for x in prior(h, a_prev))
+        qm, qs = (np.asarray(x, np.float64) for x in posterior(e, h, a_prev))
+        z = (qm + qs * eps[t]).astype(np.float32)
+        h, cell = transition(h, cell, z, a_prev)
+        mean, std = (np.asarray(x, np.float64) for x in decode(np.concatenate([h, z], -1)))
+        x = frames[t + F - 1].astype(np.float64) / 255.0
+        log_p = (-0.5 * ((x - mean) / std) ** 2 - np.log(std) - 0.5 * math.log(2 * math.pi)).sum((1, 2, 3))
+        kl = (np.log(ps / qs) + (qs**2 + (qm - pm) ** 2) / (2 * ps**2) - 0.5).sum(-1)
+        np.testing.assert_allclose(parts["kl"][t], kl, rtol=1e-4, atol=1e-4)
+        total += log_p - kl
+        a_prev = actions[t]
+    # summed over pixels, latents and steps (about 3 steps x 768 pixel terms here), not averaged
+    np.testing.assert_allclose(np.asarray(elbo), total, rtol=1e-5)
+    assert abs(total.mean()) > T * c.image_size**2 * 3 * 0.1
+
+
+def test_open_loop_draws_from_the_prior_and_never_reads_the_frames_it_predicts(learner, state):
+    model, c = learner.model, learner.config
+    params = state.params
+    frames = jnp.swapaxes(state.heldout.frames, 0, 1).astype(jnp.float32)  # [C+K+F-1, M, S, S, 3], differentiable
+    actions = jnp.swapaxes(state.heldout.actions, 0, 1)
+    read = c.context + c.frame_stack - 1  # frames of the context's observations
+    grads = jax.jit(jax.grad(lambda f: model.openloop_loglik(params, f, actions, jax.random.key(2), c.context)[1].sum()))(
+        frames)
+    assert np.all(np.asarray(grads[read:]) == 0.0)  # the predicted frames: exactly no influence
+    assert np.abs(np.asarray(grads[:read])).sum() > 0  # the context: read
+
+    B = 3
+    h0 = jax.random.normal(jax.random.key(3), (B, c.hidden))
+    c0 = jax.random.normal(jax.random.key(4), (B, c.hidden))
+    acts = jax.random.uniform(jax.random.key(5), (4, B, A), minval=-1, maxval=1)
+    eps = jax.random.normal(jax.random.key(6), (4, B, c.latent))
+    h_im, _, z_im = jax.jit(model.imagine)(params, h0, c0, acts, eps)
+    prior = jax.jit(lambda h, a: model.core.apply(params["core"], h, a, method="prior"))
+    transition = jax.jit(lambda h, cell, z, a: model.core.apply(params["core"], h, cell, z, a, method="transition"))
+    h, cell = h0, c0
+    for t in range(4):  # z_t = prior mean + prior std * eps_t, then the transition
+        mean, std = prior(h, acts[t])
+        np.testing.assert_allclose(z_im[t], mean + std * eps[t], rtol=1e-5, atol=1e-5)
+        h, cell = transition(h, cell, mean + std * eps[t], acts[t])
+        np.testing.assert_allclose(h_im[t], h, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("encoder,imagine", [("grounded-gru", "policy"), ("gru", "expert"), ("l2", "policy")])
+def test_consistency_is_zero_when_the_two_pathways_coincide(encoder, imagine):
+    config = TINY.replace(encoder=encoder, imagine_actions=imagine)
+    learner = learner_for(config)
+    model = learner.model
+    params = model.init(jax.random.key(7))
+    L, B, H = 6, 3, config.hidden
+    actions = jax.random.uniform(jax.random.key(8), (L, B, A), minval=-1, maxval=1)
+    eps = jax.random.normal(jax.random.key(9), (L - 1, B, config.latent))
+    h0 = jax.random.normal(jax.random.key(10), (B, H))
+    c0 = jax.random.normal(jax.random.key(11), (B, H))
+    policy = (lambda h: model.act(params, h)) if imagine == "policy" else None
+    h, cell, _ = model.imagine(params, h0, c0, None if policy else actions[:-1], eps, policy=policy)
+    # a "closed loop" that is itself the open loop under the same noise: every window imagines it exactly
+    states = jnp.concatenate([jnp.concatenate([h0, c0], -1)[None], jnp.concatenate([h, cell], -1)])
+    offsets = jnp.arange(L - 1 - config.horizon + 1)
+    terms = jax.jit(learner.consistency_terms)
+    same, _ = terms(params, states, actions, eps, offsets, HP)
+    np.testing.assert_allclose(float(same["consistency"]), 0.0, atol=1e-6)
+    moved, _ = terms(params, states.at[1:].add(0.1), actions, eps, offsets, HP)
+    assert float(moved["consistency"]) > 1e-3
+
+
+def test_the_update_compiles_once_and_imitation_loss_falls(state, update, traced):
+    losses = []
+    for _ in range(240):
+        state, metrics = update(state, HP)
+        losses.append(float(metrics["loss/imitation"]))
+    assert traced["count"] == 1
+    assert np.isfinite(losses).all()
+    assert np.mean(losses[-20:]) < 0.7 * np.mean(losses[:20]), losses[::20]
+    for name in ("heldout/loglik_k", "heldout/loglik_50", "heldout/imitation", "loss/consistency", "model/elbo_per_frame"):
+        assert np.isfinite(float(metrics[name])), name
+
+
+SYNTHETIC = dataclasses.replace(pixel.SETTING, name="pixel-synthetic",
+                                make_trainer=lambda config: pixel.trainer_of(learner_for(config)))
+agents.register(SYNTHETIC)
+
+
+def test_a_sweep_through_the_cli_resumes_and_equals_each_seed_alone(tmp_path, learner, init, update, traced):
+    """`cdjax sweep` of the pixel setting (on the synthetic world) with a resume in the middle: logs, checkpoints,
+    evaluation from pixels, plots; and its 2 seeds, vmapped in compiled chunks, end where each seed's own
+    updates (init and `update` of this module, one at a time) end."""
+    out = tmp_path / "px"
+    flags = ["--setting", "pixel-synthetic", "--preset", "pixel-tiny", "--arms", "ltq-cd", "--encoder", "l2", "--conv-layers", "2", "--lr",
+             str(HP.lr), "--imitation-coef", str(HP.imitation_coef), "--bootstrap-reps", "50", "--no-progress"]
+    main(["sweep", *flags, "--steps", str(3 * 12), "--no-final-eval", "--out", str(out)])  # 3 updates of 12 frames
+    run = json.loads((out / "run.json").read_text())
+    assert run["setting"] == "pixel-synthetic" and run["metrics"]["return"] == "heldout/loglik_k"
+    main(["sweep", "--out", str(out), "--resume", "--steps", str(6 * 12), "--no-progress"])
+    main(["eval", str(out), "--episodes", "2"])  # the imitation policy from frames (the spec has no final eval)
+    main(["plot", str(out), "--bootstrap-reps", "50"])
+    rows = logged_rows(out)
+    assert sorted({r["update"] for r in rows}) == list(range(1, 7)) and len(rows) == 2 * 6  # 2 seeds x 6 updates
+    assert all(np.isfinite(r[n]) for r in rows for n in ("heldout/loglik_k", "heldout/loglik_50", "loss/consistency"))
+    evals = io.read_jsonl(out / "eval.jsonl")
+    assert len(evals) == 2 and all(e["update"] == 6 and e["lengths"] == [3, 3] for e in evals)  # the time-out
+    assert (out / "summary.md").exists() and (out / "plots" / "model.png").exists()
+
+    _, (arm,) = restore_arms(out)
+    for i in range(2):
+        np.testing.assert_allclose(float(arm.hps.lr[i]), HP.lr, rtol=1e-6)
+        key = jax.random.wrap_key_data(np.asarray(jax.random.key_data(arm.keys[i])))  # off the sweep's mesh
+        alone = init(key, HP)
+        for _ in range(6):
+            alone, _ = update(alone, HP)
+        for a, b in zip(jax.tree.leaves(alone.params), jax.tree.leaves(arm.state.params)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=2e-4, atol=2e-5)
+    assert traced["count"] == 1  # the module's update was compiled once for every use
+
+    one = jax.tree.map(lambda x: x[0], arm.state)
+    path = write_strips(arm.trainer.inner, one.params, one.heldout, jax.random.key(0), tmp_path / "strip.png")
+    c = arm.plan.config
+    assert iio.imread(path).shape == (2 * 3 * (c.image_size + 2), (c.context + c.eval_horizon) * (c.image_size + 2), 3)
+
+
+def test_the_expert_is_the_best_evaluated_policy_of_a_model_free_sweep(tmp_path):
+    """export_expert (what device.sh runs between the expert's sweep and the pixel sweep) on the pure-JAX point
+    mass: the saved policy and statistics are the restored ones of the run with the best deterministic evaluation."""
+    from cdjax.agents.pixel.expert import load_expert
+    from cdjax.agents.pixel.export_expert import main as export
+
+    run = tmp_path / "expert-run"
+    main(["sweep", "--setting", "obs", *TINY_ARGS, "--arms", "model-free", "--steps", "384", "--eval-episodes", "2",
+          "--bootstrap-reps", "20", "--out", str(run)])  # the shared tiny point-mass sweep (tests/_shared.py)
+    export([str(run), str(tmp_path / "point.msgpack")])
+    expert = load_expert(tmp_path / "point.msgpack")
+    evals = [e for e in io.read_jsonl(run / "eval.jsonl") if e["deterministic"]]
+    best = max(evals, key=lambda e: e["eval/return"])
+    assert expert.eval_return == best["eval/return"] and expert.config.env == "point"
+    _, (arm,) = restore_arms(run)
+    for a, b in zip(jax.tree.leaves(expert.policy), jax.tree.leaves(arm.state.params["policy"])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[best["seed"]])
+    np.testing.assert_array_equal(np.asarray(expert.norms.obs.mean), np.asarray(arm.state.norms.obs.mean)[best["seed"]])
