@@ -20,7 +20,10 @@ def skip_if_not_finite(inner: optax.GradientTransformation) -> optax.GradientTra
     limit on consecutive skips, and the same state, but choosing by a select instead of a `lax.cond`. On a
     GPU a conditional reads its predicate back on the host, once in each of the epochs x minibatches steps
     of an unbatched update (a vmapped one turns it into a select anyway)."""
-    reference = optax.apply_if_finite(inner, max_consecutive_errors=1)
+    def init(params):
+        zero = jnp.zeros((), jnp.int32)
+        return optax.ApplyIfFiniteState(notfinite_count=zero, last_finite=jnp.array(True), total_notfinite=zero,
+                                        inner_state=inner.init(params))
 
     def update(updates, state, params=None):
         finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(u)) for u in jax.tree.leaves(updates)]))
@@ -32,7 +35,7 @@ def skip_if_not_finite(inner: optax.GradientTransformation) -> optax.GradientTra
             total_notfinite=jnp.where(finite, state.total_notfinite, state.total_notfinite + 1).astype(jnp.int32),
             inner_state=jax.tree.map(keep, new_inner, state.inner_state))
 
-    return optax.GradientTransformation(reference.init, update)
+    return optax.GradientTransformation(init, update)
 
 
 def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientTransformation:
