@@ -8,16 +8,19 @@
 # --preset minatar-GAME`, or ALE games named ale-GAME (ale-breakout, ale-seaquest, ale-mspacman, ale-frostbite: one
 # seed, `--preset GAME`; ale-py is installed from ./.whl when missing). Game i runs on GPU i mod (number of GPUs);
 # games sharing a GPU split its memory. Extra options after -- go to every sweep (e.g. -- --steps 2000000). Training gets
-# SECONDS minus 240 (at least 60): then it gets SIGINT, finishes the chunk in flight, saves a checkpoint and
+# SECONDS minus EVAL_RESERVE (default 240; at least 60): then it gets SIGINT, finishes the chunk in flight, saves a checkpoint and
 # its logs; a run stopped early is then evaluated at its last checkpoint (`cdjax eval --episodes 100`).
 # The whole script takes about SECONDS. gymnax is installed from ./.whl when the image lacks it.
 # OUT/GAME.log: the output of each game; OUT/runs/GAME: the run directory; OUT/report: RESULTS table and figure.
+# Called again with the same OUT, a game whose run exists is continued (--resume; an ALE game's emulators start
+# new games, see cdjax.agents.atari.ale). The memory share of each process is MEM_FRACTION (default 0.9 / the
+# games per GPU): lower it to leave room for other work on the same GPU.
 set -u
 out=$1; limit=$2; shift 2
 games=(); while [ $# -gt 0 ] && [ "$1" != "--" ]; do games+=("$1"); shift; done
 [ "${1:-}" = "--" ] && shift
 [ ${#games[@]} -eq 0 ] && games=(breakout seaquest)
-train=$(( limit - 240 )); [ "$train" -lt 60 ] && train=60
+train=$(( limit - ${EVAL_RESERVE:-240} )); [ "$train" -lt 60 ] && train=60
 mkdir -p "$out/runs"
 if ! python -c "import gymnax" 2>/dev/null; then
   pip install --quiet --no-index --no-deps --find-links .whl gymnax==1.0.1 gymnasium==1.3.0 \
@@ -28,27 +31,34 @@ if printf '%s\n' "${games[@]}" | grep -q '^ale-' && ! python -c "import ale_py" 
 fi
 ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -lt 1 ] && ngpu=1
 share=$(( (${#games[@]} + ngpu - 1) / ngpu ))
-fraction=$(python -c "print(round(0.9 / $share, 2))")
+fraction=${MEM_FRACTION:-$(python -c "print(round(0.9 / $share, 2))")}
 t0=$(date +%s)
 pids=()
 for i in "${!games[@]}"; do
   g=${games[$i]}
   case $g in ale-*) preset=${g#ale-} ;; *) preset=minatar-$g ;; esac
+  if [ -f "$out/runs/$g/run.json" ]; then  # a run of an earlier call: continue it
+    what=(sweep --out "$out/runs/$g" --resume --no-progress)
+  else
+    what=(sweep --setting atari --preset "$preset" --out "$out/runs/$g" --no-progress "$@")
+  fi
   CUDA_VISIBLE_DEVICES=$(( i % ngpu )) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction timeout -s INT -k 60 "$train" \
-    python -m cdjax.cli sweep --setting atari --preset "$preset" --out "$out/runs/$g" --no-progress "$@" \
-    >"$out/$g.log" 2>&1 &
+    python -m cdjax.cli "${what[@]}" >>"$out/$g.log" 2>&1 &
   pids+=($!)
 done
 for p in "${pids[@]}"; do wait "$p"; done
 echo "training took $(( $(date +%s) - t0 )) s"
-for i in "${!games[@]}"; do
+pids=()
+for i in "${!games[@]}"; do  # the evaluations of runs stopped before their final one, side by side
   g=${games[$i]}
-  if ! grep -q '"episodes": 100' "$out/runs/$g/eval.jsonl" 2>/dev/null; then  # stopped before its final evaluation
-    CUDA_VISIBLE_DEVICES=$(( i % ngpu )) timeout -k 30 150 python -m cdjax.cli eval "$out/runs/$g" --episodes 100 \
-      >>"$out/$g.log" 2>&1
+  if ! grep -q '"episodes": 100' "$out/runs/$g/eval.jsonl" 2>/dev/null; then
+    CUDA_VISIBLE_DEVICES=$(( i % ngpu )) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction timeout -k 30 180 \
+      python -m cdjax.cli eval "$out/runs/$g" --episodes 100 >>"$out/$g.log" 2>&1 &
+    pids+=($!)
   fi
-  echo "== $g"; tail -n 5 "$out/$g.log"
 done
+for p in "${pids[@]}"; do wait "$p"; done
+for g in "${games[@]}"; do echo "== $g"; tail -n 5 "$out/$g.log"; done
 python -m experiments.atari.report "$out"/runs/* --out "$out/report" 2>&1 | tail -n 30
 tar -czf "$out/runs.tar.gz" --exclude=checkpoints --exclude=tb -C "$out" runs
 echo "total $(( $(date +%s) - t0 )) s"

@@ -8,7 +8,8 @@
 # strips, report.md and figures/). Everything stops before SECONDS (wall clock of this call) and can be
 # continued: call it again with the same WORK and it resumes where it stopped (experts already exported are
 # kept; the pixel sweeps run with --resume; the JAX compilation cache in ~/.cache/cdjax/jax is reused).
-# With >= 3 GPUs the tasks run side by side (task i on GPU i); with fewer, one after another, each with its share.
+# The tasks run side by side (task i on GPU i mod the number of GPUs, sharing its memory where they share a GPU);
+# SEQUENTIAL=1 runs them one after another, each with its share of the time.
 # Per task, in WORK/TASK/:
 #   1. expert-run/   cdjax's model-free arm on the state (obs setting, the task's preset, 1 seed), stopped by
 #                    SIGINT at EXPERT_SHARE of the task's time; evaluated; its policy -> expert.msgpack
@@ -16,7 +17,7 @@
 #                    k = 10 halfcheetah, 5 reacher/pusher), stopped by SIGINT before the limit, then evaluated
 #                    (the imitation policy from pixels) and plotted
 #   3. cost.json     data_cost: the dataset kept on the device vs rendered on the fly (10 runs vmapped), in the
-#                    call after the one that started the pixel sweep
+#                    call after the one that started the pixel sweep (tasks in COST_TASKS, default all)
 #   4. strips/       PNG strips of held-out sequences (real / reconstructed / open loop) of seed 0 of each arm,
 #                    in the calls after the data-cost measurement
 # Schedule at SECONDS = 560 (10-minute commands): call 1 trains the experts (~30%) and starts the pixel sweeps,
@@ -29,11 +30,18 @@ tasks=("$@"); [ ${#tasks[@]} -eq 0 ] && tasks=(halfcheetah reacher pusher)
 EXPERT_SHARE=${EXPERT_SHARE:-30}   # percent of a task's time for its expert (first call only)
 EXPERT_STEPS=${EXPERT_STEPS:-20000000}  # the expert's env-step budget (the SIGINT usually comes first)
 EXPERT_ARGS=${EXPERT_ARGS:-}  # more options of the expert's sweep (a CPU smoke test shrinks it)
+COST_TASKS=${COST_TASKS:-halfcheetah reacher pusher}  # the tasks whose data cost is measured
 PIXEL_ARGS=${PIXEL_ARGS:-}    # more options of the pixel sweep (e.g. --preset pixel-tiny --seeds 2 --steps 72)
 start=$(date +%s)
 mkdir -p "$out" "$results"
 ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -ge 1 ] || ngpu=1
-parallel=0; [ "$ngpu" -ge "${#tasks[@]}" ] && parallel=1
+# side by side (task i on GPU i mod ngpu; tasks sharing a GPU split its memory), unless SEQUENTIAL=1: on a
+# shared GPU the compilations and host-side work of one task overlap another's kernels
+parallel=1; [ "${SEQUENTIAL:-0}" = 1 ] && parallel=0
+share=$(( (${#tasks[@]} + ngpu - 1) / ngpu ))
+# MEM_FRACTION (each process's share of its GPU's memory) overrides 0.9 / (tasks per GPU), e.g. to leave room
+if [ -n "${MEM_FRACTION:-}" ]; then export XLA_PYTHON_CLIENT_MEM_FRACTION=$MEM_FRACTION
+elif [ "$share" -gt 1 ]; then export XLA_PYTHON_CLIENT_MEM_FRACTION=$(python -c "print(round(0.9 / $share, 2))"); fi
 
 left() { echo $(( $1 - ($(date +%s) - start) )); }
 
@@ -58,8 +66,10 @@ run_task() {  # TASK GPU SECONDS
   # after the sweep: the evaluation and the plots (150 s); in the call after the one that started the sweep the
   # data-cost measurement (240 s), in later calls the strips (160 s: restoring a sweep renders its data again)
   local reserve=150 cost_due=0 strips_due=0
-  if [ -f "$d/pixel/run.json" ] && [ ! -f "$d/cost.json" ]; then cost_due=1; reserve=$(( reserve + 240 )); fi
-  if [ -f "$d/cost.json" ]; then strips_due=1; reserve=$(( reserve + 160 )); fi
+  if [ -f "$d/pixel/run.json" ]; then
+    if [ ! -f "$d/cost.json" ] && [[ " $COST_TASKS " == *" $t "* ]]; then cost_due=1; reserve=$(( reserve + 240 ))
+    else strips_due=1; reserve=$(( reserve + 160 )); fi
+  fi
   local pix_s=$(( $(task_left) - reserve ))
   if [ "$pix_s" -gt 60 ]; then
     if [ -f "$d/pixel/run.json" ]; then
@@ -85,7 +95,7 @@ run_task() {  # TASK GPU SECONDS
 if [ "$parallel" = 1 ]; then
   pids=()
   for i in "${!tasks[@]}"; do
-    run_task "${tasks[$i]}" "$i" "$(( $(left "$limit") - 30 ))" >"$out/${tasks[$i]}.log" 2>&1 &
+    run_task "${tasks[$i]}" "$(( i % ngpu ))" "$(( $(left "$limit") - 30 ))" >>"$out/${tasks[$i]}.log" 2>&1 &
     pids+=($!)
   done
   for p in "${pids[@]}"; do wait "$p"; done
@@ -93,7 +103,7 @@ else
   n=${#tasks[@]}
   for i in "${!tasks[@]}"; do
     share=$(( ($(left "$limit") - 30) / (n - i) ))
-    run_task "${tasks[$i]}" 0 "$share" >"$out/${tasks[$i]}.log" 2>&1
+    run_task "${tasks[$i]}" 0 "$share" >>"$out/${tasks[$i]}.log" 2>&1
   done
 fi
 python -m experiments.pixel.report "$out" || echo "report failed"
