@@ -63,6 +63,7 @@ run_task() {  # TASK GPU SECONDS
       python -m cdjax.cli eval "$d/expert-run" --episodes 16
     python -m cdjax.agents.pixel.export_expert "$d/expert-run" "$d/expert.msgpack" || return 1
   fi
+  [ "${EXPERTS_ONLY:-0}" = 1 ] && return 0  # EXPERTS_ONLY=1: stop after the experts (e.g. to carry them elsewhere)
   # after the sweep: the evaluation and the plots (150 s); in the call after the one that started the sweep the
   # data-cost measurement (240 s), in later calls the strips (160 s: restoring a sweep renders its data again)
   local reserve=150 cost_due=0 strips_due=0
