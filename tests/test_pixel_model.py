@@ -273,3 +273,23 @@ def test_the_expert_is_the_best_evaluated_policy_of_a_model_free_sweep(tmp_path)
     for a, b in zip(jax.tree.leaves(expert.policy), jax.tree.leaves(arm.state.params["policy"])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[best["seed"]])
     np.testing.assert_array_equal(np.asarray(expert.norms.obs.mean), np.asarray(arm.state.norms.obs.mean)[best["seed"]])
+
+
+def test_subpixel_decoder_layer_rearranges_each_pixels_channels_into_a_2x2_block():
+    """depth_to_space: channel (di * 2 + dj) * C + c of input pixel (i, j) lands on pixel (2i + di, 2j + dj),
+    channel c; the decoder's two upsampling kinds give the same output shapes."""
+    from cdjax.agents.pixel.model import ConvDecoder, depth_to_space
+
+    x = np.arange(2 * 3 * 4 * 8, dtype=np.float32).reshape(2, 3, 4, 8)  # C = 2 after the 2x2 rearrangement
+    y = np.asarray(depth_to_space(jnp.asarray(x)))
+    assert y.shape == (2, 6, 8, 2)
+    for i, j, di, dj, c in [(0, 0, 0, 0, 0), (1, 2, 1, 0, 1), (2, 3, 1, 1, 0), (2, 1, 0, 1, 1)]:
+        assert y[1, 2 * i + di, 2 * j + dj, c] == x[1, i, j, (di * 2 + dj) * 2 + c]
+    z = jnp.ones((3, 5))
+    shapes = set()
+    for kind in ("transpose", "subpixel"):
+        dec = ConvDecoder(16, 2, 4, 0.01, kind)
+        mean, std = dec.apply(dec.init(jax.random.key(0), z), z)
+        shapes.add((mean.shape, std.shape))
+        assert float(std.min()) >= 0.01
+    assert shapes == {((3, 16, 16, 3), (3, 16, 16, 3))}

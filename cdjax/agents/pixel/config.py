@@ -11,6 +11,7 @@ from cdjax.config import ENCODERS, ConfigError
 
 Arm = Literal["ltq", "ltq-cd"]
 ImagineActions = Literal["policy", "expert"]
+Upsample = Literal["transpose", "subpixel"]
 PIXEL_ENVS = ("halfcheetah", "reacher", "pusher")
 
 
@@ -26,6 +27,8 @@ class PixelConfig:
     frame_stack: int = 4  # frames per observation (the encoder's input has 3 x frame_stack channels)
     conv_layers: int = 4  # convolutions of the encoder (4x4 kernels, stride 2), mirrored by the decoder
     conv_channels: int = 64  # channels of every convolution
+    upsample: Upsample = "subpixel"  # decoder layers: 4x4 stride-2 transposed convolutions ("transpose"), or (3x3
+    # convolutions to 4x the channels, then depth_to_space; see model.ConvDecoder)
     embed_dim: int = 256  # e(o): the encoder's output size
     hidden: int = 256  # LSTM state size (h and c each)
     latent: int = 100  # z: per-step latent size

@@ -66,19 +66,40 @@ class ConvEncoder(nn.Module):
         return nn.Dense(self.features)(x.reshape(x.shape[0], -1))
 
 
+def depth_to_space(y: jax.Array, factor: int = 2) -> jax.Array:
+    """[N, H, W, f*f*C] -> [N, f*H, f*W, C]: each pixel's channels become an f x f block of pixels."""
+    n, h, w, c = y.shape
+    y = y.reshape(n, h, w, factor, factor, c // factor ** 2)
+    return y.transpose(0, 1, 3, 2, 4, 5).reshape(n, h * factor, w * factor, c // factor ** 2)
+
+
 class ConvDecoder(nn.Module):
+    """Mirror of the encoder: each layer doubles the resolution.
+
+    upsample "transpose": 4x4 transposed convolutions of stride 2. "subpixel": a 3x3 convolution of stride 1 to
+    four times the channels, then each pixel's channels become a 2x2 block (depth_to_space). A 4x4 stride-2
+    transposed convolution computes each output pixel from a 2x2 neighbourhood of its input, which a 3x3 window
+    contains, so "subpixel" can represent every "transpose" layer; it avoids the input-dilated convolutions
+    (three zeros in four inputs) that a transposed convolution is lowered to."""
+
     size: int
     layers: int
     channels: int
     min_std: float
+    upsample: str = "transpose"
+
+    def _up(self, y, features):
+        if self.upsample == "subpixel":
+            return depth_to_space(nn.Conv(4 * features, (3, 3), padding="SAME")(y))
+        return nn.ConvTranspose(features, (4, 4), strides=(2, 2), padding="SAME")(y)
 
     @nn.compact
     def __call__(self, x):  # [N, D] -> (mean, std) [N, S, S, 3]
         start = self.size // 2 ** self.layers
         y = nn.relu(nn.Dense(start * start * self.channels)(x)).reshape(-1, start, start, self.channels)
         for _ in range(self.layers - 1):
-            y = nn.relu(nn.ConvTranspose(self.channels, (4, 4), strides=(2, 2), padding="SAME")(y))
-        y = nn.ConvTranspose(6, (4, 4), strides=(2, 2), padding="SAME")(y)
+            y = nn.relu(self._up(y, self.channels))
+        y = self._up(y, 6)
         return y[..., :3], nn.softplus(y[..., 3:]) + self.min_std
 
 
@@ -145,7 +166,7 @@ class LtqModel:
         self.config, self.A = config, action_size
         c = config
         self.encoder = ConvEncoder(c.conv_layers, c.conv_channels, c.embed_dim)
-        self.decoder = ConvDecoder(c.image_size, c.conv_layers, c.conv_channels, c.min_std)
+        self.decoder = ConvDecoder(c.image_size, c.conv_layers, c.conv_channels, c.min_std, c.upsample)
         self.core = Core(c.hidden, c.latent, c.mlp, c.min_std)
         self.policy = Policy(tuple(c.policy_hidden), action_size)
         self.cc_encoder = None
