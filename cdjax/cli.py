@@ -101,7 +101,11 @@ def build_parser(setting: Setting | None = None) -> Parser:
                         parents=[runtime_parent])
     ev.add_argument("run_dir", metavar="RUN_DIR")
     ev.add_argument("--episodes", type=options.count, default=100, metavar="N", help="episodes per run (default 100)")
-    ev.add_argument("--stochastic", action="store_true", help="sample actions (default: the mean action)")
+    mode = ev.add_mutually_exclusive_group()
+    mode.add_argument("--stochastic", action="store_true",
+                      help="sample actions (the default of settings whose sweeps evaluate so, e.g. atari)")
+    mode.add_argument("--deterministic", action="store_true",
+                      help="the deterministic action: the mean, or the most probable (the default elsewhere)")
     ev.add_argument("--video", action="store_true", help="also render a video of one episode per arm")
     plot = sub.add_parser("plot", help="curves and the summary table again from the logs", allow_abbrev=False,
                           parents=[runtime_parent])
@@ -188,7 +192,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
     rd.read()  # a clear error for a directory that holds no run
     with library_log(rd.log, say):
         spec, arms = restore_arms(args.run_dir)
-        records = evaluate_arms(rd, arms, spec.seeds, args.episodes, not args.stochastic, say)
+        sampled = args.stochastic or (agents.get(spec.setting).eval_sampled and not args.deterministic)
+        records = evaluate_arms(rd, arms, spec.seeds, args.episodes, not sampled, say)
     _print_eval(records)
     print(f"Appended {len(records)} records to {rd.eval}")
     if args.video:

@@ -97,6 +97,10 @@ class Setting:
     default_preset: Callable[[Mapping[str, Any]], str | None]  # given Config values -> the preset used without --preset
     phase: Phase | None = None
     watch: Callable[[str, ConfigT, Mapping], str | None] | None = None  # (arm, config, chunk metrics [R, n]) -> warning
+    # the sweep's evaluations (and `cdjax eval` by default) sample the policy's actions; False: its deterministic
+    # action. A greedy discrete policy can stall for a whole episode (Atari: not pressing FIRE under sticky actions),
+    # and A2C's literature reports the sampling policy.
+    eval_sampled: bool = False
 
 
 __all__ = ["ConfigError", "Metrics", "Phase", "Setting", "Trainer"]

@@ -189,16 +189,17 @@ def evaluate_arms(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int,
         if row.get("eval/return") is not None:
             means.setdefault(row["arm"], []).append(row["eval/return"])
     text = "  ".join(f"{arm} {np.mean(v):.1f}" for arm, v in means.items())
-    say(f"Evaluation ({episodes} episodes per run, {'mean' if deterministic else 'sampled'} actions, "
+    say(f"Evaluation ({episodes} episodes per run, {'deterministic' if deterministic else 'sampled'} actions, "
         f"{time.perf_counter() - t0:.1f} s): return {text}")
     return records
 
 
-def finished_evaluation(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int) -> bool:
-    """Whether eval.jsonl already holds the final (deterministic) evaluation of every run of every arm."""
+def finished_evaluation(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int,
+                        deterministic: bool = True) -> bool:
+    """Whether eval.jsonl already holds the final evaluation (of that kind) of every run of every arm."""
     final = {a.name: a.num_updates for a in arms}
     have = {(r.get("arm"), r.get("hp"), r.get("seed")) for r in io.read_jsonl(rd.eval)
-            if r.get("deterministic") and r.get("episodes") == episodes and r.get("update") == final.get(r.get("arm"))}
+            if r.get("deterministic", True) == deterministic and r.get("episodes") == episodes and r.get("update") == final.get(r.get("arm"))}
     return all((a.name, label, s) in have for a in arms for label in a.plan.labels for s in range(num_seeds))
 
 

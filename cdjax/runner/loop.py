@@ -308,7 +308,8 @@ class Loop:
                     last = self.round()
                     self.report_progress()
                     if self.spec.eval_every and self.rounds % self.spec.eval_every == 0 and not last:
-                        evaluate_arms(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes, True, self.say)
+                        evaluate_arms(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes,
+                                      not self.setting.eval_sampled, self.say)
                     if self.stop_asked():
                         self.stop()
             except KeyboardInterrupt as err:
@@ -333,10 +334,11 @@ class Loop:
                      f"compile {self.extra_compile:.1f} s more.")
         if not self.spec.final_eval:
             return
-        if finished_evaluation(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes):
+        deterministic = not self.setting.eval_sampled
+        if finished_evaluation(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes, deterministic):
             self.say("The final evaluation is already in eval.jsonl.")
         else:
-            evaluate_arms(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes, True, self.say)
+            evaluate_arms(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes, deterministic, self.say)
         try:
             from cdjax.plots import plot_run
         except ImportError as err:  # an install without the plotting stack (e.g. a bare GPU image)

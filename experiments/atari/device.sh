@@ -11,7 +11,8 @@
 # SECONDS minus EVAL_RESERVE (default 240; at least 60): then it gets SIGINT, finishes the chunk in flight, saves a checkpoint and
 # its logs; a run stopped early is then evaluated at its last checkpoint (`cdjax eval --episodes 100`).
 # The whole script takes about SECONDS. gymnax is installed from ./.whl when the image lacks it.
-# OUT/GAME.log: the output of each game; OUT/runs/GAME: the run directory; OUT/report: RESULTS table and figure.
+# OUT/GAME.log: the output of each game; OUT/runs/GAME: the run directory; OUT/report: RESULTS table and figure;
+# OUT/runs.tar.gz: the run directories without checkpoints, their metrics thinned (experiments.thin_logs).
 # Called again with the same OUT, a game whose run exists is continued (--resume; an ALE game's emulators start
 # new games, see cdjax.agents.atari.ale). The memory share of each process is MEM_FRACTION (default 0.9 / the
 # games per GPU): lower it to leave room for other work on the same GPU.
@@ -33,6 +34,9 @@ ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -lt 1 ] && ngpu=1
 share=$(( (${#games[@]} + ngpu - 1) / ngpu ))
 fraction=${MEM_FRACTION:-$(python -c "print(round(0.9 / $share, 2))")}
 t0=$(date +%s)
+evals_before() { local n; n=$(grep -c '"episodes": 100' "$out/runs/$1/eval.jsonl" 2>/dev/null); echo "${n:-0}"; }
+declare -A before
+for g in "${games[@]}"; do before[$g]=$(evals_before "$g"); done
 pids=()
 for i in "${!games[@]}"; do
   g=${games[$i]}
@@ -51,7 +55,7 @@ echo "training took $(( $(date +%s) - t0 )) s"
 pids=()
 for i in "${!games[@]}"; do  # the evaluations of runs stopped before their final one, side by side
   g=${games[$i]}
-  if ! grep -q '"episodes": 100' "$out/runs/$g/eval.jsonl" 2>/dev/null; then
+  if [ "$(evals_before "$g")" -le "${before[$g]}" ]; then  # the sweep stopped before its final evaluation this call
     CUDA_VISIBLE_DEVICES=$(( i % ngpu )) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction timeout -k 30 180 \
       python -m cdjax.cli eval "$out/runs/$g" --episodes 100 >>"$out/$g.log" 2>&1 &
     pids+=($!)
@@ -60,5 +64,7 @@ done
 for p in "${pids[@]}"; do wait "$p"; done
 for g in "${games[@]}"; do echo "== $g"; tail -n 5 "$out/$g.log"; done
 python -m experiments.atari.report "$out"/runs/* --out "$out/report" 2>&1 | tail -n 30
-tar -czf "$out/runs.tar.gz" --exclude=checkpoints --exclude=tb -C "$out" runs
+# what comes back: the run directories with thinned metrics (experiments.thin_logs; a full MinAtar log is ~150 MB)
+rm -rf "$out/thin" && python -m experiments.thin_logs "$out/runs" "$out/thin/runs" >/dev/null
+tar -czf "$out/runs.tar.gz" -C "$out/thin" runs
 echo "total $(( $(date +%s) - t0 )) s"

@@ -7,7 +7,7 @@ runs were stopped by a time limit is cut at the largest env-step count that all 
 table says so. Statistics are cdjax.stats': IQM over seeds with a 95% stratified-bootstrap interval (rliable);
 final = mean of the last 10% of each seed's logged training returns up to the budget; AUC = env-step weighted
 mean of each seed's training-return curve up to the budget (sample efficiency); eval = the mean return of each
-seed's latest evaluation (100 episodes, greedy actions under sticky actions). Throughput: env steps per second
+seed's latest evaluation (100 episodes, sampled actions since 2026-11-22, greedy before; sticky actions). Throughput: env steps per second
 of wall time of each arm over all of its runs (the arms of a game alternate chunks in one process).
 """
 
@@ -52,7 +52,8 @@ def load(run_dir: pathlib.Path) -> dict:
     for e in io.read_jsonl(run_dir / "eval.jsonl"):
         seen = evals.setdefault(_label(run, e["arm"], e["hp"]), {})
         if e["seed"] not in seen or e["update"] >= seen[e["seed"]][0]:
-            seen[e["seed"]] = (e["update"], e["eval/return"], e["episodes"], e["env_steps"])
+            seen[e["seed"]] = (e["update"], e["eval/return"], e["episodes"], e["env_steps"],
+                               "greedy" if e.get("deterministic", True) else "sampled")
     return {"game": run["base_config"]["env"], "seeds": run["seeds"], "arms": arms, "evals": evals}
 
 
@@ -87,6 +88,7 @@ def table_rows(data: dict, reps: int) -> list[dict]:
             "final": stats.iqm_interval(final, reps), "auc": stats.iqm_interval(auc, reps),
             "eval": stats.iqm_interval(eval_values, reps),
             "eval_steps": sorted({ev[s][3] for s in ev}), "eval_episodes": sorted({ev[s][2] for s in ev}),
+            "eval_modes": sorted({ev[s][4] for s in ev}),
             # the arm's program runs all of its hyper-parameter combinations x seeds together
             "steps_per_s": steps[-1] * runs[a["arm"]] / wall if wall > 0 else np.nan,
         })
@@ -103,12 +105,14 @@ def markdown(rows: list[dict]) -> str:
              "| env steps/s (the arm's runs) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['game']} | {r['arm']} | {r['seeds']} | {r['budget']:.3g} | {_cell(r['final'])} | "
-                     f"{_cell(r['auc'])} | {_cell(r['eval'])} ({'/'.join(map(str, r['eval_episodes']))} episodes) | "
+                     f"{_cell(r['auc'])} | {_cell(r['eval'])} ({'/'.join(map(str, r['eval_episodes']))} episodes, "
+                     f"{'/'.join(r['eval_modes'])}) | "
                      f"{', '.join(f'{s:.3g}' for s in r['eval_steps'])} | {r['steps_per_s']:,.0f} |")
     lines.append("")
     lines.append("IQM over seeds [95% stratified-bootstrap interval]. final: last 10% of the logged training returns "
                  "up to the budget; AUC: env-step weighted mean of the training-return curve up to the budget; eval: "
-                 "latest evaluation of each seed (greedy actions, sticky actions as in training).")
+                 "latest evaluation of each seed (greedy: the most probable action; sampled: the policy's own; sticky actions as "
+                 "in training).")
     return "\n".join(lines) + "\n"
 
 

@@ -65,23 +65,32 @@ def main(argv=None) -> dict:
     parser.add_argument("--preset", default="", help="a pixel preset (default: pixel-ENV)")
     parser.add_argument("--expert", default="")
     parser.add_argument("--runs", type=int, default=10)
-    parser.add_argument("--set", nargs="*", default=[], help="PixelConfig overrides NAME=INT, e.g. image_size=16")
+    parser.add_argument("--set", nargs="*", default=[], help="PixelConfig overrides NAME=VALUE, e.g. image_size=16")
     parser.add_argument("--out", default="")
     args = parser.parse_args(argv)
     runtime.configure(cache_dir=runtime.default_cache_dir())
     setting = agents.get("pixel")
     preset = setting.presets[args.preset or f"pixel-{args.env}"]
-    overrides = dict(preset.config, expert=args.expert)
-    for item in args.set:
-        name, value = item.split("=")
-        overrides[name] = int(value)
-    config = setting.config_type(**overrides)
+    config = setting.config_type(**(dict(preset.config, expert=args.expert) | overrides(args.set)))
     result = measure(config, args.runs)
     print(json.dumps(result, indent=1))
-    if args.out:
-        pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(args.out).write_text(json.dumps(result, indent=1))
+    write_json(result, args.out)
     return result
+
+
+def overrides(items: list[str]) -> dict:
+    """NAME=VALUE items of --set as PixelConfig fields (integers where the value is one)."""
+    out = {}
+    for item in items:
+        name, value = item.split("=", 1)
+        out[name] = int(value) if value.lstrip("-").isdigit() else value
+    return out
+
+
+def write_json(result: dict, out: str) -> None:
+    if out:
+        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
+        pathlib.Path(out).write_text(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":

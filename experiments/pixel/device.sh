@@ -4,8 +4,8 @@
 #   bash experiments/pixel/device.sh WORK RESULTS SECONDS [TASK ...]   # tasks: halfcheetah reacher pusher (default all)
 #
 # WORK holds the runs (checkpoints included; e.g. runs/pixel, kept between calls on the same machine), RESULTS
-# receives what to keep (each task's run directories without checkpoints and TensorBoard files, the logs, the
-# strips, report.md and figures/). Everything stops before SECONDS (wall clock of this call) and can be
+# receives what to keep (each task's run directories without checkpoints, their metrics thinned by
+# experiments.thin_logs, the expert, cost and strips; the logs, report.md and figures/). Everything stops before SECONDS (wall clock of this call) and can be
 # continued: call it again with the same WORK and it resumes where it stopped (experts already exported are
 # kept; the pixel sweeps run with --resume; the JAX compilation cache in ~/.cache/cdjax/jax is reused).
 # The tasks run side by side (task i on GPU i mod the number of GPUs, sharing its memory where they share a GPU);
@@ -48,6 +48,11 @@ left() { echo $(( $1 - ($(date +%s) - start) )); }
 run_task() {  # TASK GPU SECONDS
   local t=$1 gpu=$2 budget=$3 t0 d expert_s
   t0=$(date +%s); d="$out/$t"; mkdir -p "$d"
+  # EXPERTS_FROM=DIR: DIR/TASK.msgpack are experts of an earlier machine (carry DIR, not WORK: a carried path
+  # replaces the device's copy, runs included)
+  if [ -n "${EXPERTS_FROM:-}" ] && [ ! -f "$d/expert.msgpack" ] && [ -f "$EXPERTS_FROM/$t.msgpack" ]; then
+    cp "$EXPERTS_FROM/$t.msgpack" "$d/expert.msgpack"
+  fi
   export CUDA_VISIBLE_DEVICES=$gpu
   task_left() { echo $(( budget - ($(date +%s) - t0) )); }
   if [ ! -f "$d/expert.msgpack" ]; then
@@ -111,6 +116,10 @@ python -m experiments.pixel.report "$out" || echo "report failed"
 cp -r "$out/report.md" "$out/figures" "$results/" 2>/dev/null
 for t in "${tasks[@]}"; do
   cp "$out/$t.log" "$results/"
-  [ -d "$out/$t" ] && tar -czf "$results/$t.tar.gz" --exclude=checkpoints --exclude=tb --exclude=.lock -C "$out" "$t"
+  if [ -d "$out/$t" ]; then  # run directories with thinned metrics (experiments.thin_logs), cost, strips, expert
+    rm -rf "$out/thin/$t" && python -m experiments.thin_logs "$out/$t" "$out/thin/$t" >/dev/null
+    for f in cost.json expert.msgpack strips; do [ -e "$out/$t/$f" ] && cp -r "$out/$t/$f" "$out/thin/$t/"; done
+    tar -czf "$results/$t.tar.gz" -C "$out/thin" "$t"
+  fi
   echo "== $t"; tail -n 4 "$out/$t.log"
 done

@@ -55,7 +55,11 @@ def throughput(rows: list[dict], frames_per_update: int) -> float:
     """Training frames per second over all runs of all arms (the sweep's training wall clock)."""
     if not rows:
         return math.nan
-    frames = len(rows) * frames_per_update  # one row per run and update
+    updates: dict[tuple, int] = {}  # each run's last logged update (the logs may be thinned: experiments.thin_logs)
+    for r in rows:
+        run = (r["arm"], r["hp"], r["seed"])
+        updates[run] = max(updates.get(run, 0), r["update"])
+    frames = sum(updates.values()) * frames_per_update
     wall = max(r["wall_s"] for r in rows)
     return frames / wall if wall > 0 else math.nan
 

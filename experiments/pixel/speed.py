@@ -16,14 +16,13 @@ Arms: ltq-cd (the default) or ltq (--arm ltq). CPU options shrink everything (--
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 
 import jax
 import jax.numpy as jnp
 
 from cdjax import agents, runtime
-from experiments.pixel.data_cost import timed
+from experiments.pixel.data_cost import overrides, timed, write_json
 
 
 def measure(config, runs: int, modes: list[str], trace: str = "") -> dict:
@@ -66,14 +65,9 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     runtime.configure(cache_dir=runtime.default_cache_dir())
     setting = agents.get("pixel")
-    overrides = dict(setting.presets[f"pixel-{args.env}"].config, arm=args.arm)
-    for item in args.set:
-        name, value = item.split("=")
-        overrides[name] = int(value) if value.lstrip("-").isdigit() else value
-    result = measure(setting.config_type(**overrides), args.runs, args.modes, args.trace)
-    if args.out:
-        pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(args.out).write_text(json.dumps(result, indent=1))
+    given = dict(setting.presets[f"pixel-{args.env}"].config, arm=args.arm) | overrides(args.set)
+    result = measure(setting.config_type(**given), args.runs, args.modes, args.trace)
+    write_json(result, args.out)
     return result
 
 

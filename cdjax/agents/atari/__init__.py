@@ -124,6 +124,7 @@ SETTING = Setting(
         ("model/latent_mse", "latent model one-step MSE", True),
         ("loss/consistency", "consistency loss", True),
         ("encoder/spread_real", "encoder spread (real)", False))),
-    presets=PRESETS, default_preset=default_preset, watch=collapse_warning)
+    presets=PRESETS, default_preset=default_preset, watch=collapse_warning,
+    eval_sampled=True)  # a greedy policy under sticky actions can stall (e.g. never FIRE); A2C reports sampling
 
 __all__ = ["A2C", "AtariConfig", "AtariHParams", "MinAtarEnv", "SETTING", "make_env", "make_trainer"]

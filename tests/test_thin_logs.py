@@ -1,0 +1,43 @@
+"""experiments.thin_logs: the copies the GPU scripts bring back keep what the reports read."""
+
+from __future__ import annotations
+
+import json
+
+from experiments.pixel.report import throughput
+from experiments.thin_logs import thin_dir, thin_rows
+
+
+def _rows(updates: int, runs: list[tuple]) -> list[dict]:
+    return [{"arm": arm, "hp": "default", "seed": seed, "update": u, "wall_s": 0.5 * u, "x": u * 10 + seed}
+            for u in range(1, updates + 1) for arm, seed in runs]
+
+
+def test_every_run_keeps_its_tail_whole_its_ends_and_about_the_points_asked():
+    runs = [("a", 0), ("a", 1), ("b", 0)]
+    rows = _rows(1000, runs)
+    kept = thin_rows(rows, points=100, tail=20)
+    for arm, seed in runs:
+        mine = [r["update"] for r in kept if (r["arm"], r["seed"]) == (arm, seed)]
+        assert mine == sorted(mine)  # original order
+        assert mine[0] == 1 and mine[-20:] == list(range(981, 1001))
+        assert 90 <= len(mine) <= 110, len(mine)
+    assert all(r in rows for r in kept)  # rows are copied, never altered
+
+
+def test_a_short_log_is_kept_whole(tmp_path):
+    rows = _rows(30, [("a", 0), ("a", 1)])
+    assert thin_rows(rows, points=250, tail=60) == rows
+    run = tmp_path / "src" / "task" / "pixel"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "run.json").write_text("{}")
+    (run / "eval.jsonl").write_text('{"arm": "a"}\n')
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in _rows(500, [("a", 0), ("b", 0)])))
+    (out,) = thin_dir(tmp_path / "src", tmp_path / "dest", points=50, tail=10)
+    assert out == tmp_path / "dest" / "task" / "pixel"
+    assert sorted(p.name for p in out.iterdir()) == ["eval.jsonl", "metrics.jsonl", "run.json"]
+    thinned = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    full = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert len(thinned) < len(full) / 4
+    # the pixel report's throughput reads each run's last update and the wall clock: the same from either copy
+    assert throughput(thinned, 800) == throughput(full, 800) == 2 * 500 * 800 / 250.0
