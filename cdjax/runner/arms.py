@@ -199,7 +199,8 @@ def finished_evaluation(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes
     """Whether eval.jsonl already holds the final evaluation (of that kind) of every run of every arm."""
     final = {a.name: a.num_updates for a in arms}
     have = {(r.get("arm"), r.get("hp"), r.get("seed")) for r in io.read_jsonl(rd.eval)
-            if r.get("deterministic", True) == deterministic and r.get("episodes") == episodes and r.get("update") == final.get(r.get("arm"))}
+            if r.get("deterministic", True) == deterministic and r.get("episodes") == episodes
+            and r.get("update") == final.get(r.get("arm"))}
     return all((a.name, label, s) in have for a in arms for label in a.plan.labels for s in range(num_seeds))
 
 

@@ -86,7 +86,7 @@ class ConvDecoder(nn.Module):
     layers: int
     channels: int
     min_std: float
-    upsample: str = "transpose"
+    upsample: str = "subpixel"  # PixelConfig.upsample's default
 
     def _up(self, y, features):
         if self.upsample == "subpixel":
