@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import optax
+from jax.flatten_util import ravel_pytree
 
 from cdjax.config import Config, HParams
 
@@ -38,8 +39,34 @@ def skip_if_not_finite(inner: optax.GradientTransformation) -> optax.GradientTra
     return optax.GradientTransformation(init, update)
 
 
+def per_group_vectors(inner: optax.GradientTransformation) -> optax.GradientTransformation:
+    """`inner` applied to {group: one flat vector} instead of {group: tree of arrays}: each group's leaves are
+    raveled into one vector before `inner` and the updates unraveled after it, and `inner`'s state (Adam's
+    moments, the finite check) holds one vector per group.
+
+    The numbers are those of `inner` on the trees (clipping by a group's global norm and Adam are elementwise or
+    group-wide); only the sums inside the norms are taken in another order. What changes is the program: on a
+    GPU every leaf of every step of the optimiser (the finite check, the norm, the moments, the select) is a
+    small kernel of its own, in each of the epochs x minibatches steps of an update; on vectors they are a few.
+    """
+
+    def flat(tree):
+        return {group: ravel_pytree(sub)[0] for group, sub in tree.items()}
+
+    def init(params):
+        return inner.init(flat(params))
+
+    def update(updates, state, params=None):
+        unravel = {group: ravel_pytree(sub)[1] for group, sub in updates.items()}
+        new, state = inner.update(flat(updates), state, None if params is None else flat(params))
+        return {group: unravel[group](vector) for group, vector in new.items()}, state
+
+    return optax.GradientTransformation(init, update)
+
+
 def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientTransformation:
-    """Adam per parameter group with its own learning rate and gradient clipping.
+    """Adam per parameter group with its own learning rate and gradient clipping, on one vector per group
+    (`per_group_vectors`).
 
     The frozen-GRU encoder gets zero updates. A step whose gradients are not finite is skipped.
     """
@@ -55,13 +82,12 @@ def make_optimizer(config: Config, params: dict, hp: HParams) -> optax.GradientT
     for name in params:
         frozen = name == "encoder" and config.encoder == "frozen-gru"
         transforms[name] = optax.set_to_zero() if frozen else group(lrs[name])
-    labels = lambda p: {name: jax.tree.map(lambda _: name, sub) for name, sub in p.items()}  # noqa: E731
+    labels = lambda p: {name: name for name in p}  # noqa: E731  (p: {group: vector})
     tx = optax.multi_transform(transforms, labels)
     if config.clip_scope == "policy-value":  # one clip over policy and value together, then Adam per group
         transforms.update(policy=adam(hp.lr_policy), value=adam(hp.lr_value))
-        joint = lambda p: {name: jax.tree.map(lambda _: "ppo" if name in ("policy", "value") else "rest", sub)  # noqa: E731
-                           for name, sub in p.items()}
+        joint = lambda p: {name: "ppo" if name in ("policy", "value") else "rest" for name in p}  # noqa: E731
         clip = optax.multi_transform({"ppo": optax.clip_by_global_norm(hp.max_grad_norm),
                                       "rest": optax.identity()}, joint)
         tx = optax.chain(clip, optax.multi_transform(transforms, labels))
-    return skip_if_not_finite(tx)
+    return per_group_vectors(skip_if_not_finite(tx))

@@ -165,3 +165,32 @@ def test_skip_if_not_finite_equals_optax_apply_if_finite():
             np.testing.assert_array_equal(a, b)
     assert int(s_ours.total_notfinite) == 2 and int(s_ours.notfinite_count) == 0
     assert jax.tree.structure(s_ours) == jax.tree.structure(s_ref)
+
+
+def test_per_group_vectors_gives_the_tree_optimizers_steps():
+    """Adam with clipping per group on one raveled vector per group takes the steps it takes on the trees, and
+    a non-finite step is still skipped."""
+    from cdjax.optim import per_group_vectors, skip_if_not_finite
+
+    params = {"policy": {"w": jnp.arange(6.0).reshape(2, 3), "b": jnp.ones(3)},
+              "value": {"w": jnp.full((3, 1), 0.5), "b": jnp.zeros(1)}}
+    groups = lambda p: {name: jax.tree.map(lambda _: name, sub) for name, sub in p.items()}  # noqa: E731
+    chains = {"policy": optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1)),
+              "value": optax.chain(optax.clip_by_global_norm(0.5), optax.adam(0.03))}
+    on_trees = skip_if_not_finite(optax.multi_transform(chains, groups))
+    on_vectors = per_group_vectors(skip_if_not_finite(optax.multi_transform(chains, lambda p: {n: n for n in p})))
+    s_tree, s_vec = on_trees.init(params), on_vectors.init(params)
+    key = jax.random.key(3)
+    for i in range(4):
+        key, sub = jax.random.split(key)
+        grads = jax.tree.map(lambda x: 3.0 * jax.random.normal(sub, x.shape), params)
+        if i == 2:
+            grads["value"]["b"] = jnp.array([jnp.nan])
+        u_tree, s_tree = on_trees.update(grads, s_tree, params)
+        u_vec, s_vec = jax.jit(on_vectors.update)(grads, s_vec, params)
+        assert jax.tree.structure(u_vec) == jax.tree.structure(u_tree)
+        for a, b in zip(jax.tree.leaves(u_vec), jax.tree.leaves(u_tree)):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+        params = optax.apply_updates(params, u_tree)
+    assert int(s_vec.total_notfinite) == 1 == int(s_tree.total_notfinite)
+    assert s_vec.inner_state.inner_states["value"].inner_state[1][0].mu["value"].shape == (4,)  # one vector per group

@@ -111,3 +111,21 @@ def test_running_stats_match_numpy_with_mask():
     np.testing.assert_allclose(s.std, ref.std(0), rtol=1e-4)
     z = nz.normalize(s, jnp.asarray(ref, jnp.float32))
     np.testing.assert_allclose(z.mean(0), 0.0, atol=1e-4)
+
+
+@pytest.mark.parametrize("steps", [1, 5, 20, losses.DENSE_MAX_STEPS, losses.DENSE_MAX_STEPS + 1])
+def test_backward_recurrence_equals_the_sequential_loop(steps):
+    """Both solvers (closed form up to DENSE_MAX_STEPS, associative scan beyond) give x_t = b_t + a_t x_{t+1} as a
+    step-by-step loop does, with cuts (a = 0) and batch axes; a non-finite b_s reaches no x_t of t > s."""
+    key_a, key_b, key_cut = jax.random.split(jax.random.key(steps), 3)
+    a = jax.random.uniform(key_a, (steps, 3, 2), minval=0.5, maxval=1.0)
+    a = jnp.where(jax.random.bernoulli(key_cut, 0.15, a.shape), 0.0, a)
+    b = jax.random.normal(key_b, (steps, 3, 2))
+    x, expected = np.zeros((3, 2), np.float32), []
+    for t in reversed(range(steps)):
+        x = np.asarray(b[t]) + np.asarray(a[t]) * x
+        expected.append(x)
+    np.testing.assert_allclose(losses.backward_linear_recurrence(a, b), np.stack(expected[::-1]), rtol=1e-5,
+                               atol=1e-6)
+    got = losses.backward_linear_recurrence(a, b.at[0].set(jnp.nan))
+    assert bool(jnp.isfinite(got[1:]).all()) and not bool(jnp.isfinite(got[0]).any())

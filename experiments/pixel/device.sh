@@ -19,7 +19,8 @@
 #   3. cost.json     data_cost: the dataset kept on the device vs rendered on the fly (10 runs vmapped), in the
 #                    call after the one that started the pixel sweep (tasks in COST_TASKS, default all)
 #   4. strips/       PNG strips of held-out sequences (real / reconstructed / open loop) of seed 0 of each arm,
-#                    in the calls after the data-cost measurement
+#                    in the calls after the data-cost measurement (STRIPS=1: in the call that starts the sweep too,
+#                    for a sweep that gets one call; with COST_TASKS naming the tasks whose cost is wanted)
 # Schedule at SECONDS = 560 (10-minute commands): call 1 trains the experts (~30%) and starts the pixel sweeps,
 # call 2 continues them and measures the data cost, call 3 and later continue them and draw the strips.
 # then WORK/report.md and WORK/figures/ (python -m experiments.pixel.report WORK). WORK/TASK.log holds the output.
@@ -75,6 +76,7 @@ run_task() {  # TASK GPU SECONDS
   if [ -f "$d/pixel/run.json" ]; then
     if [ ! -f "$d/cost.json" ] && [[ " $COST_TASKS " == *" $t "* ]]; then cost_due=1; reserve=$(( reserve + 240 ))
     else strips_due=1; reserve=$(( reserve + 160 )); fi
+  elif [ "${STRIPS:-0}" = 1 ]; then strips_due=1; reserve=$(( reserve + 160 ))  # strips in the sweep's first call
   fi
   local pix_s=$(( $(task_left) - reserve ))
   if [ "$pix_s" -gt 60 ]; then
