@@ -17,13 +17,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 import scipy.stats
-from rliable import metrics as rly_metrics
 
-try:  # rliable.library imports arch, whose 7.x releases (the ones rliable 1.2 accepts) fail under pandas 3
+try:  # rliable.library imports arch, whose 7.x releases (the ones rliable 1.2 accepts) fail under pandas 3; and a
+    # machine without rliable (the GPU image: no wheel) still plots, evaluates and draws strips with the fallback
     from rliable import library as rly
 
     RLIABLE_ERROR = None
-except Exception as _err:  # noqa: BLE001 - any import-time failure of arch/pandas lands here
+except Exception as _err:  # noqa: BLE001 - any import-time failure of rliable/arch/pandas lands here
     rly = None
     RLIABLE_ERROR = f"{type(_err).__name__}: {_err}"
 
@@ -116,14 +116,14 @@ def interval_curve(values: np.ndarray, stat: str = "iqm", reps: int = 2000, seed
 
 
 def iqm_interval(values: Sequence[float], reps: int = 2000, seed: int = 0) -> tuple[float, float, float, int]:
-    """(IQM, CI low, CI high, n) over the finite values, with `rliable.metrics.aggregate_iqm`."""
+    """(IQM, CI low, CI high, n) over the finite values (the IQM is rliable's `metrics.aggregate_iqm`: `iqm_columns`)."""
     x = np.asarray(values, float)
     x = x[np.isfinite(x)]
     if x.size == 0:
         return math.nan, math.nan, math.nan, 0
     if x.size == 1:
         return float(x[0]), math.nan, math.nan, 1
-    est, interval = bootstrap(x[:, None], lambda s: np.array([rly_metrics.aggregate_iqm(s)]), reps, seed)
+    est, interval = bootstrap(x[:, None], lambda s: iqm_columns(s[..., None]), reps, seed)
     return float(est[0]), float(interval[0, 0]), float(interval[1, 0]), int(x.size)
 
 

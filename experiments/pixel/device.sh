@@ -70,9 +70,9 @@ run_task() {  # TASK GPU SECONDS
     python -m cdjax.agents.pixel.export_expert "$d/expert-run" "$d/expert.msgpack" || return 1
   fi
   [ "${EXPERTS_ONLY:-0}" = 1 ] && return 0  # EXPERTS_ONLY=1: stop after the experts (e.g. to carry them elsewhere)
-  # after the sweep: the evaluation and the plots (150 s); in the call after the one that started the sweep the
+  # after the sweep: the evaluation and the plots (230 s; pusher's 20 runs took over 120 s to evaluate); in the call after the one that started the sweep the
   # data-cost measurement (240 s), in later calls the strips (160 s: restoring a sweep renders its data again)
-  local reserve=150 cost_due=0 strips_due=0
+  local reserve=230 cost_due=0 strips_due=0
   if [ -f "$d/pixel/run.json" ]; then
     if [ ! -f "$d/cost.json" ] && [[ " $COST_TASKS " == *" $t "* ]]; then cost_due=1; reserve=$(( reserve + 240 ))
     else strips_due=1; reserve=$(( reserve + 160 )); fi
@@ -92,7 +92,7 @@ run_task() {  # TASK GPU SECONDS
       --out "$d/cost.json" || echo "data_cost did not finish"
   fi
   if [ -f "$d/pixel/run.json" ]; then
-    timeout -k 30 120 python -m cdjax.cli eval "$d/pixel" --episodes 4 || echo "evaluation did not finish"
+    timeout -k 30 200 python -m cdjax.cli eval "$d/pixel" --episodes 4 || echo "evaluation did not finish"
     python -m cdjax.cli plot "$d/pixel" || true
     if [ "$strips_due" = 1 ] && [ "$(task_left)" -gt 160 ]; then
       timeout -k 10 150 python -m experiments.pixel.report --strips "$d/pixel" "$d/strips" || echo "no strips"
