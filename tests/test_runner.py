@@ -256,14 +256,18 @@ def test_programs_compiled_in_parallel_threads_give_the_same_run(phased, tmp_pat
 
 
 def test_encoder_collapse_warning():
-    """Said once the trainable GRU's spread is below the threshold in some run; never for other encoders."""
+    """Said once the trainable GRU's spread stays below the threshold over the chunk's later updates in some run;
+    not for a single low update among healthy ones (a noisy sample); never for other encoders."""
     from cdjax.agents.obs_space import COLLAPSE_SPREAD, collapse_warning
 
     config = POINT.replace(arm="cd")
-    healthy = {"encoder/spread_real": np.array([[0.3, 0.2], [0.4, 0.25]])}
-    collapsed = {"encoder/spread_real": np.array([[0.3, 0.2], [0.01, COLLAPSE_SPREAD / 10]])}
+    low = COLLAPSE_SPREAD / 10
+    healthy = {"encoder/spread_real": np.array([[0.3, 0.2, 0.25, 0.2], [0.4, 0.25, 0.3, 0.3]])}
+    dips = {"encoder/spread_real": np.array([[0.3, 0.2, 0.25, 0.2], [0.4, 0.5, 0.6, low]])}  # the last update alone
+    collapsed = {"encoder/spread_real": np.array([[0.3, 0.2, 0.25, 0.2], [0.01, low, low, low]])}
     assert collapse_warning("cd", config, healthy) is None
+    assert collapse_warning("cd", config, dips) is None
     text = collapse_warning("cd", config, collapsed)
-    assert "in 1 of 2 runs" in text and "1.0e-04" in text and "frozen-gru" in text
+    assert "in 1 of 2 runs" in text and "1.0e-04" in text and "last 2 updates" in text and "frozen-gru" in text
     assert collapse_warning("cd", config.replace(encoder="frozen-gru"), collapsed) is None
     assert collapse_warning("mbmf", POINT.replace(arm="mbmf"), {}) is None
