@@ -57,9 +57,10 @@ def per_group_vectors(inner: optax.GradientTransformation) -> optax.GradientTran
         return inner.init(flat(params))
 
     def update(updates, state, params=None):
-        unravel = {group: ravel_pytree(sub)[1] for group, sub in updates.items()}
-        new, state = inner.update(flat(updates), state, None if params is None else flat(params))
-        return {group: unravel[group](vector) for group, vector in new.items()}, state
+        raveled = {group: ravel_pytree(sub) for group, sub in updates.items()}  # (vector, unravel) per group
+        vectors = {group: vector for group, (vector, _) in raveled.items()}
+        new, state = inner.update(vectors, state, None if params is None else flat(params))
+        return {group: raveled[group][1](vector) for group, vector in new.items()}, state
 
     return optax.GradientTransformation(init, update)
 
