@@ -3,7 +3,8 @@
     python -m experiments.thin_logs SRC_DIR DEST_DIR [--points 250] [--tail 60]
 
 Every run directory under SRC_DIR (a directory holding run.json) is copied to the same relative path under
-DEST_DIR with its run.json, eval.jsonl, summary.md and log.txt where they exist, and its metrics.jsonl thinned:
+DEST_DIR with its run.json, eval.jsonl, summary.md and log.txt where they exist, and its metrics.jsonl thinned
+and gzipped (metrics.jsonl.gz, which `cdjax.io.read_jsonl` reads in place of a missing metrics.jsonl):
 per run (arm, hyper-parameter label, seed), every update of the last `tail` logged updates (the window the
 reports average over) and, before them, evenly spaced updates so that a run keeps about `points` rows; each
 run's first and last rows are always kept. Checkpoints, TensorBoard files and videos are left behind.
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import gzip
 import json
 import pathlib
 import shutil
@@ -51,8 +53,9 @@ def thin_dir(src: pathlib.Path, dest: pathlib.Path, points: int = 250, tail: int
         if metrics.exists():
             with metrics.open() as f:
                 rows = [json.loads(line) for line in f if line.strip()]
-            with (out / "metrics.jsonl").open("w") as f:
-                f.writelines(json.dumps(r) + "\n" for r in thin_rows(rows, points, tail))
+            text = "".join(json.dumps(r) + "\n" for r in thin_rows(rows, points, tail))
+            # mtime 0: the same rows give the same bytes, so a rebuilt copy does not show as a change in git
+            (out / "metrics.jsonl.gz").write_bytes(gzip.compress(text.encode(), mtime=0))
         written.append(out)
     return written
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import gzip
 import json
 import math
 import os
@@ -203,13 +204,27 @@ class Rows(list):
     skipped: int = 0
 
 
+def jsonl_exists(path: str | os.PathLike) -> bool:
+    """Whether `read_jsonl(path)` has a file to read: the JSONL file or its gzipped copy (`path` + ".gz")."""
+    path = pathlib.Path(path)
+    return path.exists() or path.with_name(path.name + ".gz").exists()
+
+
 def read_jsonl(path: str | os.PathLike) -> Rows:
-    """The objects of a JSONL file ([] when it does not exist); unreadable lines are skipped and counted."""
+    """The objects of a JSONL file ([] when it does not exist); unreadable lines are skipped and counted.
+
+    A kept copy compressed beside the missing file (`metrics.jsonl.gz`, as the committed experiment data are
+    stored) is read in its place."""
     rows = Rows()
     path = pathlib.Path(path)
     if not path.exists():
-        return rows
-    for line in path.read_text().splitlines():
+        packed = path.with_name(path.name + ".gz")
+        if not packed.exists():
+            return rows
+        text = gzip.decompress(packed.read_bytes()).decode()
+    else:
+        text = path.read_text()
+    for line in text.splitlines():
         if not line.strip():
             continue
         try:

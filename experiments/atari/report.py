@@ -160,7 +160,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=pathlib.Path, required=True)
     parser.add_argument("--bootstrap-reps", type=int, default=2000)
     args = parser.parse_args(argv)
-    datas = [load(d) for d in args.run_dirs if (d / "metrics.jsonl").exists()]
+    datas = [load(d) for d in args.run_dirs if io.jsonl_exists(d / "metrics.jsonl")]
     if not datas:
         raise SystemExit(f"No run directory with logged updates among {', '.join(map(str, args.run_dirs))}.")
     args.out.mkdir(parents=True, exist_ok=True)

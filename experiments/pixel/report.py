@@ -75,7 +75,7 @@ def _fmt(est: float, low: float, high: float) -> str:
 
 def task_report(task_dir: pathlib.Path, reps: int = 2000) -> tuple[list[dict], dict]:
     run_dir = task_dir / "pixel"
-    rows = io.read_jsonl(run_dir / "metrics.jsonl") if (run_dir / "metrics.jsonl").exists() else []
+    rows = io.read_jsonl(run_dir / "metrics.jsonl")
     run = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").exists() else {}
     last = common_last_update(rows)
     table = []
@@ -179,7 +179,7 @@ def main(argv=None) -> None:
             print(f"wrote {path}")
         return
     out = pathlib.Path(args.out)
-    tasks = [d for d in sorted(out.iterdir()) if (d / "pixel" / "metrics.jsonl").exists()]
+    tasks = [d for d in sorted(out.iterdir()) if io.jsonl_exists(d / "pixel" / "metrics.jsonl")]
     results = [task_report(d, args.bootstrap_reps) for d in tasks]
     tables, infos = [r[0] for r in results], [r[1] for r in results]
     text = markdown(tables, infos)
