@@ -195,7 +195,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", help="output directory (rows.jsonl, meta.json)")
     p.add_argument("--cache-dir", default=os.path.expanduser("~/.cache/cdjax/jax"),
                    help="JAX's persistent compilation cache (Brax's seeds after the first reuse its programs)")
-    p.add_argument("--report", nargs="+", metavar="DIR", help="make the table and plot from these directories")
+    p.add_argument("--report", nargs="+", metavar="DIR", help="make the table and plot from these directories (DIR@brax or DIR@cdjax: only that "
+                   "framework's rows of DIR)")
     p.add_argument("--write", help="with --report: write the markdown here (and the plot beside it)")
     p.add_argument("--parity-variants", nargs="+", default=["default"], metavar="VARIANT",
                    help="with --report: the cdjax variants set against Brax PPO in the first table (default: default)")
@@ -203,7 +204,7 @@ def main(argv=None) -> int:
     if args.report:
         from benchmarks import learning_report
 
-        text = learning_report.report([pathlib.Path(d) for d in args.report], args.write,
+        text = learning_report.report(args.report, args.write,
                                       tuple(args.parity_variants))
         print(text)
         return 0

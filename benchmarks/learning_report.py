@@ -17,15 +17,29 @@ from collections import defaultdict
 import numpy as np
 
 
-def load(dirs: list[pathlib.Path]) -> tuple[list[dict], list[dict]]:
-    """(rows, metas) of every directory; a row carries its directory's device in `device`."""
+def split_source(source: str | pathlib.Path) -> tuple[pathlib.Path, str | None]:
+    """"DIR" -> (DIR, None); "DIR@FRAMEWORK" (brax or cdjax) -> (DIR, FRAMEWORK): only that framework's rows of
+    DIR, e.g. the Brax rows of a directory whose cdjax rows a later run replaces."""
+    text = str(source)
+    head, sep, tail = text.rpartition("@")
+    if sep and tail in ("brax", "cdjax") and not pathlib.Path(text).exists():
+        return pathlib.Path(head), tail
+    return pathlib.Path(text), None
+
+
+def load(dirs: list[pathlib.Path | str]) -> tuple[list[dict], list[dict]]:
+    """(rows, metas) of every directory (DIR or DIR@FRAMEWORK, see `split_source`); a row carries its
+    directory's device in `device`."""
     rows, metas = [], []
-    for d in dirs:
+    for source in dirs:
+        d, framework = split_source(source)
         meta = json.loads((d / "meta.json").read_text()) if (d / "meta.json").exists() else {}
-        metas.append({"dir": str(d), **meta})
+        metas.append({"dir": str(source), **meta})
         for line in (d / "rows.jsonl").read_text().splitlines():
             if line.strip():
-                rows.append({**json.loads(line), "device": meta.get("device", "?")})
+                row = json.loads(line)
+                if framework is None or row["framework"] == framework:
+                    rows.append({**row, "device": meta.get("device", "?")})
     return rows, metas
 
 
