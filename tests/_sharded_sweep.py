@@ -1,6 +1,7 @@
 """Run by test_sweep.py in a fresh process with 2 forced CPU devices (XLA_FLAGS set by the caller)."""
 
 import json
+import re
 import sys
 
 import jax
@@ -26,6 +27,9 @@ train = jax.jit(make_train(POINT.replace(num_updates=3)))
 alone = [np.asarray(train(keys[r], HParams(alpha=[0.0, 1.0][r // 3]))[1]["loss/total"]) for r in range(6)]
 # padding: 3 runs on 2 devices -> 4, and unpad drops the extra one
 keys3, hps3 = sweep.grid(seed=7, num_seeds=3, hps=hps[:1])
-print(json.dumps({"devices_used": devices_used, "spec": spec, "sharded": total.tolist(),
+compiled = sweep.lower(state, stacked, 1).compile().as_text()
+collectives = {op: len(re.findall(re.escape(op) + r"[.(\s-]", compiled))
+               for op in ("all-gather", "all-reduce", "all-to-all", "collective-permute")}
+print(json.dumps({"collectives": collectives, "devices_used": devices_used, "spec": spec, "sharded": total.tolist(),
                   "alone": [a.tolist() for a in alone], "padded_runs": int(keys3.shape[0]),
                   "unpadded_runs": int(unpad(keys3, 3).shape[0])}))

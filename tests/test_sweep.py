@@ -19,3 +19,30 @@ def test_runs_sharded_over_two_devices_equal_runs_alone():
     assert "runs" in out["spec"]
     np.testing.assert_allclose(np.array(out["sharded"]), np.array(out["alone"]), rtol=2e-5, atol=1e-6)
     assert out["padded_runs"] == 4 and out["unpadded_runs"] == 3
+    # each device runs its own runs: the compiled chunk holds no collective (a partitioned vmapped convolution
+    # was all-gathered in the pixel setting before the runs were split with shard_map)
+    assert out["collectives"] == {"all-gather": 0, "all-reduce": 0, "all-to-all": 0, "collective-permute": 0}
+
+
+def test_a_checkpoint_restores_on_another_device_count(tmp_path):
+    """A sweep's state is padded to a multiple of the device count by repeating its last run; a checkpoint saved
+    with one padding restores into a sweep padded otherwise (trained on 4 GPUs, evaluated on 1): the real runs
+    are kept and the padding repeats the last of them."""
+    import jax.numpy as jnp
+
+    from cdjax import io
+
+    real = np.arange(3 * 2, dtype=np.float32).reshape(3, 2)
+    padded = np.concatenate([real, real[-1:]])  # 3 runs padded to 4 (2 devices)
+    saved = {"w": jnp.asarray(padded), "step": jnp.full((4,), 5, jnp.int32)}
+    ckpt = io.Checkpoints(tmp_path / "arm")
+    ckpt.save(5, saved, {"updates": 5})
+    ckpt.wait()
+    for runs in (3, 5):  # one device (no padding), and a padding to 5
+        like = {"w": jnp.zeros((runs, 2), jnp.float32), "step": jnp.zeros((runs,), jnp.int32)}
+        state, progress = ckpt.restore(like, delete_bad=False)
+        want = np.concatenate([real, np.repeat(real[-1:], runs - 3, axis=0)])
+        np.testing.assert_array_equal(np.asarray(state["w"]), want)
+        np.testing.assert_array_equal(np.asarray(state["step"]), np.full(runs, 5))
+        assert progress["updates"] == 5
+    ckpt.close()

@@ -105,6 +105,21 @@ def expand(stored: dict[str, Any], layout: dict | None, like):
     return jax.tree.unflatten(treedef, out)
 
 
+def leading_runs(tree) -> int | None:
+    """The leading (run) axis length shared by every non-scalar leaf of a sweep state; None if there is none."""
+    lengths = {x.shape[0] for x in jax.tree.leaves(tree) if getattr(x, "ndim", 0) > 0}
+    return lengths.pop() if len(lengths) == 1 else None
+
+
+def repad_runs(value: np.ndarray, runs: int) -> np.ndarray:
+    """A stored [R_saved, ...] leaf for a sweep padded to `runs`. The padding runs of `cdjax.sweep.Sweep.grid`
+    repeat the last real run (same key and hyper-parameters, so the same state), and both run counts are at
+    least the real one: cutting keeps every real run, and extending repeats a real run or a copy of one."""
+    if value.shape[0] >= runs:
+        return value[:runs]
+    return np.concatenate([value, np.repeat(value[-1:], runs - value.shape[0], axis=0)])
+
+
 def step_dirs(directory: pathlib.Path) -> list[int]:
     """The steps of the complete checkpoints in `directory`, from the directory names alone."""
     return sorted(int(p.name) for p in directory.iterdir() if p.name.isdigit()) if directory.is_dir() else []
@@ -139,6 +154,9 @@ class Checkpoints:
         """Start an (asynchronous, atomic) save; `wait` for it. `keep`: Trainer.saved_leaves() or None."""
         ocp = self._ocp
         stored, layout = compact(state, keep)
+        runs = leading_runs(state)
+        if runs is not None:
+            layout["runs"] = runs  # the (padded) run count: a restore on another device count re-pads to its own
         self._pending = step
         try:
             self.manager.save(step, args=ocp.args.Composite(
@@ -177,13 +195,22 @@ class Checkpoints:
                 layout = progress.pop("layout", None)
                 names = dict(named_leaves(like))
                 wanted = layout["stored"] if layout is not None else [n for n, x in names.items() if x.size]
+                saved_runs, runs = (layout or {}).get("runs"), leading_runs(like)
+                repad = saved_runs is not None and runs is not None and saved_runs != runs
                 target = {}
                 for name in wanted:
                     x = names[name]
                     data = jax.eval_shape(jax.random.key_data, x) if _is_key(x) else x
-                    target[name] = jax.ShapeDtypeStruct(data.shape, data.dtype, sharding=x.sharding)
+                    if repad:  # saved on another device count: read whole on one device, re-padded below
+                        target[name] = jax.ShapeDtypeStruct((saved_runs, *data.shape[1:]), data.dtype,
+                                                            sharding=jax.sharding.SingleDeviceSharding(
+                                                                next(iter(x.sharding.device_set))))
+                    else:
+                        target[name] = jax.ShapeDtypeStruct(data.shape, data.dtype, sharding=x.sharding)
                 stored = dict(self.manager.restore(step, args=ocp.args.Composite(
                     state=ocp.args.StandardRestore(target)))["state"]) if target else {}
+                if repad:
+                    stored = {name: repad_runs(np.asarray(v), runs) for name, v in stored.items()}
                 state = expand(stored, layout, like)
                 if progress.get("updates") != step:
                     raise ValueError(f"progress says {progress.get('updates')} updates")

@@ -162,9 +162,13 @@ def write_strips(run_dir: str, dest: str, sequences: int = 3) -> list[pathlib.Pa
     _, arms = restore_arms(run_dir)
     paths = []
     for arm in arms:
-        one = jax.tree.map(lambda x: x[0], arm.state)
-        paths.append(strips_of(arm.trainer.inner, one.params, one.heldout, jax.random.key(0),
-                               pathlib.Path(dest) / f"{arm.name}.png", sequences=sequences))
+        labels = arm.plan.labels
+        num_seeds = arm.num_runs // len(labels)  # runs are hp-major: run i * num_seeds + s
+        for i, label in enumerate(labels):
+            one = jax.tree.map(lambda x, r=i * num_seeds: x[r], arm.state)  # seed 0 of this hyper-parameter set
+            name = arm.name if len(labels) == 1 else f"{arm.name}-{label.replace('=', '').replace(',', '-')}"
+            paths.append(strips_of(arm.trainer.inner, one.params, one.heldout, jax.random.key(0),
+                                   pathlib.Path(dest) / f"{name}.png", sequences=sequences))
     return paths
 
 

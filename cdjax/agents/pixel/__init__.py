@@ -106,7 +106,11 @@ SETTING = Setting(
         ("model/elbo_per_frame", "ELBO per frame (nats)", False),
         ("loss/consistency", "consistency loss", True),
         ("encoder/spread_real", "encoder spread (real)", False))),
-    presets=PRESETS, default_preset=preset_of_env, watch=collapse_warning)
+    presets=PRESETS, default_preset=preset_of_env, watch=collapse_warning,
+    multi_device_note=(
+        "this pixel sweep splits its runs over several devices, which XLA's partitioner makes slower than one "
+        "device (it all-gathers the runs' vmapped convolutions: 30k frames/s on 4 H200s against 42k on one); "
+        "run one sweep per GPU instead (CUDA_VISIBLE_DEVICES=i), as experiments/pixel/device.sh does."))
 
 __all__ = ["ARMS", "PRESETS", "SETTING", "PixelConfig", "PixelHParams", "PixelLearner", "arm_config", "make_trainer",
            "trainer_of"]
