@@ -233,20 +233,45 @@ def cmd_plot(args: argparse.Namespace) -> None:
         print(f"Wrote {path}")
 
 
-def _quiet_exit_noise() -> None:
-    """After the one sentence, send what is still written to stderr to /dev/null: a sweep stopped by a write
-    error can leave a library's background threads (orbax's asyncio loop) printing tracebacks while the
-    interpreter shuts down, and none of that is for the user."""
+class _QuietForeignThreads:
+    """sys.stderr for the `cdjax` command: once a write has failed (io.WRITE_FAILED), text written from threads
+    that Python did not create (tensorstore's callbacks finishing orbax's abandoned checkpoint writes: "Event loop
+    is closed" tracebacks, printed before the command's one sentence) is dropped; everything else passes."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        import threading
+
+        if io.WRITE_FAILED.is_set() and isinstance(threading.current_thread(), threading._DummyThread):
+            return len(text)
+        return self._stream.write(text)
+
+    def __getattr__(self, name):  # flush, fileno, isatty, encoding, ...
+        return getattr(self._stream, name)
+
+
+def _say_last(sentence: str) -> None:
+    """Write the one sentence that ends the process, and nothing after it: stderr (fd 2) is sent to /dev/null
+    first and the sentence written to a copy of the original. A sweep stopped by a write error can leave a
+    library's background threads (orbax's asyncio loop) printing tracebacks while the interpreter shuts down,
+    and they started in the middle of the sentence when it was printed first; none of that is for the user."""
     sys.stderr.flush()
+    original = os.dup(2)
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 2)
     os.close(devnull)
+    os.write(original, (sentence + "\n").encode())
+    os.close(original)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """The `cdjax` command; argv None: this process's arguments (and the process ends after it)."""
     as_program = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
+    if as_program and not isinstance(sys.stderr, _QuietForeignThreads):
+        sys.stderr = _QuietForeignThreads(sys.stderr)
     from cdjax.runner import Interrupted
 
     try:
@@ -268,9 +293,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         else:
             cmd_plot(args)
     except (UsageError, ConfigError, io.RunDirError) as err:
-        print(f"cdjax: {err}", file=sys.stderr)
-        if as_program:
-            _quiet_exit_noise()
+        if as_program:  # stderr goes quiet first, and the sentence is written to a copy of it
+            _say_last(f"cdjax: {err}")
+        else:
+            print(f"cdjax: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     except Interrupted as err:
         done = ", ".join(f"{arm} {n}" for arm, n in err.updates.items())

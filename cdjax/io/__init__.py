@@ -27,6 +27,7 @@ import math
 import os
 import pathlib
 import re
+import threading
 import time
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -43,6 +44,16 @@ class RunDirError(ValueError):
 
 class WriteError(RunDirError):
     """Writing into the run directory failed (disk full, no permission); one sentence."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        WRITE_FAILED.set()
+
+
+# Set once any write failed in this process. After a failed checkpoint write, tensorstore's own threads go on
+# completing orbax's abandoned writes and print "Event loop is closed" tracebacks; the `cdjax` command drops
+# what threads created outside Python write to stderr from then on (cdjax.cli).
+WRITE_FAILED = threading.Event()
 
 
 def reason(err: BaseException) -> str:
@@ -151,7 +162,9 @@ class RunDir:
         RunDirError when another process holds it."""
         import fcntl
 
-        with writing(self.path / ".lock"), open(self.path / ".lock", "a") as f:
+        with writing(self.path / ".lock"):  # only opening the lock file is this file's write: an error inside
+            f = open(self.path / ".lock", "a")  # the sweep is reported by what raised it
+        with f:
             try:
                 fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:

@@ -3,7 +3,7 @@
     python -m experiments.pixel.report OUT                       # OUT/report.md, OUT/report.csv, OUT/figures/*.png
     python -m experiments.pixel.report --strips RUN_DIR STRIPS   # PNG strips of seed 0 of each arm of a pixel sweep
 
-Per task (OUT/TASK/pixel), arm and hyper-parameter label (ltq-cd runs alpha 100 and 1000), each seed's score is its mean over the last WINDOW logged updates up to
+Per task (OUT/TASK/pixel), arm and hyper-parameter label (the presets' ltq-cd runs alpha 100 with cc_policy 0 and 1), each seed's score is its mean over the last WINDOW logged updates up to
 the last update every arm reached (the paper: "averaged over the last 50 batches of training"); the table
 gives the IQM over seeds with a 95% bootstrap interval (cdjax.stats.iqm_interval) of
   heldout/loglik_k   open-loop log-likelihood of held-out expert frames over the first k predicted steps,
