@@ -6,7 +6,7 @@
 #
 # GAMEs are MinAtar games (default: breakout seaquest), each run as `python -m cdjax.cli sweep --setting atari
 # --preset minatar-GAME`, or ALE games named ale-GAME (ale-breakout, ale-seaquest, ale-mspacman, ale-frostbite: one
-# seed, `--preset GAME`; ale-py is installed from ./.whl when missing). Game i runs on GPU i mod (number of GPUs);
+# seed, `--preset GAME`; ale-py is installed from ./.whl or ./.whl-ale when missing: carry one of them). Game i runs on GPU i mod (number of GPUs);
 # games sharing a GPU split its memory. Extra options after -- go to every sweep (e.g. -- --steps 2000000). Training gets
 # SECONDS minus EVAL_RESERVE (default 240; at least 60): then it gets SIGINT, finishes the chunk in flight, saves a checkpoint and
 # its logs; a run stopped early is then evaluated at its last checkpoint (`cdjax eval --episodes 100`).
@@ -28,7 +28,7 @@ if ! python -c "import gymnax" 2>/dev/null; then
     farama-notifications==0.0.6 seaborn==0.13.2 cloudpickle==3.1.2 || { echo "gymnax is missing: carry .whl"; exit 1; }
 fi
 if printf '%s\n' "${games[@]}" | grep -q '^ale-' && ! python -c "import ale_py" 2>/dev/null; then
-  pip install --quiet --no-index --no-deps --find-links .whl ale-py==0.12.1 || { echo "ale-py is missing: carry .whl"; exit 1; }
+  pip install --quiet --no-index --no-deps --find-links .whl --find-links .whl-ale ale-py==0.12.1 || { echo "ale-py is missing: carry .whl-ale (or .whl) holding its wheel"; exit 1; }
 fi
 ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -lt 1 ] && ngpu=1
 share=$(( (${#games[@]} + ngpu - 1) / ngpu ))
