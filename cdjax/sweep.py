@@ -3,7 +3,7 @@
 A sweep has R runs (e.g. seeds x an alpha grid). Each run has its own PRNG key and its own HParams;
 `jax.vmap` batches them and `jax.sharding` splits the run axis over all local devices (a 1-D `Mesh`
 named "runs"): each device trains R / num_devices runs. XLA's partitioner places the vmapped program; for
-the observation-space and MinAtar trainers the compiled chunk holds no collective (tests/test_sweep.py), but
+the point-mass trainer the compiled chunk holds no collective (tests/test_sweep.py), but
 the pixel model's vmapped convolutions (grouped convolutions with per-run weights) are all-gathered, which makes
 a pixel sweep slower on several GPUs than on one (the pixel setting says so when it runs on several). Splitting
 the runs with `jax.shard_map` removes those collectives on the CPU, but XLA:GPU's compiler (jax 0.11.2)

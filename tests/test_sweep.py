@@ -19,8 +19,8 @@ def test_runs_sharded_over_two_devices_equal_runs_alone():
     assert "runs" in out["spec"]
     np.testing.assert_allclose(np.array(out["sharded"]), np.array(out["alone"]), rtol=2e-5, atol=1e-6)
     assert out["padded_runs"] == 4 and out["unpadded_runs"] == 3
-    # each device runs its own runs: the compiled chunk holds no collective (a partitioned vmapped convolution
-    # was all-gathered in the pixel setting before the runs were split with shard_map)
+    # each device runs its own runs: the point-mass trainer's compiled chunk holds no collective (the pixel
+    # setting's vmapped convolutions are all-gathered by the partitioner: cdjax/sweep.py says why it is left so)
     assert out["collectives"] == {"all-gather": 0, "all-reduce": 0, "all-to-all": 0, "collective-permute": 0}
 
 

@@ -25,7 +25,6 @@ import gzip
 import json
 import pathlib
 import shutil
-import tempfile
 
 import numpy as np
 
@@ -54,16 +53,6 @@ def keep(run_dir: pathlib.Path, task: str, data: pathlib.Path) -> pathlib.Path:
             gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as dst:  # mtime 0: the same bytes on every rebuild
         shutil.copyfileobj(src, dst)
     return out
-
-
-def _readable(kept: pathlib.Path) -> pathlib.Path:
-    """A run directory cdjax.plots can read: the kept folder with its metrics unzipped into a temporary copy."""
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix="cdjax-weights-"))
-    for name in ("run.json", "eval.jsonl"):
-        shutil.copy(kept / name, tmp / name)
-    with gzip.open(kept / "metrics.jsonl.gz", "rb") as src, open(tmp / "metrics.jsonl", "wb") as dst:
-        shutil.copyfileobj(src, dst)
-    return tmp
 
 
 def _weights(label: str) -> tuple[float, float]:
@@ -194,18 +183,14 @@ def main(argv=None) -> int:
     results, parts = {}, []
     for i, task in enumerate(TASKS):
         kept = keep(args.runs[i], task, data) if args.runs else data / task
-        run = _readable(kept)
-        info = json.loads((run / "run.json").read_text())
-        results[task] = cells(run)
+        info = json.loads((kept / "run.json").read_text())
+        results[task] = cells(kept)  # its metrics.jsonl.gz is read in place of metrics.jsonl (cdjax.io.read_jsonl)
         parts.append(tables(task, results[task]) + f"\n\nCommand: `{info.get('command', '?')}`\n")
-        shutil.rmtree(run)
     sweep = keep(args.default_sweep, "ant-defaults", data) if args.default_sweep else data / "ant-defaults"
     if sweep.exists():
-        run = _readable(sweep)
-        info = json.loads((run / "run.json").read_text())
-        parts.append("### ant, the defaults: Mb-Mf against CD\n\n" + default_sweep(run)
+        info = json.loads((sweep / "run.json").read_text())
+        parts.append("### ant, the defaults: Mb-Mf against CD\n\n" + default_sweep(sweep)
                      + f"\n\nCommand: `{info.get('command', '?')}`\n")
-        shutil.rmtree(run)
     out.write_text("\n".join(parts))
     figure(results, fig)
     print(out.read_text())

@@ -17,7 +17,6 @@ import json
 import math
 import pathlib
 import shutil
-import tempfile
 from typing import Sequence
 
 import numpy as np
@@ -54,7 +53,6 @@ class Task:
     budget: float  # env steps every arm reached (the comparison budget)
     planned: float  # env steps per run asked for
     complete: bool  # every arm reached its planned budget
-    files: pathlib.Path  # where run.json / metrics.jsonl are read (run_dir, or an unpacked copy of kept data)
 
 
 def _cut(c: plots.Curves, budget: float) -> plots.Curves:
@@ -64,25 +62,11 @@ def _cut(c: plots.Curves, budget: float) -> plots.Curves:
                                metrics={k: v[:, keep] for k, v in c.metrics.items()})
 
 
-def _unpacked(run_dir: pathlib.Path) -> pathlib.Path:
-    """A run directory as plots.load_metrics reads it; kept data (metrics.jsonl.gz) unpacked to a temp dir."""
-    if (run_dir / "metrics.jsonl").exists() or not (run_dir / "metrics.jsonl.gz").exists():
-        return run_dir
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f"cdjax-{run_dir.name}-"))
-    for path in run_dir.iterdir():
-        if path.name == "metrics.jsonl.gz":
-            (tmp / "metrics.jsonl").write_bytes(gzip.decompress(path.read_bytes()))
-        elif path.is_file():
-            shutil.copy(path, tmp / path.name)
-    return tmp
-
-
 def load_task(run_dir: pathlib.Path, name: str) -> Task | None:
     """A task's run directory (from `train`) or its kept data (data/<task>/ of a RESULTS.md); None if absent."""
     if not (run_dir / "run.json").exists():
         return None
-    source, run_dir = run_dir, _unpacked(run_dir)
-    if not (run_dir / "metrics.jsonl").exists():
+    if not io.jsonl_exists(run_dir / "metrics.jsonl"):  # a run directory, or kept data (metrics.jsonl.gz)
         return None
     info = io.RunDir(run_dir).read()
     machine_path = run_dir / "machine.json"
@@ -97,8 +81,8 @@ def load_task(run_dir: pathlib.Path, name: str) -> Task | None:
     budget = min(reached.values()) if reached else 0.0
     if not complete:  # compare every arm at the env steps all of them reached
         curves = {arm: _cut(c, budget + info.get("env_steps_per_update", 0) / 2) for arm, c in curves.items()}
-    return Task(name, source, info, machine, curves, plots.load_eval(run_dir) if complete else {}, budget,
-                float(info.get("requested_env_steps", math.nan)), complete, run_dir)
+    return Task(name, run_dir, info, machine, curves, plots.load_eval(run_dir) if complete else {}, budget,
+                float(info.get("requested_env_steps", math.nan)), complete)
 
 
 def load_tasks(runs: Sequence[pathlib.Path], tasks: Sequence[str] = TASKS) -> list[Task]:
@@ -261,11 +245,11 @@ def keep_data(task: Task, out: pathlib.Path) -> pathlib.Path:
         return target
     target.mkdir(parents=True, exist_ok=True)
     with gzip.open(target / "metrics.jsonl.gz", "wt") as f:
-        for row in io.read_jsonl(task.files / "metrics.jsonl"):
+        for row in io.read_jsonl(task.run_dir / "metrics.jsonl"):
             f.write(json.dumps({k: row[k] for k in KEEP if k in row}) + "\n")
     for name in ("run.json", "machine.json", "phase.jsonl", "eval.jsonl"):
-        if (task.files / name).exists():
-            shutil.copy(task.files / name, target / name)
+        if (task.run_dir / name).exists():
+            shutil.copy(task.run_dir / name, target / name)
     return target
 
 
