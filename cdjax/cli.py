@@ -10,7 +10,8 @@ setting's Config (except the fields an arm name sets and `num_updates`, derived 
 HParams field taking one or several values (their Cartesian product is the grid, vmapped with the seeds)
 and one per field of the setting's phase (--phase-<field>). `--setting` picks the agent (cdjax.agents).
 
-Bad input ends with one sentence on stderr and exit status 2; an interrupted sweep exits with 130.
+Bad input ends with one sentence on stderr and exit status 2; an interrupted sweep exits with 130, one stopped by
+its --time-limit with 75 (EX_TEMPFAIL: continue it with --resume).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import pathlib
 import re
 import shlex
 import sys
+import time
 from typing import Sequence
 
 from cdjax import agents, io, options, runtime
@@ -66,6 +68,9 @@ def _add_sweep(sub, setting: Setting, runtime_parent) -> None:
     run = sweep.add_argument_group("sweep (cdjax.runner.SweepSpec)")
     run.add_argument("--out", required=True, metavar="DIR", help="run directory (refuses one that holds another run)")
     run.add_argument("--resume", action="store_true", help="continue the run in --out from its latest checkpoint")
+    run.add_argument("--time-limit", type=options.seconds, metavar="SECONDS",
+                     help="stop, checkpointed, before the chunk that would end SECONDS after this command started "
+                          "(not recorded: each --resume gives its own; exit status 75)")
     run.add_argument("--preset", metavar="NAME",
                      help="named overrides, listed below (default: the one the setting picks, e.g. named like --env)")
     options.add_options(run, SweepSpec, dest="spec.", skip=SPEC_SKIP, switches=True, flags=FLAGS,
@@ -168,10 +173,10 @@ def sweep_spec(args: argparse.Namespace, setting: Setting, command: str = "") ->
                      **{"setting": setting.name, **spec_values})
 
 
-def cmd_sweep(args: argparse.Namespace, setting: Setting, command: str) -> None:
+def cmd_sweep(args: argparse.Namespace, setting: Setting, command: str, limit=None) -> None:
     from cdjax.runner import run_sweep
 
-    out = run_sweep(sweep_spec(args, setting, command), resume=args.resume)
+    out = run_sweep(sweep_spec(args, setting, command), resume=args.resume, after_chunk=limit)
     print(f"Done: {out}")
 
 
@@ -268,12 +273,14 @@ def _say_last(sentence: str) -> None:
 
 def main(argv: Sequence[str] | None = None) -> None:
     """The `cdjax` command; argv None: this process's arguments (and the process ends after it)."""
+    started = time.monotonic()  # --time-limit counts from here (the imports before are not counted)
     as_program = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     if as_program and not isinstance(sys.stderr, _QuietForeignThreads):
         sys.stderr = _QuietForeignThreads(sys.stderr)
-    from cdjax.runner import Interrupted
+    from cdjax.runner import Interrupted, TimeLimit
 
+    limit = None
     try:
         setting = setting_of(argv)
         try:
@@ -287,7 +294,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         cache = args.cache_dir or jax.config.jax_compilation_cache_dir or runtime.default_cache_dir()
         runtime.configure(cache_dir=cache, debug_nans=args.debug_nans, disable_jit=args.disable_jit)
         if args.command == "sweep":
-            cmd_sweep(args, setting, " ".join(["cdjax"] + [shlex.quote(a) for a in argv]))
+            limit = TimeLimit(args.time_limit, start=started) if args.time_limit else None
+            cmd_sweep(args, setting, " ".join(["cdjax"] + [shlex.quote(a) for a in argv]), limit)
         elif args.command == "eval":
             cmd_eval(args)
         else:
@@ -300,6 +308,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         raise SystemExit(2) from None
     except Interrupted as err:
         done = ", ".join(f"{arm} {n}" for arm, n in err.updates.items())
+        if limit is not None and limit.reached:
+            print(f"Stopped before the time limit ({args.time_limit:g} s); checkpoint saved (updates per arm: {done}). "
+                  f"Continue with: cdjax sweep --out {shlex.quote(str(err.run_dir))} --resume", file=sys.stderr)
+            raise SystemExit(75) from None
         print(f"Interrupted; checkpoint saved (updates per arm: {done}). "
               f"Resume with: cdjax sweep --out {shlex.quote(str(err.run_dir))} --resume", file=sys.stderr)
         raise SystemExit(130) from None

@@ -155,6 +155,14 @@ def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):
     assert sorted(p.name for p in (out / "checkpoints" / "cd").iterdir() if p.name.isdigit()) == ["2", "4"]
     assert list((out / "tb" / "cd" / "alpha=1.0" / "seed1").glob("events.out.tfevents.*"))
 
+    # a time limit already past when the programs are compiled: stopped before any chunk, exit 75, resumable
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as info:
+        main(["sweep", "--out", str(out), "--resume", "--steps", str(6 * 192), "--no-progress", "--time-limit", "1e-6"])
+    assert info.value.code == 75
+    assert f"Continue with: cdjax sweep --out {out} --resume" in capsys.readouterr().err
+    assert len((out / "metrics.jsonl").read_text().splitlines()) == (1 + 2) * 2 * 4
+
     main(["sweep", "--out", str(out), "--resume", "--steps", str(6 * 192), "--no-progress"])
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == (1 + 2) * 2 * 6

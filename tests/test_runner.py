@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cdjax import HParams, io, make_train
-from cdjax.runner import Interrupted, SweepSpec, plan_arms, prepare, restore_arms, resume_spec, run_sweep
+from cdjax.runner import Interrupted, SweepSpec, TimeLimit, plan_arms, prepare, restore_arms, resume_spec, run_sweep
 
 from _shared import POINT, logged_rows
 
@@ -100,6 +100,22 @@ def test_interrupted_run_keeps_logs_and_checkpoints_and_resume_gives_the_same_nu
     run_sweep(resume_spec(out, progress=False, final_eval=False), resume=True)
     assert _rows(out) == _rows(uninterrupted)  # every metric of every update, bit for bit
     _assert_same_states(_states(out), _states(uninterrupted))
+
+
+def test_time_limit_stops_before_the_round_that_would_end_past_it():
+    now = [100.0]
+    limit = TimeLimit(60, clock=lambda: now[0])
+    now[0] += 30  # compilation and the phases (or the rounds of an earlier process): not a round's length
+    assert limit(4, {}) is False
+    now[0] += 10  # round 1 took 10 s: 40 s used, 50 after another such round
+    assert limit(5, {}) is False
+    now[0] += 12  # round 2 took 12 s: 52 s used, 64 after another: stop now
+    assert limit(6, {}) is True and limit.reached
+    late = TimeLimit(5, clock=lambda: now[0])
+    now[0] += 6  # the limit is past before the first round
+    assert late(0, {}) is True
+    with pytest.raises(ValueError):
+        TimeLimit(0)
 
 
 def test_killed_run_with_corrupt_latest_checkpoint_falls_back_and_still_reproduces(uninterrupted, tmp_path, capsys):

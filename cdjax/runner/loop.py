@@ -5,7 +5,8 @@ Everything that can be refused (bad options, a directory holding another run, a 
 in memory) is refused before the run directory is touched. A resumed sweep restores the newest readable
 checkpoint of each arm, drops the log rows written after it and continues: on CPU the numbers equal
 those of an uninterrupted run. Ctrl-C finishes the chunk in flight, saves it and raises `Interrupted`; a
-second Ctrl-C stops at once, keeping the previous checkpoint. A write that fails (a full disk) raises
+second Ctrl-C stops at once, keeping the previous checkpoint. `after_chunk=TimeLimit(seconds)` stops the same
+way before a round of chunks that would end past a wall-clock budget (a cluster job's, a leased machine's). A write that fails (a full disk) raises
 io.WriteError naming the file and the checkpoints that are intact.
 """
 
@@ -31,6 +32,33 @@ from cdjax.runner.spec import SweepSpec
 from cdjax.sweep import unpad
 
 AfterChunk = Callable[[int, dict[str, int]], "bool | None"]
+
+
+class TimeLimit:
+    """An `after_chunk` that stops a sweep before the round of chunks that would end `seconds` after `start` (a
+    reading of `clock`; default: when this object is made), assuming the next round takes as long as the last
+    one (evaluations between rounds included).
+
+    Its first call (before the process's first round) only starts the clock of that round, so the compilation
+    does not count as a round's length; it stops there only if the limit is already past. `reached` says
+    whether it stopped the sweep.
+    """
+
+    def __init__(self, seconds: float, clock: Callable[[], float] = time.monotonic, start: float | None = None):
+        if not seconds > 0:
+            raise ValueError(f"a time limit must be positive, not {seconds}")
+        self.seconds, self.clock = float(seconds), clock
+        self.start = clock() if start is None else start
+        self.last = self.start
+        self.reached = self.started = False
+
+    def __call__(self, rounds: int, updates: dict[str, int]) -> bool:
+        now = self.clock()
+        last_round = now - self.last if self.started else 0.0
+        self.started = True
+        self.last = now
+        self.reached = now - self.start + last_round > self.seconds
+        return self.reached
 
 
 class Interrupted(KeyboardInterrupt):
@@ -77,8 +105,8 @@ def _checkpointed(rd: io.RunDir, name: str) -> int:
 def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | None = None) -> pathlib.Path:
     """Train every arm of `spec` in chunks, logging and checkpointing into spec.out; returns the run dir.
 
-    `after_chunk(rounds done, updates per arm)` is called after the phases (rounds 0) and after each round
-    of chunks; True stops the sweep as Ctrl-C does. Raises ConfigError / io.RunDirError (one sentence) for
+    `after_chunk(rounds done, updates per arm)` is called before this process's first round of chunks (after the
+    phases; rounds counts those of earlier processes of a resumed run) and after each round; True stops the sweep as Ctrl-C does. Raises ConfigError / io.RunDirError (one sentence) for
     input that cannot run, `Interrupted` when stopped early (after saving a checkpoint of every arm).
     """
     spec, plans, record = prepare(spec, resume)
@@ -304,7 +332,7 @@ class Loop:
                             arm.ckpt.wait()
                         if self.flag.requested:
                             self.stop()
-                if self.rounds == 0 and self.stop_asked():
+                if self.stop_asked():  # before this process's first round (after the phases)
                     self.stop()
                 while any(a.updates < a.num_updates for a in self.arms):
                     last = self.round()
