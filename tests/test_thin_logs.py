@@ -42,3 +42,31 @@ def test_a_short_log_is_kept_whole(tmp_path):
     assert len(thinned) < len(full) / 4
     # the pixel report's throughput reads each run's last update and the wall clock: the same from either copy
     assert throughput(thinned, 800) == throughput(full, 800) == 2 * 500 * 800 / 250.0
+
+
+def test_compact_strips_keep_the_first_sequence_and_steps_as_a_palette_png(tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    from experiments.pixel.report import compact_strips
+
+    cell, steps, rows = 6, 9, 3 * 2  # two sequences of three rows, 9 steps of 4x4 frames in 1-pixel frames
+    image = np.random.default_rng(0).integers(0, 255, (rows * cell, steps * cell, 3), dtype=np.uint8)
+    (tmp_path / "src").mkdir()
+    Image.fromarray(image).save(tmp_path / "src" / "ltq.png")
+    (out,) = compact_strips(str(tmp_path / "src"), str(tmp_path / "dest"), steps=4, sequences=1, cell=cell)
+    small = Image.open(out)
+    assert out.name == "ltq.png" and small.mode == "P" and small.size == (4 * cell, 3 * cell)
+    # the palette keeps the picture: mean colour error well under the 0-255 range's spread
+    error = np.abs(np.asarray(small.convert("RGB"), np.float32) - image[:3 * cell, :4 * cell]).mean()
+    assert error < 8, error
+
+
+def test_learning_curves_take_the_updates_every_seed_logged():
+    from experiments.pixel.report import curve
+
+    rows = [{"arm": "ltq", "hp": "default", "seed": s, "update": u, "m": float(u * (s + 1))}
+            for u in range(1, 32) for s in range(3) if not (s == 2 and u == 21)]
+    (label, (updates, values)), = curve(rows, (("m", "metric"),), every=10, reps=50).items()
+    assert label == "ltq" and updates == [1, 11, 31]  # 21 lacks seed 2
+    assert [round(v[0], 6) for v in values["m"]] == [2.0, 22.0, 62.0]  # the IQM of 1x, 2x, 3x: the middle seed

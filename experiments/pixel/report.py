@@ -2,9 +2,10 @@
 
     python -m experiments.pixel.report OUT                       # OUT/report.md, OUT/report.csv, OUT/figures/*.png
     python -m experiments.pixel.report --strips RUN_DIR STRIPS   # PNG strips of seed 0 of each arm of a pixel sweep
+    python -m experiments.pixel.report --compact-strips STRIPS SMALL   # what results keep of them (1 sequence, 20 steps)
 
-Per task (OUT/TASK/pixel), arm and hyper-parameter label (the presets' ltq-cd runs alpha 100 with cc_policy 0 and 1), each seed's score is its mean over the last WINDOW logged updates up to
-the last update every arm reached (the paper: "averaged over the last 50 batches of training"); the table
+Per task (OUT/TASK/pixel), arm and hyper-parameter label (the presets' ltq-cd runs alpha 100 with cc_policy 0
+and 1), each seed's score is its mean over the last WINDOW logged updates up to the last update every arm reached (the paper: "averaged over the last 50 batches of training"); the table
 gives the IQM over seeds with a 95% bootstrap interval (cdjax.stats.iqm_interval) of
   heldout/loglik_k   open-loop log-likelihood of held-out expert frames over the first k predicted steps,
                      nats per frame (64x64x3 Gaussian densities of pixels in [0, 1]; higher is better)
@@ -127,48 +128,90 @@ def markdown(tables: list[list[dict]], infos: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def figures(out: pathlib.Path, tables: list[list[dict]]) -> None:
+def short_label(arm: str) -> str:
+    """'ltq-cd alpha=100.0,cc_policy=0.0' -> 'ltq-cd\nalpha 100, cc_policy 0' (for the figures' axes)."""
+    name, _, hp = arm.partition(" ")
+    parts = [f"{k} {float(v):g}" for k, v in (item.split("=") for item in hp.split(",") if "=" in item)]
+    return name + ("\n" + ", ".join(parts) if parts else "")
+
+
+def figures(out: pathlib.Path, tables: list[list[dict]], curves: dict | None = None) -> None:
+    """out/figures: per score, a panel per task (its own scale) with each arm's IQM and 95% interval; with
+    `curves` ({task: {arm: (updates, {metric: [(iqm, low, high)]})}}), the held-out scores against updates."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     (out / "figures").mkdir(parents=True, exist_ok=True)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for metric, title in SCORES[:3]:
-        fig, ax = plt.subplots(figsize=(6, 3.2))
-        labels, x = [], 0
-        for table in tables:
-            for r in table:
+        fig, axes = plt.subplots(1, len(tables), figsize=(3.2 * len(tables), 3.4), squeeze=False)
+        for ax, table in zip(axes[0], tables):
+            for x, r in enumerate(table):
                 est, low, high, _ = r[metric]
-                color = "tab:orange" if r["arm"].startswith("ltq-cd") else "tab:blue"
-                ax.bar(x, est, color=color)
+                ax.bar(x, est, color=colors[x % len(colors)])
                 if math.isfinite(low):
                     ax.errorbar(x, est, yerr=[[est - low], [high - est]], color="k", capsize=3)
-                labels.append(f"{r['task']}\n{r['arm']}")
-                x += 1
-        ax.set_xticks(range(len(labels)), labels, fontsize=7)
-        ax.set_title(title)
+            ax.set_xticks(range(len(table)), [short_label(r["arm"]) for r in table], fontsize=6)
+            ax.set_title(f"{table[0]['task']} (update {table[0]['update']})" if table else "", fontsize=9)
+        fig.suptitle(title, fontsize=10)
         fig.tight_layout()
         fig.savefig(out / "figures" / (metric.replace("/", "_") + ".png"), dpi=120)
         plt.close(fig)
+    if not curves:
+        return
+    metrics = SCORES[0], SCORES[2]
+    fig, axes = plt.subplots(len(metrics), len(curves), figsize=(3.6 * len(curves), 5.6), squeeze=False)
+    for col, (task, arms) in enumerate(curves.items()):
+        for i, (arm, (updates, values)) in enumerate(arms.items()):
+            for row, (metric, title) in enumerate(metrics):
+                est, low, high = (np.array([v[j] for v in values[metric]]) for j in range(3))
+                ax = axes[row][col]
+                ax.plot(updates, est, color=colors[i % len(colors)], label=short_label(arm).replace("\n", " "))
+                ax.fill_between(updates, low, high, color=colors[i % len(colors)], alpha=0.2, linewidth=0)
+                ax.set_title(f"{task}: {title}", fontsize=8)
+                if metric == "heldout/imitation":
+                    ax.set_yscale("log")
+                else:
+                    ax.set_ylim(bottom=0)
+        axes[-1][col].set_xlabel("update")
+    axes[0][0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(out / "figures" / "curves.png", dpi=120)
+    plt.close(fig)
 
 
-def write_strips(run_dir: str, dest: str, sequences: int = 3) -> list[pathlib.Path]:
-    import jax
+def curve(rows: list[dict], metrics, every: int = 10, reps: int = 500) -> dict:
+    """{arm label: (updates, {metric: [(IQM, low, high) over seeds]})} at every `every`-th logged update (the
+    updates every seed logged), for the learning-curve figure."""
+    out: dict = {}
+    for arm, hp in sorted({(r["arm"], r["hp"]) for r in rows}):
+        mine = [r for r in rows if (r["arm"], r["hp"]) == (arm, hp)]
+        seeds = {r["seed"] for r in mine}
+        by_update: dict[int, list[dict]] = {}
+        for r in mine:
+            by_update.setdefault(r["update"], []).append(r)
+        updates = [u for u in sorted(by_update) if len(by_update[u]) == len(seeds) and u % every == 1 % every]
+        values = {m: [iqm_interval([r[m] for r in by_update[u]], reps=reps)[:3] for u in updates] for m, _ in metrics}
+        out[arm if hp == "default" else f"{arm} {hp}"] = (updates, values)
+    return out
 
-    from cdjax.agents.pixel.strips import write_strips as strips_of
-    from cdjax.runner import restore_arms
 
-    _, arms = restore_arms(run_dir)
+def compact_strips(src: str, dest: str, steps: int = 20, sequences: int = 1, cell: int = 66) -> list[pathlib.Path]:
+    """Copies of the strips in `src` small enough to commit: the first `sequences` held-out sequences (three rows
+    each) and `steps` columns (the context, then the first open-loop steps) of cells `cell` pixels square (a
+    64x64 frame and its 1-pixel frame), as 256-colour palette PNGs."""
+    from PIL import Image
+
     paths = []
-    for arm in arms:
-        labels = arm.plan.labels
-        num_seeds = arm.num_runs // len(labels)  # runs are hp-major: run i * num_seeds + s
-        for i, label in enumerate(labels):
-            one = jax.tree.map(lambda x, r=i * num_seeds: x[r], arm.state)  # seed 0 of this hyper-parameter set
-            name = arm.name if len(labels) == 1 else f"{arm.name}-{label.replace('=', '').replace(',', '-')}"
-            paths.append(strips_of(arm.trainer.inner, one.params, one.heldout, jax.random.key(0),
-                                   pathlib.Path(dest) / f"{name}.png", sequences=sequences))
+    for path in sorted(pathlib.Path(src).glob("*.png")):
+        image = Image.open(path).convert("RGB")
+        box = (0, 0, min(image.width, steps * cell), min(image.height, 3 * sequences * cell))
+        out = pathlib.Path(dest) / path.name
+        out.parent.mkdir(parents=True, exist_ok=True)
+        image.crop(box).quantize(256, method=Image.Quantize.MEDIANCUT).save(out, optimize=True)
+        paths.append(out)
     return paths
 
 
@@ -176,10 +219,12 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out", nargs="?")
     parser.add_argument("--strips", nargs=2, metavar=("RUN_DIR", "DEST"))
+    parser.add_argument("--compact-strips", nargs=2, metavar=("SRC", "DEST"),
+                        help="copies of SRC's strips small enough to commit (one sequence, 20 steps, 256 colours)")
     parser.add_argument("--bootstrap-reps", type=int, default=2000)
     args = parser.parse_args(argv)
-    if args.strips:
-        for path in write_strips(*args.strips):
+    if args.strips or args.compact_strips:
+        for path in write_strips(*args.strips) if args.strips else compact_strips(*args.compact_strips):
             print(f"wrote {path}")
         return
     out = pathlib.Path(args.out)
@@ -188,7 +233,8 @@ def main(argv=None) -> None:
     tables, infos = [r[0] for r in results], [r[1] for r in results]
     text = markdown(tables, infos)
     (out / "report.md").write_text(text)
-    figures(out, tables)
+    curves = {d.name: curve(io.read_jsonl(d / "pixel" / "metrics.jsonl"), (SCORES[0], SCORES[2])) for d in tasks}
+    figures(out, tables, curves)
     print(text)
 
 
