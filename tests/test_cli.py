@@ -143,7 +143,7 @@ def test_phase_options():
 
 def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):
     out = tmp_path / "run"
-    main(["sweep", *TINY, "--alpha", "0", "1", "--steps", str(4 * 192), "--out", str(out)])
+    main(["sweep", *TINY, "--alpha", "0", "1", "--steps", str(4 * 192), "--bootstrap-reps", "50", "--out", str(out)])
     captured = capsys.readouterr()
     assert "compile" in captured.err and "Trained in" in captured.err
     run = json.loads((out / "run.json").read_text())
@@ -184,7 +184,7 @@ def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):
     pytest.importorskip("cdjax.plots")
     for name in ("summary.md", "summary.csv", "plots/return.png"):
         (out / name).unlink()
-    main(["plot", str(out)])
+    main(["plot", str(out), "--bootstrap-reps", "50"])  # the files, not the intervals' precision, are checked
     for name in ("summary.md", "summary.csv", "plots/return.png"):
         assert (out / name).stat().st_size > 0, name
     assert "cd" in (out / "summary.md").read_text()

@@ -219,8 +219,11 @@ MPC_HORIZON = 10
 MPC_CANDIDATES = 96
 
 
-def _closed_loop(env, key, *, use_mpc: bool):
-    """Run NUM_ENVS envs for NUM_STEPS steps. Returns per-step [T, B] reward terms."""
+def _closed_loop(env, key, use_mpc):
+    """Run NUM_ENVS envs for NUM_STEPS steps. Returns per-step [T, B] reward terms.
+
+    `use_mpc` is traced (a bool array): MPC and random actions are the two branches of one lax.cond, so both
+    controllers run in one compiled program (MJX compiles slowly on a CPU; the env step after it is shared)."""
     reset_key, loop_key = jax.random.split(key)
     states = strong_types(jax.vmap(env.reset)(jax.random.split(reset_key, NUM_ENVS)))
 
@@ -229,18 +232,22 @@ def _closed_loop(env, key, *, use_mpc: bool):
         nxt = env.step(s, a)
         return nxt, nxt.reward
 
+    def mpc_actions(s, k):
+        actions, info = mpc.batched_random_shooting(
+            k,
+            true_dynamics,
+            s,
+            horizon=MPC_HORIZON,
+            num_candidates=MPC_CANDIDATES,
+            action_size=env.action_size,
+        )
+        return actions
+
+    def random_actions(s, k):
+        return jax.random.uniform(k, (NUM_ENVS, env.action_size), minval=-1.0, maxval=1.0)
+
     def body(s, k):
-        if use_mpc:
-            actions, info = mpc.batched_random_shooting(
-                k,
-                true_dynamics,
-                s,
-                horizon=MPC_HORIZON,
-                num_candidates=MPC_CANDIDATES,
-                action_size=env.action_size,
-            )
-        else:
-            actions = jax.random.uniform(k, (NUM_ENVS, env.action_size), minval=-1.0, maxval=1.0)
+        actions = lax.cond(use_mpc, mpc_actions, random_actions, s, k)
         nxt = strong_types(jax.vmap(env.step)(s, actions))
         return nxt, (nxt.reward, nxt.metrics["reward_dist"], nxt.metrics["reward_ctrl"])
 
@@ -254,12 +261,13 @@ def reacher_rollouts():
 
     env = envs.get_environment("reacher", backend="mjx")
     key = jax.random.key(2019)  # same reset states and horizon for both controllers
+    run = jax.jit(functools.partial(_closed_loop, env))  # one program for both controllers
     results = {}
     for name, use_mpc in (("mpc", True), ("random", False)):
-        run = jax.jit(functools.partial(_closed_loop, env, use_mpc=use_mpc))
-        reward, dist, ctrl = jax.device_get(run(key))
+        reward, dist, ctrl = jax.device_get(run(key, jnp.asarray(use_mpc)))
         assert reward.shape == (NUM_STEPS, NUM_ENVS)
         results[name] = {"reward": reward, "dist": dist, "ctrl": ctrl}
+    assert run._cache_size() == 1
     return results
 
 

@@ -11,17 +11,19 @@ from experiments.paper_obs_space import __main__ as cli
 from experiments.paper_obs_space import report
 
 # The paper-swimmer preset shrunk to tests/_shared.POINT with test_runner's Mb-Mf phase (2 arms, 4 updates in
-# chunks of 2): the same programs as test_runner's phase sweep, so the compilation cache serves the second.
+# chunks of 2): the same programs as test_runner's phase sweep, so the compilation cache serves the second. Every
+# config field the preset sets is set back to POINT's (the preset's tanh activation and gru encoder too: with them
+# the programs differ from test_runner's and compile again).
 TINY = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon", "4", "--num-epochs", "2",
         "--num-minibatches", "2", "--episode-length", "40", "--policy-hidden", "16", "--value-hidden", "16",
         "--model-hidden", "32", "--encoder-dim", "8", "--eval-horizon", "10", "--eval-envs", "4",
-        "--cc-windows", "0", "--cc-unroll", "1", "--arms", "model-free", "cd-k3", "--seeds", "2", "--steps", "768",
+        "--cc-windows", "0", "--cc-unroll", "1", "--activation", "swish", "--encoder", "grounded-gru", "--arms", "model-free", "cd-k3", "--seeds", "2", "--steps", "768",
         "--chunk-updates", "2", "--phase-num-envs", "4", "--phase-random-steps", "12",
         "--phase-aggregation-iters", "1", "--phase-mpc-steps-per-iter", "6", "--phase-model-epochs", "2",
         "--phase-model-minibatch", "32", "--phase-mpc-horizon", "3", "--phase-mpc-candidates", "8",
         "--phase-distill-iters", "1", "--phase-distill-steps-per-iter", "4", "--phase-distill-epochs", "2",
         "--phase-distill-minibatch", "16", "--phase-value-epochs", "1", "--phase-relabel-chunk", "1024",
-        "--eval-episodes", "2", "--no-progress"]
+        "--eval-episodes", "2", "--bootstrap-reps", "50", "--no-progress"]
 
 
 @pytest.fixture(scope="module")

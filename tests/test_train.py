@@ -18,14 +18,18 @@ def _finite(tree):
 
 def test_vmap_over_seeds_and_an_alpha_grid_equals_each_run_alone():
     """Seeds and HParams floats vmap together (one program): each run equals the same run alone, the seeds
-    really differ, and alpha changes the result."""
-    train = make_train(POINT)
+    really differ, and alpha changes the result.
+
+    6 updates and HParams of Python floats, as test_runner's sweep runs them alone: the single-run program is the
+    one test_runner.py::test_arms_and_seeds_vmapped_equal_each_run_alone compiles (the compilation cache serves it)."""
+    train = make_train(POINT.replace(num_updates=6))
     keys = jnp.concatenate([jax.random.split(jax.random.key(3), 2)] * 2)  # seeds (0, 1) under alpha 0 and 0.5
-    hps = stack_hparams([HParams(alpha=0.0)] * 2 + [HParams(alpha=0.5)] * 2)
+    alone = [HParams(alpha=0.0)] * 2 + [HParams(alpha=0.5)] * 2
+    hps = stack_hparams(alone)
     state_v, metrics_v = jax.jit(jax.vmap(train))(keys, hps)
     single = jax.jit(train)
     for i in range(4):
-        state_i, metrics_i = single(keys[i], jax.tree.map(lambda x: x[i], hps))
+        state_i, metrics_i = single(keys[i], alone[i])
         for name in ("loss/total", "loss/consistency", "loss/model_nll", "env/reward_mean"):
             np.testing.assert_allclose(metrics_v[name][i], metrics_i[name], rtol=2e-5, atol=1e-6, err_msg=name)
         for a, b in zip(jax.tree.leaves(state_v.params), jax.tree.leaves(state_i.params)):
