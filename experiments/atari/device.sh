@@ -8,8 +8,8 @@
 # --preset minatar-GAME`, or ALE games named ale-GAME (ale-breakout, ale-seaquest, ale-mspacman, ale-frostbite: one
 # seed, `--preset GAME`; ale-py is installed from ./.whl or ./.whl-ale when missing: carry one of them). Game i runs on GPU i mod (number of GPUs);
 # games sharing a GPU split its memory. Extra options after -- go to every sweep (e.g. -- --steps 2000000). Training gets
-# SECONDS minus EVAL_RESERVE (default 240; at least 60): then it gets SIGINT, finishes the chunk in flight, saves a checkpoint and
-# its logs; a run stopped early is then evaluated at its last checkpoint (`cdjax eval --episodes 100`).
+# SECONDS minus EVAL_RESERVE (default 240; at least 60): each sweep's --time-limit stops it, checkpointed, before a chunk
+# that would end later; a run stopped early is then evaluated at its last checkpoint (`cdjax eval --episodes 100`).
 # The whole script takes about SECONDS. gymnax is installed from ./.whl when the image lacks it.
 # OUT/GAME.log: the output of each game; OUT/runs/GAME: the run directory; OUT/report: RESULTS table and figure;
 # OUT/runs.tar.gz: the run directories without checkpoints, their metrics thinned (experiments.thin_logs).
@@ -42,11 +42,12 @@ for i in "${!games[@]}"; do
   g=${games[$i]}
   case $g in ale-*) preset=${g#ale-} ;; *) preset=minatar-$g ;; esac
   if [ -f "$out/runs/$g/run.json" ]; then  # a run of an earlier call: continue it
-    what=(sweep --out "$out/runs/$g" --resume --no-progress)
+    what=(sweep --out "$out/runs/$g" --resume --no-progress --time-limit "$train")
   else
-    what=(sweep --setting atari --preset "$preset" --out "$out/runs/$g" --no-progress "$@")
+    what=(sweep --setting atari --preset "$preset" --out "$out/runs/$g" --no-progress --time-limit "$train" "$@")
   fi
-  CUDA_VISIBLE_DEVICES=$(( i % ngpu )) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction timeout -s INT -k 60 "$train" \
+  # timeout only guards against a hang: --time-limit stops the sweep between chunks
+  CUDA_VISIBLE_DEVICES=$(( i % ngpu )) XLA_PYTHON_CLIENT_MEM_FRACTION=$fraction timeout -s INT -k 60 $(( train + 120 )) \
     python -m cdjax.cli "${what[@]}" >>"$out/$g.log" 2>&1 &
   pids+=($!)
 done
