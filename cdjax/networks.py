@@ -14,6 +14,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from cdjax.config import Config
+
 MODEL_LOG_STD_MIN = -6.0  # bounds of the dynamics model's predicted log standard deviation
 MODEL_LOG_STD_MAX = 1.0
 MIN_POLICY_STD = 1e-3  # floor of the state-dependent policy standard deviation (softplus(x) + floor)
@@ -54,7 +56,7 @@ class MLP(nn.Module):
     out: int
     activation: str = "swish"  # any flax.linen activation name (swish, tanh, relu, ...)
     out_scale: float = 1.0  # orthogonal init scale of the last layer
-    weight_init: str = "orthogonal"  # orthogonal: gain sqrt(2) hidden, out_scale last; lecun: lecun-uniform (Brax)
+    weight_init: str = Config.weight_init  # lecun: lecun-uniform (Brax); orthogonal: gain sqrt(2) hidden, out_scale last
 
     @nn.compact
     def __call__(self, x):
@@ -79,7 +81,7 @@ class Policy(nn.Module):
     hidden: Sequence[int]
     activation: str = "swish"
     std_mode: str = "state"
-    weight_init: str = "orthogonal"
+    weight_init: str = Config.weight_init  # Config's default, so that a module built alone is the agent's
 
     @nn.compact
     def __call__(self, obs):
@@ -97,7 +99,7 @@ class Value(nn.Module):
 
     hidden: Sequence[int]
     activation: str = "swish"
-    weight_init: str = "orthogonal"
+    weight_init: str = Config.weight_init  # Config's default, so that a module built alone is the agent's
 
     @nn.compact
     def __call__(self, obs):
