@@ -22,9 +22,9 @@ from cdjax import agents, io
 from cdjax.agents import pixel
 from cdjax.agents.pixel import PRESETS, PixelConfig, PixelHParams, PixelLearner
 from cdjax.agents.pixel.data import Dataset, PixelEvalEnv
-from cdjax.agents.pixel.strips import write_strips
 from cdjax.cli import main
 from cdjax.runner import restore_arms
+from experiments.pixel.report import write_strips
 
 from _shared import TINY_ARGS, logged_rows
 
@@ -249,8 +249,9 @@ def test_a_sweep_through_the_cli_resumes_and_equals_each_seed_alone(tmp_path, le
             np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=2e-4, atol=2e-5)
     assert traced["count"] == 1  # the module's update was compiled once for every use
 
-    one = jax.tree.map(lambda x: x[0], arm.state)
-    path = write_strips(arm.trainer.inner, one.params, one.heldout, jax.random.key(0), tmp_path / "strip.png")
+    # the strips as `experiments.pixel.report --strips` draws them from the run directory: seed 0 of each label
+    (path,) = write_strips(str(out), str(tmp_path / "strips"), sequences=2)
+    assert path.name == "ltq-cd.png"
     c = arm.plan.config
     assert iio.imread(path).shape == (2 * 3 * (c.image_size + 2), (c.context + c.eval_horizon) * (c.image_size + 2), 3)
 

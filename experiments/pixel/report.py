@@ -198,6 +198,25 @@ def curve(rows: list[dict], metrics, every: int = 10, reps: int = 500) -> dict:
     return out
 
 
+def write_strips(run_dir: str, dest: str, sequences: int = 3) -> list[pathlib.Path]:
+    import jax
+
+    from cdjax.agents.pixel.strips import write_strips as strips_of
+    from cdjax.runner import restore_arms
+
+    _, arms = restore_arms(run_dir)
+    paths = []
+    for arm in arms:
+        labels = arm.plan.labels
+        num_seeds = arm.num_runs // len(labels)  # runs are hp-major: run i * num_seeds + s
+        for i, label in enumerate(labels):
+            one = jax.tree.map(lambda x, r=i * num_seeds: x[r], arm.state)  # seed 0 of this hyper-parameter set
+            name = arm.name if len(labels) == 1 else f"{arm.name}-{label.replace('=', '').replace(',', '-')}"
+            paths.append(strips_of(arm.trainer.inner, one.params, one.heldout, jax.random.key(0),
+                                   pathlib.Path(dest) / f"{name}.png", sequences=sequences))
+    return paths
+
+
 def compact_strips(src: str, dest: str, steps: int = 20, sequences: int = 1, cell: int = 66) -> list[pathlib.Path]:
     """Copies of the strips in `src` small enough to commit: the first `sequences` held-out sequences (three rows
     each) and `steps` columns (the context, then the first open-loop steps) of cells `cell` pixels square (a
