@@ -56,7 +56,7 @@ class MLP(nn.Module):
     out: int
     activation: str = "swish"  # any flax.linen activation name (swish, tanh, relu, ...)
     out_scale: float = 1.0  # orthogonal init scale of the last layer
-    weight_init: str = Config.weight_init  # lecun: lecun-uniform (Brax); orthogonal: gain sqrt(2) hidden, out_scale last
+    weight_init: str = Config.weight_init  # lecun-uniform (Brax); orthogonal: gain sqrt(2) hidden, out_scale last
 
     @nn.compact
     def __call__(self, x):

@@ -16,5 +16,5 @@ from cdjax.runner.loop import Interrupted, TimeLimit, prepare, run_sweep
 from cdjax.runner.plan import ArmPlan, chunk_size, plan_arms, resume_spec, run_record, spec_of, validate_grid
 from cdjax.runner.spec import SweepSpec
 
-__all__ = ["Arm", "ArmPlan", "EVAL_TAG", "Interrupted", "SweepSpec", "chunk_size", "evaluate_arms", "plan_arms",
-           "prepare", "restore_arms", "resume_spec", "run_record", "run_sweep", "spec_of", "TimeLimit", "validate_grid"]
+__all__ = ["Arm", "ArmPlan", "EVAL_TAG", "Interrupted", "SweepSpec", "TimeLimit", "chunk_size", "evaluate_arms",
+           "plan_arms", "prepare", "restore_arms", "resume_spec", "run_record", "run_sweep", "spec_of", "validate_grid"]

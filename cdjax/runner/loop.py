@@ -6,8 +6,8 @@ in memory) is refused before the run directory is touched. A resumed sweep resto
 checkpoint of each arm, drops the log rows written after it and continues: on CPU the numbers equal
 those of an uninterrupted run. Ctrl-C finishes the chunk in flight, saves it and raises `Interrupted`; a
 second Ctrl-C stops at once, keeping the previous checkpoint. `after_chunk=TimeLimit(seconds)` stops the same
-way before a round of chunks that would end past a wall-clock budget (a cluster job's, a leased machine's). A write that fails (a full disk) raises
-io.WriteError naming the file and the checkpoints that are intact.
+way before a round of chunks that would end past a wall-clock budget (a cluster job's, a leased machine's). A
+write that fails (a full disk) raises io.WriteError naming the file and the checkpoints that are intact.
 """
 
 from __future__ import annotations
@@ -106,8 +106,9 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     """Train every arm of `spec` in chunks, logging and checkpointing into spec.out; returns the run dir.
 
     `after_chunk(rounds done, updates per arm)` is called before this process's first round of chunks (after the
-    phases; rounds counts those of earlier processes of a resumed run) and after each round; True stops the sweep as Ctrl-C does. Raises ConfigError / io.RunDirError (one sentence) for
-    input that cannot run, `Interrupted` when stopped early (after saving a checkpoint of every arm).
+    phases; rounds counts those of earlier processes of a resumed run) and after each round; True stops the
+    sweep as Ctrl-C does. Raises ConfigError / io.RunDirError (one sentence) for input that cannot run,
+    `Interrupted` when stopped early (after saving a checkpoint of every arm).
     """
     spec, plans, record = prepare(spec, resume)
     setting = agents.get(spec.setting)

@@ -48,14 +48,17 @@ elif [ "$share" -gt 1 ]; then export XLA_PYTHON_CLIENT_MEM_FRACTION=$(python -c 
 
 left() { echo $(( $1 - ($(date +%s) - start) )); }
 
+carried_expert() {  # TASK: EXPERTS_FROM=DIR: DIR/TASK.msgpack is an expert of an earlier machine (carry DIR, not
+  # WORK: a carried path replaces the device's copy, runs included); copied in unless the task has its expert
+  if [ -n "${EXPERTS_FROM:-}" ] && [ ! -f "$out/$1/expert.msgpack" ] && [ -f "$EXPERTS_FROM/$1.msgpack" ]; then
+    cp "$EXPERTS_FROM/$1.msgpack" "$out/$1/expert.msgpack"
+  fi
+}
+
 run_task() {  # TASK GPU SECONDS
   local t=$1 gpu=$2 budget=$3 t0 d expert_s
   t0=$(date +%s); d="$out/$t"; mkdir -p "$d"
-  # EXPERTS_FROM=DIR: DIR/TASK.msgpack are experts of an earlier machine (carry DIR, not WORK: a carried path
-  # replaces the device's copy, runs included)
-  if [ -n "${EXPERTS_FROM:-}" ] && [ ! -f "$d/expert.msgpack" ] && [ -f "$EXPERTS_FROM/$t.msgpack" ]; then
-    cp "$EXPERTS_FROM/$t.msgpack" "$d/expert.msgpack"
-  fi
+  carried_expert "$t"
   export CUDA_VISIBLE_DEVICES=$gpu
   task_left() { echo $(( budget - ($(date +%s) - t0) )); }
   if [ ! -f "$d/expert.msgpack" ]; then
@@ -105,8 +108,8 @@ cost_due() {  # TASK: whether its data cost is still to be measured
 
 measure_cost() {  # TASK GPU: the data cost, alone on its GPU (needs the expert; 10 runs, about 150 s)
   local t=$1 d="$out/$1"
-  [ -f "$d/expert.msgpack" ] || { [ -n "${EXPERTS_FROM:-}" ] && cp "$EXPERTS_FROM/$t.msgpack" "$d/expert.msgpack"; } \
-    || { echo "no expert for $t: its data cost comes after its expert"; return 0; }
+  carried_expert "$t"
+  [ -f "$d/expert.msgpack" ] || { echo "no expert for $t: its data cost comes after its expert"; return 0; }
   CUDA_VISIBLE_DEVICES=$2 timeout -k 20 240 python -m experiments.pixel.data_cost --env "$t" \
     --expert "$d/expert.msgpack" --runs 10 --out "$d/cost.json" || echo "data_cost did not finish"
 }

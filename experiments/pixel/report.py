@@ -2,11 +2,12 @@
 
     python -m experiments.pixel.report OUT                       # OUT/report.md, OUT/report.csv, OUT/figures/*.png
     python -m experiments.pixel.report --strips RUN_DIR STRIPS   # PNG strips of seed 0 of each arm of a pixel sweep
-    python -m experiments.pixel.report --compact-strips STRIPS SMALL   # what results keep of them (1 sequence, 20 steps)
+    python -m experiments.pixel.report --compact-strips STRIPS SMALL   # what results keep (1 sequence, 20 steps)
 
 Per task (OUT/TASK/pixel), arm and hyper-parameter label (the presets' ltq-cd runs alpha 100 with cc_policy 0
-and 1), each seed's score is its mean over the last WINDOW logged updates up to the last update every arm reached (the paper: "averaged over the last 50 batches of training"); the table
-gives the IQM over seeds with a 95% bootstrap interval (cdjax.stats.iqm_interval) of
+and 1), each seed's score is its mean over the last WINDOW logged updates up to the last update every arm
+reached (the paper: "averaged over the last 50 batches of training"); the table gives the IQM over seeds with
+a 95% bootstrap interval (cdjax.stats.iqm_interval) of
   heldout/loglik_k   open-loop log-likelihood of held-out expert frames over the first k predicted steps,
                      nats per frame (64x64x3 Gaussian densities of pixels in [0, 1]; higher is better)
   heldout/loglik_50  the same over all eval_horizon (50) predicted steps
@@ -192,6 +193,7 @@ def curve(rows: list[dict], metrics, every: int = 10, reps: int = 500) -> dict:
         by_update: dict[int, list[dict]] = {}
         for r in mine:
             by_update.setdefault(r["update"], []).append(r)
+        # updates 1, 1 + every, ... (those a thinned log kept), where every seed logged
         updates = [u for u in sorted(by_update) if len(by_update[u]) == len(seeds) and u % every == 1 % every]
         values = {m: [iqm_interval([r[m] for r in by_update[u]], reps=reps)[:3] for u in updates] for m, _ in metrics}
         out[arm if hp == "default" else f"{arm} {hp}"] = (updates, values)
