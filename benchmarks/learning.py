@@ -113,14 +113,14 @@ def run_cdjax(name: str, task: Task, variant: str, seeds: int, rows: Rows, seed:
     import jax
     import numpy as np
 
-    from cdjax.agents import obs_space
+    from cdjax.agents import obs
     from cdjax.evaluate import make_evaluator
     from cdjax.sweep import make_sweep, unpad
 
     cfg_over, hp_over = VARIANTS[variant]
     spec = task.spec
     config = spec.config(arm="model-free", num_updates=task.evals * task.updates_per_eval, **cfg_over)
-    trainer = obs_space.make_trainer(config)
+    trainer = obs.make_trainer(config)
     sweep = make_sweep(trainer)
     keys, hps = sweep.grid(seed=seed, num_seeds=seeds, hps=[spec.hparams(**hp_over)])
     state = sweep.init(keys, hps)

@@ -21,13 +21,13 @@ def sweep_case(spec: Spec, case: str, runs: int, timing: Timing, mesh_devices: i
     import jax
     import jax.numpy as jnp
 
-    from cdjax import make_trainer
+    from cdjax import make_agent
     from cdjax.sweep import make_sweep, runs_mesh
 
     what, overrides, hp_overrides = cdjax_cases(spec)[case]
     config = spec.config(**overrides)
     devices = jax.devices()[:mesh_devices] if mesh_devices else jax.devices()
-    sweep = make_sweep(make_trainer(config), mesh=runs_mesh(devices))
+    sweep = make_sweep(make_agent(config), mesh=runs_mesh(devices))
     keys, hps = sweep.grid(seed=0, num_seeds=runs, hps=[spec.hparams(**hp_overrides)])
     state = sweep.init(keys, hps)
     # Sweep.lower gives the chunk program (state, hps, num_updates) -> (state, metrics); num_updates is static.

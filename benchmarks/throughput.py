@@ -75,10 +75,10 @@ def collect(spec: Spec, timing: Timing) -> dict:
     guard, GAE) at the matched config: the rollout share of every arm's update."""
     import jax
 
-    from cdjax import make_trainer
+    from cdjax import make_agent
 
     config = spec.config(arm="model-free")
-    trainer = make_trainer(config)
+    trainer = make_agent(config)
     hp = spec.hparams().as_float32()
     state = jax.jit(trainer.init)(jax.random.key(0), hp)
 
@@ -100,11 +100,11 @@ def cdjax_update(spec: Spec, case: str, timing: Timing, trace_dir: str | None = 
     import jax
     import jax.numpy as jnp
 
-    from cdjax import make_trainer
+    from cdjax import make_agent
 
     what, overrides, hp_overrides = cdjax_cases(spec)[case]
     config = spec.config(**overrides)
-    trainer = make_trainer(config)
+    trainer = make_agent(config)
     hp = spec.hparams(**hp_overrides).as_float32()
     state = jax.jit(trainer.init)(jax.random.key(0), hp)
     compiled, lower_s, compile_s = compile_timed(jax.jit(trainer.update, donate_argnums=0), state, hp)

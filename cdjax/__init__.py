@@ -1,4 +1,13 @@
-"""cdjax: consistent dynamics models (Sodhani et al., 2019) as one jitted JAX pipeline on MuJoCo-MJX."""
+"""cdjax: consistent dynamics models (Sodhani et al., 2019) as one jitted JAX pipeline on MuJoCo-MJX.
+
+The package's face is the observation-space agent (`cdjax.agents.obs`), the paper's main setting:
+
+    from cdjax import Config, HParams, make_train
+    train = make_train(Config(env="ant"))          # train(key, hp) -> (state, metrics); jit/vmap it yourself
+
+`make_agent(config)` gives that agent's pieces (init, update, collect, loss, act, model_step, ...);
+`make_trainer(config)` gives it as every setting gives itself to the host side (`cdjax.protocol.Trainer`).
+"""
 
 from cdjax.runtime import apply_cpu_workaround
 
@@ -10,10 +19,10 @@ import io as _io
 
 # mujoco.mjx prints to stdout when its optional warp backend is missing; keep `import cdjax` quiet.
 with _contextlib.redirect_stdout(_io.StringIO()):
-    from cdjax.config import Config, ConfigError, HParams
-    from cdjax.mbmf import MbMfPhase, make_mbmf_phase, total_env_steps
-    from cdjax.train import TrainState, Trainer, make_train, make_trainer
+    from cdjax.agents.obs import (Config, HParams, MbMfPhase, ObsAgent, TrainState, make_agent, make_mbmf_phase,
+                                  make_train, make_trainer, stack_hparams, total_env_steps)
+    from cdjax.protocol import ConfigError, Trainer
 
-__all__ = ["Config", "ConfigError", "HParams", "MbMfPhase", "TrainState", "Trainer", "make_mbmf_phase", "make_train",
-           "make_trainer", "total_env_steps"]
+__all__ = ["Config", "ConfigError", "HParams", "MbMfPhase", "ObsAgent", "TrainState", "Trainer", "make_agent",
+           "make_mbmf_phase", "make_train", "make_trainer", "stack_hparams", "total_env_steps"]
 __version__ = "0.1.0"

@@ -34,16 +34,25 @@ space, latent states of a pixel model, a CNN's features) can use the same term.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+import warnings
+from typing import Any, Callable, Mapping
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
-from cdjax.losses import masked_mean
+from cdjax.numerics import masked_mean
 
 KINDS = ("grounded-gru", "gru", "frozen-gru", "l2")
 SPREAD_FLOOR = 0.5  # grounded-gru: the spread across windows below which each encoding feature is penalised
+SPREAD = "encoder/spread_real"  # the metric of the real encodings' spread that `collapse_warning` reads
+# Below this output spread (std of the encodings across windows, averaged over features) a trainable GRU maps
+# every window to nearly one point: l_cc then vanishes without the model becoming consistent. A fresh GRU
+# spreads ~0.1-1; the collapsed ant runs of experiments/paper_obs_space ended at 5e-5 to 3e-4.
+COLLAPSE_SPREAD = 1e-3
+TRAINED_ENCODERS = ("gru", "grounded-gru")
 
 
 @struct.dataclass
@@ -85,7 +94,51 @@ def safe_norm(x: jax.Array, axis: int = -1) -> jax.Array:
 
 
 # ---------------------------------------------------------------------------------------------------
+# The sequence encoder
+
+
+class SequenceEncoder(nn.Module):
+    """The consistency encoder: a GRU scanned by the caller, and a decoder of a whole window.
+
+    `__call__(h [..., H], x [..., D]) -> h'` is one GRU step. `decode(h [..., H]) -> [..., k * D]` maps a
+    final encoding back to the k inputs it read (used by the grounded encoder's reconstruction loss;
+    built only when `window_size` > 0).
+    """
+
+    features: int
+    window_size: int = 0  # k * D: the size of the flattened window the decoder reconstructs; 0 = no decoder
+
+    def setup(self):
+        self.cell = nn.GRUCell(self.features)
+        if self.window_size:
+            self.decoder = nn.Dense(self.window_size)
+
+    def __call__(self, h, x):
+        h, _ = self.cell(h, x)
+        return h
+
+    def decode(self, h):
+        return self.decoder(h)
+
+
+def init_encoder(module: SequenceEncoder, key: jax.Array, input_size: int) -> dict:
+    """Parameters of the encoder's GRU (inputs of `input_size`) and, if it has one, of its decoder."""
+    h = jnp.zeros((1, module.features), jnp.float32)
+    x = jnp.zeros((1, input_size), jnp.float32)
+    if module.window_size:
+        return module.init(key, h, x, method=lambda m, h, x: m.decode(m(h, x)))
+    return module.init(key, h, x)
+
+
+# ---------------------------------------------------------------------------------------------------
 # Windows of a time-major batch
+
+
+def windows_per_sequence(length: int, horizon: int, asked: int) -> int:
+    """How many k-step windows a sequence of `length` steps gives: `asked` of them, or all length - k + 1 when
+    `asked` is 0 (or more than there are)."""
+    available = length - horizon + 1
+    return available if asked == 0 else min(asked, available)
 
 
 def window_offsets(key: jax.Array, length: int, horizon: int, num: int) -> jax.Array:
@@ -236,3 +289,33 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     }
     metrics.update(aux_metrics)
     return terms, metrics
+
+
+# ---------------------------------------------------------------------------------------------------
+# Watching a sweep
+
+
+def collapse_warning(arm_name: str, config: Any, metrics: Mapping) -> str | None:
+    """A sentence when the trained encoder of some runs has collapsed, else None: when a run's median spread over
+    the second half of the chunk is below COLLAPSE_SPREAD.
+
+    metrics: {name: [R, n]} on the host (one chunk). One update's spread is a noisy sample: it is measured on the
+    windows of one rollout, and when they look alike (e.g. many Atari games restarting on the same screen) it dips
+    by orders of magnitude for that update alone (ALE Breakout: 2e-4 between values of 0.5-0.9). A collapse
+    stays, so the median over the chunk's later updates tells the two apart. Only the trained encoders (gru,
+    grounded-gru) are checked: `frozen-gru` does not train and `l2` has no encoder.
+    """
+    if config.encoder not in TRAINED_ENCODERS or SPREAD not in metrics:
+        return None
+    spread = np.asarray(metrics[SPREAD], float)
+    later = spread[:, spread.shape[1] // 2:]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a run with no finite value: NaN, not low
+        typical = np.nanmedian(later, axis=1)
+    low = np.isfinite(typical) & (typical < COLLAPSE_SPREAD)
+    if not low.any():
+        return None
+    return (f"Arm {arm_name}: the {config.encoder} encoder's output spread stayed below {COLLAPSE_SPREAD:g} over the "
+            f"last {later.shape[1]} updates in {int(low.sum())} of {typical.size} runs (median {np.median(typical[low]):.1e}); "
+            "the encoder may have collapsed, which makes l_cc vanish without making the model consistent. The "
+            "frozen-gru and l2 encoders (--encoder) cannot collapse.")

@@ -25,7 +25,9 @@ from typing import Any, Callable, Mapping
 
 import jax
 
-from cdjax.config import ConfigError  # re-exported: the host side's one-sentence error for input that cannot run
+
+class ConfigError(ValueError):
+    """A configuration or input that cannot run; the message is one sentence meant for the user."""
 
 State = Any  # a setting's training state: a pytree (leading run axis in a sweep)
 HP = Any  # a setting's HParams
@@ -47,6 +49,8 @@ class Trainer:
     # () -> pytree of bool shaped like init's state: the leaves a checkpoint holds; None: all. A leaf left out
     # must be one that no later update reads, or one that `init` of the same run gives again bit for bit.
     saved_leaves: Callable[[], Any] | None = None
+    # key -> an untrained policy (what `act` takes) without building the rest of the state; None: not offered
+    fresh_policy: Callable[[jax.Array], Any] | None = None
     inner: Any = None  # the setting's own learner object, opaque to the host (its phase may use it)
 
 
@@ -75,6 +79,17 @@ class Metrics:
 
 
 @dataclasses.dataclass(frozen=True)
+class Preset:
+    """A named set of explicit overrides of a setting's defaults: dataclass defaults < preset < command-line flags."""
+
+    about: str  # one line shown by `cdjax sweep --help`
+    config: dict[str, Any]  # Config field -> value
+    hparams: dict[str, tuple[float, ...]]  # HParams field -> values (several values make a grid)
+    sweep: dict[str, Any]  # SweepSpec field -> value (arms, seeds, total_env_steps, chunk_updates, ...)
+    phase: dict[str, Any] | None = None  # the setting's Phase spec field -> value; None: no phase unless asked for
+
+
+@dataclasses.dataclass(frozen=True)
 class Setting:
     """One of the paper's settings as the host sees it."""
 
@@ -93,7 +108,7 @@ class Setting:
     shown_hparams: Callable[[ConfigT], tuple[str, ...]]  # hp names every run label of the arm shows
     check_hparam: Callable[[str, float], None]  # (name, value) -> None, or ConfigError (one sentence)
     metrics: Metrics
-    presets: Mapping[str, Any]  # name -> cdjax.presets.Preset (about, config, hparams, sweep, phase)
+    presets: Mapping[str, Preset]  # name -> Preset (about, config, hparams, sweep, phase)
     default_preset: Callable[[Mapping[str, Any]], str | None]  # given Config values -> the preset used without --preset
     phase: Phase | None = None
     watch: Callable[[str, ConfigT, Mapping], str | None] | None = None  # (arm, config, chunk metrics [R, n]) -> warning
@@ -105,4 +120,4 @@ class Setting:
     multi_device_note: str | None = None
 
 
-__all__ = ["ConfigError", "Metrics", "Phase", "Setting", "Trainer"]
+__all__ = ["ConfigError", "Metrics", "Phase", "Preset", "Setting", "Trainer"]

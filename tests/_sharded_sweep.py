@@ -9,11 +9,11 @@ import numpy as np
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
 from _shared import POINT  # noqa: E402
-from cdjax import HParams, make_train, make_trainer  # noqa: E402
+from cdjax import HParams, make_train, make_agent  # noqa: E402
 from cdjax.sweep import make_sweep, unpad  # noqa: E402
 
 assert jax.device_count() == 2, jax.devices()
-sweep = make_sweep(make_trainer(POINT))
+sweep = make_sweep(make_agent(POINT))
 hps = [HParams(alpha=0.0), HParams(alpha=1.0)]
 keys, stacked = sweep.grid(seed=7, num_seeds=3, hps=hps)  # 6 runs -> even, no padding on 2 devices
 state = sweep.init(keys, stacked)

@@ -8,8 +8,7 @@ import pytest
 
 from cdjax import io
 
-from cdjax import Config, HParams, make_trainer
-from cdjax.agents import obs_space
+from cdjax import Config, HParams, make_agent, make_trainer
 
 POINT = Config(env="point", num_envs=16, rollout_len=12, horizon=4, num_updates=3, num_epochs=2,
                num_minibatches=2, episode_length=40, policy_hidden=(16,), value_hidden=(16,),
@@ -24,15 +23,15 @@ PENDULUM_HP = HParams(alpha=1.0, lr_policy=1e-3, lr_value=1e-3)
 
 @functools.lru_cache(maxsize=None)
 def compiled(config: Config):
-    """(trainer, jit(init), jit(update)) for a config, built once per test session."""
-    trainer = make_trainer(config)
-    return trainer, jax.jit(trainer.init), jax.jit(trainer.update)
+    """(agent, jit(init), jit(update)) for a config, built once per test session."""
+    agent = make_agent(config)
+    return agent, jax.jit(agent.init), jax.jit(agent.update)
 
 
 @functools.lru_cache(maxsize=None)
 def host_trainer(config: Config):
     """The observation-space agent of a config as the host side sees it (cdjax.protocol.Trainer)."""
-    return obs_space.make_trainer(config)
+    return make_trainer(config)
 
 
 # The point-mass config POINT on the command line, with 2 seeds and 2 updates (of 192 env steps) per chunk.

@@ -130,7 +130,7 @@ def test_precedence_defaults_then_preset_then_flags():
 
 
 def test_phase_options():
-    from cdjax.mbmf import MbMfPhase
+    from cdjax.agents.obs import MbMfPhase
 
     obs = agents.get("obs")
     parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]), obs)  # noqa: E731

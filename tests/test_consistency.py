@@ -7,7 +7,6 @@ import optax
 import pytest
 
 from cdjax import consistency as cc
-from cdjax import networks
 from cdjax import normalize as nz
 from cdjax.envs.point import PointMass
 
@@ -38,8 +37,8 @@ def _stats():
 def _encoder(kind, obs=4):
     if kind == "l2":
         return {}
-    module = networks.Encoder(8, K * obs if kind == "grounded-gru" else 0)
-    return dict(encoder=module, encoder_params=networks.init_encoder(module, jax.random.key(1), obs))
+    module = cc.SequenceEncoder(8, K * obs if kind == "grounded-gru" else 0)
+    return dict(encoder=module, encoder_params=cc.init_encoder(module, jax.random.key(1), obs))
 
 
 def _model(scale):

@@ -8,7 +8,7 @@ import optax
 import pytest
 
 from cdjax import HParams, consistency
-from cdjax.train import TERM_GROUPS, make_trainer, refresh_norms, term_weights, to_segments
+from cdjax.agents.obs.agent import TERM_GROUPS, make_agent, refresh_norms, term_weights, to_segments
 
 from _shared import POINT, compiled
 
@@ -126,7 +126,7 @@ def test_gae_in_the_loss_equals_the_rollout_gae_with_the_same_value_net(point_ba
     GAE once per rollout computes at acting time (time-outs bootstrap on the final observation)."""
     trainer, state, traj, batch, _ = point_batch
     assert bool(traj.truncated.any()) and batch.advantages is None
-    once = make_trainer(POINT.replace(gae_in_loss=False))
+    once = make_agent(POINT.replace(gae_in_loss=False))
     _, _, _, full = jax.jit(once.collect)(state, HP, jax.random.key(7))  # the same rollout
     adv, ret = jax.jit(trainer.advantages)(state.params, state.norms, batch, HP)
     np.testing.assert_allclose(adv, full.advantages, rtol=1e-4, atol=1e-5)

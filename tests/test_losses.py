@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdjax import HParams, losses, networks
+from cdjax import HParams, numerics
+from cdjax.agents.obs import losses, networks
 from cdjax import normalize as nz
 
 
@@ -113,7 +114,7 @@ def test_running_stats_match_numpy_with_mask():
     np.testing.assert_allclose(z.mean(0), 0.0, atol=1e-4)
 
 
-@pytest.mark.parametrize("steps", [1, 5, 20, losses.DENSE_MAX_STEPS, losses.DENSE_MAX_STEPS + 1])
+@pytest.mark.parametrize("steps", [1, 5, 20, numerics.DENSE_MAX_STEPS, numerics.DENSE_MAX_STEPS + 1])
 def test_backward_recurrence_equals_the_sequential_loop(steps):
     """Both solvers (closed form up to DENSE_MAX_STEPS, associative scan beyond) give x_t = b_t + a_t x_{t+1} as a
     step-by-step loop does, with cuts (a = 0) and batch axes; a non-finite b_s reaches no x_t of t > s."""
@@ -125,7 +126,7 @@ def test_backward_recurrence_equals_the_sequential_loop(steps):
     for t in reversed(range(steps)):
         x = np.asarray(b[t]) + np.asarray(a[t]) * x
         expected.append(x)
-    np.testing.assert_allclose(losses.backward_linear_recurrence(a, b), np.stack(expected[::-1]), rtol=1e-5,
+    np.testing.assert_allclose(numerics.backward_linear_recurrence(a, b), np.stack(expected[::-1]), rtol=1e-5,
                                atol=1e-6)
-    got = losses.backward_linear_recurrence(a, b.at[0].set(jnp.nan))
+    got = numerics.backward_linear_recurrence(a, b.at[0].set(jnp.nan))
     assert bool(jnp.isfinite(got[1:]).all()) and not bool(jnp.isfinite(got[0]).any())

@@ -1,4 +1,4 @@
-"""The Mb-Mf model-based phase (cdjax/mbmf.py) on the point mass: model, MPC, distillation, hand-over to PPO.
+"""The Mb-Mf model-based phase (cdjax/agents/obs/mbmf/) on the point mass: model, MPC, distillation, hand-over to PPO.
 
 One compiled phase (module fixture) and one compiled evaluation function serve every test.
 """
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from cdjax import ConfigError, HParams
-from cdjax.mbmf import MbMfPhase, RingBuffer, fit, make_mbmf_phase, make_mpc_controller, total_env_steps
+from cdjax.agents.obs.mbmf import MbMfPhase, make_mbmf_phase, make_mpc_controller, total_env_steps
+from cdjax.replay import RingBuffer, fit
 
 from _shared import POINT, compiled
 
@@ -74,7 +75,7 @@ def test_env_steps_and_hand_over(setup):
     assert not moved(start.params["encoder"], state.params["encoder"])
     assert not moved(start.opt_state, state.opt_state)  # PPO starts with fresh Adam moments
     # exploration is left to hp.init_log_std: cloning fits the mean; the std head gets no gradient from it
-    from cdjax import networks
+    from cdjax.agents.obs import networks
     from cdjax import normalize as nz
 
     head = lambda p: p["params"]["MLP_0"][f"Dense_{len(CONFIG.policy_hidden)}"]  # noqa: E731
@@ -211,7 +212,7 @@ def test_ring_buffer_and_fit_use_only_filled_slots():
     (dict(model_objective="huber"), "Unknown MbMfPhase.model_objective"),
 ])
 def test_invalid_phases_fail_before_compiling(changes, words):
-    from cdjax.mbmf import validate_phase
+    from cdjax.agents.obs.mbmf import validate_phase
 
     with pytest.raises(ConfigError, match=words):
         validate_phase(POINT, MbMfPhase(num_envs=4, **changes))

@@ -1,4 +1,4 @@
-"""Tests for cdjax.mpc (random-shooting MPC).
+"""Tests for cdjax.agents.obs.mpc (random-shooting MPC).
 
 CPU only, tiny sizes. Compiled functions are shared through module-scoped fixtures
 because MJX compiles slowly on CPU.
@@ -15,7 +15,7 @@ import pytest
 from jax import lax
 
 from cdjax.envs import strong_types
-from cdjax import mpc
+from cdjax.agents.obs import mpc
 
 # --------------------------------------------------------------------------------------
 # Toy system with a known optimum: 1-D point, s' = s + a, reward = -(s' - target)^2.

@@ -188,7 +188,7 @@ def test_plan_grids_labels_and_refusals(tmp_path):
 # ---------------------------------------------------------------------------------------------------
 # The Mb-Mf phase inside a sweep: budgets, logs, the same numbers as the library phase, no repeat on resume.
 
-from cdjax.mbmf import MbMfPhase, make_mbmf_phase, total_env_steps  # noqa: E402
+from cdjax.agents.obs import MbMfPhase, make_mbmf_phase, total_env_steps  # noqa: E402
 
 PHASE = MbMfPhase(num_envs=4, random_steps=12, aggregation_iters=1, mpc_steps_per_iter=6, model_epochs=2,
                   model_minibatch=32, mpc_horizon=3, mpc_candidates=8, distill_iters=1, distill_steps_per_iter=4,
@@ -236,10 +236,10 @@ def test_phase_in_the_sweep_equals_the_library_phase_run_alone_and_is_not_repeat
     assert stopped.value.updates == {"model-free": 0, "mbmf": 0, "cd-k3": 0}
     states = _states(out)
     assert states["mbmf"][0] == 0 and states["cd-k3"][0] == 0
-    from cdjax import make_trainer
+    from cdjax import make_agent
 
     config = POINT.replace(arm="mbmf", num_updates=4)
-    trainer = make_trainer(config)
+    trainer = make_agent(config)
     hp = HParams(alpha=0.0)
     key = jax.random.split(jax.random.key(SPEC.seed), SPEC.seeds)[1]
     alone, info = jax.jit(make_mbmf_phase(config, PHASE, trainer))(jax.jit(trainer.init)(key, hp), hp)
@@ -274,7 +274,7 @@ def test_programs_compiled_in_parallel_threads_give_the_same_run(phased, tmp_pat
 def test_encoder_collapse_warning():
     """Said once the trainable GRU's spread stays below the threshold over the chunk's later updates in some run;
     not for a single low update among healthy ones (a noisy sample); never for other encoders."""
-    from cdjax.agents.obs_space import COLLAPSE_SPREAD, collapse_warning
+    from cdjax.consistency import COLLAPSE_SPREAD, collapse_warning
 
     config = POINT.replace(arm="cd")
     low = COLLAPSE_SPREAD / 10

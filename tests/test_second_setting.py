@@ -17,8 +17,7 @@ from flax import struct
 from cdjax import agents, io
 from cdjax.cli import main
 from cdjax.envs import Step
-from cdjax.presets import Preset
-from cdjax.protocol import ConfigError, Metrics, Phase, Setting, Trainer
+from cdjax.protocol import ConfigError, Metrics, Phase, Preset, Setting, Trainer
 from cdjax.runner import Interrupted, SweepSpec, restore_arms, resume_spec, run_sweep
 
 from _shared import logged_rows

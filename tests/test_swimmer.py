@@ -191,12 +191,12 @@ def test_vmap_matches_unbatched(fns, start):
 
 def test_swimmer_learns_with_cdjax_on_cpu():
     """PPO (model-free arm, to keep the CPU compile short) makes the swimmer swim forward."""
-    from cdjax import Config, HParams, make_trainer
+    from cdjax import Config, HParams, make_agent
 
     cfg = Config(env="swimmer", arm="model-free", num_envs=16, rollout_len=32, horizon=8, num_minibatches=4,
                  num_epochs=4, episode_length=200, policy_hidden=(64, 64), value_hidden=(64, 64), eval_envs=4)
     hp = HParams(lr_policy=1e-3, lr_value=1e-3)
-    trainer = make_trainer(cfg)
+    trainer = make_agent(cfg)
     state = jax.jit(trainer.init)(jax.random.key(0), hp)
     update = jax.jit(trainer.update)
     speed = []

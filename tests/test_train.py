@@ -5,8 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdjax import Config, ConfigError, HParams, make_train, make_trainer
-from cdjax.config import stack_hparams
+from cdjax import Config, ConfigError, HParams, make_agent, make_train, stack_hparams
 
 from _shared import PENDULUM, PENDULUM_HP, POINT, compiled
 
@@ -161,11 +160,11 @@ def test_rollout_values_are_values_of_obs_and_next_obs(reset_mode):
     """closed_loop values obs and next_obs after the scan (with cached resets it derives value(obs[t+1]) from
     value(next_obs[t]) and the restart obs): the result is the value network applied to each, across
     truncations, terminations and a non-finite step."""
-    from cdjax import networks
+    from cdjax.agents.obs import networks
     from cdjax import normalize as nz
 
     config = POINT.replace(arm="model-free", episode_length=5, reset_mode=reset_mode, gae_in_loss=False)
-    trainer = make_trainer(config)
+    trainer = make_agent(config)
     state = jax.jit(trainer.init)(jax.random.key(2), HParams())
     env_state = state.env_state
     core_obs = env_state.core.obs.at[0].set(jnp.nan).at[1, 0].set(1.99).at[1, 2].set(1.0)  # 0: NaN, 1: leaves the box
@@ -178,7 +177,7 @@ def test_rollout_values_are_values_of_obs_and_next_obs(reset_mode):
     np.testing.assert_allclose(traj.value, value(traj.obs), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(traj.next_value, value(traj.next_obs), rtol=1e-6, atol=1e-6)
     # GAE in the loss: only the time-outs' final observations are valued at acting time
-    in_loss = make_trainer(config.replace(gae_in_loss=True))
+    in_loss = make_agent(config.replace(gae_in_loss=True))
     assert in_loss.env.max_timeouts(config.rollout_len) == -(-config.rollout_len // 5) >= 2
     _, _, lean, batch = jax.jit(in_loss.collect)(state, HParams(), jax.random.key(5))
     assert lean.value is None and batch.advantages is None

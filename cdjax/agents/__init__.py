@@ -14,7 +14,7 @@ import importlib
 from cdjax.protocol import ConfigError, Setting
 
 DEFAULT = "obs"  # the setting of `cdjax sweep` without --setting
-_BUILTIN = {"obs": "cdjax.agents.obs_space", "atari": "cdjax.agents.atari",  # name -> module defining SETTING
+_BUILTIN = {"obs": "cdjax.agents.obs", "atari": "cdjax.agents.atari",  # name -> module defining SETTING
             "pixel": "cdjax.agents.pixel"}
 _REGISTRY: dict[str, Setting] = {}
 

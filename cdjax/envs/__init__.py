@@ -12,9 +12,10 @@
   finite is reset, its transition is marked `valid=False` and its numbers are replaced by zeros,
   so that no NaN reaches a loss or a parameter.
 
-Beside it: `render.py` (videos from MuJoCo's renderer), `resume.py` (which leaves of the state a
-resumed run needs), `swimmer.py` and `point.py` (tasks). Brax prints that its environments are no longer
-maintained; replacing them means replacing this package, nothing else.
+Beside it: `episodes.py` (every setting's running returns, `EpisodeStats`), `render.py` (videos from
+MuJoCo's renderer), `resume.py` (which leaves of the state a resumed run needs), `swimmer.py` and
+`point.py` (tasks). Brax prints that its environments are no longer maintained; replacing them means
+replacing this package, nothing else.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from cdjax.envs.episodes import EpisodeStats  # noqa: F401  (re-exported: every setting's running returns)
 from cdjax.envs.point import PointMass
 
 # Brax tasks that run on MJX (brax's own swimmer has no mjx backend: see cdjax/envs/swimmer.py).

@@ -14,11 +14,11 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from cdjax import agents, io
+from cdjax import io
 from cdjax.evaluate import eval_records, make_evaluator
 from cdjax.protocol import Setting, Trainer
 from cdjax.runner import budget
-from cdjax.runner.plan import ArmPlan, plan_arms, resume_spec
+from cdjax.runner.plan import ArmPlan, plan_arms, recorded
 from cdjax.runner.spec import SweepSpec
 from cdjax.sweep import Sweep, make_sweep
 
@@ -149,11 +149,10 @@ def restore(arm: Arm, delete_bad: bool = True) -> bool:
 
 def restore_arms(run_dir: str | pathlib.Path) -> tuple[SweepSpec, list[Arm]]:
     """The spec of a run directory and its arms at the newest readable checkpoint (state leaves [R_padded])."""
-    spec = resume_spec(run_dir, progress=False)
-    setting = agents.get(spec.setting)
     rd = io.RunDir(pathlib.Path(run_dir))
+    spec, setting = recorded(rd.read(), run_dir, progress=False)
     arms = []
-    for plan in plan_arms(spec):
+    for plan in plan_arms(spec, setting):
         arm = build(plan, spec, setting)
         arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, plan.hparams)
         arm.state = arm.sweep.init(arm.keys, arm.hps)

@@ -21,14 +21,14 @@ from typing import Callable
 import jax
 import numpy as np
 
-from cdjax import agents, io
+from cdjax import io
 from cdjax.protocol import Setting
 from cdjax.runner import budget
 from cdjax.runner.arms import (Arm, build, check_memory, compile_all, evaluate_arms, finished_evaluation, nanmean,
                                restore)
 from cdjax.runner.console import Clock, Progress, StopFlag, library_log
 from cdjax.runner.plan import plan_arms, run_record, same_run
-from cdjax.runner.spec import SweepSpec
+from cdjax.runner.spec import SweepSpec, resolve
 from cdjax.sweep import unpad
 
 AfterChunk = Callable[[int, dict[str, int]], "bool | None"]
@@ -72,8 +72,14 @@ class Interrupted(KeyboardInterrupt):
 
 def prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, list, dict]:
     """Plan the sweep and check it against its directory: (resolved spec, plans, run.json); writes nothing."""
+    spec, _, plans, record = _prepare(spec, resume)
+    return spec, plans, record
+
+
+def _prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, Setting, list, dict]:
+    """`prepare`, with the setting it resolved (once) for the rest of the sweep."""
     rd = io.RunDir(pathlib.Path(spec.out))
-    spec = spec.resolved()
+    spec, setting = resolve(spec)
     old = None
     if resume:
         old = rd.read()
@@ -82,8 +88,8 @@ def prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, list, dict]:
                                  "it can be plotted and evaluated but not resumed.")
         if not spec.chunk_updates:  # "about 5%" of a longer run would change the chunks: keep the recorded ones
             spec = dataclasses.replace(spec, chunk_updates=old.get("chunk_updates", 0))
-    plans = plan_arms(spec)
-    record = run_record(spec, plans)
+    plans = plan_arms(spec, setting)
+    record = run_record(spec, plans, setting)
     if resume:
         if not same_run(old, record):
             raise io.RunDirError(f"{rd.path} holds a different run than the one asked to resume; "
@@ -94,7 +100,7 @@ def prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, list, dict]:
     elif rd.path.is_dir() and any(rd.path.iterdir()):
         raise io.RunDirError(f"{rd.path} exists and is not empty; choose another --out.")
     rd.check_writable()
-    return spec, plans, record
+    return spec, setting, plans, record
 
 
 def _checkpointed(rd: io.RunDir, name: str) -> int:
@@ -110,8 +116,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     sweep as Ctrl-C does. Raises ConfigError / io.RunDirError (one sentence) for input that cannot run,
     `Interrupted` when stopped early (after saving a checkpoint of every arm).
     """
-    spec, plans, record = prepare(spec, resume)
-    setting = agents.get(spec.setting)
+    spec, setting, plans, record = _prepare(spec, resume)
     rd = io.RunDir(pathlib.Path(spec.out))
     progress = Progress(spec.progress, record["total_env_steps"])
     arms = [build(plan, spec, setting) for plan in plans]

@@ -11,7 +11,7 @@ from typing import Any, Mapping, Sequence
 
 from cdjax import agents, io
 from cdjax.protocol import ConfigError, Setting
-from cdjax.runner.spec import INT32_MAX, SweepSpec, check_bounds
+from cdjax.runner.spec import INT32_MAX, SweepSpec, check_bounds, resolve
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,10 +50,10 @@ def _label(value: float) -> str:
     return repr(float(value))
 
 
-def plan_arms(spec: SweepSpec) -> list[ArmPlan]:
-    """The arms of a (resolved) spec; ConfigError (one sentence) for anything that cannot run."""
-    setting = agents.get(spec.setting)
-    spec = spec.resolved()
+def plan_arms(spec: SweepSpec, setting: Setting | None = None) -> list[ArmPlan]:
+    """The arms of a spec of `setting` (None: the one it names); ConfigError (one sentence) for anything that
+    cannot run."""
+    spec, setting = resolve(spec) if setting is None else (spec.resolved(setting), setting)
     check_bounds(spec)
     grid = validate_grid(setting, spec.grid)
     if spec.phase is not None and setting.phase is None:
@@ -99,9 +99,8 @@ def chunk_size(spec: SweepSpec, num_updates: int) -> int:
     return spec.chunk_updates or max(1, math.ceil(num_updates / 20))
 
 
-def run_record(spec: SweepSpec, plans: list[ArmPlan]) -> dict:
-    """run.json of a resolved spec: the whole spec, each arm's plan, the metric names, the command."""
-    setting = agents.get(spec.setting)
+def run_record(spec: SweepSpec, plans: list[ArmPlan], setting: Setting) -> dict:
+    """run.json of a resolved spec of `setting`: the whole spec, each arm's plan, the metric names, the command."""
     num_updates = max(p.config.num_updates for p in plans)
     m = setting.metrics
     return {
@@ -149,6 +148,12 @@ def same_run(old: dict, new: dict) -> bool:
 
 def spec_of(run: dict, out: str | pathlib.Path, **changes) -> SweepSpec:
     """The SweepSpec a run.json records (version 1 records: the options they lack take their defaults)."""
+    return recorded(run, out, **changes)[0]
+
+
+def recorded(run: dict, out: str | pathlib.Path, **changes) -> tuple[SweepSpec, Setting]:
+    """(the SweepSpec a run.json records, resolved, and its setting): the setting is looked up by the name the
+    record holds, once."""
     defaults = SweepSpec(out=out)
     try:
         setting = agents.get(run.get("setting", agents.DEFAULT))
@@ -166,7 +171,7 @@ def spec_of(run: dict, out: str | pathlib.Path, **changes) -> SweepSpec:
             bootstrap_reps=run.get("bootstrap_reps", defaults.bootstrap_reps))
     except (KeyError, TypeError, AttributeError, ConfigError) as err:
         raise io.RunDirError(f"{out}/run.json is not a run this cdjax can read ({type(err).__name__}: {err}).") from None
-    return dataclasses.replace(spec, **changes)
+    return dataclasses.replace(spec, **changes).resolved(setting), setting
 
 
 def resume_spec(out: str | pathlib.Path, **changes) -> SweepSpec:

@@ -8,7 +8,7 @@ import pathlib
 from typing import Any, Mapping, Sequence
 
 from cdjax import agents
-from cdjax.protocol import ConfigError
+from cdjax.protocol import ConfigError, Setting
 
 INT32_MAX = 2**31 - 1  # update counters are int32 on the device
 SEED_MAX = 2**63 - 1  # jax.random.key takes a 64-bit seed
@@ -32,15 +32,21 @@ class SweepSpec:
     eval_episodes: int = 10  # episodes per run in evaluations
     final_eval: bool = True  # evaluate and plot when the sweep ends
     bootstrap_reps: int = 2000  # bootstrap replications of the 95% intervals in the final plots and summary
-    phase: Any = None  # the setting's pre-update phase (e.g. cdjax.mbmf.MbMfPhase), run by the arms it applies to
+    phase: Any = None  # the setting's pre-update phase (e.g. cdjax.agents.obs.MbMfPhase), run by the arms it applies to
     progress: bool = True  # show a progress display (a line per chunk when stderr is not a terminal)
     command: str = ""  # the command line, recorded in run.json
 
-    def resolved(self) -> "SweepSpec":
-        """The spec with the setting's defaults filled in (base config, arms)."""
-        setting = agents.get(self.setting)
+    def resolved(self, setting: Setting) -> "SweepSpec":
+        """The spec with its setting's defaults filled in (base config, arms)."""
         return dataclasses.replace(self, config=self.config if self.config is not None else setting.config_type(),
                                    arms=tuple(self.arms) or setting.default_arms)
+
+
+def resolve(spec: SweepSpec) -> tuple[SweepSpec, Setting]:
+    """The setting a spec names, looked up once per sweep (and passed down to plan, arms and loop), and the spec
+    with its defaults filled in; ConfigError (one sentence) for an unknown setting."""
+    setting = agents.get(spec.setting)
+    return spec.resolved(setting), setting
 
 
 # SweepSpec field -> command-line option, where they differ.

@@ -8,7 +8,7 @@ of Nagabandi et al.), CD with k = 5 and k = 20; 10 seeds vmapped per arm. One co
     python -m experiments.paper_obs_space figure k-ablation --runs runs/paper        # figure: k ablation
     python -m experiments.paper_obs_space report --runs runs/paper                   # both figures + RESULTS.md
 
-`train` is `cdjax sweep --preset paper-<task>` (cdjax/presets.py holds every setting) plus a record of
+`train` is `cdjax sweep --preset paper-<task>` (cdjax/agents/obs/presets.py holds every setting) plus a record of
 the machine; any further `cdjax sweep` option passes through (e.g. `--steps`, `--seeds`).
 """
 

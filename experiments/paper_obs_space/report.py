@@ -291,7 +291,7 @@ def write_results(tasks: list[Task], out: pathlib.Path = HERE, reps: int = 2000)
         f"Generated {datetime.date.today().isoformat()} by `python -m experiments.paper_obs_space report`. "
         f"Device(s): {', '.join(json.loads(m) for m in machines)}.",
         "",
-        "What ran (every setting is in `cdjax/presets.py`, presets `paper-<task>`; per task below): PPO with a "
+        "What ran (every setting is in `cdjax/agents/obs/presets.py`, presets `paper-<task>`; per task below): PPO with a "
         "Gaussian MLP policy; a Gaussian MLP model over the normalised change of state and the reward. Mb-Mf "
         "and CD first run the Mb-Mf phase (random data, model, random-shooting MPC aggregation, DAgger "
         "distillation into the policy, value fit; its env steps are counted in the budget), then PPO; CD adds "

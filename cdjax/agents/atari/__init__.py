@@ -12,16 +12,14 @@ the ALE games through ale-py's XLA interface (cdjax.agents.atari.ale: inside jit
 
 from __future__ import annotations
 
-import math
-
 import jax
 
 from cdjax.agents.atari.config import ALE_PREFIX, ARMS, AtariConfig, AtariHParams
 from cdjax.agents.atari.learner import A2C, learner, make_env
 from cdjax.agents.atari.minatar import GAMES, MinAtarEnv
-from cdjax.agents.obs_space import collapse_warning
-from cdjax.presets import Preset
-from cdjax.protocol import ConfigError, Metrics, Setting, Trainer
+from cdjax.checks import UNIT, hparam_checker
+from cdjax.consistency import collapse_warning
+from cdjax.protocol import ConfigError, Metrics, Preset, Setting, Trainer
 
 RETURN = "episode/return"
 DISC_RETURN = "episode/discounted_return"
@@ -39,14 +37,7 @@ def arm_config(name: str, base: AtariConfig) -> AtariConfig:
     return base.replace(arm=name)
 
 
-def check_hparam(name: str, value: float) -> None:
-    flag = "--" + name.replace("_", "-")
-    if not math.isfinite(value):
-        raise ConfigError(f"{flag} must be finite, got {value}.")
-    if name in ("gamma", "rms_decay") and not 0.0 <= value <= 1.0:
-        raise ConfigError(f"{flag} must be between 0 and 1, got {value}.")
-    if value < 0:
-        raise ConfigError(f"{flag} must not be negative, got {value}.")
+check_hparam = hparam_checker({"gamma": UNIT, "rms_decay": UNIT})
 
 
 def make_trainer(config: AtariConfig) -> Trainer:

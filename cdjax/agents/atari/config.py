@@ -12,7 +12,7 @@ from typing import Literal
 
 from flax import struct
 
-from cdjax.consistency import KINDS
+from cdjax.consistency import KINDS, windows_per_sequence
 from cdjax.protocol import ConfigError
 
 from cdjax.agents.atari import ale
@@ -85,6 +85,7 @@ class AtariConfig:
     def is_ale(self) -> bool:
         return self.env.startswith(ALE_PREFIX)
 
+    # The arm switches: every setting has them, each with its own arm names.
     @property
     def use_model(self) -> bool:
         return self.arm != "a2c"
@@ -96,8 +97,7 @@ class AtariConfig:
     @property
     def num_windows(self) -> int:
         """Windows per environment per update."""
-        available = self.rollout_len - self.horizon + 1
-        return available if self.cc_windows == 0 else min(self.cc_windows, available)
+        return windows_per_sequence(self.rollout_len, self.horizon, self.cc_windows)
 
     @property
     def env_steps_per_update(self) -> int:

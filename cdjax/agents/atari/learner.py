@@ -34,9 +34,8 @@ from cdjax.agents.atari import losses
 from cdjax.agents.atari.config import AtariConfig, AtariHParams
 from cdjax.agents.atari.minatar import MinAtarEnv
 from cdjax.agents.atari.networks import ActorCritic, LatentModel, torso_of
-from cdjax.networks import Encoder, init_encoder
+from cdjax.envs import EpisodeStats
 from cdjax.optim import skip_if_not_finite
-from cdjax.rollout import EpisodeStats
 
 TERMS = ("a2c", "model", "consistency", "encoder_aux")
 
@@ -94,7 +93,7 @@ class A2C:
         self.encoder = None
         if config.use_consistency and config.encoder != "l2":
             window = config.horizon * config.latent if config.encoder == "grounded-gru" else 0
-            self.encoder = Encoder(config.encoder_dim, window)
+            self.encoder = consistency.SequenceEncoder(config.encoder_dim, window)
 
     # --- parameters and optimiser
 
@@ -106,7 +105,7 @@ class A2C:
             z, a = jnp.zeros((1, self.config.latent)), jnp.zeros((1, self.num_actions))
             params["model"] = self.model.init(key_model, z, a)
         if self.encoder is not None:
-            params["encoder"] = init_encoder(self.encoder, key_encoder, self.config.latent)
+            params["encoder"] = consistency.init_encoder(self.encoder, key_encoder, self.config.latent)
         return params
 
     def optimizer(self, hp: AtariHParams) -> optax.GradientTransformation:

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from cdjax.agents.atari.networks import entropy
-from cdjax.losses import backward_linear_recurrence, masked_mean
+from cdjax.numerics import backward_linear_recurrence, masked_mean
 
 
 def n_step_returns(reward, next_value, terminated, ended, valid, gamma):

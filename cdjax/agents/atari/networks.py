@@ -72,7 +72,7 @@ class LatentModel(nn.Module):
     @nn.compact
     def __call__(self, z, action):
         x = jnp.concatenate([z, action], axis=-1)
-        for width in self.hidden:
+        for width in self.hidden:  # the obs setting's model has the same ReLU torso; the heads differ (a residual here)
             x = nn.relu(nn.Dense(width)(x))
         out = nn.Dense(self.latent + 1)(x)
         return z + out[..., :-1], out[..., -1]

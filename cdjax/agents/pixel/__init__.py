@@ -15,14 +15,13 @@ imitation policy from pixels in the task (eval/return is the task's return).
 
 from __future__ import annotations
 
-import math
 import re
 
-from cdjax.agents.obs_space import collapse_warning
 from cdjax.agents.pixel.config import PixelConfig, PixelHParams
 from cdjax.agents.pixel.learner import PixelLearner
-from cdjax.presets import Preset
-from cdjax.protocol import ConfigError, Metrics, Setting, Trainer
+from cdjax.checks import POSITIVE, hparam_checker
+from cdjax.consistency import collapse_warning
+from cdjax.protocol import ConfigError, Metrics, Preset, Setting, Trainer
 
 ARMS = ("ltq", "ltq-cd")
 CONSISTENCY_ONLY = ("alpha", "cc_model", "cc_policy", "enc_aux_coef")
@@ -39,12 +38,7 @@ def arm_config(name: str, base: PixelConfig) -> PixelConfig:
         raise ConfigError(f"Arm {name!r}: {err}") from None
 
 
-def check_hparam(name: str, value: float) -> None:
-    flag = "--" + name.replace("_", "-")
-    if not math.isfinite(value) or value < 0:
-        raise ConfigError(f"{flag} must be finite and not negative, got {value}.")
-    if name in ("lr", "clip") and value == 0:
-        raise ConfigError(f"{flag} must be positive.")
+check_hparam = hparam_checker({"lr": POSITIVE, "clip": POSITIVE})
 
 
 def make_trainer(config: PixelConfig) -> Trainer:

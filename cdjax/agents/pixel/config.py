@@ -7,7 +7,8 @@ from typing import Literal
 
 from flax import struct
 
-from cdjax.config import ENCODERS, ConfigError
+from cdjax.consistency import KINDS
+from cdjax.protocol import ConfigError
 
 Arm = Literal["ltq", "ltq-cd"]
 ImagineActions = Literal["policy", "expert"]
@@ -57,8 +58,8 @@ class PixelConfig:
         if self.image_size % (2 ** self.conv_layers):
             raise ConfigError(f"--image-size {self.image_size} must be a multiple of 2^conv_layers = "
                               f"{2 ** self.conv_layers}.")
-        if self.encoder not in ENCODERS:
-            raise ConfigError(f"--encoder {self.encoder!r}: choose one of {', '.join(ENCODERS)}.")
+        if self.encoder not in KINDS:
+            raise ConfigError(f"--encoder {self.encoder!r}: choose one of {', '.join(KINDS)}.")
         if not 1 <= self.horizon < self.seq_len:
             raise ConfigError(f"--horizon {self.horizon} must be at least 1 and below --seq-len {self.seq_len}.")
         if not self.horizon <= self.eval_horizon:

@@ -6,7 +6,10 @@
     cdjax sweep --setting pixel --preset pixel-halfcheetah --expert experts/halfcheetah.msgpack ...
 
 The file holds the observation-space Config (JSON), the policy's parameters, the observation statistics and
-the run's deterministic evaluation return. `Config.expert = ""` stands for an untrained policy (tests).
+the run's deterministic evaluation return: the two parts of what the obs setting's `Trainer.policy(state)`
+gives, `{"params": {"policy": ...}, "norms": ...}`. This module reaches that setting through the registry
+(`cdjax.agents.get("obs")`) and acts through its protocol `Trainer`, never by importing its package.
+`Config.expert = ""` stands for an untrained policy (tests).
 """
 
 from __future__ import annotations
@@ -20,29 +23,40 @@ import jax
 import numpy as np
 from flax import serialization
 
-from cdjax.config import Config, ConfigError
 from cdjax.normalize import Norms
+from cdjax.protocol import ConfigError, Setting
+
+STATE_SETTING = "obs"  # the setting whose model-free policy the expert is
+
+
+def _state_setting() -> Setting:
+    from cdjax import agents  # the registry (a host-side module) at call time: it imports every setting lazily
+
+    return agents.get(STATE_SETTING)
 
 
 @dataclasses.dataclass(frozen=True)
 class Expert:
-    config: Config  # the observation-space Config it was trained with (env, network sizes)
+    config: Any  # the observation-space Config it was trained with (env, network sizes)
     policy: Any  # the policy's flax variables
     norms: Norms  # observation statistics the policy reads its input through
     eval_return: float  # its deterministic evaluation return (NaN for the untrained policy)
 
+    @property
+    def acting(self) -> dict:
+        """What the obs setting's `Trainer.act` takes: its `Trainer.policy(state)` of this expert."""
+        return {"params": {"policy": self.policy}, "norms": self.norms}
 
-def _obs_config(env: str) -> Config:
-    return Config(env=env, arm="model-free", num_envs=8, num_minibatches=1)
+
+def _obs_config(env: str):
+    return _state_setting().config_type(env=env, arm="model-free", num_envs=8, num_minibatches=1)
 
 
 def untrained_expert(env: str, key: jax.Array) -> Expert:
     """A freshly initialised model-free policy (observation statistics at their initial values)."""
-    from cdjax.train import ObsAgent
-
-    agent = ObsAgent(_obs_config(env))
-    params = agent.modules["policy"].init(key, np.zeros((1, agent.O), np.float32))
-    return Expert(agent.config, params, Norms.create(agent.O), float("nan"))
+    config = _obs_config(env)
+    fresh = _state_setting().make_trainer(config).fresh_policy(key)
+    return Expert(config, fresh["params"]["policy"], fresh["norms"], float("nan"))
 
 
 def save_expert(path: str | pathlib.Path, expert: Expert) -> pathlib.Path:
@@ -60,7 +74,7 @@ def load_expert(path: str | pathlib.Path) -> Expert:
         raise ConfigError(f"--expert {str(path)!r} is not a file (write one with python -m cdjax.agents.pixel.export_expert).")
     blob = serialization.msgpack_restore(path.read_bytes())
     fields = {k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(blob["config"]).items()}
-    config = Config(**fields)
+    config = _state_setting().config_type(**fields)
     norms = serialization.from_state_dict(Norms.create(int(np.asarray(blob["norms"]["obs"]["mean"]).shape[-1])),
                                           blob["norms"])
     return Expert(config, blob["policy"], norms, float(blob["eval_return"]))
@@ -76,11 +90,9 @@ def expert_for(env: str, path: str) -> Expert:
 
 def actor(expert: Expert) -> Callable[[jax.Array, jax.Array | None], jax.Array]:
     """act(obs [B, O], key or None) -> actions [B, A] in [-1, 1] (None: the deterministic action)."""
-    from cdjax.train import ObsAgent
-
-    agent = ObsAgent(expert.config)
-    params = {"policy": jax.tree.map(np.asarray, expert.policy)}
-    return lambda obs, key: agent.act(params, expert.norms, obs, key)
+    trainer = _state_setting().make_trainer(expert.config)
+    acting = dict(expert.acting, params={"policy": jax.tree.map(np.asarray, expert.policy)})
+    return lambda obs, key: trainer.act(acting, obs, key)
 
 
 def export_from_run(run_dir: str | pathlib.Path, path: str | pathlib.Path, arm: str = "model-free") -> Expert:
@@ -98,8 +110,8 @@ def export_from_run(run_dir: str | pathlib.Path, path: str | pathlib.Path, arm: 
     seeds = sorted({e["seed"] for e in evals})
     best = max(evals, key=lambda e: e["eval/return"])
     run = labels.index(best["hp"]) * len(seeds) + seeds.index(best["seed"])
-    policy, norms = jax.device_get(jax.tree.map(lambda x: x[run], (found.state.params["policy"], found.state.norms)))
-    expert = Expert(found.plan.config, policy, norms, float(best["eval/return"]))
+    acting = jax.device_get(jax.tree.map(lambda x: x[run], found.trainer.policy(found.state)))
+    expert = Expert(found.plan.config, acting["params"]["policy"], acting["norms"], float(best["eval/return"]))
     save_expert(path, expert)
     return expert
 

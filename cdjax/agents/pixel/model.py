@@ -26,8 +26,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from cdjax.networks import Encoder as SequenceEncoder
-from cdjax.networks import init_encoder
+from cdjax.consistency import SequenceEncoder, init_encoder
 
 LOG_2PI = math.log(2 * math.pi)
 

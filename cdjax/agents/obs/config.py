@@ -1,4 +1,5 @@
-"""Static configuration (what fixes shapes and loop lengths) and traced hyper-parameters.
+"""The observation-space agent's static configuration (what fixes shapes and loop lengths) and traced
+hyper-parameters.
 
 `Config` is a frozen dataclass: it is hashed into the compiled program, so changing any field
 recompiles. `HParams` is a pytree of float32 scalars: it is an argument of the compiled program, so
@@ -13,6 +14,9 @@ from typing import Literal
 import jax.numpy as jnp
 from flax import struct
 
+from cdjax.consistency import KINDS, windows_per_sequence
+from cdjax.protocol import ConfigError
+
 Arm = Literal["model-free", "mbmf", "cd"]
 Encoder = Literal["grounded-gru", "gru", "frozen-gru", "l2"]
 ResetMode = Literal["cached", "fresh"]
@@ -20,11 +24,7 @@ PolicyStd = Literal["state", "global"]
 Entropy = Literal["squashed", "gaussian"]
 Init = Literal["orthogonal", "lecun"]
 ClipScope = Literal["group", "policy-value"]
-ENCODERS = ("grounded-gru", "gru", "frozen-gru", "l2")
-
-
-class ConfigError(ValueError):
-    """A configuration that cannot run; the message is one sentence meant for the user."""
+ENCODERS = KINDS  # the consistency term's encoders (cdjax.consistency)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +63,7 @@ class Config:
     def __post_init__(self):
         validate(self)
 
+    # The arm switches: every setting has them, each with its own arm names.
     @property
     def use_model(self) -> bool:
         return self.arm != "model-free"
@@ -89,8 +90,7 @@ class Config:
     @property
     def num_windows(self) -> int:
         """Consistency windows per sequence per minibatch."""
-        all_windows = self.segment - self.horizon + 1
-        return all_windows if self.cc_windows == 0 else min(self.cc_windows, all_windows)
+        return windows_per_sequence(self.segment, self.horizon, self.cc_windows)
 
     @property
     def env_steps_per_update(self) -> int:

@@ -1,8 +1,14 @@
-"""The observation-space setting (PPO + Gaussian dynamics model + consistency loss) as a `Setting`.
+"""The observation-space setting (the paper's first): PPO + a Gaussian dynamics model + the consistency loss
+on MuJoCo-MJX, with the Mb-Mf phase of Nagabandi et al. before PPO.
 
-This module adapts `cdjax.train.make_trainer` (and the Mb-Mf phase of `cdjax.mbmf`) to the protocol the
-host side runs; the learner itself is untouched. Arms are `model-free`, `mbmf` and `cd`, optionally with a
-horizon: `cd-k5` is the cd arm with k = 5 (the paper's k ablation runs `cd-k5` and `cd-k20` side by side).
+    from cdjax.agents.obs import Config, HParams, make_train       # also importable from cdjax itself
+
+The package: `config` (Config, HParams), `agent` (ObsAgent: rollout, losses and the one jitted update;
+`make_agent`, `make_train`), `networks`, `losses`, `rollout`, `optim` (Adam per parameter group),
+`mbmf/` (the Mb-Mf phase: spec, data, the phase program), `mpc` (random-shooting MPC), `presets`.
+This module adapts them to the protocol the host side runs (`SETTING`). Arms are `model-free`, `mbmf` and
+`cd`, optionally with a horizon: `cd-k5` is the cd arm with k = 5 (the paper's k ablation runs `cd-k5` and
+`cd-k20` side by side).
 """
 
 from __future__ import annotations
@@ -14,24 +20,22 @@ import warnings
 from typing import Mapping
 
 import jax
-import numpy as np
+import jax.numpy as jnp
 
-from cdjax import envs, presets
-from cdjax.config import Config, ConfigError, HParams
+from cdjax import envs
+from cdjax import normalize as nz
+from cdjax.agents.obs.agent import ObsAgent, TrainState, make_agent, make_train
+from cdjax.agents.obs.config import Config, HParams, stack_hparams
+from cdjax.agents.obs.mbmf import MbMfPhase, make_mbmf_phase, total_env_steps, validate_phase
+from cdjax.agents.obs.presets import PRESETS
+from cdjax.checks import ANY, UNIT, hparam_checker
+from cdjax.consistency import collapse_warning
 from cdjax.envs.resume import needed_leaves
-from cdjax.mbmf import MbMfPhase, make_mbmf_phase, total_env_steps, validate_phase
-from cdjax.protocol import Metrics, Phase, Setting, Trainer
-from cdjax.train import make_trainer as make_agent
+from cdjax.protocol import ConfigError, Metrics, Phase, Setting, Trainer
 
 ARMS = ("model-free", "mbmf", "cd")
 RETURN = "episode/return"
 DISC_RETURN = "episode/discounted_return"
-SPREAD = "encoder/spread_real"
-# Below this output spread (std of the encodings across windows, averaged over features) a trainable GRU maps
-# every window to nearly one point: l_cc then vanishes without the model becoming consistent. A fresh GRU
-# spreads ~0.1-1; the collapsed ant runs of experiments/paper_obs_space ended at 5e-5 to 3e-4.
-COLLAPSE_SPREAD = 1e-3
-TRAINED_ENCODERS = ("gru", "grounded-gru")
 # Hyper-parameters an arm does not use, and the value they take there (None: the default). lr_distill is
 # the Mb-Mf phase's, unused without it.
 CONSISTENCY_ONLY = ("alpha", "cc_model", "cc_policy", "enc_aux_coef")
@@ -67,40 +71,7 @@ def unused_hparams(config: Config, with_phase: bool) -> dict[str, float | None]:
     return {name: FIXED.get(name) for name in (UNUSED_WITH_PHASE if with_phase else UNUSED)[config.arm]}
 
 
-def check_hparam(name: str, value: float) -> None:
-    flag = "--" + name.replace("_", "-")
-    if not math.isfinite(value):
-        raise ConfigError(f"{flag} must be finite, got {value}.")
-    if name in ("gamma", "gae_lambda") and not 0.0 <= value <= 1.0:
-        raise ConfigError(f"{flag} must be between 0 and 1, got {value}.")
-    if name != "init_log_std" and value < 0:
-        raise ConfigError(f"{flag} must not be negative, got {value}.")
-
-
-def collapse_warning(arm_name: str, config: Config, metrics: Mapping) -> str | None:
-    """A sentence when the trained encoder of some runs has collapsed, else None: when a run's median spread over
-    the second half of the chunk is below COLLAPSE_SPREAD.
-
-    metrics: {name: [R, n]} on the host (one chunk). One update's spread is a noisy sample: it is measured on the
-    windows of one rollout, and when they look alike (e.g. many Atari games restarting on the same screen) it dips
-    by orders of magnitude for that update alone (ALE Breakout: 2e-4 between values of 0.5-0.9). A collapse
-    stays, so the median over the chunk's later updates tells the two apart. Only the trained encoders (gru,
-    grounded-gru) are checked: `frozen-gru` does not train and `l2` has no encoder.
-    """
-    if config.encoder not in TRAINED_ENCODERS or SPREAD not in metrics:
-        return None
-    spread = np.asarray(metrics[SPREAD], float)
-    later = spread[:, spread.shape[1] // 2:]
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a run with no finite value: NaN, not low
-        typical = np.nanmedian(later, axis=1)
-    low = np.isfinite(typical) & (typical < COLLAPSE_SPREAD)
-    if not low.any():
-        return None
-    return (f"Arm {arm_name}: the {config.encoder} encoder's output spread stayed below {COLLAPSE_SPREAD:g} over the "
-            f"last {later.shape[1]} updates in {int(low.sum())} of {typical.size} runs (median {np.median(typical[low]):.1e}); "
-            "the encoder may have collapsed, which makes l_cc vanish without making the model consistent. The "
-            "frozen-gru and l2 encoders (--encoder) cannot collapse.")
+check_hparam = hparam_checker({"gamma": UNIT, "gae_lambda": UNIT, "init_log_std": ANY})
 
 
 @functools.lru_cache(maxsize=None)
@@ -117,6 +88,7 @@ def _needed_env_leaves(env_name: str, num_envs: int, episode_length: int, action
 
 
 def make_trainer(config: Config) -> Trainer:
+    """The observation-space agent of `config` as the host side runs it (`cdjax.protocol.Trainer`)."""
     agent = make_agent(config)
 
     @functools.cache
@@ -136,11 +108,16 @@ def make_trainer(config: Config) -> Trainer:
         return envs.BatchedEnv(agent.env.env, num_envs, config.episode_length, config.action_repeat,
                                config.reset_mode)
 
+    def fresh_policy(key: jax.Array) -> dict:
+        """The policy network as its module initialises it, statistics at their initial values."""
+        params = agent.policy.init(key, jnp.zeros((1, agent.O), jnp.float32))
+        return {"params": {"policy": params}, "norms": nz.Norms.create(agent.O)}
+
     return Trainer(
         config=config, init=agent.init, update=agent.update,
         policy=lambda state: {"params": {"policy": state.params["policy"]}, "norms": state.norms},
         act=lambda policy, obs, key: agent.act(policy["params"], policy["norms"], obs, key),
-        eval_env=eval_env, saved_leaves=saved_leaves, inner=agent)
+        eval_env=eval_env, saved_leaves=saved_leaves, fresh_policy=fresh_policy, inner=agent)
 
 
 def _describe_phase(info: Mapping[str, float]) -> str:
@@ -152,7 +129,7 @@ def _describe_phase(info: Mapping[str, float]) -> str:
 def preset_of_env(given: Mapping) -> str | None:
     """Without --preset, the preset named like the env (e.g. `cdjax sweep --env ant` gets the ant settings)."""
     env = given.get("env", Config.env)
-    return env if env in presets.PRESETS else None
+    return env if env in PRESETS else None
 
 
 MBMF_PHASE = Phase(
@@ -173,4 +150,7 @@ SETTING = Setting(
         ("loss/consistency", "consistency loss", True),
         ("encoder/spread_real", "encoder spread (real)", False),
         ("encoder/spread_imagined", "encoder spread (imagined)", False))),
-    presets=presets.PRESETS, default_preset=preset_of_env, phase=MBMF_PHASE, watch=collapse_warning)
+    presets=PRESETS, default_preset=preset_of_env, phase=MBMF_PHASE, watch=collapse_warning)
+
+__all__ = ["Config", "HParams", "MbMfPhase", "ObsAgent", "PRESETS", "SETTING", "TrainState", "make_agent",
+           "make_mbmf_phase", "make_train", "make_trainer", "stack_hparams", "total_env_steps"]

@@ -6,15 +6,10 @@ Shapes are time-major: [T, B, ...]. A `mask` is 1 where a sample counts and 0 wh
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
-from cdjax.networks import action_distribution, squashed_entropy
-
-
-def masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
-    mask = mask.astype(x.dtype)
-    return (x * mask).sum() / jnp.maximum(mask.sum(), 1.0)
+from cdjax.agents.obs.networks import action_distribution, squashed_entropy
+from cdjax.numerics import backward_linear_recurrence, masked_mean
 
 
 def gae(reward, value, next_value, bootstrap, ended, gamma, lam, valid=None):
@@ -33,46 +28,6 @@ def gae(reward, value, next_value, bootstrap, ended, gamma, lam, valid=None):
 
     adv = backward_linear_recurrence(gamma * lam * cont, delta)
     return adv, adv + value
-
-
-# Up to this many steps the recurrence is solved as one [T, T] weighting (`_dense_backward`), beyond it by an
-# associative scan: T^3 x batch products against about 2 T log T x batch, in 2 kernels against about 20.
-DENSE_MAX_STEPS = 32
-
-
-def backward_linear_recurrence(a: jax.Array, b: jax.Array) -> jax.Array:
-    """x_t = b_t + a_t * x_{t+1} with x_T = 0, along axis 0 (a, b: [T, ...]).
-
-    The same numbers as a reverse `lax.scan`, without its loop: on a GPU a scan's loop costs a host round trip
-    per step, which made GAE recomputed in every minibatch the largest part of it. Short sequences (the PPO
-    minibatches' 20-step segments) are solved in closed form, longer ones by an associative scan; on a GPU each
-    level of the scan is a few small kernels, in each of the epochs x minibatches steps of an update.
-    """
-    if a.shape[0] <= DENSE_MAX_STEPS:
-        return _dense_backward(a, b)
-    return _scan_backward(a, b)
-
-
-def _dense_backward(a: jax.Array, b: jax.Array) -> jax.Array:
-    """x_t = sum_{s >= t} (prod_{t <= j < s} a_j) b_s: the unrolled recurrence, as a [T, T] weighting per column."""
-    T = a.shape[0]
-    t, s, j = jnp.arange(T)[:, None, None], jnp.arange(T)[None, :, None], jnp.arange(T)[None, None, :]
-    inside = ((t <= j) & (j < s)).reshape((T, T, T) + (1,) * (a.ndim - 1))
-    weight = jnp.prod(jnp.where(inside, a[None, None], 1.0), axis=2)  # [t, s, ...]: 1 on the diagonal
-    later = (t <= s).reshape((T, T) + (1,) * (a.ndim - 1))  # a select, not a zero weight: b_s of s < t never enters
-    return jnp.where(later, weight * b[None], 0.0).sum(axis=1)
-
-
-def _scan_backward(a: jax.Array, b: jax.Array) -> jax.Array:
-    """The recurrence by `lax.associative_scan` (any T)."""
-
-    def combine(later, earlier):  # compose x -> b_e + a_e * (b_l + a_l * x)
-        a_l, b_l = later
-        a_e, b_e = earlier
-        return a_e * a_l, b_e + a_e * b_l
-
-    _, x = jax.lax.associative_scan(combine, (a[::-1], b[::-1]))
-    return x[::-1]
 
 
 def ppo_loss(mean, std, value, raw_action, log_prob_old, advantages, returns, mask, hp, entropy_noise=None):

@@ -1,4 +1,5 @@
-"""make_trainer(config) -> Trainer(init, update); make_train(config) -> train(key, hp).
+"""The observation-space agent: make_agent(config) -> ObsAgent (init, update, ...); make_train(config) ->
+train(key, hp).
 
 One call of `update` is the whole consistent-dynamics step, compiled once: closed-loop rollout
 (scan over T steps of B environments), GAE, then epochs x minibatches (scans) of
@@ -19,19 +20,21 @@ The library never jits or vmaps a whole run: callers compose, e.g.
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
 
-from cdjax import consistency, losses, networks
+from cdjax import consistency
 from cdjax import normalize as nz
-from cdjax.config import Config, HParams
-from cdjax.envs import EnvState, make_env, strong_types
-from cdjax.optim import make_optimizer
-from cdjax.rollout import EpisodeStats, Transition, closed_loop, open_loop
+from cdjax.agents.obs import losses, networks
+from cdjax.agents.obs.config import Config, HParams
+from cdjax.agents.obs.optim import make_optimizer
+from cdjax.agents.obs.rollout import Transition, closed_loop, open_loop
+from cdjax.envs import EnvState, EpisodeStats, make_env, strong_types
+from cdjax.numerics import masked_mean
 
 
 @struct.dataclass
@@ -73,20 +76,6 @@ class TrainState:
     update_step: jax.Array  # [] int32 updates done
 
 
-class Trainer(NamedTuple):
-    config: Config
-    init: Callable[[jax.Array, HParams], TrainState]  # (key, hp) -> state
-    update: Callable[[TrainState, HParams], tuple[TrainState, dict]]  # (state, hp) -> (state, metrics)
-    collect: Callable  # (state, hp, key) -> (env_state, episodes, traj, batch): rollout + GAE, no learning
-    loss: Callable  # (params, norms, batch [L, Bs, ...], offsets [n], hp) -> (total, metrics)
-    act: Callable  # (params, norms, obs [B, O], key or None) -> action [B, A]; None: deterministic
-    model_step: Callable  # (model_params, norms, obs [..., O], action [..., A]) -> (next_obs, reward)
-    env: Any  # the BatchedEnv
-    grad_norms: Callable  # (params, norms, batch [L, Bs, ...], offsets [n], hp) -> {"grad/<term>/<group>": norm}
-    loss_terms: Callable  # (params, norms, batch, offsets, hp) -> ({term: scalar}, metrics)
-    advantages: Callable  # (params, norms, batch [L, Bs, ...], hp) -> (advantages, returns), current value net
-
-
 def model_target(norms: nz.Norms, obs, next_obs, reward) -> jax.Array:
     """The dynamics model's target [..., O+1]: the normalised change of state and the normalised reward."""
     return jnp.concatenate([nz.normalize(norms.delta, next_obs - obs), nz.normalize(norms.reward, reward[..., None])],
@@ -121,7 +110,9 @@ class ObsAgent:
     """The observation-space agent of one Config: its environments, networks and every piece of its update.
 
     Not a pytree (it holds modules and the env): close over its bound methods, which are pure functions of
-    their arguments. `make_trainer(config)` hands them out as a `Trainer`.
+    their arguments: `init(key, hp)`, `update(state, hp)`, `collect`, `loss`, `loss_terms`, `grad_norms`,
+    `advantages`, `act(params, norms, obs, key)`, `model_step(model_params, norms, obs, action)`; `env` is
+    its BatchedEnv.
     """
 
     def __init__(self, config: Config):
@@ -194,7 +185,7 @@ class ObsAgent:
         ppo, metrics = losses.ppo_loss(mean, std, values, mb.raw_action, mb.log_prob, adv, returns, mb.valid,
                                        hp, entropy_noise)
         metrics["loss/ppo"] = ppo
-        metrics["policy/std"] = losses.masked_mean(std.mean(-1), mb.valid)
+        metrics["policy/std"] = masked_mean(std.mean(-1), mb.valid)
         terms = {"ppo": ppo}
         if self.model is not None:
             pred_mean, pred_log_std = self.model.apply(params["model"], obs_n, mb.action)
@@ -256,7 +247,7 @@ class ObsAgent:
             ok = (history.filled >= j) & ~history.ended[: j - 1].any(0) & history.valid[:j].all(0)
             err = ((nz.normalize(norms.obs, imagined[j - 1]) - nz.normalize(norms.obs, history.next_obs[j - 1])) ** 2).mean(-1)
             n = ok.sum()
-            out[f"model/openloop_mse_{name}"] = jnp.where(n > 0, losses.masked_mean(err, ok), jnp.nan)
+            out[f"model/openloop_mse_{name}"] = jnp.where(n > 0, masked_mean(err, ok), jnp.nan)
         return out
 
     def collect(self, state: TrainState, hp: HParams, key: jax.Array):
@@ -348,7 +339,7 @@ class ObsAgent:
             "episode/return": last_return,
             "episode/discounted_return": last_disc,
             "episode/count": episodes.done_count,
-            "env/reward_mean": losses.masked_mean(traj.reward, traj.valid),
+            "env/reward_mean": masked_mean(traj.reward, traj.valid),
             "env/invalid_fraction": (~traj.valid).astype(jnp.float32).mean(),
             "opt/skipped_updates": opt_state.total_notfinite.astype(jnp.float32),
         })
@@ -359,12 +350,11 @@ class ObsAgent:
         return strong_types(new_state), metrics
 
 
-def make_trainer(config: Config) -> Trainer:
-    """The pieces of the observation-space agent for `config` (see `Trainer`); nothing is jitted here."""
-    agent = ObsAgent(config)
-    return Trainer(config=config, init=agent.init, update=agent.update, collect=agent.collect, loss=agent.loss,
-                   act=agent.act, model_step=agent.model_step, env=agent.env, grad_norms=agent.grad_norms,
-                   loss_terms=agent.loss_terms, advantages=agent.advantages)
+def make_agent(config: Config) -> ObsAgent:
+    """The observation-space agent of `config`: its pure pieces (`init`, `update`, `collect`, `loss`, `act`,
+    `model_step`, ...) as bound methods; nothing is jitted here. `cdjax.agents.obs.make_trainer` hands the
+    host side the protocol's `Trainer` of the same agent."""
+    return ObsAgent(config)
 
 
 @struct.dataclass
@@ -388,10 +378,10 @@ class Batch:
 
 def make_train(config: Config) -> Callable[[jax.Array, HParams], tuple[TrainState, dict]]:
     """train(key, hp) -> (final state, metrics with leaves [num_updates]): pure, jit/vmap it yourself."""
-    trainer = make_trainer(config)
+    agent = make_agent(config)
 
     def train(key: jax.Array, hp: HParams):
-        state = trainer.init(key, hp)
-        return jax.lax.scan(lambda s, _: trainer.update(s, hp), state, None, length=config.num_updates)
+        state = agent.init(key, hp)
+        return jax.lax.scan(lambda s, _: agent.update(s, hp), state, None, length=config.num_updates)
 
     return train

@@ -7,14 +7,14 @@ once; it also vmaps over seeds). In the phase's own `phase.num_envs` environment
 2. model: params["model"] (Gaussian over the normalised delta-s and reward) trained with Adam(hp.lr_model),
    `model_epochs` shuffled epochs of minibatches over a ring buffer of real transitions (objective:
    `model_objective` below); the running statistics (state.norms) are updated from the new data first;
-3. aggregation, `aggregation_iters` times: random-shooting MPC (cdjax.mpc) on the learned model acts for
+3. aggregation, `aggregation_iters` times: random-shooting MPC (`mpc`) on the learned model acts for
    `mpc_steps_per_iter` steps, its transitions are appended to the buffer, the model is retrained;
 4. distillation: the aggregation states are re-planned with the final model (`relabel`), the policy's
    deterministic action tanh(mu(s)) is regressed (MSE) on those MPC actions, then `distill_iters` DAgger
    rounds: the (stochastic) policy acts, MPC labels the states it visits, the pairs are aggregated, the
    policy is retrained;
 5. the value is fitted to TD(lambda) returns of the DAgger rollouts (`value_epochs`, optional), and the
-   TrainState goes back ready for `trainer.update`, its PPO environments as they were (the phase acts in
+   TrainState goes back ready for `agent.update`, its PPO environments as they were (the phase acts in
    its own), PPO's optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every
    env step taken.
 
@@ -42,16 +42,17 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from cdjax import losses, mpc, networks
 from cdjax import normalize as nz
-from cdjax.config import Config, HParams
-from cdjax.envs import BatchedEnv, EnvState, make_single_env, strong_types
-from cdjax.mbmf.data import Labelled, Rollout, Transitions, model_objective
-from cdjax.mbmf.spec import MbMfPhase, validate_phase
+from cdjax.agents.obs import losses, mpc, networks
+from cdjax.agents.obs.agent import ObsAgent, TrainState, make_agent, model_target, refresh_norms
+from cdjax.agents.obs.config import Config, HParams
+from cdjax.agents.obs.mbmf.data import Labelled, Rollout, Transitions, model_objective
+from cdjax.agents.obs.mbmf.spec import MbMfPhase, validate_phase
+from cdjax.agents.obs.rollout import env_step
+from cdjax.envs import BatchedEnv, EnvState, EpisodeStats, make_single_env, strong_types
+from cdjax.numerics import masked_mean
 from cdjax.optim import clipped_adam
 from cdjax.replay import RingBuffer, fit
-from cdjax.rollout import EpisodeStats, env_step
-from cdjax.train import TrainState, Trainer, make_trainer, model_target, refresh_norms
 
 
 def _first_last(values: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -110,21 +111,21 @@ class PolicyStage:
 # ----------------------------------------------------------------------------------------------------
 
 
-def phase_env(config: Config, phase: MbMfPhase, trainer: Trainer) -> BatchedEnv:
-    """The environments the phase acts in: the trainer's when the sizes agree, else a new BatchedEnv."""
+def phase_env(config: Config, phase: MbMfPhase, agent: ObsAgent) -> BatchedEnv:
+    """The environments the phase acts in: the agent's when the sizes agree, else a new BatchedEnv."""
     B = phase.envs(config)
     if B == config.num_envs:
-        return trainer.env
+        return agent.env
     return BatchedEnv(make_single_env(config.env), B, config.episode_length, config.action_repeat,
                       config.reset_mode)
 
 
-def make_mpc_controller(trainer: Trainer, phase: MbMfPhase) -> Callable:
+def make_mpc_controller(agent: ObsAgent, phase: MbMfPhase) -> Callable:
     """controller(model_params, norms, obs [B, O], key) -> MPC actions [B, A] on the learned model."""
-    A = trainer.env.action_size
+    A = agent.env.action_size
 
     def controller(model_params, norms, obs, key):
-        step_fn = lambda s, a: trainer.model_step(model_params, norms, s, a)  # noqa: E731  [O], [A] -> [O], []
+        step_fn = lambda s, a: agent.model_step(model_params, norms, s, a)  # noqa: E731  [O], [A] -> [O], []
         actions, _ = mpc.batched_random_shooting(key, step_fn, obs, horizon=phase.mpc_horizon,
                                                  num_candidates=phase.mpc_candidates, action_size=A,
                                                  discount=phase.mpc_discount)
@@ -139,15 +140,15 @@ class MbMfProgram:
     Not a pytree: close over its bound methods. `run(state, hp)` is the whole phase.
     """
 
-    def __init__(self, config: Config, phase: MbMfPhase, trainer: Trainer | None = None):
+    def __init__(self, config: Config, phase: MbMfPhase, agent: ObsAgent | None = None):
         validate_phase(config, phase)
         self.config, self.phase = config, phase
-        self.trainer = trainer if trainer is not None else make_trainer(config)
-        self.env = phase_env(config, phase, self.trainer)
+        self.agent = agent if agent is not None else make_agent(config)
+        self.env = phase_env(config, phase, self.agent)
         self.B, self.O, self.A = self.env.num_envs, self.env.observation_size, self.env.action_size
         self.modules = networks.build(config, self.O, self.A)
         self.model, self.policy, self.value = self.modules["model"], self.modules["policy"], self.modules["value"]
-        self.controller = make_mpc_controller(self.trainer, phase)
+        self.controller = make_mpc_controller(self.agent, phase)
 
     def rollout(self, acting: Acting, choose: Callable, key: jax.Array, length: int, gamma) -> tuple[Acting, Rollout]:
         """`length` steps of choose(obs [B, O], key) -> (action, label), both [B, A]: (acting, Rollout [L, B])."""
@@ -174,8 +175,8 @@ class MbMfProgram:
     def distill_loss(self, policy_params, batch: Labelled, norms):
         mean, _ = self.policy.apply(policy_params, nz.normalize(norms.obs, batch.obs))
         err = networks.squash(mean) - batch.action
-        mse = losses.masked_mean((err**2).mean(-1), batch.valid)
-        return mse, {"distill/mse": mse, "distill/abs_error": losses.masked_mean(jnp.abs(err).mean(-1), batch.valid)}
+        mse = masked_mean((err**2).mean(-1), batch.valid)
+        return mse, {"distill/mse": mse, "distill/abs_error": masked_mean(jnp.abs(err).mean(-1), batch.valid)}
 
     def buffer_abs_error(self, policy_params, norms, buffer: RingBuffer) -> jax.Array:
         """Mean |tanh(mu(s)) - a_MPC| over the filled, valid part of the distillation buffer."""
@@ -220,7 +221,7 @@ class MbMfProgram:
 
         def loss_fn(vp, batch):
             obs, target, valid = batch
-            loss = 0.5 * losses.masked_mean((self.value.apply(vp, obs) - target) ** 2, valid)
+            loss = 0.5 * masked_mean((self.value.apply(vp, obs) - target) ** 2, valid)
             return loss, loss
 
         def epoch(carry, key):
@@ -255,7 +256,7 @@ class MbMfProgram:
 
         acting = Acting(self.env.reset(key_reset), EpisodeStats.create(self.B), jnp.zeros((), jnp.int32))
         acting, traj = self.rollout(acting, uniform, key_random, self.phase.random_steps, hp.gamma)
-        info["random/reward_mean"] = losses.masked_mean(traj.reward, traj.valid)
+        info["random/reward_mean"] = masked_mean(traj.reward, traj.valid)
         info["random/episode_return"] = acting.stats.mean_returns()[0]
         data = Transitions.of(traj)
         norms = self.update_norms(state.norms, data)
@@ -282,7 +283,7 @@ class MbMfProgram:
             norms = self.update_norms(stage.norms, data)
             transitions = stage.transitions.add(data)
             model_fit, fit_metrics = self.fit_model(stage.model, norms, transitions, model_tx, key_fit)
-            metrics = {"reward_mean": losses.masked_mean(traj.reward, traj.valid),
+            metrics = {"reward_mean": masked_mean(traj.reward, traj.valid),
                        "episode_return": acting.stats.mean_returns()[0],
                        "heldout_mse": heldout["model/onestep_mse"],
                        "heldout_reward_mse": heldout["model/reward_mse"]}
@@ -319,7 +320,7 @@ class MbMfProgram:
 
             def act_and_label(obs, key):
                 key_act, key_plan = jax.random.split(key)
-                action = self.trainer.act({"policy": stage.policy.params}, norms, obs, key_act)
+                action = self.agent.act({"policy": stage.policy.params}, norms, obs, key_act)
                 return action, self.controller(model_params, norms, obs, key_plan)
 
             acting, traj = self.rollout(stage.acting, act_and_label, key_roll, self.phase.distill_steps_per_iter,
@@ -328,7 +329,7 @@ class MbMfProgram:
             _, new_error = self.distill_loss(stage.policy.params, new, norms)  # the policy's own states, untrained on
             labelled = stage.labelled.add(new)
             policy_fit = self.fit_policy(stage.policy, norms, labelled, policy_tx, key_fit)
-            metrics = {"reward_mean": losses.masked_mean(traj.reward, traj.valid),
+            metrics = {"reward_mean": masked_mean(traj.reward, traj.valid),
                        "episode_return": acting.stats.mean_returns()[0],
                        "abs_error_new": new_error["distill/abs_error"]}
             return PolicyStage(acting, policy_fit, labelled), (metrics, traj)
@@ -367,14 +368,14 @@ class MbMfProgram:
         return strong_types(new_state), info
 
 
-def make_mbmf_phase(config: Config, phase: MbMfPhase, trainer: Trainer | None = None
+def make_mbmf_phase(config: Config, phase: MbMfPhase, agent: ObsAgent | None = None
                     ) -> Callable[[TrainState, HParams], tuple[TrainState, dict]]:
     """run(state, hp) -> (state ready for PPO, info dict of scalars); pure, jit (and vmap) it yourself.
 
-    `state` is what trainer.init returns (or any TrainState of `config`); params["model"] and
+    `state` is what agent.init returns (or any TrainState of `config`); params["model"] and
     params["policy"] come back trained, params["value"] fitted (value_epochs > 0), norms updated, the PPO
     environments and opt_state untouched (the phase acts in environments of its own), episode statistics fresh,
     the encoder untouched.
     info["env_steps"] (int32) counts the env steps the phase took: charge them to the arm's budget.
     """
-    return MbMfProgram(config, phase, trainer).run
+    return MbMfProgram(config, phase, agent).run

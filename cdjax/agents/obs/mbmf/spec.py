@@ -5,7 +5,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
-from cdjax.config import Config, ConfigError
+from cdjax.agents.obs.config import Config
+from cdjax.protocol import ConfigError
 
 ModelObjective = Literal["mse", "nll"]
 

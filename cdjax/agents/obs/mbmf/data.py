@@ -4,11 +4,11 @@ the model's training objective."""
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 from flax import struct
 
-from cdjax import losses
-from cdjax.mbmf.spec import ModelObjective
+from cdjax.agents.obs import losses
+from cdjax.agents.obs.mbmf.spec import ModelObjective
+from cdjax.numerics import masked_mean
 
 
 @struct.dataclass
@@ -71,6 +71,6 @@ def model_objective(pred_mean, pred_log_std, target, mask, kind: ModelObjective)
     if kind == "nll":
         return losses.model_loss(pred_mean, pred_log_std, target, mask)
     nll, metrics = losses.model_loss(jax.lax.stop_gradient(pred_mean), pred_log_std, target, mask)
-    mse = losses.masked_mean(((target - pred_mean) ** 2).sum(-1), mask)
+    mse = masked_mean(((target - pred_mean) ** 2).sum(-1), mask)
     metrics["loss/model_mse"] = mse
     return mse + nll, metrics

@@ -1,4 +1,5 @@
-"""Flax modules (policy, value, dynamics model, sequence encoder) and the action distribution.
+"""Flax modules of the observation-space agent (policy, value, dynamics model) and the action distribution;
+the sequence encoder is the consistency term's (`cdjax.consistency.SequenceEncoder`).
 
 All modules take normalised inputs. Actions live in [-1, 1]: the policy is a diagonal Gaussian over
 the pre-squash action u, and the executed action is tanh(u). `action_distribution` is the one place
@@ -14,7 +15,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from cdjax.config import Config
+from cdjax.agents.obs.config import Config
+from cdjax.consistency import SequenceEncoder, init_encoder
 
 MODEL_LOG_STD_MIN = -6.0  # bounds of the dynamics model's predicted log standard deviation
 MODEL_LOG_STD_MAX = 1.0
@@ -118,36 +120,12 @@ class DynamicsModel(nn.Module):
     @nn.compact
     def __call__(self, obs, action):
         x = jnp.concatenate([obs, action], axis=-1)
-        for w in self.hidden:
+        for w in self.hidden:  # the same ReLU torso as the Atari latent model's; the heads differ (a Gaussian here)
             x = nn.relu(nn.Dense(w)(x))
         mean = nn.Dense(self.obs_size + 1)(x)
         raw = nn.Dense(self.obs_size + 1)(x)
         log_std = MODEL_LOG_STD_MIN + 0.5 * (MODEL_LOG_STD_MAX - MODEL_LOG_STD_MIN) * (jnp.tanh(raw) + 1.0)
         return mean, log_std
-
-
-class Encoder(nn.Module):
-    """The consistency encoder: a GRU scanned by the caller, and a decoder of a whole window.
-
-    `__call__(h [..., H], x [..., D]) -> h'` is one GRU step. `decode(h [..., H]) -> [..., k * D]` maps a
-    final encoding back to the k inputs it read (used by the grounded encoder's reconstruction loss;
-    built only when `window_size` > 0).
-    """
-
-    features: int
-    window_size: int = 0  # k * D: the size of the flattened window the decoder reconstructs; 0 = no decoder
-
-    def setup(self):
-        self.cell = nn.GRUCell(self.features)
-        if self.window_size:
-            self.decoder = nn.Dense(self.window_size)
-
-    def __call__(self, h, x):
-        h, _ = self.cell(h, x)
-        return h
-
-    def decode(self, h):
-        return self.decoder(h)
 
 
 def build(config, obs_size: int, action_size: int) -> dict[str, nn.Module]:
@@ -160,7 +138,7 @@ def build(config, obs_size: int, action_size: int) -> dict[str, nn.Module]:
         modules["model"] = DynamicsModel(obs_size, tuple(config.model_hidden))
     if config.use_consistency and config.encoder != "l2":
         window = config.horizon * obs_size if config.encoder == "grounded-gru" else 0
-        modules["encoder"] = Encoder(config.encoder_dim, window)
+        modules["encoder"] = SequenceEncoder(config.encoder_dim, window)
     return modules
 
 
@@ -180,15 +158,6 @@ def init_params(modules: dict[str, nn.Module], key: jax.Array, obs_size: int, ac
             params[name] = module.init(keys[name], obs)
     params["policy"] = set_initial_std(modules["policy"], params["policy"], init_log_std)
     return params
-
-
-def init_encoder(module: Encoder, key: jax.Array, input_size: int) -> dict:
-    """Parameters of the encoder's GRU (inputs of `input_size`) and, if it has one, of its decoder."""
-    h = jnp.zeros((1, module.features), jnp.float32)
-    x = jnp.zeros((1, input_size), jnp.float32)
-    if module.window_size:
-        return module.init(key, h, x, method=lambda m, h, x: m.decode(m(h, x)))
-    return module.init(key, h, x)
 
 
 def set_initial_std(policy: Policy, params: dict, init_log_std) -> dict:

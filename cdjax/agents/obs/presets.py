@@ -1,4 +1,5 @@
-"""Presets: named sets of explicit overrides of the Config, HParams and sweep defaults.
+"""The observation-space setting's presets: named sets of explicit overrides of the Config, HParams and sweep
+defaults (`cdjax.protocol.Preset`).
 
 Precedence (cdjax sweep): dataclass defaults < preset < flags given on the command line. Without
 `--preset`, the preset named like the env (if any) is used, so `cdjax sweep --env ant` gets the ant
@@ -16,19 +17,7 @@ CPU with an empty compilation cache (setup 32 s, compile 31 s, training 35 s, ev
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Any
-
-from cdjax.config import ConfigError
-
-
-@dataclasses.dataclass(frozen=True)
-class Preset:
-    about: str  # one line shown by `cdjax sweep --help`
-    config: dict[str, Any]  # Config field -> value
-    hparams: dict[str, tuple[float, ...]]  # HParams field -> values (several values make a grid)
-    sweep: dict[str, Any]  # SweepSpec field -> value (arms, seeds, total_env_steps, chunk_updates, ...)
-    phase: dict[str, Any] | None = None  # MbMfPhase field -> value; None: no Mb-Mf phase unless asked for
+from cdjax.protocol import ConfigError, Preset
 
 
 def _locomotion(env: str, *, steps: int, gamma: float, reward_scale: float, ent_coef: float, num_epochs: int,
