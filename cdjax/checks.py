@@ -27,13 +27,14 @@ class Range:
         return math.isfinite(value) and above and value <= self.high
 
     def describe(self) -> str:
+        """What a value must do, after "must": "not be negative", "be between 0 and 1", ..."""
         if self.low == 0.0 and self.high == math.inf:
-            return "positive" if self.open_low else "not negative"
+            return "be positive" if self.open_low else "not be negative"
         if self.high == math.inf:
-            return f"{'above' if self.open_low else 'at least'} {self.low:g}"
+            return f"be {'above' if self.open_low else 'at least'} {self.low:g}"
         if self.low == -math.inf:
-            return f"at most {self.high:g}"
-        return f"between {self.low:g} and {self.high:g}"
+            return f"be at most {self.high:g}"
+        return f"be between {self.low:g} and {self.high:g}"
 
 
 NON_NEGATIVE = Range()
@@ -52,7 +53,7 @@ def check_value(name: str, value: float, allowed: Range) -> None:
     if not math.isfinite(value):
         raise ConfigError(f"{flag(name)} must be finite, got {value}.")
     if not allowed.holds(value):
-        raise ConfigError(f"{flag(name)} must be {allowed.describe()}, got {value}.")
+        raise ConfigError(f"{flag(name)} must {allowed.describe()}, got {value}.")
 
 
 def hparam_checker(ranges: Mapping[str, Range], default: Range = NON_NEGATIVE) -> Callable[[str, float], None]:
