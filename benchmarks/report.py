@@ -17,17 +17,20 @@ import json
 import math
 import pathlib
 
-from benchmarks.throughput import DESIGNATED_CD
+from benchmarks.throughput import DESIGNATED_CD, PAPER_CD
 
 PARTS = ("compare", "seeds", "envs", "devices")
 COLORS = {"ceiling": "tab:gray", "brax-ppo": "tab:red", "collect": "tab:brown", "model-free": "tab:green",
-          "mbmf": "tab:olive", DESIGNATED_CD: "tab:blue", "cd-w2-unroll": "tab:cyan", "cd-default": "tab:purple"}
+          "mbmf": "tab:olive", DESIGNATED_CD: "tab:blue", PAPER_CD: "tab:orange", "cd-w2-unroll": "tab:cyan",
+          "cd-default": "tab:purple"}
 TARGETS = {  # name: (description, comparison, threshold)
     "cd_vs_brax": (f"CD ({DESIGNATED_CD}) env steps/s / Brax PPO", ">=", 1.0),
     "mf_vs_brax": ("model-free env steps/s / Brax PPO", ">=", 1.5),
     "cd_wall_vs_mf": (f"CD ({DESIGNATED_CD}) wall-clock per update / model-free", "<=", 1.5),
     "seeds32_vs_1": (f"CD ({DESIGNATED_CD}): aggregate env steps/s of 32 vmapped seeds / 1 seed", ">=", 8.0),
     "cd_compile_s": (f"CD ({DESIGNATED_CD}) update: lower + compile seconds", "<", 60.0),
+    "paper_wall_vs_mbmf": (f"CD, the paper's schedule ({PAPER_CD}), wall-clock per update / Mb-Mf", "<=", 1.5),
+    "paper_seeds10_vs_mbmf": (f"CD ({PAPER_CD}) / Mb-Mf wall-clock per update, 10 vmapped seeds", "<=", 1.25),
 }
 
 
@@ -65,12 +68,14 @@ def add_ratios(results: dict) -> dict:
     parts = results.get("parts", {})
     rows = parts.get("compare", [])
     ceil, brax, mf = find(rows, case="ceiling"), find(rows, case="brax-ppo"), find(rows, case="model-free")
+    mbmf = find(rows, case="mbmf")
     for r in rows:
         if not ok(r):
             continue
         r["vs_ceiling"] = _div(r["env_steps_per_s"], ceil["env_steps_per_s"]) if ok(ceil) else None
         r["vs_brax"] = _div(r["env_steps_per_s"], brax["env_steps_per_s"]) if ok(brax) else None
         r["wall_vs_model_free"] = _div(r["update_s"], mf["update_s"]) if ok(mf) and r["case"] != "ceiling" else None
+        r["wall_vs_mbmf"] = _div(r["update_s"], mbmf["update_s"]) if ok(mbmf) and r.get("arm") == "cd" else None
     for part in ("seeds", "devices"):
         for r in parts.get(part, []):
             if not ok(r):
@@ -97,11 +102,15 @@ def targets(results: dict) -> list[dict]:
     parts = results.get("parts", {})
     cmp_rows, seed_rows = parts.get("compare", []), parts.get("seeds", [])
     cd, cd_def = find(cmp_rows, case=DESIGNATED_CD), find(cmp_rows, case="cd-default")
-    mf = find(cmp_rows, case="model-free")
+    mf, paper = find(cmp_rows, case="model-free"), find(cmp_rows, case=PAPER_CD)
 
     def seeds_ratio(case):
         r = find(seed_rows, case=case, seeds=32)
         return r.get("speedup_vs_1") if ok(r) else None
+
+    def seeds_vs_mbmf(case, seeds=10):
+        r, m = find(seed_rows, case=case, seeds=seeds), find(seed_rows, case="mbmf", seeds=seeds)
+        return _div(r["update_s"], m["update_s"]) if ok(r) and ok(m) else None
 
     values = {
         "cd_vs_brax": ((cd or {}).get("vs_brax"), (cd_def or {}).get("vs_brax")),
@@ -110,6 +119,8 @@ def targets(results: dict) -> list[dict]:
         "seeds32_vs_1": (seeds_ratio(DESIGNATED_CD), seeds_ratio("model-free")),
         "cd_compile_s": ((cd or {}).get("compile_s") if ok(cd) else None,
                          (cd_def or {}).get("compile_s") if ok(cd_def) else None),
+        "paper_wall_vs_mbmf": ((paper or {}).get("wall_vs_mbmf"), (cd or {}).get("wall_vs_mbmf")),
+        "paper_seeds10_vs_mbmf": (seeds_vs_mbmf(PAPER_CD), seeds_vs_mbmf(DESIGNATED_CD)),
     }
     out = []
     for name, (what, op, threshold) in TARGETS.items():
@@ -117,7 +128,8 @@ def targets(results: dict) -> list[dict]:
         met = None
         if _finite(value):
             met = {">=": value >= threshold, "<=": value <= threshold, "<": value < threshold}[op]
-        other_label = "model-free" if name in ("seeds32_vs_1",) else "cd-default"
+        other_label = {"seeds32_vs_1": "model-free", "paper_wall_vs_mbmf": DESIGNATED_CD,
+                       "paper_seeds10_vs_mbmf": DESIGNATED_CD}.get(name, "cd-default")
         out.append({"target": name, "what": what, "required": f"{op} {threshold:g}", "value": value,
                     "met": met, "other": other if name != "mf_vs_brax" else None, "other_label": other_label})
     return out
@@ -220,6 +232,12 @@ def diagnose(results: dict) -> list[str]:
                 out.append(f"- {t['target']} missed. 1 seed: {one['update_s']:.3f} s/update; 32 seeds: "
                            f"{many['update_s']:.3f} s/update ({many['update_s'] / one['update_s']:.1f}x the time "
                            "for 32x the work): the vmapped update is no longer latency-bound at 32 seeds.")
+        elif t["target"] == "paper_wall_vs_mbmf" and get.get(PAPER_CD) and mbmf:
+            paper = get[PAPER_CD]
+            extra = paper["update_s"] - mbmf["update_s"]
+            per_step = 1e3 * extra / paper["sgd_steps"] if paper.get("sgd_steps") else float("nan")
+            out.append(f"- {t['target']} missed. {PAPER_CD}: {paper['update_s']:.3f} s/update, "
+                       f"{extra:.3f} s over Mb-Mf ({per_step:.2f} ms per SGD minibatch for the consistency term).")
         elif t["target"] == "cd_compile_s" and cd:
             out.append(f"- {t['target']} missed. lower (tracing) {cd.get('lower_s', float('nan')):.1f} s, XLA compile "
                        f"{cd.get('xla_compile_s', float('nan')):.1f} s.")

@@ -18,16 +18,23 @@ from benchmarks.common import Spec, Timing, compile_timed, compiled_footprint, p
 # cdjax cases at the matched config: name -> (description, Config overrides, HParams overrides).
 # cc_unroll is the horizon k (the whole k-step open-loop scan unrolled).
 DESIGNATED_CD = "cd-fast"  # the row the CD targets are evaluated on
+PAPER_CD = "cd-paper"  # the paper's schedule (l_cc in every SGD step): its wall-clock against Mb-Mf's is a target
 
 
 def cdjax_cases(spec: Spec) -> dict[str, tuple[str, dict, dict]]:
     k = min(spec.horizon, spec.unroll_length)
     w = min(2, spec.unroll_length - k + 1)  # windows per sequence of unroll_length steps
+    # The paper adds alpha * l_cc to the loss of every gradient step, over the k-step sub-sequences of the sampled
+    # trajectories: every window of every sequence (L - k + 1 of them; one at the matched spec, where L = k = 20).
+    n = spec.unroll_length - k + 1
     return {
         "model-free": ("PPO only, no model", dict(arm="model-free"), dict()),
         "mbmf": ("PPO + model NLL, alpha = 0 (Mb-Mf)", dict(arm="mbmf"), dict(alpha=0.0)),
         "cd-fast": (f"CD k={k}: {w} windows/sequence/minibatch, unroll {k}, consistency in epoch 1 only",
                     dict(arm="cd", cc_windows=w, cc_unroll=k, cc_epochs=1), dict(alpha=1.0)),
+        "cd-paper": (f"CD k={k}, the paper's schedule: l_cc in every minibatch of every epoch, all {n} "
+                     f"window(s)/sequence, unroll {k}", dict(arm="cd", cc_windows=0, cc_unroll=k, cc_epochs=0),
+                     dict(alpha=1.0)),
         "cd-w2-unroll": (f"CD k={k}: {w} windows/sequence/minibatch, unroll {k}, every epoch",
                          dict(arm="cd", cc_windows=w, cc_unroll=k), dict(alpha=1.0)),
         "cd-default": (f"CD k={k}: default settings (all windows, every epoch, unroll 1)",

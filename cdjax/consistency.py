@@ -34,6 +34,7 @@ space, latent states of a pixel model, a CNN's features) can use the same term.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import Any, Callable, Mapping
 
@@ -43,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from cdjax import normalize as nz
 from cdjax.numerics import masked_mean
 
 KINDS = ("grounded-gru", "gru", "frozen-gru", "l2")
@@ -186,6 +188,193 @@ def windows(obs, next_obs, actions, ended, valid, offsets, horizon: int):
 
 
 # ---------------------------------------------------------------------------------------------------
+# The k-step chain fused: an MLP model and a GRU encoder, forward and backward written out
+
+
+@struct.dataclass
+class MLPModel:
+    """A dynamics model the consistency term can run fused (`mlp_step` is its step): an MLP with relu between
+    its layers on the normalised state and the action, predicting the normalised change of state,
+
+        s' = s + denormalize(delta, MLP([normalize(obs, s), a])).
+    """
+
+    layers: tuple  # ((kernel [in, out], bias [out]), ...): the first takes O + A inputs (state first), the last gives O
+    obs: nz.RunningStats  # statistics of the states (the model's input)
+    delta: nz.RunningStats  # statistics of the change of state (the model's output)
+
+
+def mlp_step(model: MLPModel, s: jax.Array, a: jax.Array) -> jax.Array:
+    """One imagined step of an MLPModel: s [..., O], a [..., A] -> s' [..., O]."""
+    x = jnp.concatenate([nz.normalize(model.obs, s), a], axis=-1)
+    for kernel, bias in model.layers[:-1]:
+        x = jax.nn.relu(x @ kernel + bias)
+    kernel, bias = model.layers[-1]
+    return s + nz.denormalize(model.delta, x @ kernel + bias)
+
+
+def gru_weights(encoder_params) -> tuple | None:
+    """(W_i [D, 3H], b_i [3H], W_h [H, 3H], b_hn [H]) of the flax GRUCell under encoder_params["params"]["cell"]
+    (gates r, z, n side by side), or None for parameters of another shape."""
+    try:
+        c = encoder_params["params"]["cell"]
+        w_i = jnp.concatenate([c["ir"]["kernel"], c["iz"]["kernel"], c["in"]["kernel"]], axis=1)
+        b_i = jnp.concatenate([c["ir"]["bias"], c["iz"]["bias"], c["in"]["bias"]])
+        w_h = jnp.concatenate([c["hr"]["kernel"], c["hz"]["kernel"], c["hn"]["kernel"]], axis=1)
+        return w_i, b_i, w_h, c["hn"]["bias"]
+    except (KeyError, TypeError, IndexError):
+        return None
+
+
+def gru_gates(gi: jax.Array, gh: jax.Array, h: jax.Array) -> jax.Array:
+    """flax's GRUCell update from its input part gi = x W_i + b_i and its recurrent part gh = h W_h (+ b_hn on
+    the n gate), both [..., 3H] in gate order r, z, n: the same expressions as flax.linen.GRUCell."""
+    H = h.shape[-1]
+    r = jax.nn.sigmoid(gi[..., :H] + gh[..., :H])
+    z = jax.nn.sigmoid(gi[..., H:2 * H] + gh[..., H:2 * H])
+    n = jnp.tanh(gi[..., 2 * H:] + r * gh[..., 2 * H:])
+    return (1.0 - z) * n + z * h
+
+
+def _sum_rows(x: jax.Array) -> jax.Array:
+    return x.reshape(-1, x.shape[-1]).sum(0)
+
+
+def _outer(a: jax.Array, b: jax.Array) -> jax.Array:
+    """sum over the leading axes of a [..., I] (x) b [..., J] -> [I, J]: a weight's gradient over all steps at once."""
+    return a.reshape(-1, a.shape[-1]).T @ b.reshape(-1, b.shape[-1])
+
+
+def _scaled(g: jax.Array, s: jax.Array) -> jax.Array:
+    return _scale_bwd(s, g)[0]
+
+
+def _chain_inputs(c: dict, s: jax.Array) -> jax.Array:
+    """[the model's normalised input | the encoder's] of states s [W, O] -> [W, 2O]."""
+    return jnp.concatenate([nz.normalize(c["model_obs"], s), nz.normalize(c["enc_obs"], s)], axis=-1)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _chain(unroll: int, p: dict, c: dict):
+    return _chain_fwd(unroll, p, c)[0]
+
+
+def _chain_fwd(unroll: int, p: dict, c: dict):
+    """The k imagined steps and both encodings: -> ((h_re [W, H], h_im [W, H], s_k [W, O]), residuals).
+
+    Per step, three matrix products: the model's hidden layer(s) and output, then one product of the new
+    state's [model input | encoder input] with [first layer's state rows (+) W_i] (the next step's first layer
+    and this step's imagined GRU input at once), and one of [h_re; h_im] with W_h. The real rows' GRU inputs and
+    the actions' share of the first layer do not depend on the chain: one product each, before it.
+    """
+    layers, w_i, b_i, w_h, b_hn = p["layers"], p["w_i"], p["b_i"], p["w_h"], p["b_hn"]
+    s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
+    O, H = s0.shape[-1], w_h.shape[0]
+    (w_1, b_1), (w_out, b_out) = layers[0], layers[-1]
+    N1 = w_1.shape[1]
+    w_in = jnp.zeros((2 * O, N1 + 3 * H), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
+    gh_bias = jnp.concatenate([jnp.zeros((2 * H,), b_hn.dtype), b_hn])
+    gi_re = x_re @ w_i + b_i  # [k, W, 3H]
+    z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
+    xin0 = _chain_inputs(c, s0)
+    p1 = (xin0 @ w_in)[:, :N1]
+    h0 = jnp.zeros((2,) + s0.shape[:1] + (H,), s0.dtype)
+
+    def step(carry, inp):
+        s, p1, h = carry
+        z1a, gi_re_t = inp
+        u = jax.nn.relu(p1 + z1a)
+        hidden = [u]
+        for kernel, bias in layers[1:-1]:
+            u = jax.nn.relu(u @ kernel + bias)
+            hidden.append(u)
+        s_next = s + nz.denormalize(c["delta"], u @ w_out + b_out)
+        xin = _chain_inputs(c, s_next)
+        both = xin @ w_in  # [W, N1 + 3H]: the next step's first layer (state part) | this step's GRU input
+        gi = jnp.stack([gi_re_t, both[:, N1:] + b_i])  # [2, W, 3H]: real rows, imagined rows
+        gh = h @ w_h + gh_bias
+        return (s_next, both[:, :N1], gru_gates(gi, gh, h)), (s_next, tuple(hidden), xin, h, gi, gh)
+
+    (s_k, _, h_k), (s_next, hidden, xin, h, gi, gh) = jax.lax.scan(step, (s0, p1, h0), (z1_actions, gi_re),
+                                                                   unroll=unroll)
+    residuals = (p, c, w_in, xin0, s_next, hidden, xin, h, gi, gh)
+    return (h_k[0], h_k[1], s_k), residuals
+
+
+def _chain_bwd(unroll: int, residuals, cotangents):
+    """The chain's backward: per step, the cotangents of the states and hidden states alone (three matrix
+    products); every weight's gradient afterwards, one product over all k steps each."""
+    p, c, w_in, xin0, s_next, hidden, xin, h, gi, gh = residuals
+    layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
+    dh_re, dh_im, ds_k = cotangents
+    O, H = p["s0"].shape[-1], w_h.shape[0]
+    N1 = layers[0][0].shape[1]
+    delta_std = c["delta"].std  # d denormalize(delta, z) / dz
+
+    def back(carry, inp):
+        dh, ds, dp1 = carry  # cotangents of h_{t+1}, of s_{t+2}'s identity path into s_{t+1}, of p1_{t+1}
+        s_next, hidden, h, gi, gh = inp
+        _, gates_vjp = jax.vjp(gru_gates, gi, gh, h)
+        dgi, dgh, dh_prev = gates_vjp(dh)
+        dh_prev = dh_prev + dgh @ w_h.T
+        dxin = jnp.concatenate([dp1, dgi[1]], axis=-1) @ w_in.T
+        _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c), s_next)
+        ds = ds + inputs_vjp(dxin)[0]  # every path into s_{t+1}
+        dz = ds * delta_std  # the output layer's
+        dzs = [dz]
+        for (kernel, _), u in zip(layers[:0:-1], hidden[::-1]):
+            dz = jnp.where(u > 0, dz @ kernel.T, 0.0)
+            dzs.append(dz)
+        return (dh_prev, ds, dz), (dgi, dgh, tuple(dzs[::-1]))
+
+    init = (jnp.stack([dh_re, dh_im]), ds_k, jnp.zeros(ds_k.shape[:1] + (N1,), ds_k.dtype))
+    (_, ds1, dp1), (dgi, dgh, dzs) = jax.lax.scan(back, init, (s_next, hidden, h, gi, gh), reverse=True,
+                                                  unroll=unroll)
+    _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c), p["s0"])
+    dxin0 = jnp.concatenate([dp1, jnp.zeros(dp1.shape[:1] + (3 * H,), dp1.dtype)], axis=-1) @ w_in.T
+    ds0 = ds1 + inputs_vjp(dxin0)[0]
+
+    # weights: layer l's input over the k steps (x its pre-activation's cotangent)
+    x_model = jnp.concatenate([xin0[None], xin[:-1]])[..., :O]  # the model's normalised input at steps 0..k-1
+    inputs = [jnp.concatenate([x_model, p["actions"]], axis=-1)] + list(hidden)
+    dlayers = tuple((_outer(x, dz), _sum_rows(dz)) for x, dz in zip(inputs, dzs))
+    dactions = dzs[0] @ layers[0][0][O:].T
+    scale_re, scale_im = c["scales"]
+    x_enc = (p["x_re"], xin[..., O:])  # the GRU's inputs: real rows, imagined rows
+
+    def gru_grad(rows):
+        return (_outer(x_enc[rows], dgi[:, rows]), _sum_rows(dgi[:, rows]), _outer(h[:, rows], dgh[:, rows]),
+                _sum_rows(dgh[:, rows, :, 2 * H:]))
+
+    grads = [_scaled(a, scale_re) + _scaled(b, scale_im) for a, b in zip(gru_grad(0), gru_grad(1))]
+    dp = dict(layers=dlayers, w_i=grads[0], b_i=grads[1], w_h=grads[2], b_hn=grads[3], s0=ds0, actions=dactions,
+              x_re=dgi[:, 0] @ w_i.T)
+    return dp, jax.tree.map(jnp.zeros_like, c)
+
+
+_chain.defvjp(_chain_fwd, _chain_bwd)
+
+
+def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.RunningStats, scales: tuple,
+                unroll: int = 1) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The k imagined steps of an MLPModel from s0 [W, O] under actions [k, W, A] and the GRU encodings of the real
+    (normalised) states x_re [k, W, D] and of the imagined ones (normalised by enc_obs): (h_re, h_im [W, H], s_k).
+
+    The same function as k steps of `mlp_step` and the GRU scanned (as `consistency_loss` does unfused), with a
+    backward written out: per step only the cotangents of states and hidden states, every weight's gradient
+    afterwards in one product over all steps; the real and imagined rows share each GRU product. The GRU's
+    gradient from the real rows is scaled by scales[0] and from the imagined rows by scales[1] (as
+    `scale_gradient` would on the encoder's parameters of each); the running statistics are constants.
+    """
+    w_i, b_i, w_h, b_hn = gru
+    p = dict(layers=tuple(tuple(layer) for layer in model.layers), w_i=w_i, b_i=b_i, w_h=w_h, b_hn=b_hn, s0=s0,
+             actions=actions, x_re=x_re)
+    c = jax.lax.stop_gradient(dict(model_obs=model.obs, delta=model.delta, enc_obs=enc_obs,
+                                   scales=tuple(jnp.asarray(x, jnp.float32) for x in scales)))
+    return _chain(unroll, p, c)
+
+
+# ---------------------------------------------------------------------------------------------------
 # The term
 
 
@@ -214,15 +403,19 @@ def _spread(x: jax.Array, mask: jax.Array) -> jax.Array:
 
 
 def consistency_loss(model_step: Callable, model_params, s0, actions, real_next, mask, *, kind: str,
-                     normalize: Callable, weights: PathWeights, encoder=None, encoder_params=None,
-                     unroll: int = 1) -> tuple[dict, dict]:
+                     normalize: Callable | nz.RunningStats, weights: PathWeights, encoder=None, encoder_params=None,
+                     unroll: int = 1, fused: bool = True) -> tuple[dict, dict]:
     """The consistency terms of a batch of windows: ({name: loss}, metrics).
 
     model_step(model_params, s [W, O], a [W, A]) -> s' imagines in raw state space; s0 [W, O] real start
     states; actions [k, W, A]; real_next [k, W, O] the real states s_1..s_k; mask [W]; normalize maps raw
-    states to the encoder's input space. For the GRU kinds, `encoder` is a module with
-    `apply(params, h, x) -> h'` (and, for grounded-gru, `apply(params, h, method="decode") -> [W, k*O]`).
-    One scan computes the imagined states and both encodings.
+    states to the encoder's input space (a function, or the RunningStats that `normalize.normalize` applies).
+    For the GRU kinds, `encoder` is a module with `apply(params, h, x) -> h'` (and, for grounded-gru,
+    `apply(params, h, method="decode") -> [W, k*O]`). One scan computes the imagined states and both encodings.
+
+    With `mlp_step` and an `MLPModel`, a GRU encoder whose parameters are a flax GRUCell's (`gru_weights`) and
+    normalize given as RunningStats, that scan runs fused (`fused_chain`: the same function, its backward
+    written out, a third of the kernels on a GPU) unless fused=False.
 
     Terms: "consistency" (l_cc, averaged over unmasked windows) and, for grounded-gru, "encoder_aux"
     (the reconstruction error of the real window plus the spread floor's hinge).
@@ -231,6 +424,9 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     assert kind in KINDS, kind
     assert s0.shape[0] == W and real_next.shape[:2] == (k, W) and mask.shape == (W,), (
         s0.shape, actions.shape, real_next.shape, mask.shape)
+    enc_obs = normalize if isinstance(normalize, nz.RunningStats) else None
+    if enc_obs is not None:
+        normalize = functools.partial(nz.normalize, enc_obs)
     model_params = scale_gradient(model_params, weights.model)
     actions = scale_gradient(actions, weights.policy)
     use_gru = kind != "l2"
@@ -239,6 +435,13 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
         encoder_params = jax.lax.stop_gradient(encoder_params)
     dim = encoder.features if use_gru else 1
     zeros = jnp.zeros((W, dim), jnp.float32)
+    gru = gru_weights(encoder_params) if use_gru else None
+    if fused and model_step is mlp_step and isinstance(model_params, MLPModel) and gru is not None and enc_obs is not None:
+        # real rows: the encoder's own parameters for grounded-gru (l_cc's share is scaled on h_re below), scaled
+        # ones otherwise; imagined rows: scaled (as the two encode() below)
+        scales = (1.0 if recon else weights.model, weights.model)
+        h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, unroll)
+        return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim)
 
     if recon:
         # Real rows with the encoder's own parameters (the reconstruction trains them at full weight, and
@@ -267,6 +470,12 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
 
     init = (s0, zeros, zeros, jnp.zeros((W,), jnp.float32))
     (s_im, h_re, h_im, acc), _ = jax.lax.scan(step, init, (actions, real_next), unroll=unroll)
+    return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim, acc)
+
+
+def _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim, acc=None):
+    """The terms and metrics of `consistency_loss` from the final encodings (or, for l2, acc) and state."""
+    use_gru, recon = kind != "l2", kind == "grounded-gru"
     terms = {}
     if recon:
         per_window = safe_norm(scale_gradient(h_re, weights.model) - h_im) / jnp.sqrt(float(dim))

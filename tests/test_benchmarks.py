@@ -14,9 +14,9 @@ from benchmarks import profile_summary, report  # noqa: E402
 from benchmarks.common import FULL, TINY  # noqa: E402
 from benchmarks.run import main  # noqa: E402
 from benchmarks.scaling import seed_scaling  # noqa: E402
-from benchmarks.throughput import DESIGNATED_CD  # noqa: E402
+from benchmarks.throughput import DESIGNATED_CD, PAPER_CD  # noqa: E402
 
-COMPARE = ["brax-ppo", "ceiling", "collect", "model-free", DESIGNATED_CD]
+COMPARE = ["brax-ppo", "ceiling", "collect", "model-free", "mbmf", DESIGNATED_CD, PAPER_CD]
 
 
 def test_matched_config_follows_brax_ppo_semantics():
@@ -195,6 +195,11 @@ def test_ratios_follow_from_raw_numbers(tiny):
     assert by["cd_vs_brax"]["value"] == pytest.approx(cd["env_steps_per_s"] / brax["env_steps_per_s"])
     assert by["mf_vs_brax"]["value"] == pytest.approx(mf["env_steps_per_s"] / brax["env_steps_per_s"])
     assert by["cd_compile_s"]["value"] == pytest.approx(cd["compile_s"])
+    paper, mbmf = rows[PAPER_CD], rows["mbmf"]
+    assert paper["wall_vs_mbmf"] == pytest.approx(paper["update_s"] / mbmf["update_s"])
+    assert by["paper_wall_vs_mbmf"]["value"] == pytest.approx(paper["wall_vs_mbmf"])
+    assert by["paper_seeds10_vs_mbmf"]["met"] is None  # 10 seeds of cd-paper and mbmf not measured here
+    assert paper["overrides"]["cc_epochs"] == 0 and paper["num_windows"] == TINY.unroll_length - TINY.horizon + 1
     assert by["seeds32_vs_1"]["met"] is None  # 32 seeds not measured at tiny sizes
 
 
@@ -242,12 +247,17 @@ def test_targets_and_scaling_on_hand_made_numbers():
                    _row("ceiling", 1_800_000.0, 0.5, kind="ceiling", steps_per_update=900_000),
                    _row("model-free", 490_000.0, steps / 490_000, kind="cdjax", arm="model-free",
                         steps_per_update=steps),
+                   _row("mbmf", 400_000.0, steps / 400_000, kind="cdjax", arm="mbmf", steps_per_update=steps),
                    _row(DESIGNATED_CD, 300_000.0, steps / 300_000, kind="cdjax", arm="cd", compile_s=70.0,
                         steps_per_update=steps),
+                   _row(PAPER_CD, 250_000.0, steps / 250_000, kind="cdjax", arm="cd", steps_per_update=steps,
+                        sgd_steps=256),
                    {"case": "cd-default", "status": "error", "error": "boom"}],
                    "seeds": [_row(DESIGNATED_CD, 10_000.0, 2.0, seeds=1, mesh_devices=1, mem_bytes=1_000),
                              _row(DESIGNATED_CD, 90_000.0, 7.1, seeds=32, mesh_devices=1, mem_bytes=32_000),
-                             {"case": DESIGNATED_CD, "status": "OOM", "seeds": 128, "mesh_devices": 1}]}}
+                             {"case": DESIGNATED_CD, "status": "OOM", "seeds": 128, "mesh_devices": 1},
+                             _row("mbmf", 50_000.0, 1.0, seeds=10, mesh_devices=1),
+                             _row(PAPER_CD, 40_000.0, 1.2, seeds=10, mesh_devices=1)]}}
     report.add_ratios(results)
     by = {t["target"]: t for t in report.targets(results)}
     assert by["cd_vs_brax"]["value"] == pytest.approx(300 / 245) and by["cd_vs_brax"]["met"]
@@ -255,10 +265,12 @@ def test_targets_and_scaling_on_hand_made_numbers():
     assert by["cd_wall_vs_mf"]["value"] == pytest.approx(490 / 300) and by["cd_wall_vs_mf"]["met"] is False
     assert by["seeds32_vs_1"]["value"] == pytest.approx(9.0) and by["seeds32_vs_1"]["met"]
     assert by["cd_compile_s"]["met"] is False
+    assert by["paper_wall_vs_mbmf"]["value"] == pytest.approx(400 / 250) and by["paper_wall_vs_mbmf"]["met"] is False
+    assert by["paper_seeds10_vs_mbmf"]["value"] == pytest.approx(1.2) and by["paper_seeds10_vs_mbmf"]["met"]
     md = report.markdown(results)
     assert "**MISSED**" in md and "boom" in md and "first OOM at 128" in md and "largest count that ran: 32" in md
     _assert_tables_rectangular(md)
-    assert "cd_wall_vs_mf missed" in md and "cd_compile_s missed" in md
+    assert "cd_wall_vs_mf missed" in md and "cd_compile_s missed" in md and "paper_wall_vs_mbmf missed" in md
     # linear fit through (1, 1000), (32, 32000): 1000 bytes per seed -> 64,000 bytes fit 64 seeds
     assert report.estimate_max_seeds(results["parts"]["seeds"], 64_000) == 64
     first = {"compare": [{"case": "x"}], "seeds": [{"case": "y", "seeds": 1}, {"case": "y", "seeds": 8, "v": 1}]}

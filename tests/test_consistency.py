@@ -1,5 +1,7 @@
 """The consistency module alone, on hand-made batches: windows, l_cc, encoders, the two gradient paths."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -209,3 +211,65 @@ def test_default_encoder_keeps_its_spread_while_l_cc_is_trained_down():
     assert s1 > 0.5 * s0 and s1 > 0.9 * cc.SPREAD_FLOOR, (s0, s1)
     g_l0, g_l1, g_s0, g_s1 = _train_encoder_and_model("gru")
     assert g_s1 < 0.5 * g_s0, (g_s0, g_s1)  # the same training collapses the ungrounded encoder
+
+
+def _mlp_model(obs=4, act=2, hidden=(16,), seed=5):
+    """An MLPModel with random weights and statistics (the obs-space agent's dynamics model in the fused form)."""
+    keys = iter(jax.random.split(jax.random.key(seed), 16))
+    sizes = (obs + act,) + hidden + (obs,)
+    layers = tuple((0.5 * jax.random.normal(next(keys), (a, b)) / np.sqrt(a), 0.1 * jax.random.normal(next(keys), (b,)))
+                   for a, b in zip(sizes[:-1], sizes[1:]))
+    stats = lambda key, scale: nz.update(nz.RunningStats.create(obs), scale * jax.random.normal(key, (64, obs)))  # noqa: E731
+    return cc.MLPModel(layers=layers, obs=stats(next(keys), 1.0), delta=stats(next(keys), 0.1))
+
+
+@pytest.mark.parametrize("kind,hidden,unroll", [("grounded-gru", (16,), 1), ("gru", (16, 12), K),
+                                                ("frozen-gru", (16,), 2)])
+def test_fused_chain_equals_the_scanned_term_values_and_gradients(kind, hidden, unroll):
+    """`mlp_step` with an MLPModel and a GRUCell encoder runs the fused chain: the same terms, metrics and gradients
+    (model layers, encoder, actions, start states) as the scanned term, under path weights apart and a mask."""
+    s0, actions, real = _real_windows(seed=1)
+    model = _mlp_model(hidden=hidden)
+    enc = _encoder(kind)
+    stats = model.obs
+    mask = jnp.arange(W) % 4 != 1
+    weights = cc.PathWeights(model=0.7, policy=0.3)
+
+    def loss(fused, model, params, acts, s0):
+        terms, metrics = cc.consistency_loss(cc.mlp_step, model, s0, acts, real, mask, kind=kind, normalize=stats,
+                                             weights=weights, encoder=enc["encoder"], encoder_params=params,
+                                             unroll=unroll, fused=fused)
+        return 1.3 * terms["consistency"] + 0.6 * terms.get("encoder_aux", 0.0), (terms, metrics)
+
+    args = (model, enc["encoder_params"], actions, s0)
+    (v_f, (t_f, m_f)), g_f = jax.jit(jax.value_and_grad(functools.partial(loss, True), argnums=(0, 1, 2, 3),
+                                                        has_aux=True))(*args)
+    (v_s, (t_s, m_s)), g_s = jax.jit(jax.value_and_grad(functools.partial(loss, False), argnums=(0, 1, 2, 3),
+                                                        has_aux=True))(*args)
+    np.testing.assert_allclose(v_f, v_s, rtol=1e-5)
+    for name in m_s:
+        np.testing.assert_allclose(m_f[name], m_s[name], rtol=1e-5, atol=1e-7, err_msg=name)
+    assert float(v_f) > 0
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_s), jax.tree.leaves(g_f)):
+        np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6, err_msg=jax.tree_util.keystr(path))
+    model_grads, enc_grads, action_grads, _ = g_f
+    assert float(jnp.abs(action_grads).max()) > 0 and float(jnp.abs(model_grads.layers[0][0]).max()) > 0
+    moved = any(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(enc_grads))
+    assert moved == (kind != "frozen-gru")
+
+
+def test_mlp_step_is_the_agents_model_step():
+    """The obs-space agent's model in the fused form (`ObsAgent.mlp_model`) steps exactly as its model_step."""
+    from cdjax.agents.obs import networks
+    from cdjax.agents.obs.agent import ObsAgent
+
+    from _shared import POINT
+
+    agent = ObsAgent(POINT.replace(model_hidden=(16, 8)))
+    params = networks.init_params(agent.modules, jax.random.key(0), agent.O, agent.A, -0.5)
+    norms = nz.Norms(obs=_stats(), delta=nz.update(nz.RunningStats.create(4), 0.1 * jax.random.normal(
+        jax.random.key(3), (64, 4))), reward=nz.RunningStats.create(1))
+    s = jax.random.normal(jax.random.key(4), (7, agent.O))
+    a = jax.random.uniform(jax.random.key(5), (7, agent.A), minval=-1, maxval=1)
+    np.testing.assert_allclose(cc.mlp_step(agent.mlp_model(params["model"], norms), s, a),
+                               agent.model_step(params["model"], norms, s, a)[0], rtol=1e-6, atol=1e-6)

@@ -131,6 +131,15 @@ class ObsAgent:
         reward = nz.denormalize(norms.reward, mean[..., -1:])[..., 0]
         return next_obs, reward
 
+    def mlp_model(self, model_params, norms) -> consistency.MLPModel:
+        """The dynamics model in the form the consistency term runs fused: its layers up to the mean head's
+        state columns (`model_step`'s next state; the reward column and the log-std head are not used)."""
+        p = model_params["params"]
+        n = len(self.config.model_hidden)
+        layers = [(p[f"Dense_{i}"]["kernel"], p[f"Dense_{i}"]["bias"]) for i in range(n)]
+        layers.append((p[f"Dense_{n}"]["kernel"][:, :self.O], p[f"Dense_{n}"]["bias"][:self.O]))
+        return consistency.MLPModel(layers=tuple(layers), obs=norms.obs, delta=norms.delta)
+
     def act(self, params, norms, obs, key):
         mean, std = self.policy.apply(params["policy"], nz.normalize(norms.obs, obs))
         if key is None:
@@ -197,9 +206,8 @@ class ObsAgent:
             s0, window_actions, real_next, mask = consistency.windows(mb.obs, mb.next_obs, actions, mb.ended,
                                                                       mb.valid, offsets, self.k)
             cc_terms, cc_metrics = consistency.consistency_loss(
-                lambda p, s, a: self.model_step(p, norms, s, a)[0], params["model"], s0, window_actions, real_next,
-                mask,
-                kind=self.config.encoder, normalize=functools.partial(nz.normalize, norms.obs),
+                consistency.mlp_step, self.mlp_model(params["model"], norms), s0, window_actions, real_next, mask,
+                kind=self.config.encoder, normalize=norms.obs,
                 weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=self.encoder,
                 encoder_params=params.get("encoder"), unroll=self.config.cc_unroll)
             terms.update(cc_terms)
@@ -225,17 +233,17 @@ class ObsAgent:
             return {name: weights[name] * term for name, term in terms.items()}
 
         out, pullback = jax.vjp(weighted, params)
+        names = list(out)
+        # one backward pass for all terms (the pullback vmapped over one-hot cotangents), not one per term
+        cotangents = {n: (jnp.arange(len(names)) == i).astype(out[n].dtype) for i, n in enumerate(names)}
+        (stacked,) = jax.vmap(pullback)(cotangents)  # leaves [terms, ...]
         metrics = {}
-        total = jax.tree.map(jnp.zeros_like, params)
-        for name in out:
-            cotangent = {n: jnp.ones_like(v) if n == name else jnp.zeros_like(v) for n, v in out.items()}
-            (grads,) = pullback(cotangent)
-            total = jax.tree.map(jnp.add, total, grads)
+        for i, name in enumerate(names):
             for group in TERM_GROUPS[name]:
-                if group in grads:
-                    metrics[f"grad/{name}/{group}"] = optax.global_norm(grads[group])
-        for group, g in total.items():
-            metrics[f"grad/total/{group}"] = optax.global_norm(g)
+                if group in stacked:
+                    metrics[f"grad/{name}/{group}"] = optax.global_norm(jax.tree.map(lambda g: g[i], stacked[group]))
+        for group, g in stacked.items():
+            metrics[f"grad/total/{group}"] = optax.global_norm(jax.tree.map(lambda x: x.sum(0), g))
         return metrics
 
     def openloop_metrics(self, model_params, norms, history: History) -> dict:
