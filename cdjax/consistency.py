@@ -236,142 +236,146 @@ def gru_gates(gi: jax.Array, gh: jax.Array, h: jax.Array) -> jax.Array:
     return (1.0 - z) * n + z * h
 
 
-def _sum_rows(x: jax.Array) -> jax.Array:
-    return x.reshape(-1, x.shape[-1]).sum(0)
+def _outer(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """A layer's (kernel, bias) gradient summed over every leading axis (every step and row at once) from its
+    inputs a [..., I] and its outputs' cotangents b [..., J]: one matrix product of [a, 1] and b."""
+    a = jnp.concatenate([a, jnp.ones(a.shape[:-1] + (1,), a.dtype)], axis=-1)
+    g = a.reshape(-1, a.shape[-1]).T @ b.reshape(-1, b.shape[-1])
+    return g[:-1], g[-1]
 
 
-def _outer(a: jax.Array, b: jax.Array) -> jax.Array:
-    """sum over the leading axes of a [..., I] (x) b [..., J] -> [I, J]: a weight's gradient over all steps at once."""
-    return a.reshape(-1, a.shape[-1]).T @ b.reshape(-1, b.shape[-1])
+def _chain_inputs(c: dict, shared: bool, s: jax.Array) -> jax.Array:
+    """The model's normalised input of states s [W, O], and unless `shared` the encoder's beside it: [W, O or 2O]."""
+    x = nz.normalize(c["model_obs"], s)
+    return x if shared else jnp.concatenate([x, nz.normalize(c["enc_obs"], s)], axis=-1)
 
 
-def _scaled(g: jax.Array, s: jax.Array) -> jax.Array:
-    return _scale_bwd(s, g)[0]
-
-
-def _chain_inputs(c: dict, s: jax.Array) -> jax.Array:
-    """[the model's normalised input | the encoder's] of states s [W, O] -> [W, 2O]."""
-    return jnp.concatenate([nz.normalize(c["model_obs"], s), nz.normalize(c["enc_obs"], s)], axis=-1)
+def _gates(c: dict, gi_re, both_im, hh, h):
+    """One GRU step of the real and imagined rows (h [2, W, H]) from the real rows' input part gi_re [W, 3H], the
+    imagined rows' raw product both_im [W, 3H] (x W_i, no bias) and the raw recurrent product hh [2, W, 3H]."""
+    gi = jnp.stack([gi_re, both_im + c["b_i"]])
+    return gru_gates(gi, hh + c["gh_bias"], h)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _chain(unroll: int, p: dict, c: dict):
-    return _chain_fwd(unroll, p, c)[0]
+def _chain(shared: bool, p: dict, c: dict):
+    return _chain_fwd(shared, p, c)[0]
 
 
-def _chain_fwd(unroll: int, p: dict, c: dict):
-    """The k imagined steps and both encodings: -> ((h_re [W, H], h_im [W, H], s_k [W, O]), residuals).
+def _chain_fwd(shared: bool, p: dict, c: dict):
+    """The k imagined steps and both encodings, unrolled: -> ((h_re [W, H], h_im [W, H], s_k [W, O]), residuals).
 
     Per step, three matrix products: the model's hidden layer(s) and output, then one product of the new
-    state's [model input | encoder input] with [first layer's state rows (+) W_i] (the next step's first layer
-    and this step's imagined GRU input at once), and one of [h_re; h_im] with W_h. The real rows' GRU inputs and
-    the actions' share of the first layer do not depend on the chain: one product each, before it.
+    state's normalised input with [first layer's state rows | W_i] (the next step's first layer and this step's
+    imagined GRU input at once), and one of [h_re; h_im] with W_h. The real rows' GRU inputs and the actions'
+    share of the first layer do not depend on the chain: one product each, before it. The residuals are the
+    per-step arrays as they are (a list per kind), never written into stacked buffers step by step.
     """
-    layers, w_i, b_i, w_h, b_hn = p["layers"], p["w_i"], p["b_i"], p["w_h"], p["b_hn"]
+    layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
     s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
-    O, H = s0.shape[-1], w_h.shape[0]
+    k, O = actions.shape[0], s0.shape[-1]
     (w_1, b_1), (w_out, b_out) = layers[0], layers[-1]
     N1 = w_1.shape[1]
-    w_in = jnp.zeros((2 * O, N1 + 3 * H), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
-    gh_bias = jnp.concatenate([jnp.zeros((2 * H,), b_hn.dtype), b_hn])
-    gi_re = x_re @ w_i + b_i  # [k, W, 3H]
+    if shared:  # the model and the encoder normalise alike: one input, [W1_x | W_i]
+        w_in = jnp.concatenate([w_1[:O], w_i], axis=1)
+    else:  # [model input | encoder input] times the block-diagonal [[W1_x, 0], [0, W_i]]
+        w_in = jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
+    c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
+    gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
     z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
-    xin0 = _chain_inputs(c, s0)
-    p1 = (xin0 @ w_in)[:, :N1]
-    h0 = jnp.zeros((2,) + s0.shape[:1] + (H,), s0.dtype)
-
-    def step(carry, inp):
-        s, p1, h = carry
-        z1a, gi_re_t = inp
-        u = jax.nn.relu(p1 + z1a)
-        hidden = [u]
+    states, xin = [s0], [_chain_inputs(c, shared, s0)]
+    p1 = xin[0] @ w_in[:, :N1]
+    hs = [jnp.zeros((2,) + s0.shape[:1] + (w_h.shape[0],), s0.dtype)]
+    hidden, both_im, hh = [], [], []
+    for t in range(k):
+        u = jax.nn.relu(p1 + z1_actions[t])
+        us = [u]
         for kernel, bias in layers[1:-1]:
             u = jax.nn.relu(u @ kernel + bias)
-            hidden.append(u)
-        s_next = s + nz.denormalize(c["delta"], u @ w_out + b_out)
-        xin = _chain_inputs(c, s_next)
-        both = xin @ w_in  # [W, N1 + 3H]: the next step's first layer (state part) | this step's GRU input
-        gi = jnp.stack([gi_re_t, both[:, N1:] + b_i])  # [2, W, 3H]: real rows, imagined rows
-        gh = h @ w_h + gh_bias
-        return (s_next, both[:, :N1], gru_gates(gi, gh, h)), (s_next, tuple(hidden), xin, h, gi, gh)
+            us.append(u)
+        states.append(states[-1] + nz.denormalize(c["delta"], u @ w_out + b_out))
+        xin.append(_chain_inputs(c, shared, states[-1]))
+        both = xin[-1] @ w_in  # [W, N1 + 3H]: the next step's first layer (state part) | this step's GRU input
+        p1 = both[:, :N1]
+        hidden.append(us)
+        both_im.append(both[:, N1:])
+        hh.append(hs[-1] @ w_h)
+        hs.append(_gates(c, gi_re[t], both_im[-1], hh[-1], hs[-1]))
+    residuals = (p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs)
+    return (hs[-1][0], hs[-1][1], states[-1]), residuals
 
-    (s_k, _, h_k), (s_next, hidden, xin, h, gi, gh) = jax.lax.scan(step, (s0, p1, h0), (z1_actions, gi_re),
-                                                                   unroll=unroll)
-    residuals = (p, c, w_in, xin0, s_next, hidden, xin, h, gi, gh)
-    return (h_k[0], h_k[1], s_k), residuals
 
-
-def _chain_bwd(unroll: int, residuals, cotangents):
-    """The chain's backward: per step, the cotangents of the states and hidden states alone (three matrix
-    products); every weight's gradient afterwards, one product over all k steps each."""
-    p, c, w_in, xin0, s_next, hidden, xin, h, gi, gh = residuals
-    layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
-    dh_re, dh_im, ds_k = cotangents
-    O, H = p["s0"].shape[-1], w_h.shape[0]
+def _chain_bwd(shared: bool, residuals, cotangents):
+    """The chain's backward, unrolled: per step only the cotangents of the states and hidden states (three
+    matrix products); every weight's gradient afterwards, one product over all k steps and both row kinds each
+    (the bias as the product's last row)."""
+    p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs = residuals
+    layers, w_h = p["layers"], p["w_h"]
+    dh_re, dh_im, ds = cotangents
+    k, O = len(hidden), ds.shape[-1]
     N1 = layers[0][0].shape[1]
     delta_std = c["delta"].std  # d denormalize(delta, z) / dz
-
-    def back(carry, inp):
-        dh, ds, dp1 = carry  # cotangents of h_{t+1}, of s_{t+2}'s identity path into s_{t+1}, of p1_{t+1}
-        s_next, hidden, h, gi, gh = inp
-        _, gates_vjp = jax.vjp(gru_gates, gi, gh, h)
-        dgi, dgh, dh_prev = gates_vjp(dh)
-        dh_prev = dh_prev + dgh @ w_h.T
-        dxin = jnp.concatenate([dp1, dgi[1]], axis=-1) @ w_in.T
-        _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c), s_next)
+    dh, dp1 = jnp.stack([dh_re, dh_im]), None  # cotangents of h_{t+1} and of the next step's first layer
+    dgi, dhh, dzs = [None] * k, [None] * k, [None] * k
+    for t in reversed(range(k)):
+        _, gates_vjp = jax.vjp(functools.partial(_gates, c), gi_re[t], both_im[t], hh[t], hs[t])
+        dgi_re, dgi_im, dhh[t], dh_direct = gates_vjp(dh)
+        dgi[t] = jnp.stack([dgi_re, dgi_im])
+        dh = dh_direct + dhh[t] @ w_h.T
+        dboth = dgi_im if dp1 is None else jnp.concatenate([dp1, dgi_im], axis=-1)
+        dxin = dboth @ (w_in[:, N1:] if dp1 is None else w_in).T
+        _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[t + 1])
         ds = ds + inputs_vjp(dxin)[0]  # every path into s_{t+1}
         dz = ds * delta_std  # the output layer's
-        dzs = [dz]
-        for (kernel, _), u in zip(layers[:0:-1], hidden[::-1]):
+        dzs[t] = [dz]
+        for (kernel, _), u in zip(layers[:0:-1], hidden[t][::-1]):
             dz = jnp.where(u > 0, dz @ kernel.T, 0.0)
-            dzs.append(dz)
-        return (dh_prev, ds, dz), (dgi, dgh, tuple(dzs[::-1]))
+            dzs[t].append(dz)
+        dzs[t] = dzs[t][::-1]
+        dp1 = dz
+    _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[0])
+    ds0 = ds + inputs_vjp(dp1 @ w_in[:, :N1].T)[0]
 
-    init = (jnp.stack([dh_re, dh_im]), ds_k, jnp.zeros(ds_k.shape[:1] + (N1,), ds_k.dtype))
-    (_, ds1, dp1), (dgi, dgh, dzs) = jax.lax.scan(back, init, (s_next, hidden, h, gi, gh), reverse=True,
-                                                  unroll=unroll)
-    _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c), p["s0"])
-    dxin0 = jnp.concatenate([dp1, jnp.zeros(dp1.shape[:1] + (3 * H,), dp1.dtype)], axis=-1) @ w_in.T
-    ds0 = ds1 + inputs_vjp(dxin0)[0]
-
-    # weights: layer l's input over the k steps (x its pre-activation's cotangent)
-    x_model = jnp.concatenate([xin0[None], xin[:-1]])[..., :O]  # the model's normalised input at steps 0..k-1
-    inputs = [jnp.concatenate([x_model, p["actions"]], axis=-1)] + list(hidden)
-    dlayers = tuple((_outer(x, dz), _sum_rows(dz)) for x, dz in zip(inputs, dzs))
-    dactions = dzs[0] @ layers[0][0][O:].T
-    scale_re, scale_im = c["scales"]
-    x_enc = (p["x_re"], xin[..., O:])  # the GRU's inputs: real rows, imagined rows
-
-    def gru_grad(rows):
-        return (_outer(x_enc[rows], dgi[:, rows]), _sum_rows(dgi[:, rows]), _outer(h[:, rows], dgh[:, rows]),
-                _sum_rows(dgh[:, rows, :, 2 * H:]))
-
-    grads = [_scaled(a, scale_re) + _scaled(b, scale_im) for a, b in zip(gru_grad(0), gru_grad(1))]
-    dp = dict(layers=dlayers, w_i=grads[0], b_i=grads[1], w_h=grads[2], b_hn=grads[3], s0=ds0, actions=dactions,
-              x_re=dgi[:, 0] @ w_i.T)
-    return dp, jax.tree.map(jnp.zeros_like, c)
+    stack = lambda xs: jnp.stack(xs)  # noqa: E731 - [k, ...]: one copy per kind, after the loop
+    dz_layers = [stack([d[i] for d in dzs]) for i in range(len(layers))]
+    model_in = jnp.concatenate([stack(xin[:-1])[..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
+    inputs = [model_in] + [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
+    dlayers = tuple(_outer(x, dz) for x, dz in zip(inputs, dz_layers))
+    dactions = dz_layers[0] @ layers[0][0][O:].T
+    # the GRU's weights: real and imagined rows in one product, each kind's cotangent scaled as scale_gradient would
+    scales = jnp.stack(c["scales"])[None, :, None, None]
+    scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
+    dgi = stack(dgi)  # [k, 2, W, 3H]
+    x_enc = jnp.stack([p["x_re"], stack(xin[1:])[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2, W, D]
+    dw_i, db_i = _outer(x_enc, scaled(dgi))
+    dw_h, dgh_bias = _outer(stack(hs[:-1]), scaled(stack(dhh)))
+    H = w_h.shape[0]
+    dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
+              x_re=dgi[:, 0] @ p["w_i"].T)
+    return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
 
 
 _chain.defvjp(_chain_fwd, _chain_bwd)
 
 
 def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.RunningStats, scales: tuple,
-                unroll: int = 1) -> tuple[jax.Array, jax.Array, jax.Array]:
+                shared: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The k imagined steps of an MLPModel from s0 [W, O] under actions [k, W, A] and the GRU encodings of the real
     (normalised) states x_re [k, W, D] and of the imagined ones (normalised by enc_obs): (h_re, h_im [W, H], s_k).
 
-    The same function as k steps of `mlp_step` and the GRU scanned (as `consistency_loss` does unfused), with a
-    backward written out: per step only the cotangents of states and hidden states, every weight's gradient
+    The same function as k steps of `mlp_step` and the GRU scanned (as `consistency_loss` does unfused), unrolled,
+    with a backward written out: per step only the cotangents of states and hidden states, every weight's gradient
     afterwards in one product over all steps; the real and imagined rows share each GRU product. The GRU's
     gradient from the real rows is scaled by scales[0] and from the imagined rows by scales[1] (as
     `scale_gradient` would on the encoder's parameters of each); the running statistics are constants.
+    `shared`: enc_obs is the model's own obs statistics (one normalised input serves both).
     """
     w_i, b_i, w_h, b_hn = gru
     p = dict(layers=tuple(tuple(layer) for layer in model.layers), w_i=w_i, b_i=b_i, w_h=w_h, b_hn=b_hn, s0=s0,
              actions=actions, x_re=x_re)
     c = jax.lax.stop_gradient(dict(model_obs=model.obs, delta=model.delta, enc_obs=enc_obs,
                                    scales=tuple(jnp.asarray(x, jnp.float32) for x in scales)))
-    return _chain(unroll, p, c)
+    return _chain(shared, p, c)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -427,6 +431,7 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     enc_obs = normalize if isinstance(normalize, nz.RunningStats) else None
     if enc_obs is not None:
         normalize = functools.partial(nz.normalize, enc_obs)
+    shared = isinstance(model_params, MLPModel) and model_params.obs is enc_obs  # the caller's own statistics object
     model_params = scale_gradient(model_params, weights.model)
     actions = scale_gradient(actions, weights.policy)
     use_gru = kind != "l2"
@@ -440,7 +445,7 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
         # real rows: the encoder's own parameters for grounded-gru (l_cc's share is scaled on h_re below), scaled
         # ones otherwise; imagined rows: scaled (as the two encode() below)
         scales = (1.0 if recon else weights.model, weights.model)
-        h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, unroll)
+        h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared)
         return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim)
 
     if recon:

@@ -54,6 +54,12 @@ class Sweep:
     init: Callable[[jax.Array, HP], State]  # (keys [R], hps [R]) -> state [R]
     _run: Callable  # jitted (state, hps, num_updates) -> (state, metrics [R, n])
     _phase: Callable | None = None  # jitted (state, hps) -> (state, info [R]): the pre-update phase of every run
+    _chunk: Callable | None = None  # jitted (state, hps, length, n) -> (state, metrics [R, length]): n <= length run
+
+    @property
+    def sharding(self) -> NamedSharding:
+        """The sharding of every leaf of the runs' state, hps and metrics: the run axis over the mesh."""
+        return NamedSharding(self.mesh, PartitionSpec(AXIS))
 
     @property
     def num_devices(self) -> int:
@@ -66,6 +72,12 @@ class Sweep:
     def lower(self, state: State, hps: HP, num_updates: int):
         """The lowered chunk program (call .compile() on it to time compilation apart)."""
         return self._run.lower(state, hps, num_updates)
+
+    def lower_chunk(self, state: State, hps: HP, length: int):
+        """The lowered program of up to `length` updates: compiled, it is called as (state, hps, n) and runs the
+        first n <= length of them (metrics [R, length], rows n.. NaN). One program serves a run's full chunks and
+        its last, shorter one."""
+        return self._chunk.lower(state, hps, length, jnp.int32(length))
 
     def phase(self, state: State, hps: HP):
         """The phase of every run: (state [R] ready for the updates, info {name: [R]})."""
@@ -124,6 +136,22 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None)
         state, metrics = jax.vmap(one_run)(state, hps)
         return place(state), place(metrics)
 
+    update = jax.jit(trainer.update)  # a jit here only so that its trace serves both branches' shapes below
+
+    @functools.partial(jax.jit, static_argnums=2, donate_argnums=0)
+    def chunk(state, hps, length, n):
+        def one_run(state, hp):
+            _, skipped = jax.eval_shape(update, state, hp)  # the metrics' shapes (update's trace is cached)
+            nan = jax.tree.map(lambda m: jnp.full(m.shape, jnp.nan, m.dtype), skipped)
+
+            def step(s, i):  # updates from the n-th on leave the state as it is (an unbatched predicate: a cond)
+                return jax.lax.cond(i < n, lambda s: update(s, hp), lambda s: (s, nan), s)
+
+            return jax.lax.scan(step, state, jnp.arange(length))
+
+        state, metrics = jax.vmap(one_run)(state, hps)
+        return place(state), place(metrics)
+
     phase_run = None
     if phase is not None:
 
@@ -132,4 +160,4 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None)
             state, info = jax.vmap(phase)(state, hps)
             return place(state), place(info)
 
-    return Sweep(trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run)
+    return Sweep(trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run, _chunk=chunk)

@@ -223,15 +223,16 @@ def _mlp_model(obs=4, act=2, hidden=(16,), seed=5):
     return cc.MLPModel(layers=layers, obs=stats(next(keys), 1.0), delta=stats(next(keys), 0.1))
 
 
-@pytest.mark.parametrize("kind,hidden,unroll", [("grounded-gru", (16,), 1), ("gru", (16, 12), K),
-                                                ("frozen-gru", (16,), 2)])
-def test_fused_chain_equals_the_scanned_term_values_and_gradients(kind, hidden, unroll):
+@pytest.mark.parametrize("kind,hidden,unroll,shared", [("grounded-gru", (16,), 1, True), ("gru", (16, 12), K, False),
+                                                       ("frozen-gru", (16,), 2, True)])
+def test_fused_chain_equals_the_scanned_term_values_and_gradients(kind, hidden, unroll, shared):
     """`mlp_step` with an MLPModel and a GRUCell encoder runs the fused chain: the same terms, metrics and gradients
-    (model layers, encoder, actions, start states) as the scanned term, under path weights apart and a mask."""
+    (model layers, encoder, actions, start states) as the scanned term, under path weights apart and a mask; with
+    the encoder normalising by the model's own statistics (shared) or by others."""
     s0, actions, real = _real_windows(seed=1)
     model = _mlp_model(hidden=hidden)
     enc = _encoder(kind)
-    stats = model.obs
+    stats = model.obs if shared else _stats()
     mask = jnp.arange(W) % 4 != 1
     weights = cc.PathWeights(model=0.7, policy=0.3)
 

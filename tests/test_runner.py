@@ -102,6 +102,23 @@ def test_interrupted_run_keeps_logs_and_checkpoints_and_resume_gives_the_same_nu
     _assert_same_states(_states(out), _states(uninterrupted))
 
 
+def test_a_second_sweep_in_the_process_builds_traces_and_compiles_nothing(uninterrupted, tmp_path, monkeypatch):
+    """run_sweep of the same spec again in this process (another --out): every trainer, sweep and program comes
+    from the process's cache (nothing is built, lowered or compiled), and the run is the same."""
+    import cdjax.runner.arms as arms
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("built again")
+
+    monkeypatch.setattr(arms, "make_sweep", refuse)
+    entries = len(arms._COMPILED)
+    out = tmp_path / "again"
+    run_sweep(dataclasses.replace(SPEC, out=out))
+    assert len(arms._COMPILED) == entries
+    assert _rows(out) == _rows(uninterrupted)
+    _assert_same_states(_states(out), _states(uninterrupted))
+
+
 def test_time_limit_stops_before_the_round_that_would_end_past_it():
     now = [100.0]
     limit = TimeLimit(60, clock=lambda: now[0])
@@ -266,6 +283,8 @@ def test_programs_compiled_in_parallel_threads_give_the_same_run(phased, tmp_pat
     import cdjax.runner.arms as arms
 
     monkeypatch.setattr(arms, "compile_workers", lambda: 3)
+    monkeypatch.setattr(arms, "_BUILT", {})  # nothing from this process's cache: every program compiled again
+    monkeypatch.setattr(arms, "_COMPILED", {})
     out = tmp_path / "threads"
     run_sweep(dataclasses.replace(PHASE_SPEC, out=out))
     assert _rows(out) == _rows(phased)

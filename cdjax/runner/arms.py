@@ -23,6 +23,10 @@ from cdjax.runner.spec import SweepSpec
 from cdjax.sweep import Sweep, make_sweep
 
 EVAL_TAG = 0x0E7A1  # folded into each run's training key to get its evaluation key
+# This process's trainers, sweeps and compiled programs, by what they are built from: a second run_sweep of the
+# same spec (a notebook's next cell, a resume in the same process) builds, traces and compiles nothing again.
+_BUILT: dict = {}
+_COMPILED: dict = {}
 
 
 @dataclasses.dataclass
@@ -42,7 +46,9 @@ class Arm:
     saved: int = -1  # updates held by the newest checkpoint
     wall_offset: float = 0.0  # training seconds of earlier processes (restored)
     pending: tuple | None = None  # (new_state, metrics, n, wall_start) dispatched, not yet logged
-    programs: dict = dataclasses.field(default_factory=dict)  # "init", "phase", n -> compiled program
+    programs: dict = dataclasses.field(default_factory=dict)  # "init", "phase", "chunk" -> compiled program
+    chunk: int = 0  # updates the chunk program holds (it runs any n <= chunk of them)
+    state_bytes: int = 0  # one run's state (check_memory)
     last_return: float = float("nan")
     phase_done: bool = True  # False until this arm's phase has run (or been restored)
     warned: bool = False  # the setting's watch has spoken (once per arm and process)
@@ -69,20 +75,58 @@ class Arm:
             self.programs["phase"] = self.sweep.lower_phase(self.abstract, self.hps).compile()
         return self.programs.pop("phase")
 
-    def chunk_program(self, n: int):
-        """The compiled program of n updates (compiled now if it was not in advance)."""
-        if n not in self.programs:
-            self.programs[n] = self.sweep.lower(self.abstract, self.hps, n).compile()
-        return self.programs[n]
+    def chunk_program(self):
+        """The compiled program of up to `chunk` updates, called (state, hps, n) (compiled now if it was not in
+        advance)."""
+        if "chunk" not in self.programs:
+            self.programs["chunk"] = _compiled(self, "chunk", self.sweep.lower_chunk, self.abstract, self.hps,
+                                               self.chunk)
+        return self.programs["chunk"]
 
 
 def build(plan: ArmPlan, spec: SweepSpec, setting: Setting) -> Arm:
-    """The arm's trainer and (uncompiled) programs; nothing is allocated on the devices yet."""
-    trainer = setting.make_trainer(plan.config)
-    phase = setting.phase.make(trainer, plan.phase) if plan.phase is not None else None
-    sweep = make_sweep(trainer, phase=phase)
+    """The arm's trainer and (uncompiled) programs; nothing is allocated on the devices yet. The same setting,
+    config and phase in this process get the same trainer and sweep (and so their compiled programs)."""
+    key = (setting.name, plan.config, plan.phase, tuple(jax.devices()))
+    if key not in _BUILT:
+        trainer = setting.make_trainer(plan.config)
+        phase = setting.phase.make(trainer, plan.phase) if plan.phase is not None else None
+        _BUILT[key] = (trainer, make_sweep(trainer, phase=phase))
+    trainer, sweep = _BUILT[key]
     return Arm(plan, trainer, sweep, keys=None, hps=None, num_runs=len(plan.hparams) * spec.seeds,
                phase_done=plan.phase is None)
+
+
+def _avals(tree) -> tuple:
+    """What a compiled program's inputs must be: the tree's structure, shapes, dtypes and shardings (static
+    values as they are)."""
+    leaves, treedef = jax.tree.flatten(tree)
+    return treedef, tuple((x.shape, str(x.dtype), getattr(x, "sharding", None)) if hasattr(x, "shape") else x
+                          for x in leaves)
+
+
+def _lowered(arm: Arm, what: str, lower: Callable, *args):
+    """lower(*args) of arm's sweep, from this process's cache when it was lowered before for the same inputs."""
+    key = (id(arm.sweep), what, "lowered", _avals(args))
+    if key not in _COMPILED:
+        _COMPILED[key] = (arm.sweep, lower(*args))  # the sweep held: its id stays its own while the entry lives
+    return _COMPILED[key][1]
+
+
+def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None):
+    """The compiled program `what` of arm's sweep for these inputs (static ints included): from this process's
+    cache, else lowered now and compiled (in `pool`, returning a future, when given)."""
+    key = (id(arm.sweep), what, _avals(args))
+    if key in _COMPILED:
+        return _COMPILED[key][1]
+    lowered = _lowered(arm, what, lower, *args)
+
+    def compile_():
+        program = lowered.compile()
+        _COMPILED[key] = (arm.sweep, program)
+        return program
+
+    return compile_() if pool is None else pool.submit(compile_)
 
 
 def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
@@ -91,9 +135,15 @@ def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
     rows = []
     for arm in arms:
         hp = arm.plan.hparams[0]
-        state = budget.tree_bytes(jax.eval_shape(arm.trainer.init, key, hp))
-        env = arm.trainer.eval_env(spec.eval_episodes)
-        evaluation = budget.tree_bytes(jax.eval_shape(env.reset, key)) if spec.final_eval or spec.eval_every else 0
+        evaluated = spec.final_eval or spec.eval_every
+        cache = (id(arm.sweep), "bytes", spec.eval_episodes if evaluated else 0, _avals(hp))
+        if cache not in _COMPILED:
+            state = budget.tree_bytes(jax.eval_shape(arm.trainer.init, key, hp))
+            env = arm.trainer.eval_env(spec.eval_episodes)
+            evaluation = budget.tree_bytes(jax.eval_shape(env.reset, key)) if evaluated else 0
+            _COMPILED[cache] = (arm.sweep, (state, evaluation))
+        state, evaluation = _COMPILED[cache][1]
+        arm.state_bytes = state
         rows.append((arm.name, arm.num_runs, state, evaluation))
     return budget.check_states(rows, jax.device_count())
 
@@ -104,34 +154,32 @@ def compile_workers() -> int:
     return max(1, (os.cpu_count() or 1) // 2)
 
 
-def _compile(jobs: list[tuple[Arm, Any, Any]]) -> None:
-    workers = min(len(jobs), compile_workers())
-    if workers > 1:
-        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-            programs = list(pool.map(lambda job: job[2].compile(), jobs))
-    else:
-        programs = [job[2].compile() for job in jobs]
-    for (arm, what, _), program in zip(jobs, programs):
-        arm.programs[what] = program
-
-
 def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
-    """Compile every arm's init, its phase (if it has yet to run) and its chunk programs (the first and
-    the last, shorter chunk from `done[arm]` updates on: those of the checkpoint a resume expects to
-    restore), in parallel threads, from shapes alone."""
-    _compile([(arm, "init", arm.sweep.init.lower(arm.keys, arm.hps)) for arm in arms])
-    jobs = []
-    for arm in arms:
-        shapes = jax.eval_shape(arm.sweep.init, arm.keys, arm.hps)
-        arm.abstract = jax.tree.map(lambda s, sh: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sh), shapes,
-                                    arm.programs["init"].output_shardings)
-        start = done.get(arm.name, -1)  # updates of the checkpoint a resume will restore (-1: none)
-        if not arm.phase_done and start < 0:
-            jobs.append((arm, "phase", arm.sweep.lower_phase(arm.abstract, arm.hps)))
-        left = arm.num_updates - max(start, 0)
-        sizes = {min(chunk, left), left % chunk} if left > 0 else set()
-        jobs += [(arm, n, arm.sweep.lower(arm.abstract, arm.hps, n)) for n in sorted(sizes - {0})]
-    _compile(jobs)
+    """Compile every arm's init, its phase (if it has yet to run) and its chunk program (of min(chunk, updates)
+    updates: it also runs the last, shorter chunk), in parallel threads, from shapes alone.
+
+    Each program is handed to a compiling thread as soon as it is traced, so the tracing of one (Python) overlaps
+    the compilation of the others (XLA, without the GIL); the arms with the largest states (the largest programs,
+    in practice) first. Programs this process compiled before are taken from its cache.
+    """
+    order = sorted(arms, key=lambda a: -getattr(a, "state_bytes", 0))
+    with concurrent.futures.ThreadPoolExecutor(compile_workers()) as pool:
+        jobs = []
+        for arm in order:
+            lowered_init = _lowered(arm, "init", arm.sweep.init.lower, arm.keys, arm.hps)
+            jobs.append((arm, "init", _compiled(arm, "init", arm.sweep.init.lower, arm.keys, arm.hps, pool=pool)))
+            arm.abstract = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=arm.sweep.sharding),
+                                        lowered_init.out_info)
+            start = done.get(arm.name, -1)  # updates of the checkpoint a resume will restore (-1: none)
+            if not arm.phase_done and start < 0:
+                jobs.append((arm, "phase", _compiled(arm, "phase", arm.sweep.lower_phase, arm.abstract, arm.hps,
+                                                     pool=pool)))
+            arm.chunk = min(chunk, arm.num_updates)
+            if arm.num_updates - max(start, 0) > 0:
+                jobs.append((arm, "chunk", _compiled(arm, "chunk", arm.sweep.lower_chunk, arm.abstract, arm.hps,
+                                                     arm.chunk, pool=pool)))
+        for arm, what, program in jobs:
+            arm.programs[what] = program.result() if isinstance(program, concurrent.futures.Future) else program
 
 
 def restore(arm: Arm, delete_bad: bool = True) -> bool:

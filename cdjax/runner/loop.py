@@ -253,13 +253,13 @@ class Loop:
     def dispatch(self, arm: Arm, n: int) -> None:
         """Start a chunk of n updates (asynchronously); `commit` logs it."""
         wall_start = arm.wall_offset + self.clock.now()
-        new_state, metrics = arm.chunk_program(n)(arm.state, arm.hps)  # donates arm.state
+        new_state, metrics = arm.chunk_program()(arm.state, arm.hps, np.int32(n))  # donates arm.state
         arm.state, arm.pending = None, (new_state, metrics, n, wall_start)
 
     def commit(self, arm: Arm) -> None:
         """Fetch the pending chunk's metrics, log them, make its state the arm's state."""
         new_state, metrics, n, wall_start = arm.pending
-        metrics = io.host(unpad(metrics, arm.num_runs))
+        metrics = {name: m[:, :n] for name, m in io.host(unpad(metrics, arm.num_runs)).items()}  # [R, chunk] -> n
         wall_end = arm.wall_offset + self.clock.now()
         rows = io.metric_rows(arm.name, arm.plan.labels, self.spec.seeds, metrics, arm.updates, arm.steps_per_update,
                               wall_start, wall_end, steps_offset=arm.plan.phase_steps)
@@ -300,9 +300,9 @@ class Loop:
         active = [a for a in self.arms if a.updates < a.num_updates]
         sizes = {a.name: min(self.chunk, a.num_updates - a.updates) for a in active}
         for arm in active:
-            if sizes[arm.name] not in arm.programs:  # a size not compiled in advance (e.g. after a fallback)
+            if "chunk" not in arm.programs:  # not compiled in advance (e.g. a resume that found nothing left)
                 t0 = time.perf_counter()
-                arm.chunk_program(sizes[arm.name])
+                arm.chunk_program()
                 self.extra_compile += time.perf_counter() - t0
         with self.clock.running():
             for arm in active:

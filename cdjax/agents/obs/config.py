@@ -55,7 +55,7 @@ class Config:
     encoder: Encoder = "grounded-gru"  # consistency encoder: grounded-gru (GRU + reconstruction + spread floor), gru (paper), frozen-gru, l2
     encoder_dim: int = 128  # GRU hidden size
     cc_windows: int = 0  # consistency windows per env per minibatch, random start offsets; 0 = all T-k+1
-    cc_unroll: int = 1  # lax.scan unroll factor of the k-step open-loop/encoder scan
+    cc_unroll: int = 1  # lax.scan unroll factor of the scanned k-step term (the obs agent's fused chain is unrolled)
     cc_epochs: int = 0  # PPO epochs (the first ones) whose minibatches include the consistency term; 0 = all
     eval_horizon: int = 50  # longer open-loop horizon for the compounding-error metric (paper: 50)
     eval_envs: int = 8  # environments whose recent history is kept for the open-loop error metrics
