@@ -35,7 +35,11 @@ def validate_grid(setting: Setting, grid: Mapping[str, Sequence[float]]) -> dict
     for name, values in grid.items():
         if name not in fields:
             raise ConfigError(f"Unknown hyper-parameter {name!r}; choose from: {', '.join(sorted(fields))}.")
-        values = tuple(float(v) for v in (values if isinstance(values, (list, tuple)) else (values,)))
+        raw = values if isinstance(values, (list, tuple)) else (values,)
+        try:
+            values = tuple(float(v) for v in raw)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name} takes numbers, got {list(raw)!r}.") from None
         if not values:
             raise ConfigError(f"{name} needs at least one value.")
         if len(set(values)) != len(values):

@@ -37,9 +37,18 @@ class SweepSpec:
     command: str = ""  # the command line, recorded in run.json
 
     def resolved(self, setting: Setting) -> "SweepSpec":
-        """The spec with its setting's defaults filled in (base config, arms)."""
-        return dataclasses.replace(self, config=self.config if self.config is not None else setting.config_type(),
-                                   arms=tuple(self.arms) or setting.default_arms)
+        """The spec with its setting's defaults filled in (base config, arms); ConfigError (one sentence) for a
+        config or phase of another setting."""
+        config = self.config if self.config is not None else setting.config_type()
+        if not isinstance(config, setting.config_type):
+            raise ConfigError(f"The {setting.name} setting takes a {setting.config_type.__name__} as its config, not a "
+                              f"{type(config).__name__}; give the setting that config belongs to "
+                              f"(SweepSpec(setting=...), --setting) or a {setting.config_type.__name__}.")
+        if self.phase is not None and setting.phase is not None and not isinstance(self.phase,
+                                                                                     setting.phase.spec_type):
+            raise ConfigError(f"The {setting.name} setting's phase takes a {setting.phase.spec_type.__name__}, not a "
+                              f"{type(self.phase).__name__}.")
+        return dataclasses.replace(self, config=config, arms=tuple(self.arms) or setting.default_arms)
 
 
 def resolve(spec: SweepSpec) -> tuple[SweepSpec, Setting]:

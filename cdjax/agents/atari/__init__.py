@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import jax
 
-from cdjax.agents.atari.config import ALE_PREFIX, ARMS, AtariConfig, AtariHParams
+from cdjax.agents.atari.config import ALE_PREFIX, ARMS, HP_RANGES, AtariConfig, AtariHParams
 from cdjax.agents.atari.learner import A2C, learner, make_env
 from cdjax.agents.atari.minatar import GAMES, MinAtarEnv
-from cdjax.checks import UNIT, hparam_checker
 from cdjax.consistency import collapse_warning
 from cdjax.protocol import ConfigError, Metrics, Preset, Setting, Trainer
 
@@ -37,7 +36,7 @@ def arm_config(name: str, base: AtariConfig) -> AtariConfig:
     return base.replace(arm=name)
 
 
-check_hparam = hparam_checker({"gamma": UNIT, "rms_decay": UNIT})
+check_hparam = HP_RANGES.check_one
 
 
 def make_trainer(config: AtariConfig) -> Trainer:
