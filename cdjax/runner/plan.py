@@ -129,13 +129,15 @@ def run_record(spec: SweepSpec, plans: list[ArmPlan], setting: Setting) -> dict:
         "eval_episodes": spec.eval_episodes,
         "final_eval": spec.final_eval,
         "bootstrap_reps": spec.bootstrap_reps,
-        "metrics": {"return": m.ret, "discounted_return": m.discounted_ret, "panels": [list(p) for p in m.panels]},
+        "metrics": {"return": m.ret, "discounted_return": m.discounted_ret, "panels": [list(p) for p in m.panels],
+                    **({"skipped": m.skipped} if m.skipped is not None else {})},
         "command": spec.command,
     }
 
 
-# What may differ between the run.json of a directory and the spec that resumes it: the length of the run.
-MAY_CHANGE = ("command", "total_env_steps", "requested_env_steps", "num_updates")
+# What may differ between the run.json of a directory and the spec that resumes it: the length of the run (and the
+# setting's metric names, rewritten from the setting as it is now).
+MAY_CHANGE = ("command", "total_env_steps", "requested_env_steps", "num_updates", "metrics")
 ARM_MAY_CHANGE = ("num_updates", "total_env_steps")
 
 

@@ -111,7 +111,7 @@ SETTING = Setting(
     arm_fields=("arm",), arms_help="a2c, a2c-model (alpha = 0) or a2c-cd", default_arms=("a2c", "a2c-cd"),
     unused_hparams=lambda config, with_phase: UNUSED[config.arm],
     shown_hparams=lambda config: ("alpha",) if config.arm == "a2c-cd" else (), check_hparam=check_hparam,
-    metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, panels=(
+    metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, skipped="train/skipped_step", panels=(
         ("policy/entropy", "policy entropy", False),
         ("model/latent_mse", "latent model one-step MSE", True),
         ("loss/consistency", "consistency loss", True),

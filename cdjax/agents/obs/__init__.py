@@ -143,7 +143,7 @@ SETTING = Setting(
     arms_help="model-free, mbmf, cd, or cd-kN for cd with horizon N", default_arms=("mbmf", "cd"),
     unused_hparams=unused_hparams, shown_hparams=lambda config: ("alpha",) if config.arm == "cd" else (),
     check_hparam=check_hparam,
-    metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, panels=(
+    metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, skipped="train/skipped_steps", panels=(
         ("model/openloop_mse_k", "open-loop MSE at k steps", True),
         ("model/openloop_mse_50", "open-loop MSE at 50 steps", True),
         ("loss/consistency", "consistency loss", True),

@@ -345,6 +345,7 @@ class ObsAgent:
             "env/reward_mean": masked_mean(traj.reward, traj.valid),
             "env/invalid_fraction": (~traj.valid).astype(jnp.float32).mean(),
             "opt/skipped_updates": opt_state.total_notfinite.astype(jnp.float32),
+            "train/skipped_steps": (opt_state.total_notfinite - state.opt_state.total_notfinite).astype(jnp.float32),
         })
         new_state = TrainState(
             params=params, opt_state=opt_state, norms=norms, env_state=env_state, episodes=episodes,

@@ -177,7 +177,9 @@ class PixelLearner:
         params = optax.apply_updates(state.params, updates)
         metrics.update(self.heldout_metrics(state.params, state.heldout, key_heldout))
         metrics.update({"loss/total": total, "grad/norm": optax.global_norm(grads),
-                        "data/expert_reward": state.data.reward})
+                        "data/expert_reward": state.data.reward,
+                        "train/skipped_steps": (opt_state.total_notfinite - state.opt_state.total_notfinite
+                                                ).astype(jnp.float32)})
         return state.replace(params=params, opt_state=opt_state, key=key, step=state.step + 1), metrics
 
     # --- acting from pixels (evaluation) -------------------------------------------------------
