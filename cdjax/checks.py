@@ -83,18 +83,21 @@ def _is_real(value) -> bool:
 
 @dataclasses.dataclass(frozen=True)
 class Count:
-    """A whole number from `low` (to `high`); `zero` says what 0 means where 0 is allowed as a special value."""
+    """A whole number from `low` (to `high`; None: any); `zero` says what 0 means where 0 is allowed as a special
+    value."""
 
-    low: int = 1
+    low: int | None = 1
     high: int | None = None
     zero: str = ""  # e.g. "all windows": 0 is allowed and means that (low is then the smallest other value)
 
     def check(self, name: str, value) -> None:
-        ok = _is_int(value) and (value >= self.low or (self.zero and value == 0)) and (
+        ok = _is_int(value) and (self.low is None or value >= self.low or (self.zero and value == 0)) and (
             self.high is None or value <= self.high)
         if ok:
             return
-        if self.zero:
+        if self.low is None:
+            what = "a whole number"
+        elif self.zero:
             what = f"0 ({self.zero}) or an integer of at least {self.low}" if self.low > 1 else (
                 f"0 ({self.zero}) or a positive integer")
         elif self.high is not None:
@@ -167,7 +170,7 @@ def kind_of(hint) -> Kind:
         return Choice(tuple(typing.get_args(hint)))
     if typing.get_origin(hint) is tuple:
         return Widths()
-    return {bool: Flag(), int: Count(-(2**63)), float: Real(ANY), str: Text()}.get(hint, Text())
+    return {bool: Flag(), int: Count(None), float: Real(ANY), str: Text()}.get(hint, Text())
 
 
 class Fields:

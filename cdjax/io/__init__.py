@@ -8,12 +8,15 @@
     cdjax.log                      what the libraries (orbax, absl, asyncio, warnings) said during the sweep
     .lock                          flock-ed by the process that trains in the directory
     tb/<arm>/<hp>/seed<s>/         TensorBoard event files
-    checkpoints/<arm>/<updates>/   orbax checkpoints of the arm's state (cdjax.io.checkpoints)
+    checkpoints/<arm>/<updates>/   orbax checkpoints of the arm's state (cdjax.io.checkpoints); <updates>.unreadable
+                                   and <updates>.restarted: checkpoints set aside (kept, no longer read)
     plots/, summary.md, summary.csv, videos/   cdjax.plots and `cdjax eval --video`
 
 Writes that fail (a full disk, a read-only place) raise `WriteError`, a `RunDirError` whose message says
-which file and why in one sentence; JSONL readers skip a torn line (a process killed while writing)
-and count it, so that callers can say so.
+which file and why in one sentence. Readers never misread: run.json is refused in one sentence when it is not
+UTF-8 JSON or a field has the wrong type (`check_record`); JSONL readers skip a torn line (a process killed while
+writing), bytes that are not UTF-8 and rows whose fields have the wrong types for their file (`ROW_CHECKS`), and
+count them, so that callers can say so; `truncate_jsonl` (a resume) drops the same lines.
 """
 
 from __future__ import annotations

@@ -129,13 +129,16 @@ def expectation(arm: Arm) -> Callable[[dict | None], str | None]:
                     f"{count(mine['num_runs'], mine['seeds'], mine['hp_labels'])}")
         if saved.get("seed", mine["seed"]) != mine["seed"]:
             return f"its base seed is {_json(saved['seed'])} where run.json has {mine['seed']}"
-        if saved.get("hparams", mine["hparams"]) != mine["hparams"]:
-            for label, a, b in zip(mine["hp_labels"], saved["hparams"], mine["hparams"]):
-                diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
-                if diff:
-                    return (f"its {label} runs were trained with {diff[0]} {_json(a.get(diff[0]))} where run.json has "
-                            f"{_json(b.get(diff[0]))}")
-            return "its hyper-parameters differ from run.json's"
+        theirs = saved.get("hparams") if isinstance(saved.get("hparams"), list) else mine["hparams"]
+        if len(theirs) != len(mine["hparams"]):
+            return f"it holds {len(theirs)} hyper-parameter combinations where run.json has {len(mine['hparams'])}"
+        for label, a, b in zip(mine["hp_labels"], theirs, mine["hparams"]):  # fields both know (a newer cdjax may add)
+            if not isinstance(a, dict):
+                return f"its hyper-parameter record is {_json(a)}"
+            diff = sorted(k for k in set(a) & set(b) if a[k] != b[k])
+            if diff:
+                return (f"its {label} runs were trained with {diff[0]} {_json(a.get(diff[0]))} where run.json has "
+                        f"{_json(b.get(diff[0]))}")
         return None
 
     return expect

@@ -2,9 +2,10 @@
 logging, checkpointing and evaluating between them.
 
 Everything that can be refused (bad options, a directory holding another run, a sweep that cannot fit
-in memory) is refused before the run directory is touched. A resumed sweep restores the newest readable
-checkpoint of each arm, drops the log rows written after it and continues: on CPU the numbers equal
-those of an uninterrupted run. Ctrl-C finishes the chunk in flight, saves it and raises `Interrupted`; a
+in memory, a checkpoint of another run than run.json's, `--steps` below what is done) is refused before the run
+directory is touched. A resumed sweep restores the newest readable checkpoint of each arm (checked against the
+run first: `survey`), drops the log rows written after it and continues: on CPU the numbers equal those of an
+uninterrupted run. Ctrl-C or SIGTERM finishes the chunk in flight, saves it and raises `Interrupted`; a
 second Ctrl-C stops at once, keeping the previous checkpoint. `after_chunk=TimeLimit(seconds)` stops the same
 way before a round of chunks that would end past a wall-clock budget (a cluster job's, a leased machine's). A
 write that fails (a full disk) raises io.WriteError naming the file and the checkpoints that are intact.
@@ -215,7 +216,8 @@ def _train(loop: "Loop", resume: bool, t_compile: float) -> pathlib.Path:
             try:
                 loop.start(resume, t_compile)
             except KeyboardInterrupt as err:
-                raise stopped(err, f"Interrupted before training resumed; {loop.rd.path} keeps its checkpoints; "
+                raise stopped(err, f"Interrupted before training {'resumed' if resume else 'started'}; "
+                                   f"{loop.rd.path} keeps {'its checkpoints' if resume else 'run.json and no update'}; "
                                    f"resume with `{_resume_hint(loop.rd)}`.") from None
             finally:
                 if not loop.started:
@@ -225,7 +227,7 @@ def _train(loop: "Loop", resume: bool, t_compile: float) -> pathlib.Path:
             except KeyboardInterrupt as err:
                 if isinstance(err, Interrupted):
                     raise
-                raise stopped(err, f"Stopped at once, without saving the chunk in flight; {loop.intact()}") from None
+                raise stopped(err, f"Stopped at once, without saving the chunk in flight; {loop.intact('')}") from None
             finally:
                 loop.close()
             try:
@@ -314,7 +316,7 @@ class Loop:
                 arm = by_arm.get(row["arm"])
                 labels = arm.plan.labels if arm is not None else ()
                 if arm is not None and row.get(skipped) and row.get("hp") in labels and row["seed"] < self.spec.seeds:
-                    arm.skipped[labels.index(row["hp"]) * self.spec.seeds + row["seed"]] += row[skipped]
+                    arm.skipped[labels.index(row["hp"]) * self.spec.seeds + int(row["seed"])] += row[skipped]
         progress = ", ".join(f"{a.name} {a.updates}/{a.num_updates}" for a in self.arms)
         note = ""
         if dropped:
@@ -325,13 +327,13 @@ class Loop:
         for arm in self.arms:
             self._say_skipped(arm)
 
-    def intact(self) -> str:
-        """Which checkpoints survive a failed write, and how to go on."""
+    def intact(self, when: str = " once that is fixed") -> str:
+        """Which checkpoints survive a failed write (or a stop), and how to go on."""
         steps = {a.name: a.ckpt.latest() for a in self.arms if a.ckpt is not None}
         kept = [f"{name} at update {step}" for name, step in steps.items() if step is not None]
         where = (f"the previous checkpoints are intact ({', '.join(kept)})" if kept
                  else "no checkpoint had been written yet")
-        return f"{where}; resume with `{_resume_hint(self.rd)}` once that is fixed."
+        return f"{where}; resume with `{_resume_hint(self.rd)}`{when}."
 
     # -- one step of the loop each ---------------------------------------------------------------------
 
