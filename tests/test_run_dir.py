@@ -473,10 +473,12 @@ def test_a_gzipped_log_cut_short_gives_its_readable_rows(runs, tmp_path):
 
 def test_phase_and_eval_logs_are_trimmed_like_the_metrics(tmp_path):
     """truncate_jsonl on each log of the run directory: rows past the checkpoint, torn lines, bytes that are not
-    UTF-8 and rows of the wrong types go; an arm restarted (-1) keeps nothing."""
+    UTF-8 and rows of the wrong types go; an arm restarted (-1) keeps nothing; an arm the run does not name (a
+    run.json edited by hand) is not the resume's to judge: its rows stay."""
     phase = tmp_path / "phase.jsonl"
     keep = [{"arm": "mbmf", "hp": "default", "seed": 0, "update": 0, "phase/x": 1.0},
-            {"arm": "cd", "hp": "default", "seed": 1, "update": 0, "phase/x": None}]
+            {"arm": "cd", "hp": "default", "seed": 1, "update": 0, "phase/x": None},
+            {"arm": "not-in-this-run", "hp": "default", "seed": 0, "update": 9, "phase/x": 2.0}]
     text = b"".join(json.dumps(r).encode() + b"\n" for r in keep)
     phase.write_bytes(text + b'{"arm": "cd", "hp": "default", "seed": 0, "update": 0, "phase/x": "no"}\n\xff\n'
                       + json.dumps({**keep[0], "arm": "gone"}).encode() + b"\n" + b'{"arm"')

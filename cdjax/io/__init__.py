@@ -469,8 +469,8 @@ def append_jsonl(path: str | os.PathLike, rows: Iterable[dict]) -> pathlib.Path:
 
 
 def truncate_jsonl(path: pathlib.Path, done: Mapping[str, int]) -> tuple[int, int]:
-    """Keep the rows of each arm up to `done[arm]` updates (those the restored checkpoints hold; an arm missing
-    from `done`, or at -1, keeps none).
+    """Keep the rows of each arm up to `done[arm]` updates (those the restored checkpoints hold; an arm at -1 keeps
+    none; the rows of an arm `done` does not name are not this run's to judge and are kept).
 
     Drops the rows a killed process wrote after its last checkpoint, and what `read_jsonl` would skip (torn
     lines, bytes that are not UTF-8, rows of the wrong types). Returns (rows dropped, of which unreadable).
@@ -490,7 +490,7 @@ def truncate_jsonl(path: pathlib.Path, done: Mapping[str, int]) -> tuple[int, in
         row = _row(line, check) if i < len(lines) - 1 else None  # the last piece has no newline: torn
         if row is None or "update" not in row:
             dropped, torn = dropped + 1, torn + 1
-        elif row["update"] <= done.get(row["arm"], -1):
+        elif row["arm"] not in done or row["update"] <= done[row["arm"]]:
             kept.append(line + b"\n")
         else:
             dropped += 1

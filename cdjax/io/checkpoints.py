@@ -251,6 +251,12 @@ class Checkpoints:
             raise _Unreadable(_why(err)) from None
         if not isinstance(progress, dict) or progress.get("updates") != step:
             raise _Unreadable(f"its progress record says {_short(progress)}")
+        layout = progress.get("layout")
+        if layout is not None and not (
+                isinstance(layout, dict) and isinstance(layout.get("stored"), list)
+                and all(isinstance(n, str) for n in layout["stored"]) and isinstance(layout.get("zeros", []), list)
+                and isinstance(layout.get("same", {}), dict) and isinstance(layout.get("runs", 0), (int, type(None)))):
+            raise _Unreadable("its layout record is damaged")
         return dict(progress)
 
     def _shapes(self, step: int, layout: dict | None) -> dict[str, tuple[tuple[int, ...], str]]:
@@ -316,6 +322,8 @@ class Checkpoints:
                 progress.pop("run", None)
                 names = dict(named_leaves(like))
                 wanted = layout["stored"] if layout is not None else [n for n, x in names.items() if x.size]
+                if any(name not in names for name in wanted):
+                    raise _Unreadable("its layout names a leaf it does not describe")
                 saved_runs, runs = (layout or {}).get("runs"), leading_runs(like)
                 repad = saved_runs is not None and runs is not None and saved_runs != runs
                 target = {}
@@ -335,7 +343,10 @@ class Checkpoints:
                     raise _Unreadable(_why(err)) from None
                 if repad:
                     stored = {name: repad_runs(np.asarray(v), runs) for name, v in stored.items()}
-                state = expand(stored, layout, like)
+                try:
+                    state = expand(stored, layout, like)
+                except (KeyError, TypeError, ValueError) as err:  # a layout record that does not fit what is stored
+                    raise _Unreadable(_why(err)) from None
             except _Unreadable as err:
                 self.unreadable.append((step, str(err)))
                 aside = self.set_aside(step) if set_aside else None

@@ -31,7 +31,7 @@ from cdjax.runner.arms import (Arm, abstract_state, build, check_memory, compile
                                finished_evaluation, nanmean, restore, unreadable_text)
 from cdjax.runner.console import Clock, Progress, StopFlag, Stopped, library_log, stopped
 from cdjax.runner.plan import plan_arms, run_record, same_run
-from cdjax.runner.spec import SweepSpec, resolve
+from cdjax.runner.spec import SweepSpec, out_dir, resolve
 from cdjax.sweep import unpad
 
 AfterChunk = Callable[[int, dict[str, int]], "bool | None"]
@@ -83,7 +83,7 @@ def prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, list, dict]:
 
 def _prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, Setting, list, dict]:
     """`prepare`, with the setting it resolved (once) for the rest of the sweep."""
-    rd = io.RunDir(pathlib.Path(spec.out))
+    rd = io.RunDir(out_dir(spec))
     rd.check_name()  # before anything reads or writes there
     spec, setting = resolve(spec)
     old = None
@@ -159,7 +159,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     run, `Interrupted` when stopped early (after saving a checkpoint of every arm), console.Stopped (a sentence
     true for the moment) when a KeyboardInterrupt comes outside the chunk loop.
     """
-    rd = io.RunDir(pathlib.Path(spec.out))
+    rd = io.RunDir(out_dir(spec))
     try:
         spec, setting, plans, record = _prepare(spec, resume)
         rd = io.RunDir(pathlib.Path(spec.out))
