@@ -165,8 +165,8 @@ def _leaf_difference(saved: dict, layout: dict | None, like, run: dict | None) -
         lengths = {shape[0] for shape, _ in saved.values() if shape}
         saved_runs = lengths.pop() if len(lengths) == 1 else None
     batched = runs is not None and saved_runs is not None
-    for name, (shape, dtype) in saved.items():
-        if name not in want:
+    for name, (shape, dtype) in sorted(saved.items(), key=lambda item: (not item[0].startswith("params"), item[0])):
+        if name not in want:  # (parameters first: the difference a user recognises)
             return f"it holds a leaf {name} that this run's state has not"
         mine, mine_dtype = want[name]
         same = (shape[1:] == mine[1:] and shape[:1] == (saved_runs,) and mine[:1] == (runs,)) if batched and shape \
@@ -268,7 +268,7 @@ class Checkpoints:
             except (TypeError, ValueError):
                 raise _Unreadable("its layout record is damaged") from None
         try:
-            tree = self._ocp.StandardCheckpointHandler().metadata(self.directory / str(step) / "state")
+            tree = self._ocp.StandardCheckpointHandler().metadata((self.directory / str(step) / "state").resolve())
             tree = getattr(tree, "tree", tree)
             return {name: (tuple(int(d) for d in m.shape), np.dtype(m.dtype).name) for name, m in tree.items()}
         except Exception as err:  # noqa: BLE001
