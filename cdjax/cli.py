@@ -327,6 +327,18 @@ def _finish(sentence: str, as_program: bool, status: int) -> None:
     raise SystemExit(status) from None
 
 
+def _interrupted(sentence: str, status: int, as_program: bool) -> None:
+    """End an interrupted command with its sentence. As a program, the process then ends at once: XLA's threads may
+    still be compiling or running the program the signal interrupted, and tearing the interpreter down under them
+    crashes (SIGSEGV instead of 130/143). Whatever had to be written was written and closed before this point."""
+    print(sentence, file=sys.stderr)
+    if as_program:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    raise SystemExit(status) from None
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """The `cdjax` command; argv None: this process's arguments (and the process ends after it)."""
     started = time.monotonic()  # --time-limit counts from here (the imports before are not counted)
@@ -369,11 +381,10 @@ def main(argv: Sequence[str] | None = None) -> None:
               f"per arm: {done}). Resume with: {again}", file=sys.stderr)
         raise SystemExit(143 if terminated else 130) from None
     except Stopped as err:
-        print(err.sentence, file=sys.stderr)
-        raise SystemExit(143 if err.terminated else 130) from None
+        _interrupted(err.sentence, 143 if err.terminated else 130, as_program)
     except KeyboardInterrupt as err:  # before a command started (parsing, imports, the cache)
-        print("Interrupted before the command started; nothing was written.", file=sys.stderr)
-        raise SystemExit(143 if isinstance(err, Terminated) else 130) from None
+        _interrupted("Interrupted before the command started; nothing was written.",
+                     143 if isinstance(err, Terminated) else 130, as_program)
 
 
 if __name__ == "__main__":
