@@ -319,12 +319,13 @@ def _configure(args: argparse.Namespace) -> None:
         say(f"Note: {cache} cannot hold JAX's compilation cache; compiling without it (--cache-dir names another).")
 
 
-def _finish(sentence: str, as_program: bool, status: int) -> None:
+def _refused(sentence: str, as_program: bool) -> None:
+    """End a command that cannot run: `cdjax: <sentence>` and exit status 2."""
     if as_program:  # stderr goes quiet first, and the sentence is written to a copy of it
-        _say_last(f"cdjax: {sentence}" if status == 2 else sentence)
+        _say_last(f"cdjax: {sentence}")
     else:
-        print(f"cdjax: {sentence}" if status == 2 else sentence, file=sys.stderr)
-    raise SystemExit(status) from None
+        print(f"cdjax: {sentence}", file=sys.stderr)
+    raise SystemExit(2) from None
 
 
 def _interrupted(sentence: str, status: int, as_program: bool) -> None:
@@ -368,7 +369,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             else:
                 cmd_plot(args)
     except (UsageError, ConfigError, io.RunDirError) as err:
-        _finish(str(err), as_program, 2)
+        _refused(str(err), as_program)
     except Interrupted as err:
         done = ", ".join(f"{arm} {n}" for arm, n in err.updates.items())
         again = f"cdjax sweep --out {shlex.quote(str(err.run_dir))} --resume"
