@@ -399,7 +399,7 @@ class Loop:
             return
         arm.skipped_said = len(bad)
         seeds = self.spec.seeds
-        runs = ", ".join(f"{arm.plan.labels[r // seeds]} seed {r % seeds} ({int(arm.skipped[r])})" for r in bad[:6])
+        runs = ", ".join(f"{arm.plan.labels[r // seeds]} seed {r % seeds}: {int(arm.skipped[r])} steps" for r in bad[:6])
         self.say(f"Arm {arm.name}: {len(bad)} of {arm.num_runs} runs skipped optimiser steps whose loss or gradient "
                  f"was not finite ({runs}{', ...' if len(bad) > 6 else ''}); those steps left the parameters as "
                  f"they were ({self.setting.metrics.skipped} in metrics.jsonl counts them).")
