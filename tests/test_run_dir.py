@@ -48,7 +48,7 @@ from cdjax.runner import SweepSpec, run_sweep
 
 from _shared import POINT, TINY_ARGS, fail_in_one_sentence, logged_rows
 from conftest import CACHE
-from test_pixel_model import HP as PIXEL_HP  # noqa: F401  (registers the synthetic pixel setting)
+from test_pixel_model import HP as PIXEL_HP  # (importing it registers the synthetic pixel setting)
 
 OBS = [*TINY_ARGS, "--arms", "cd", "--alpha", "0", "1", "--eval-every", "1", "--eval-episodes", "2",
        "--bootstrap-reps", "50"]  # test_failures' (and test_cli's) programs: 4 runs, chunks of 2 updates
