@@ -10,8 +10,10 @@ setting's Config (except the fields an arm name sets and `num_updates`, derived 
 HParams field taking one or several values (their Cartesian product is the grid, vmapped with the seeds)
 and one per field of the setting's phase (--phase-<field>). `--setting` picks the agent (cdjax.agents).
 
-Bad input ends with one sentence on stderr and exit status 2; an interrupted sweep exits with 130, one stopped by
-its --time-limit with 75 (EX_TEMPFAIL: continue it with --resume).
+Bad input ends with one sentence on stderr and exit status 2; an interrupted command says in one sentence what is
+true for it (a sweep checkpoints the chunk in flight first) and exits with 130 after Ctrl-C, 143 after SIGTERM (what
+SLURM, Kubernetes and `timeout` send: handled as the first Ctrl-C); a sweep stopped by its --time-limit exits with 75
+(EX_TEMPFAIL: continue it with --resume).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import os
 import pathlib
 import re
 import shlex
+import signal
 import sys
 import time
 from typing import Sequence
@@ -68,6 +71,9 @@ def _add_sweep(sub, setting: Setting, runtime_parent) -> None:
     run = sweep.add_argument_group("sweep (cdjax.runner.SweepSpec)")
     run.add_argument("--out", required=True, metavar="DIR", help="run directory (refuses one that holds another run)")
     run.add_argument("--resume", action="store_true", help="continue the run in --out from its latest checkpoint")
+    run.add_argument("--restart-arm", nargs="+", metavar="ARM", default=(),
+                     help="with --resume: train these arms again from update 0 (their checkpoints are moved aside, "
+                          "their log rows dropped), e.g. when none of their checkpoints can be read")
     run.add_argument("--time-limit", type=options.seconds, metavar="SECONDS",
                      help="stop, checkpointed, before the chunk that would end SECONDS after this command started "
                           "(not recorded: each --resume gives its own; exit status 75)")
@@ -176,7 +182,9 @@ def sweep_spec(args: argparse.Namespace, setting: Setting, command: str = "") ->
 def cmd_sweep(args: argparse.Namespace, setting: Setting, command: str, limit=None) -> None:
     from cdjax.runner import run_sweep
 
-    out = run_sweep(sweep_spec(args, setting, command), resume=args.resume, after_chunk=limit)
+    io.RunDir(pathlib.Path(args.out)).check_name()
+    out = run_sweep(sweep_spec(args, setting, command), resume=args.resume, after_chunk=limit,
+                    restart=tuple(args.restart_arm))
     print(f"Done: {out}")
 
 
@@ -189,27 +197,35 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
     from cdjax.evaluate import render_video
     from cdjax.runner import evaluate_arms, restore_arms
-    from cdjax.runner.console import library_log
+    from cdjax.runner.console import library_log, stopped
 
     if not 1 <= args.episodes <= INT32_MAX:
         raise UsageError(f"--episodes must be an integer from 1 to {INT32_MAX:,}, got {args.episodes}.")
     rd = io.RunDir(pathlib.Path(args.run_dir))
+    rd.check_name("RUN_DIR")
     rd.read()  # a clear error for a directory that holds no run
-    with library_log(rd.log, say):
-        spec, arms = restore_arms(args.run_dir)
-        sampled = args.stochastic or (agents.get(spec.setting).eval_sampled and not args.deterministic)
-        records = evaluate_arms(rd, arms, spec.seeds, args.episodes, not sampled, say)
+    try:
+        with library_log(rd.log, say):
+            spec, arms = restore_arms(args.run_dir)
+            sampled = args.stochastic or (agents.get(spec.setting).eval_sampled and not args.deterministic)
+            records = evaluate_arms(rd, arms, spec.seeds, args.episodes, not sampled, say)
+    except KeyboardInterrupt as err:
+        raise stopped(err, f"Interrupted before the evaluation was done; nothing was added to {rd.eval}.") from None
     _print_eval(records)
     print(f"Appended {len(records)} records to {rd.eval}")
     if args.video:
-        for arm in arms:
-            for i, label in enumerate(arm.plan.labels):
-                policy = jax.tree.map(lambda x: x[i * spec.seeds], arm.trainer.policy(arm.state))  # seed 0
-                path = render_video(arm.trainer, policy, jax.random.key(spec.seed),
-                                    rd.path / "videos" / f"{arm.name}-{label}-seed0.mp4",
-                                    steps=arm.trainer.eval_env(1).episode_length)
-                if path is not None:
-                    print(f"Wrote {path}")
+        try:
+            for arm in arms:
+                for i, label in enumerate(arm.plan.labels):
+                    policy = jax.tree.map(lambda x: x[i * spec.seeds], arm.trainer.policy(arm.state))  # seed 0
+                    path = render_video(arm.trainer, policy, jax.random.key(spec.seed),
+                                        rd.path / "videos" / f"{arm.name}-{label}-seed0.mp4",
+                                        steps=arm.trainer.eval_env(1).episode_length)
+                    if path is not None:
+                        print(f"Wrote {path}")
+        except KeyboardInterrupt as err:
+            raise stopped(err, f"Interrupted while rendering videos into {rd.path / 'videos'}; the evaluation is in "
+                               f"{rd.eval}.") from None
 
 
 def _print_eval(records: list[dict]) -> None:
@@ -229,12 +245,19 @@ def _print_eval(records: list[dict]) -> None:
 
 def cmd_plot(args: argparse.Namespace) -> None:
     from cdjax.plots import plot_run
+    from cdjax.runner.console import stopped
 
     rd = io.RunDir(pathlib.Path(args.run_dir))
+    rd.check_name("RUN_DIR")
     rd.read()  # a clear error for a directory that holds no run
     if not 1 <= args.bootstrap_reps <= INT32_MAX:
         raise UsageError(f"--bootstrap-reps must be an integer from 1 to {INT32_MAX:,}, got {args.bootstrap_reps}.")
-    for path in plot_run(rd.path, reps=args.bootstrap_reps, say=say).values():
+    try:
+        written = plot_run(rd.path, reps=args.bootstrap_reps, say=say)
+    except KeyboardInterrupt as err:
+        raise stopped(err, f"Interrupted while plotting; the plots and summary of {rd.path} may be partly rewritten: "
+                           f"run `cdjax plot {shlex.quote(str(rd.path))}` again.") from None
+    for path in written.values():
         print(f"Wrote {path}")
 
 
@@ -271,6 +294,52 @@ def _say_last(sentence: str) -> None:
     os.close(original)
 
 
+def _cache_dir(args: argparse.Namespace) -> tuple[str | None, str]:
+    """(the persistent compilation cache to use, where it came from in words)."""
+    import jax
+
+    if args.cache_dir:
+        return args.cache_dir, "--cache-dir"
+    if jax.config.jax_compilation_cache_dir:  # set by the caller (a notebook, the tests)
+        return jax.config.jax_compilation_cache_dir, "the compilation cache"
+    if os.environ.get(runtime.CACHE_ENV):
+        return os.environ[runtime.CACHE_ENV], f"${runtime.CACHE_ENV}"
+    return runtime.default_cache_dir(), "the default compilation cache"
+
+
+def _configure(args: argparse.Namespace) -> None:
+    cache, source = _cache_dir(args)
+    try:
+        runtime.configure(cache_dir=cache, debug_nans=args.debug_nans, disable_jit=args.disable_jit,
+                          cache_source=source)
+    except ConfigError:
+        if source != "the default compilation cache":
+            raise
+        runtime.configure(debug_nans=args.debug_nans, disable_jit=args.disable_jit)  # run without the cache
+        say(f"Note: {cache} cannot hold JAX's compilation cache; compiling without it (--cache-dir names another).")
+
+
+def _refused(sentence: str, as_program: bool) -> None:
+    """End a command that cannot run: `cdjax: <sentence>` and exit status 2."""
+    if as_program:  # stderr goes quiet first, and the sentence is written to a copy of it
+        _say_last(f"cdjax: {sentence}")
+    else:
+        print(f"cdjax: {sentence}", file=sys.stderr)
+    raise SystemExit(2) from None
+
+
+def _interrupted(sentence: str, status: int, as_program: bool) -> None:
+    """End an interrupted command with its sentence. As a program, the process then ends at once: XLA's threads may
+    still be compiling or running the program the signal interrupted, and tearing the interpreter down under them
+    crashes (SIGSEGV instead of 130/143). Whatever had to be written was written and closed before this point."""
+    print(sentence, file=sys.stderr)
+    if as_program:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    raise SystemExit(status) from None
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """The `cdjax` command; argv None: this process's arguments (and the process ends after it)."""
     started = time.monotonic()  # --time-limit counts from here (the imports before are not counted)
@@ -279,46 +348,44 @@ def main(argv: Sequence[str] | None = None) -> None:
     if as_program and not isinstance(sys.stderr, _QuietForeignThreads):
         sys.stderr = _QuietForeignThreads(sys.stderr)
     from cdjax.runner import Interrupted, TimeLimit
+    from cdjax.runner.console import Stopped, Terminated, raise_on_sigterm
 
     limit = None
     try:
-        setting = setting_of(argv)
-        try:
-            args = build_parser(setting).parse_args(argv)
-        except UsageError as err:  # unknown options are reported by the top parser: name the subcommand
-            if argv and argv[0] in ("sweep", "eval", "plot"):
-                raise UsageError(str(err).replace("`cdjax --help`", f"`cdjax {argv[0]} --help`")) from None
-            raise
-        import jax
-
-        cache = args.cache_dir or jax.config.jax_compilation_cache_dir or runtime.default_cache_dir()
-        runtime.configure(cache_dir=cache, debug_nans=args.debug_nans, disable_jit=args.disable_jit)
-        if args.command == "sweep":
-            limit = TimeLimit(args.time_limit, start=started) if args.time_limit else None
-            cmd_sweep(args, setting, " ".join(["cdjax"] + [shlex.quote(a) for a in argv]), limit)
-        elif args.command == "eval":
-            cmd_eval(args)
-        else:
-            cmd_plot(args)
+        with raise_on_sigterm():
+            setting = setting_of(argv)
+            try:
+                args = build_parser(setting).parse_args(argv)
+            except UsageError as err:  # unknown options are reported by the top parser: name the subcommand
+                if argv and argv[0] in ("sweep", "eval", "plot"):
+                    raise UsageError(str(err).replace("`cdjax --help`", f"`cdjax {argv[0]} --help`")) from None
+                raise
+            _configure(args)
+            if args.command == "sweep":
+                limit = TimeLimit(args.time_limit, start=started) if args.time_limit else None
+                cmd_sweep(args, setting, " ".join(["cdjax"] + [shlex.quote(a) for a in argv]), limit)
+            elif args.command == "eval":
+                cmd_eval(args)
+            else:
+                cmd_plot(args)
     except (UsageError, ConfigError, io.RunDirError) as err:
-        if as_program:  # stderr goes quiet first, and the sentence is written to a copy of it
-            _say_last(f"cdjax: {err}")
-        else:
-            print(f"cdjax: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+        _refused(str(err), as_program)
     except Interrupted as err:
         done = ", ".join(f"{arm} {n}" for arm, n in err.updates.items())
-        if limit is not None and limit.reached:
+        again = f"cdjax sweep --out {shlex.quote(str(err.run_dir))} --resume"
+        if limit is not None and limit.reached and err.signum is None:
             print(f"Stopped before the time limit ({args.time_limit:g} s); checkpoint saved (updates per arm: {done}). "
-                  f"Continue with: cdjax sweep --out {shlex.quote(str(err.run_dir))} --resume", file=sys.stderr)
+                  f"Continue with: {again}", file=sys.stderr)
             raise SystemExit(75) from None
-        print(f"Interrupted; checkpoint saved (updates per arm: {done}). "
-              f"Resume with: cdjax sweep --out {shlex.quote(str(err.run_dir))} --resume", file=sys.stderr)
-        raise SystemExit(130) from None
-    except KeyboardInterrupt:
-        print("Interrupted; the latest complete checkpoint is kept (resume with cdjax sweep --out DIR --resume).",
-              file=sys.stderr)
-        raise SystemExit(130) from None
+        terminated = err.signum == signal.SIGTERM
+        print(f"{'Stopped by SIGTERM' if terminated else 'Interrupted'}; checkpoint saved in {err.run_dir} (updates "
+              f"per arm: {done}). Resume with: {again}", file=sys.stderr)
+        raise SystemExit(143 if terminated else 130) from None
+    except Stopped as err:
+        _interrupted(err.sentence, 143 if err.terminated else 130, as_program)
+    except KeyboardInterrupt as err:  # before a command started (parsing, imports, the cache)
+        _interrupted("Interrupted before the command started; nothing was written.",
+                     143 if isinstance(err, Terminated) else 130, as_program)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ MODEL_PANELS = (
     ("encoder/spread_imagined", "encoder spread (imagined)", False),
 )
 ROW_KEYS = ("arm", "hp", "seed", "update")  # identify a row; every other numeric field is a metric
+SKIPPED = ("train/skipped_steps", "train/skipped_step")  # the skipped-step counts of logs whose run.json names none
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,13 +44,14 @@ class Names:
     ret: str = RETURN
     discounted_ret: str = DISC_RETURN
     panels: tuple[tuple[str, str, bool], ...] = MODEL_PANELS
+    skipped: str | None = None  # optimiser steps skipped for a non-finite loss or gradient, per update
 
     @classmethod
     def of(cls, info: dict) -> "Names":
         """From run.json's "metrics" (written by the runner from the setting), else the defaults."""
         m = info.get("metrics") or {}
         return cls(m.get("return", RETURN), m.get("discounted_return", DISC_RETURN),
-                   tuple(tuple(p) for p in m.get("panels", MODEL_PANELS)))
+                   tuple(tuple(p) for p in m.get("panels", MODEL_PANELS)), m.get("skipped"))
 
 
 @dataclasses.dataclass
@@ -83,6 +85,12 @@ def _float(value) -> float:
         return math.nan
 
 
+def _say_skipped(path: pathlib.Path, rows: io.Rows, say: Callable[[str], None] | None) -> None:
+    if rows.skipped and say is not None:
+        say(f"{path}: left out {rows.skipped} line(s) that do not parse as rows (a torn line left by a process "
+            "killed while writing, bytes that are not UTF-8, or fields of the wrong types).")
+
+
 def load_metrics(run_dir: str | pathlib.Path, say: Callable[[str], None] | None = None
                  ) -> dict[tuple[str, str], Curves]:
     """metrics.jsonl as {(arm, hp label): Curves}, ordered as run.json lists arms and hp labels.
@@ -100,14 +108,10 @@ def load_metrics(run_dir: str | pathlib.Path, say: Callable[[str], None] | None 
         order += [(arm["name"], str(label)) for label in arm.get("hp_labels", [""])]
 
     rows = io.read_jsonl(run_dir / "metrics.jsonl")
-    if rows.skipped and say is not None:
-        say(f"{run_dir / 'metrics.jsonl'}: left out {rows.skipped} line(s) that do not parse (a process killed "
-            "while writing leaves a torn last line).")
+    _say_skipped(run_dir / "metrics.jsonl", rows, say)
     groups: dict[tuple[str, str], dict[tuple[int, int], dict]] = {}
-    for row in rows:
-        if "arm" not in row or "seed" not in row or "update" not in row:
-            continue
-        key = (str(row["arm"]), str(row.get("hp", "")))
+    for row in rows:  # every row has arm, seed and update of their types (io.metric_row_ok)
+        key = (row["arm"], row.get("hp", ""))
         groups.setdefault(key, {})[(int(row["seed"]), int(row["update"]))] = row
     keys = [k for k in order if k in groups] + [k for k in groups if k not in order]
     return {key: _curves(key, groups[key], arm_types.get(key[0]), names) for key in keys}
@@ -136,16 +140,18 @@ def _curves(key: tuple[str, str], rows: dict[tuple[int, int], dict], arm_type: s
                   env_steps=stats.nan_reduce(np.nanmax, steps, axis=0), present=present, metrics=metrics)
 
 
-def load_eval(run_dir: str | pathlib.Path) -> dict[tuple[str, str, bool], dict[str, np.ndarray]]:
+def load_eval(run_dir: str | pathlib.Path, say: Callable[[str], None] | None = None
+              ) -> dict[tuple[str, str, bool], dict[str, np.ndarray]]:
     """eval.jsonl as {(arm, hp, deterministic): {"seeds", "return", "discounted_return", "episodes"}}.
 
-    Per seed the record of the latest evaluated update is kept (the last written when equal).
+    Per seed the record of the latest evaluated update is kept (the last written when equal). Lines that cannot
+    be read are left out, and `say` is told how many.
     """
     latest: dict[tuple[str, str, bool], dict[int, dict]] = {}
-    for row in io.read_jsonl(pathlib.Path(run_dir) / "eval.jsonl"):
-        if "arm" not in row or "seed" not in row:
-            continue
-        key = (str(row["arm"]), str(row.get("hp", "")), bool(row.get("deterministic", True)))
+    rows = io.read_jsonl(pathlib.Path(run_dir) / "eval.jsonl")
+    _say_skipped(pathlib.Path(run_dir) / "eval.jsonl", rows, say)
+    for row in rows:  # arm and seed of their types (io.eval_row_ok)
+        key = (row["arm"], row.get("hp", ""), row.get("deterministic", True))
         seed = int(row["seed"])
         old = latest.setdefault(key, {}).get(seed)
         if old is None or _float(row.get("update", -1)) >= _float(old.get("update", -1)):
@@ -183,6 +189,14 @@ def per_seed_auc(curves: Curves, name: str) -> np.ndarray:
     return stats.area_under_curve(values, curves.present, steps)
 
 
+def per_seed_skipped(curves: Curves, name: str | None = None) -> np.ndarray:
+    """[S]: optimiser steps each seed skipped for a non-finite loss or gradient (0 where the log has no count)."""
+    name = name if name in curves.metrics else next((n for n in SKIPPED if n in curves.metrics), None)
+    if name is None:
+        return np.zeros(len(curves.seeds))
+    return np.nansum(curves.metrics[name], axis=1)
+
+
 # ---------------------------------------------------------------------------------------------------
 # summary
 
@@ -210,6 +224,10 @@ def summary_rows(curves: dict[tuple[str, str], Curves], evals: dict | None = Non
                 iqm, lo, hi, _ = stats.iqm_interval(fn(c, name), reps, seed)
                 row.update({f"{stat}_{target}_iqm": iqm, f"{stat}_{target}_ci_low": lo,
                             f"{stat}_{target}_ci_high": hi})
+        skipped = per_seed_skipped(c, names.skipped)
+        row["nonfinite_seeds"] = int((skipped > 0).sum())
+        row["skipped_steps"] = int(np.nansum(skipped))
+        row["nonfinite_seed_ids"] = " ".join(str(s) for s in c.seeds[skipped > 0])
         for det in modes:
             mode = "det" if det else "stoch"
             ev = evals.get((arm, hp, det))
@@ -241,13 +259,18 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
         if rows and f"eval_{mode}_return_iqm" in rows[0]:
             columns += [(f"eval return ({words})", f"eval_{mode}_return"),
                         (f"eval disc. return ({words})", f"eval_{mode}_discounted_return")]
-    head = ["rank", "arm", "hp", "seeds", "env steps"] + [name for name, _ in columns]
+    flagged = [row for row in rows if row.get("nonfinite_seeds")]
+    head = ["rank", "arm", "hp", "seeds", "env steps"] + [name for name, _ in columns] + (
+        ["non-finite"] if flagged else [])
     lines = [f"# {title}" if title else "# Summary", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for i, row in enumerate(rows, 1):
         steps = f"{row['env_steps']:.3g}" if np.isfinite(row["env_steps"]) else "n/a"
         arm = row["arm"] + (f" ({row['arm_type']})" if row["arm_type"] and row["arm_type"] != row["arm"] else "")
         cells = [str(i), arm, row["hp"] or "-", str(row["seeds"]), steps] + [_cell(row, p) for _, p in columns]
+        if flagged:
+            cells.append(f"**{row['nonfinite_seeds']} of {row['seeds']} seeds**" if row.get("nonfinite_seeds")
+                         else "-")
         lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
@@ -260,6 +283,11 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
         "steps; points before the first finished episode are skipped). Eval: mean return over the evaluation "
         "episodes of each seed's latest evaluation.",
     ]
+    if flagged:
+        runs = "; ".join(f"{row['arm']} {row['hp'] or ''} seeds {row['nonfinite_seed_ids']}: {row['skipped_steps']} steps"
+                         .replace("  ", " ") for row in flagged)
+        lines += ["", f"**Non-finite training**: these runs skipped optimiser steps whose loss or gradient was not "
+                      f"finite (the parameters stayed as they were; their numbers are suspect): {runs}."]
     return "\n".join(lines) + "\n"
 
 
@@ -326,6 +354,11 @@ def plot_run(run_dir: str | pathlib.Path, *, reps: int = 2000, max_points: int =
     info = io.RunDir(run_dir).read_if_present()
     names = Names.of(info)
     curves = load_metrics(run_dir, say)
+    if not curves:  # refuse rather than overwrite a summary with an empty table
+        where = run_dir / "metrics.jsonl"
+        state = "holds no readable row" if io.jsonl_exists(where) else "is missing"
+        raise io.RunDirError(f"{where} {state}, so there is nothing to plot; {run_dir}/summary.md and plots/ were "
+                             "left as they were.")
     colors = {c.label: f"C{i % 10}" for i, c in enumerate(curves.values())}  # one colour per curve everywhere
     plots = run_dir / "plots"
     written: dict[str, pathlib.Path] = {}
@@ -335,7 +368,7 @@ def plot_run(run_dir: str | pathlib.Path, *, reps: int = 2000, max_points: int =
                                  ("discounted_return", names.discounted_ret, "discounted return")):
             written.update(_return_figure(plots, key, name, title, curves, colors, max_points, reps, seed))
         written.update(_panels_figure(plots, names.panels, curves, colors, max_points, reps, seed))
-    rows = summary_rows(curves, load_eval(run_dir), reps, seed, names)
+    rows = summary_rows(curves, load_eval(run_dir, say), reps, seed, names)
     env = info.get("base_config", {}).get("env") if isinstance(info.get("base_config"), dict) else None
     title = f"Summary of {run_dir.name}" + (f" ({env})" if env else "")
     written["summary_md"] = run_dir / "summary.md"

@@ -76,6 +76,9 @@ class Metrics:
     ret: str  # the undiscounted return of finished episodes
     discounted_ret: str  # the discounted return
     panels: tuple[tuple[str, str, bool], ...] = ()  # (metric, title, log scale) of the diagnostics figure
+    # the metric counting the optimiser steps an update skipped because its loss or gradient was not finite: the
+    # host sums it per run and names the runs that skipped any (progress, summary); None: not reported
+    skipped: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -32,15 +32,38 @@ def default_cache_dir() -> str:
     return os.environ.get(CACHE_ENV, str(pathlib.Path.home() / ".cache" / "cdjax" / "jax"))
 
 
+def check_cache_dir(cache_dir: str | os.PathLike, source: str = "the compilation cache") -> None:
+    """Make the cache directory; ConfigError (one sentence naming where it came from: --cache-dir, $CDJAX_JAX_CACHE)
+    when it is a file, cannot be made, or cannot be written."""
+    from cdjax.protocol import ConfigError
+
+    path = pathlib.Path(cache_dir)
+    try:
+        str(path).encode("utf-8")
+        if path.exists() and not path.is_dir():
+            raise ConfigError(f"{source} {path} is a file, not a directory; name a directory for JAX's compilation "
+                              "cache.")
+        os.makedirs(path, exist_ok=True)
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise ConfigError(f"{source} {path} cannot be written ({os.strerror(13)}); name a directory you can "
+                              "write for JAX's compilation cache.")
+    except UnicodeEncodeError:
+        raise ConfigError(f"{source} {ascii(str(path))} is not UTF-8 text; name another directory.") from None
+    except OSError as err:
+        raise ConfigError(f"{source} {path} cannot be used ({err.strerror or err}); name a directory you can write "
+                          "for JAX's compilation cache.") from None
+
+
 def configure(*, cache_dir: str | os.PathLike | None = None, debug_nans: bool = False, disable_jit: bool = False,
-              min_compile_time_s: float = 0.5) -> None:
-    """Persistent compilation cache (programs compiling longer than `min_compile_time_s` are kept), NaN
-    checks on every operation, jit off (for debugging); and no Brax deprecation notice on every run."""
+              min_compile_time_s: float = 0.5, cache_source: str = "the compilation cache") -> None:
+    """Persistent compilation cache (programs compiling longer than `min_compile_time_s` are kept; ConfigError when
+    `cache_dir` cannot be used, naming `cache_source`), NaN checks on every operation, jit off (for debugging); and
+    no Brax deprecation notice on every run."""
     import jax
 
     warnings.filterwarnings("ignore", message="Brax System", category=UserWarning)
     if cache_dir:
-        os.makedirs(cache_dir, exist_ok=True)
+        check_cache_dir(cache_dir, cache_source)
         jax.config.update("jax_compilation_cache_dir", str(cache_dir))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_time_s)
     jax.config.update("jax_debug_nans", debug_nans)

@@ -1,5 +1,6 @@
 """The chunked training loop: resume reproduces the uninterrupted run, interrupts keep logs and
-checkpoints, a corrupt latest checkpoint is skipped, arms x hp grid x seeds equal each run alone."""
+checkpoints, a corrupt latest checkpoint is skipped (and kept, moved aside), arms x hp grid x seeds equal each run
+alone."""
 
 import dataclasses
 import json
@@ -148,12 +149,18 @@ def test_killed_run_with_corrupt_latest_checkpoint_falls_back_and_still_reproduc
     assert damaged
     for path in damaged:
         path.write_bytes(b"\x00garbage" * 7)
+    kept = {p.relative_to(out / "checkpoints" / "cd" / "4"): p.read_bytes()
+            for p in (out / "checkpoints" / "cd" / "4").rglob("*") if p.is_file()}
 
     capsys.readouterr()
     run_sweep(resume_spec(out, progress=False, final_eval=False), resume=True)
     said = capsys.readouterr().err.splitlines()
     fallback = [line for line in said if "cannot be restored" in line]  # one line each, the library's noise in cdjax.log
     assert len(fallback) == 1 and "checkpoints/cd/4 cannot be restored" in fallback[0], said
+    assert "moved aside to 4.unreadable (kept)" in fallback[0], said  # evidence: renamed, never deleted
+    aside = out / "checkpoints" / "cd" / "4.unreadable"
+    assert {p.relative_to(aside): p.read_bytes() for p in aside.rglob("*") if p.is_file()} == kept
+    assert sorted(p.name for p in (out / "checkpoints" / "cd").iterdir()) == ["4", "4.unreadable", "6"]
     assert "Traceback" not in "\n".join(said)
     assert any("(1 of them a torn line" in line for line in said), said  # the torn metrics line is reported
     assert _rows(out) == _rows(uninterrupted)

@@ -27,6 +27,8 @@ def register(setting: Setting) -> Setting:
 
 def get(name: str) -> Setting:
     """The setting registered as `name` (ConfigError, one sentence, for an unknown name)."""
+    if not isinstance(name, str):
+        raise ConfigError(f"A setting is named by a string, got {name!r}; choose one of: {', '.join(names())}.")
     if name not in _REGISTRY and name in _BUILTIN:
         register(importlib.import_module(_BUILTIN[name]).SETTING)
     if name not in _REGISTRY:

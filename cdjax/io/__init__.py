@@ -8,12 +8,15 @@
     cdjax.log                      what the libraries (orbax, absl, asyncio, warnings) said during the sweep
     .lock                          flock-ed by the process that trains in the directory
     tb/<arm>/<hp>/seed<s>/         TensorBoard event files
-    checkpoints/<arm>/<updates>/   orbax checkpoints of the arm's state (cdjax.io.checkpoints)
+    checkpoints/<arm>/<updates>/   orbax checkpoints of the arm's state (cdjax.io.checkpoints); <updates>.unreadable
+                                   and <updates>.restarted: checkpoints set aside (kept, no longer read)
     plots/, summary.md, summary.csv, videos/   cdjax.plots and `cdjax eval --video`
 
 Writes that fail (a full disk, a read-only place) raise `WriteError`, a `RunDirError` whose message says
-which file and why in one sentence; JSONL readers skip a torn line (a process killed while writing)
-and count it, so that callers can say so.
+which file and why in one sentence. Readers never misread: run.json is refused in one sentence when it is not
+UTF-8 JSON or a field has the wrong type (`check_record`); JSONL readers skip a torn line (a process killed while
+writing), bytes that are not UTF-8 and rows whose fields have the wrong types for their file (`ROW_CHECKS`), and
+count them, so that callers can say so; `truncate_jsonl` (a resume) drops the same lines.
 """
 
 from __future__ import annotations
@@ -21,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
-import gzip
 import json
 import math
 import os
@@ -112,31 +114,73 @@ class RunDir:
         return self.path / "checkpoints" / arm
 
     def exists(self) -> bool:
-        return self.run_json.is_file()
+        try:
+            return self.run_json.is_file()
+        except OSError:  # a name the file system cannot hold (too long): no run there
+            return False
 
     def read(self) -> dict:
-        """run.json (RunDirError when there is none, it is not JSON, or its version is not readable)."""
-        if not self.exists():
-            raise RunDirError(f"{self.path} holds no run (no run.json); "
-                              f"start one with `cdjax sweep --out {self.path}`.")
+        """run.json (RunDirError, one sentence, when there is none, it is not UTF-8 JSON, its version is not
+        readable or a field it holds has the wrong type: a run.json edited by hand is refused, not misread)."""
         try:
-            run = json.loads(self.run_json.read_text())
+            data = self.run_json.read_bytes()
+        except FileNotFoundError:
+            raise RunDirError(f"{self.path} holds no run (no run.json); "
+                              f"start one with `cdjax sweep --out {self.path}`.") from None
+        except OSError as err:
+            if err.errno in (errno.ENOTDIR, errno.EISDIR):
+                raise RunDirError(f"{self.path} holds no run (no run.json); "
+                                  f"start one with `cdjax sweep --out {self.path}`.") from None
+            raise RunDirError(f"cannot read {self.run_json}: {reason(err)}.") from None
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise RunDirError(f"{self.run_json} is not UTF-8 text (byte {data[err.start]:#04x} at offset "
+                              f"{err.start}); put back the run.json the sweep wrote.") from None
+        try:
+            run = json.loads(text)
         except json.JSONDecodeError as err:
             raise RunDirError(f"{self.run_json} is not valid JSON ({err.msg} at line {err.lineno}).") from None
-        except OSError as err:
-            raise RunDirError(f"cannot read {self.run_json}: {reason(err)}.") from None
-        if not isinstance(run, dict) or run.get("version") not in READABLE_VERSIONS:
+        except RecursionError:
+            raise RunDirError(f"{self.run_json} is not valid JSON (nested too deeply).") from None
+        if not isinstance(run, dict) or run.get("version") not in READABLE_VERSIONS or isinstance(
+                run.get("version"), bool):
             version = run.get("version") if isinstance(run, dict) else None
-            raise RunDirError(f"{self.run_json} has version {version!r}; this cdjax reads versions "
+            raise RunDirError(f"{self.run_json} has version {_short(version)}; this cdjax reads versions "
                               f"{', '.join(map(str, READABLE_VERSIONS))}.")
+        check_record(run, self.run_json)
         return run
 
     def read_if_present(self) -> dict:
         """run.json, or {} when the directory has none (plots of hand-made logs)."""
         return self.read() if self.exists() else {}
 
+    def check_name(self, option: str = "--out") -> None:
+        """RunDirError (one sentence) for a path this file system or cdjax's logs cannot hold: a name that is not
+        UTF-8 text (bytes the command line could not decode), or a component or whole path longer than the file
+        system allows. Touches nothing."""
+        text = str(self.path)
+        try:
+            text.encode("utf-8")
+        except UnicodeEncodeError:
+            raise RunDirError(f"{option} {ascii(text)} is not UTF-8 text; choose a name of UTF-8 characters.") from None
+        existing = next((p for p in self.path.absolute().parents if _exists(p)), pathlib.Path("/"))
+        try:
+            name_max = os.pathconf(existing, "PC_NAME_MAX")
+            path_max = os.pathconf(existing, "PC_PATH_MAX")
+        except (OSError, ValueError):
+            name_max, path_max = 255, 4096
+        for part in self.path.parts:
+            if len(os.fsencode(part)) > name_max:
+                raise RunDirError(f"{option}: the name {part[:40]!r}... is {len(os.fsencode(part))} bytes, longer than "
+                                  f"the {name_max} this file system allows; choose a shorter one.")
+        if len(os.fsencode(str(self.path.absolute()))) >= path_max:
+            raise RunDirError(f"{option}: the path is {len(os.fsencode(str(self.path.absolute())))} bytes, longer than "
+                              f"the {path_max} this file system allows; choose a shorter one.")
+
     def check_writable(self) -> None:
         """RunDirError (one sentence) when the directory could not be made or written; writes nothing."""
+        self.check_name()
         if self.path.exists() and not self.path.is_dir():
             raise RunDirError(f"{self.path} is a file, not a directory; choose another --out.")
         existing = next(p for p in (self.path, *self.path.absolute().parents) if p.exists())
@@ -183,15 +227,28 @@ class RunDir:
             tmp.replace(self.run_json)
 
 
+def _exists(path: pathlib.Path) -> bool:
+    try:
+        return path.exists()
+    except OSError:
+        return False
+
+
 def json_float(x) -> float | None:
     """A float for JSON: NaN and infinities become None (null)."""
     x = float(x)
     return x if math.isfinite(x) else None
 
 
+def _plain(value):
+    """A numpy scalar as the Python number it holds (JSON writes those); anything else as it is."""
+    return value.item() if isinstance(value, np.generic) else value
+
+
 def dataclass_to_json(obj) -> dict:
-    """A (frozen) dataclass of scalars and tuples as JSON fields (tuples become lists)."""
-    return {f.name: (list(v) if isinstance(v := getattr(obj, f.name), tuple) else v) for f in dataclasses.fields(obj)}
+    """A (frozen) dataclass of scalars and tuples as JSON fields (tuples become lists, numpy scalars numbers)."""
+    return {f.name: ([_plain(x) for x in v] if isinstance(v := getattr(obj, f.name), tuple) else _plain(v))
+            for f in dataclasses.fields(obj)}
 
 
 def dataclass_from_json(cls, fields: Mapping[str, Any], where: str = "run.json"):
@@ -207,14 +264,121 @@ def hparams_to_json(hp) -> dict:
     return {f.name: float(getattr(hp, f.name)) for f in dataclasses.fields(hp)}
 
 
+# What each field of run.json holds (checked when it is read, for the fields it has: a version 1 record lacks some).
+def _whole(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) or isinstance(v, float) and v.is_integer()
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _count(v) -> bool:
+    return _whole(v) and v >= 0
+
+
+def _list_of(pred):
+    return lambda v: isinstance(v, list) and all(pred(x) for x in v)
+
+
+def _dict_of(pred):
+    return lambda v: isinstance(v, dict) and all(isinstance(k, str) and pred(x) for k, x in v.items())
+
+
+def _panel(v) -> bool:
+    return isinstance(v, list) and len(v) == 3 and isinstance(v[0], str) and isinstance(v[1], str) and isinstance(
+        v[2], bool)
+
+
+def _metric_names(v) -> bool:
+    return (isinstance(v, dict) and all(isinstance(v.get(k, ""), str) for k in ("return", "discounted_return"))
+            and _list_of(_panel)(v.get("panels", [])) and isinstance(v.get("skipped", ""), (str, type(None))))
+
+
+_RECORD = {  # field -> (what it must be, in words; test)
+    "setting": ("a setting's name", lambda v: isinstance(v, str)),
+    "base_config": ("an object of Config fields", lambda v: isinstance(v, dict)),
+    "arms": ("a non-empty list of arms", lambda v: isinstance(v, list) and len(v) > 0),
+    "grid": ("an object of hyper-parameter value lists", _dict_of(_list_of(_number))),
+    "seeds": ("a positive integer", lambda v: _whole(v) and v >= 1),
+    "seed": ("a non-negative integer", _count),
+    "phase": ("an object or null", lambda v: v is None or isinstance(v, dict)),
+    "final_eval": ("true or false", lambda v: isinstance(v, bool)),
+    "metrics": ("an object of metric names", _metric_names),
+    "command": ("a string", lambda v: isinstance(v, str)),
+    **{name: ("a non-negative integer", _count) for name in (
+        "total_env_steps", "requested_env_steps", "num_updates", "env_steps_per_update", "chunk_updates",
+        "checkpoint_every", "eval_every", "eval_episodes", "bootstrap_reps")},
+}
+_ARM = {
+    "name": ("an arm's name", lambda v: isinstance(v, str) and v != ""),
+    "arm": ("a string", lambda v: v is None or isinstance(v, str)),
+    "config": ("an object of Config fields", lambda v: isinstance(v, dict)),
+    "hparams": ("a list of objects of numbers", _list_of(_dict_of(_number))),
+    "hp_labels": ("a list of strings", _list_of(lambda x: isinstance(x, str))),
+    "num_updates": ("a non-negative integer", _count),
+    "phase_env_steps": ("a non-negative integer", _count),
+    "total_env_steps": ("a non-negative integer", _count),
+}
+
+
+def _short(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def check_record(run: dict, where: str | os.PathLike = "run.json") -> None:
+    """RunDirError (one sentence naming the field) for a run.json field of the wrong type."""
+    def refuse(name: str, what: str, value) -> None:
+        raise RunDirError(f"{where}: {name} must be {what}, got {_short(value)}; put back the run.json the sweep "
+                          "wrote.")
+
+    for name, (what, ok) in _RECORD.items():
+        if name in run and not ok(run[name]):
+            refuse(name, what, run[name])
+    for i, arm in enumerate(run.get("arms", [])):
+        if not isinstance(arm, dict):
+            refuse(f"arms[{i}]", "an object", arm)
+        for name, (what, ok) in _ARM.items():
+            if name in arm and not ok(arm[name]):
+                refuse(f"arms[{i}].{name}", what, arm[name])
+        if "hparams" in arm and "hp_labels" in arm and len(arm["hparams"]) != len(arm["hp_labels"]):
+            refuse(f"arms[{i}].hp_labels", f"one label per hparams entry ({len(arm['hparams'])})", arm["hp_labels"])
+    names = [a.get("name") for a in run.get("arms", [])]
+    if len(set(names)) != len(names):
+        refuse("arms", "a list of arms with distinct names", names)
+
+
 # ---------------------------------------------------------------------------------------------------
 # JSONL logs
 
 
 class Rows(list):
-    """Rows of a JSONL file; `skipped` counts the lines that did not parse (a torn last line)."""
+    """Rows of a JSONL file; `skipped` counts the lines left out: a torn line (a process killed while writing),
+    bytes that are not UTF-8, or a row whose fields have the wrong types for its file."""
 
     skipped: int = 0
+
+
+def metric_row_ok(row: dict) -> bool:
+    """A row of metrics.jsonl or phase.jsonl: arm, (hp,) seed, update and numbers (or null) for the rest."""
+    return (isinstance(row.get("arm"), str) and isinstance(row.get("hp", ""), str) and _count(row.get("seed"))
+            and _count(row.get("update"))
+            and all(v is None or _number(v) for k, v in row.items() if k not in ("arm", "hp")))
+
+
+def eval_row_ok(row: dict) -> bool:
+    """A row of eval.jsonl (cdjax.evaluate.eval_records): the fields a reader uses have their types."""
+    numbers = _list_of(lambda x: x is None or _number(x))
+    checks = {"hp": lambda v: isinstance(v, str), "update": _count, "env_steps": _count, "episodes": _count,
+              "deterministic": lambda v: isinstance(v, bool), "returns": numbers, "discounted_returns": numbers,
+              "lengths": _list_of(_count)}
+    return (isinstance(row.get("arm"), str) and _count(row.get("seed"))
+            and all(ok(row[k]) for k, ok in checks.items() if k in row)
+            and all(v is None or _number(v) for k, v in row.items() if k.startswith("eval/")))
+
+
+ROW_CHECKS = {"metrics.jsonl": metric_row_ok, "phase.jsonl": metric_row_ok, "eval.jsonl": eval_row_ok}
 
 
 def jsonl_exists(path: str | os.PathLike) -> bool:
@@ -223,69 +387,116 @@ def jsonl_exists(path: str | os.PathLike) -> bool:
     return path.exists() or path.with_name(path.name + ".gz").exists()
 
 
-def read_jsonl(path: str | os.PathLike) -> Rows:
-    """The objects of a JSONL file ([] when it does not exist); unreadable lines are skipped and counted.
+def _gunzip(data: bytes) -> tuple[bytes, bool]:
+    """(what decompresses of a gzip stream, whether all of it did): a damaged or cut file gives its readable start."""
+    import zlib
 
-    A kept copy compressed beside the missing file (`metrics.jsonl.gz`, as the committed experiment data are
-    stored) is read in its place."""
+    out, whole = [], True
+    while data:
+        engine = zlib.decompressobj(16 + zlib.MAX_WBITS)
+        try:
+            out.append(engine.decompress(data))
+        except zlib.error:
+            whole = False
+            break
+        if not engine.eof:
+            whole = False
+            break
+        data = engine.unused_data  # a second member (files concatenated)
+    return b"".join(out), whole
+
+
+def _row(line: bytes, check) -> dict | None:
+    """The object of one JSONL line, or None: not UTF-8, not JSON, not an object, or the wrong types."""
+    try:
+        row = json.loads(line.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):
+        return None
+    if not isinstance(row, dict) or (check is not None and not check(row)):
+        return None
+    return row
+
+
+def read_jsonl(path: str | os.PathLike, check=...) -> Rows:
+    """The objects of a JSONL file ([] when it does not exist); lines that cannot be read are skipped and counted.
+
+    `check(row) -> bool` says which rows have the right types (default: by the file's name, `ROW_CHECKS`; None:
+    any object). A kept copy compressed beside the missing file (`metrics.jsonl.gz`, as the committed experiment
+    data are stored) is read in its place; what of it cannot be decompressed counts as one torn line.
+    """
     rows = Rows()
     path = pathlib.Path(path)
-    if not path.exists():
-        packed = path.with_name(path.name + ".gz")
-        if not packed.exists():
-            return rows
-        text = gzip.decompress(packed.read_bytes()).decode()
-    else:
-        text = path.read_text()
-    for line in text.splitlines():
+    if check is ...:
+        check = ROW_CHECKS.get(path.name)
+    try:
+        if path.exists():
+            data = path.read_bytes()
+        else:
+            packed = path.with_name(path.name + ".gz")
+            if not packed.exists():
+                return rows
+            data, whole = _gunzip(packed.read_bytes())
+            rows.skipped += not whole
+    except OSError as err:
+        raise RunDirError(f"cannot read {path}: {reason(err)}.") from None
+    for line in data.split(b"\n"):
         if not line.strip():
             continue
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            row = None
-        if isinstance(row, dict):
-            rows.append(row)
-        else:
+        row = _row(line, check)
+        if row is None:
             rows.skipped += 1
+        else:
+            rows.append(row)
     return rows
 
 
 def append_jsonl(path: str | os.PathLike, rows: Iterable[dict]) -> pathlib.Path:
-    """Append rows, one JSON object per line (NaN written as null), in one write; WriteError on failure."""
+    """Append rows, one JSON object per line (NaN written as null), in one write; WriteError on failure. A torn
+    last line (a process killed while writing) is ended first, so that it stays one skipped line of its own."""
     path = pathlib.Path(path)
     text = "".join(json.dumps(row, allow_nan=False) + "\n" for row in rows)
     with writing(path):
         path.parent.mkdir(parents=True, exist_ok=True)
-        with path.open("a") as f:
-            f.write(text)
+        with path.open("ab+") as f:
+            if f.tell() > 0:
+                f.seek(-1, os.SEEK_END)
+                if f.read(1) != b"\n":
+                    text = "\n" + text
+            f.write(text.encode())
             f.flush()
     return path
 
 
 def truncate_jsonl(path: pathlib.Path, done: Mapping[str, int]) -> tuple[int, int]:
-    """Keep the rows of each arm up to `done[arm]` updates (those the restored checkpoints hold).
+    """Keep the rows of each arm up to `done[arm]` updates (those the restored checkpoints hold; an arm at -1 keeps
+    none; the rows of an arm `done` does not name are not this run's to judge and are kept).
 
-    Drops the rows a killed process wrote after its last checkpoint, and torn lines. Returns (rows
-    dropped, of which torn lines).
+    Drops the rows a killed process wrote after its last checkpoint, and what `read_jsonl` would skip (torn
+    lines, bytes that are not UTF-8, rows of the wrong types). Returns (rows dropped, of which unreadable).
     """
-    if not path.exists():
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
         return 0, 0
+    except OSError as err:
+        raise RunDirError(f"cannot read {path}: {reason(err)}.") from None
+    check = ROW_CHECKS.get(path.name)
     kept, dropped, torn = [], 0, 0
-    for line in path.read_text().splitlines(keepends=True):
-        try:
-            row = json.loads(line)
-            keep = line.endswith("\n") and row["update"] <= done.get(row["arm"], 0)
-        except (json.JSONDecodeError, KeyError, TypeError):
-            keep, torn = False, torn + 1
-        if keep:
-            kept.append(line)
+    lines = data.split(b"\n")
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        row = _row(line, check) if i < len(lines) - 1 else None  # the last piece has no newline: torn
+        if row is None or "update" not in row:
+            dropped, torn = dropped + 1, torn + 1
+        elif row["arm"] not in done or row["update"] <= done[row["arm"]]:
+            kept.append(line + b"\n")
         else:
             dropped += 1
     if dropped:
         tmp = path.with_suffix(".jsonl.tmp")
         with writing(path):
-            tmp.write_text("".join(kept))
+            tmp.write_bytes(b"".join(kept))
             tmp.replace(path)
     return dropped, torn
 
@@ -399,8 +610,9 @@ def host(tree):
     return jax.tree.map(np.asarray, jax.device_get(tree))
 
 
-from cdjax.io.checkpoints import CheckpointWarning, Checkpoints  # noqa: E402  (it uses the errors above)
+from cdjax.io.checkpoints import CheckpointMismatch, CheckpointWarning, Checkpoints  # noqa: E402  (uses the errors above)
 
-__all__ = ["RunDir", "RunDirError", "WriteError", "CheckpointWarning", "Checkpoints", "TensorBoard", "Rows",
-           "read_jsonl", "append_jsonl", "truncate_jsonl", "metric_rows", "phase_rows", "json_float",
+__all__ = ["RunDir", "RunDirError", "WriteError", "CheckpointMismatch", "CheckpointWarning", "Checkpoints", "TensorBoard", "Rows",
+           "read_jsonl", "append_jsonl", "truncate_jsonl", "check_record", "metric_row_ok", "eval_row_ok",
+           "metric_rows", "phase_rows", "json_float",
            "dataclass_to_json", "dataclass_from_json", "hparams_to_json", "host", "reason", "writing"]

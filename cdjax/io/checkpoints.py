@@ -9,29 +9,51 @@ and `progress` (JSON: counters, wall clock, and the layout of `state`). Left out
   (listed with that one's name: Brax keeps q and qpos, qd and qvel);
 - empty arrays (orbax refuses them; MJX state has some).
 
-Checkpoints are atomic (orbax writes a temporary directory and renames it when complete); a checkpoint
-that cannot be read is skipped in favour of the previous one with a `CheckpointWarning`. A save that
-fails (a full disk) raises `WriteError` naming it; the previous checkpoints stay as they were.
+Checkpoints are evidence: a read never deletes one. Before any array is read, a checkpoint is checked against
+the run asked for: the run it records (`progress["run"]`, compared by the caller's `expect`: setting, arm,
+config, seeds and grid) and the name, shape and dtype of every leaf (`layout["shapes"]`, or orbax's metadata for
+checkpoints written before it was recorded). A difference raises `CheckpointMismatch` (one sentence naming it;
+nothing is changed). Only a checkpoint that cannot be read as files (a truncated or damaged file) is skipped in
+favour of the previous one, with a `CheckpointWarning`, and moved aside (renamed `<step>.unreadable`, kept).
+The run axis is re-padded only for another device count: the real runs recorded must be the same.
+
+Checkpoints are atomic (orbax writes a temporary directory and renames it when complete). A save that fails (a
+full disk) raises `WriteError` naming it; the previous checkpoints stay as they were.
 """
 
 from __future__ import annotations
 
+import os
 import pathlib
 import re
 import shutil
 import warnings
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import numpy as np
 
-from cdjax.io import WriteError, reason
+from cdjax.io import RunDirError, WriteError, reason
 
 MAX_TO_KEEP = 2
 
 
 class CheckpointWarning(UserWarning):
     """A checkpoint could not be restored and an older one is used instead."""
+
+
+class CheckpointMismatch(RunDirError):
+    """A readable checkpoint of another run than the one asked for (one sentence; nothing was changed)."""
+
+
+class _Unreadable(Exception):
+    """A checkpoint that cannot be read as files."""
+
+
+def _data_shape(x) -> tuple[tuple[int, ...], str]:
+    """(shape, dtype name) of a leaf as stored: a PRNG key as its key data."""
+    data = jax.eval_shape(jax.random.key_data, x) if _is_key(x) else x
+    return tuple(int(d) for d in data.shape), np.dtype(data.dtype).name
 
 
 def _is_key(x) -> bool:
@@ -53,10 +75,12 @@ def named_leaves(tree) -> list[tuple[str, Any]]:
 def compact(tree, keep=None) -> tuple[dict[str, Any], dict]:
     """(arrays to store, layout) of a state: see the module docstring. `keep`: pytree of bool like `tree`."""
     flags = jax.tree.leaves(keep) if keep is not None else None
-    layout: dict = {"zeros": [], "same": {}}
+    layout: dict = {"zeros": [], "same": {}, "shapes": {}}
     stored: dict[str, Any] = {}
     seen: dict[tuple, list[str]] = {}
     for i, (name, x) in enumerate(named_leaves(tree)):
+        shape, dtype = _data_shape(x)
+        layout["shapes"][name] = [list(shape), dtype]  # every leaf, stored or not: what a restore checks
         if (flags is not None and not flags[i]) or x.size == 0:
             continue
         x = jax.random.key_data(x) if _is_key(x) else x
@@ -120,6 +144,46 @@ def repad_runs(value: np.ndarray, runs: int) -> np.ndarray:
     return np.concatenate([value, np.repeat(value[-1:], runs - value.shape[0], axis=0)])
 
 
+def _why(err: BaseException) -> str:
+    text = str(err).splitlines()[0][:200] if str(err) else ""
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+def _short(value, limit: int = 80) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def _leaf_difference(saved: dict, layout: dict | None, like, run: dict | None) -> str | None:
+    """How the checkpoint's leaves differ from those of `like` (None: they agree). The run axis may differ only
+    in its padding (another device count), and only when the checkpoint records its real runs and each padding
+    holds them all."""
+    want = {name: _data_shape(x) for name, x in named_leaves(like)}
+    runs = leading_runs(like)
+    saved_runs = (layout or {}).get("runs")
+    if saved_runs is None:  # an older checkpoint: the run axis of its stored leaves
+        lengths = {shape[0] for shape, _ in saved.values() if shape}
+        saved_runs = lengths.pop() if len(lengths) == 1 else None
+    batched = runs is not None and saved_runs is not None
+    for name, (shape, dtype) in sorted(saved.items(), key=lambda item: (not item[0].startswith("params"), item[0])):
+        if name not in want:  # (parameters first: the difference a user recognises)
+            return f"it holds a leaf {name} that this run's state has not"
+        mine, mine_dtype = want[name]
+        same = (shape[1:] == mine[1:] and shape[:1] == (saved_runs,) and mine[:1] == (runs,)) if batched and shape \
+            else shape == mine
+        if not same or dtype != mine_dtype:
+            return f"its leaf {name} is {list(shape)} {dtype} where this run's state has {list(mine)} {mine_dtype}"
+    if layout is not None and isinstance(layout.get("shapes"), dict):  # every leaf recorded: none may be missing
+        missing = sorted(set(want) - set(saved))
+        if missing:
+            return f"this run's state has a leaf {missing[0]} that it does not hold"
+    if batched and saved_runs != runs:
+        real = run.get("num_runs") if isinstance(run, dict) else None
+        if not (isinstance(real, int) and real <= min(saved_runs, runs)):
+            return f"it holds {saved_runs} runs where this run has {runs}"
+    return None
+
+
 def step_dirs(directory: pathlib.Path) -> list[int]:
     """The steps of the complete checkpoints in `directory`, from the directory names alone."""
     return sorted(int(p.name) for p in directory.iterdir() if p.name.isdigit()) if directory.is_dir() else []
@@ -179,22 +243,87 @@ class Checkpoints:
         self._pending = None
         raise WriteError(f"cannot write the checkpoint {self.directory / str(step)}: {reason(err)}") from None
 
-    def restore(self, like, delete_bad: bool = True) -> tuple[Any, dict] | None:
-        """(state, progress) of the newest checkpoint that can be read, or None if there is none.
+    def _progress(self, step: int) -> dict:
+        try:
+            progress = self.manager.restore(step, args=self._ocp.args.Composite(
+                progress=self._ocp.args.JsonRestore()))["progress"]
+        except Exception as err:  # noqa: BLE001 - any failure to read the files
+            raise _Unreadable(_why(err)) from None
+        if not isinstance(progress, dict) or progress.get("updates") != step:
+            raise _Unreadable(f"its progress record says {_short(progress)}")
+        layout = progress.get("layout")
+        if layout is not None and not (
+                isinstance(layout, dict) and isinstance(layout.get("stored"), list)
+                and all(isinstance(n, str) for n in layout["stored"]) and isinstance(layout.get("zeros", []), list)
+                and isinstance(layout.get("same", {}), dict) and isinstance(layout.get("runs", 0), (int, type(None)))):
+            raise _Unreadable("its layout record is damaged")
+        return dict(progress)
 
-        `like`: a concrete state of the same runs (a fresh init): shapes, dtypes, shardings and the leaves
-        the checkpoint does not hold. A checkpoint that fails to restore is reported with a
-        CheckpointWarning (and deleted, with `delete_bad`: a resumed run writes that step again), and the
-        previous one is tried.
-        """
-        ocp = self._ocp
+    def _shapes(self, step: int, layout: dict | None) -> dict[str, tuple[tuple[int, ...], str]]:
+        """{leaf: (shape, dtype)} of the checkpoint: its layout's record, else orbax's metadata (older ones)."""
+        if layout is not None and isinstance(layout.get("shapes"), dict):
+            try:
+                return {name: (tuple(int(d) for d in shape), str(dtype))
+                        for name, (shape, dtype) in layout["shapes"].items()}
+            except (TypeError, ValueError):
+                raise _Unreadable("its layout record is damaged") from None
+        try:
+            tree = self._ocp.StandardCheckpointHandler().metadata((self.directory / str(step) / "state").resolve())
+            tree = getattr(tree, "tree", tree)
+            return {name: (tuple(int(d) for d in m.shape), np.dtype(m.dtype).name) for name, m in tree.items()}
+        except Exception as err:  # noqa: BLE001
+            raise _Unreadable(_why(err)) from None
+
+    def check(self, step: int, like, expect: Callable[[dict | None], str | None] | None = None) -> dict:
+        """The progress record of checkpoint `step` once it is known to belong to the run of `like` (a state of
+        the same runs: arrays or ShapeDtypeStructs): CheckpointMismatch (one sentence) when `expect(recorded
+        run)` names a difference or a leaf's name, shape or dtype differs; _Unreadable when its files cannot be
+        read. Reads no array."""
+        where = self.directory / str(step)
+        progress = self._progress(step)
+        layout = progress.get("layout")
+        difference = expect(progress.get("run")) if expect is not None else None
+        if difference is None:
+            difference = _leaf_difference(self._shapes(step, layout), layout, like, progress.get("run"))
+        if difference is not None:
+            raise CheckpointMismatch(f"checkpoint {where} does not belong to the run asked for: {difference}; "
+                                     "nothing was changed (put run.json back as it was, or train these settings in "
+                                     "another --out).")
+        return progress
+
+    def inspect(self, like, expect=None) -> tuple[int | None, list[tuple[int, str]]]:
+        """(the newest checkpoint that belongs to the run of `like` and whose records can be read, or None; the
+        newer ones that cannot be read, with why). CheckpointMismatch as `check`; reads no array, moves nothing."""
+        unreadable = []
         for step in reversed(self.steps()):
             try:
-                progress = dict(self.manager.restore(step, args=ocp.args.Composite(
-                    progress=ocp.args.JsonRestore()))["progress"])
+                self.check(step, like, expect)
+            except _Unreadable as err:
+                unreadable.append((step, str(err)))
+                continue
+            return step, unreadable
+        return None, unreadable
+
+    def restore(self, like, expect=None, set_aside: bool = True) -> tuple[Any, dict] | None:
+        """(state, progress) of the newest checkpoint that can be read, or None if there is none.
+
+        `like`: a concrete state of the same runs (a fresh init): shapes, dtypes, shardings and the leaves the
+        checkpoint does not hold. Each checkpoint is first checked (`check`, with `expect`): one of another run
+        raises CheckpointMismatch and nothing is changed. One that cannot be read as files is reported with a
+        CheckpointWarning and, with `set_aside`, renamed `<step>.unreadable` (kept: a resumed run writes that
+        step again), and the previous one is tried. `self.unreadable` lists the steps passed over.
+        """
+        ocp = self._ocp
+        self.unreadable: list[tuple[int, str]] = []
+        for step in reversed(self.steps()):
+            try:
+                progress = self.check(step, like, expect)
                 layout = progress.pop("layout", None)
+                progress.pop("run", None)
                 names = dict(named_leaves(like))
                 wanted = layout["stored"] if layout is not None else [n for n, x in names.items() if x.size]
+                if any(name not in names for name in wanted):
+                    raise _Unreadable("its layout names a leaf it does not describe")
                 saved_runs, runs = (layout or {}).get("runs"), leading_runs(like)
                 repad = saved_runs is not None and runs is not None and saved_runs != runs
                 target = {}
@@ -207,26 +336,45 @@ class Checkpoints:
                                                                 next(iter(x.sharding.device_set))))
                     else:
                         target[name] = jax.ShapeDtypeStruct(data.shape, data.dtype, sharding=x.sharding)
-                stored = dict(self.manager.restore(step, args=ocp.args.Composite(
-                    state=ocp.args.StandardRestore(target)))["state"]) if target else {}
+                try:
+                    stored = dict(self.manager.restore(step, args=ocp.args.Composite(
+                        state=ocp.args.StandardRestore(target)))["state"]) if target else {}
+                except Exception as err:  # noqa: BLE001 - the records were right: the array files are not
+                    raise _Unreadable(_why(err)) from None
                 if repad:
                     stored = {name: repad_runs(np.asarray(v), runs) for name, v in stored.items()}
-                state = expand(stored, layout, like)
-                if progress.get("updates") != step:
-                    raise ValueError(f"progress says {progress.get('updates')} updates")
-            except Exception as err:  # noqa: BLE001 - any failure to read means: use the previous one
-                warnings.warn(f"Checkpoint {self.directory}/{step} cannot be restored ({type(err).__name__}: "
-                              f"{str(err).splitlines()[0][:200] if str(err) else ''}); falling back to the "
-                              "previous one.", CheckpointWarning, stacklevel=2)
-                if delete_bad:
-                    self.manager.delete(step)
+                try:
+                    state = expand(stored, layout, like)
+                except (KeyError, TypeError, ValueError) as err:  # a layout record that does not fit what is stored
+                    raise _Unreadable(_why(err)) from None
+            except _Unreadable as err:
+                self.unreadable.append((step, str(err)))
+                aside = self.set_aside(step) if set_aside else None
+                warnings.warn(f"Checkpoint {self.directory}/{step} cannot be restored ({err}); "
+                              + (f"moved aside to {aside.name} (kept), " if aside is not None else "")
+                              + "falling back to the previous one.", CheckpointWarning, stacklevel=2)
                 continue
             return state, progress
         return None
 
-    def delete_all(self) -> None:
-        for step in self.steps():
-            self.manager.delete(step)
+    def set_aside(self, step: int, why: str = "unreadable") -> pathlib.Path:
+        """Rename checkpoint `step` to `<step>.<why>` (`<step>.<why>-2`, ... if taken): kept on disk, no longer one
+        of the arm's checkpoints. Returns the new path."""
+        source = self.directory / str(step)
+        target = self.directory / f"{step}.{why}"
+        n = 2
+        while target.exists():
+            target, n = self.directory / f"{step}.{why}-{n}", n + 1
+        try:
+            os.rename(source, target)
+        except OSError as err:
+            raise WriteError(f"cannot move {source} aside to {target.name}: {reason(err)}") from None
+        self.manager.reload()
+        return target
+
+    def set_aside_all(self, why: str) -> list[pathlib.Path]:
+        """Every checkpoint of the arm moved aside (`set_aside`), newest first."""
+        return [self.set_aside(step, why) for step in reversed(self.steps())]
 
     def close(self) -> None:
         """Wait for a save in flight and release the manager (a failed save was reported by `wait`)."""

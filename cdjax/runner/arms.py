@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import json
 import math
 import os
 import pathlib
@@ -52,6 +53,9 @@ class Arm:
     last_return: float = float("nan")
     phase_done: bool = True  # False until this arm's phase has run (or been restored)
     warned: bool = False  # the setting's watch has spoken (once per arm and process)
+    identity: dict = dataclasses.field(default_factory=dict)  # the runs as run.json records them (in checkpoints)
+    skipped: Any = None  # [R] optimiser steps each run skipped for a non-finite loss or gradient, so far
+    skipped_said: int = 0  # how many runs the last sentence about skipped steps named
 
     @property
     def name(self) -> str:
@@ -93,8 +97,63 @@ def build(plan: ArmPlan, spec: SweepSpec, setting: Setting) -> Arm:
         phase = setting.phase.make(trainer, plan.phase) if plan.phase is not None else None
         _BUILT[key] = (trainer, make_sweep(trainer, phase=phase))
     trainer, sweep = _BUILT[key]
-    return Arm(plan, trainer, sweep, keys=None, hps=None, num_runs=len(plan.hparams) * spec.seeds,
-               phase_done=plan.phase is None)
+    num_runs = len(plan.hparams) * spec.seeds
+    identity = {"setting": setting.name, "arm": plan.name,
+                "config": {k: v for k, v in io.dataclass_to_json(plan.config).items() if k != "num_updates"},
+                "seeds": spec.seeds, "seed": spec.seed, "hp_labels": list(plan.labels),
+                "hparams": [io.hparams_to_json(h) for h in plan.hparams], "num_runs": num_runs}
+    return Arm(plan, trainer, sweep, keys=None, hps=None, num_runs=num_runs, phase_done=plan.phase is None,
+               identity=identity, skipped=np.zeros(num_runs))
+
+
+def _json(value) -> str:
+    return json.dumps(value) if not isinstance(value, str) else repr(value)
+
+
+def expectation(arm: Arm) -> Callable[[dict | None], str | None]:
+    """expect(the run a checkpoint records) -> how it differs from the arm's runs as run.json gives them, or None.
+    A checkpoint written before runs were recorded gives None: its leaves are still checked."""
+    mine = arm.identity
+
+    def expect(saved: dict | None) -> str | None:
+        if saved is None:
+            return None
+        if not isinstance(saved, dict):
+            return f"its run record is {_json(saved)}"
+        for key, what in (("setting", "setting"), ("arm", "arm")):
+            if saved.get(key, mine[key]) != mine[key]:
+                return f"it is of the {what} {_json(saved[key])} where run.json has {_json(mine[key])}"
+        theirs = saved.get("config") if isinstance(saved.get("config"), dict) else {}
+        for name, value in mine["config"].items():
+            if name in theirs and theirs[name] != value:
+                return f"it was trained with {name} {_json(theirs[name])} where run.json has {_json(value)}"
+        runs = (saved.get("num_runs"), saved.get("seeds"), saved.get("hp_labels"))
+        if runs != (mine["num_runs"], mine["seeds"], mine["hp_labels"]):
+            n, seeds, labels = runs
+
+            def count(n, seeds, labels):
+                combos = len(labels) if isinstance(labels, list) else "?"
+                return f"{n} runs ({seeds} seeds x {combos} hyper-parameter combinations)"
+
+            if n == mine["num_runs"] and seeds == mine["seeds"]:
+                return f"its hyper-parameter labels are {_json(labels)} where run.json has {_json(mine['hp_labels'])}"
+            return (f"it holds {count(n, seeds, labels)} where run.json asks for "
+                    f"{count(mine['num_runs'], mine['seeds'], mine['hp_labels'])}")
+        if saved.get("seed", mine["seed"]) != mine["seed"]:
+            return f"its base seed is {_json(saved['seed'])} where run.json has {mine['seed']}"
+        theirs = saved.get("hparams") if isinstance(saved.get("hparams"), list) else mine["hparams"]
+        if len(theirs) != len(mine["hparams"]):
+            return f"it holds {len(theirs)} hyper-parameter combinations where run.json has {len(mine['hparams'])}"
+        for label, a, b in zip(mine["hp_labels"], theirs, mine["hparams"]):  # fields both know (a newer cdjax may add)
+            if not isinstance(a, dict):
+                return f"its hyper-parameter record is {_json(a)}"
+            diff = sorted(k for k in set(a) & set(b) if a[k] != b[k])
+            if diff:
+                return (f"its {label} runs were trained with {diff[0]} {_json(a.get(diff[0]))} where run.json has "
+                        f"{_json(b.get(diff[0]))}")
+        return None
+
+    return expect
 
 
 def _avals(tree) -> tuple:
@@ -182,10 +241,10 @@ def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
             arm.programs[what] = program.result() if isinstance(program, concurrent.futures.Future) else program
 
 
-def restore(arm: Arm, delete_bad: bool = True) -> bool:
+def restore(arm: Arm, set_aside: bool = True) -> bool:
     """Put the newest readable checkpoint into arm.state (a fresh init of the same runs fills what it does
-    not hold); False when there is none."""
-    restored = arm.ckpt.restore(arm.state, delete_bad=delete_bad)
+    not hold); False when none can be read. io.CheckpointMismatch (one sentence) for a checkpoint of another run."""
+    restored = arm.ckpt.restore(arm.state, expect=expectation(arm), set_aside=set_aside)
     if restored is None:
         return False
     arm.state, progress = restored
@@ -195,22 +254,42 @@ def restore(arm: Arm, delete_bad: bool = True) -> bool:
     return True
 
 
+def abstract_state(arm: Arm):
+    """ShapeDtypeStructs of the arm's runs' state (nothing is computed)."""
+    return jax.eval_shape(arm.sweep.init, arm.keys, arm.hps)
+
+
+def unreadable_text(unreadable: list[tuple[int, str]]) -> str:
+    return "; ".join(f"{step}: {why}" for step, why in unreadable)
+
+
 def restore_arms(run_dir: str | pathlib.Path) -> tuple[SweepSpec, list[Arm]]:
-    """The spec of a run directory and its arms at the newest readable checkpoint (state leaves [R_padded])."""
+    """The spec of a run directory and its arms at the newest readable checkpoint (state leaves [R_padded]).
+
+    Reads only: a checkpoint that cannot be read is passed over (said with a CheckpointWarning), not moved; one of
+    another run than run.json's refuses (io.CheckpointMismatch, one sentence) before any array is computed."""
     rd = io.RunDir(pathlib.Path(run_dir))
     spec, setting = recorded(rd.read(), run_dir, progress=False)
     arms = []
     for plan in plan_arms(spec, setting):
         arm = build(plan, spec, setting)
         arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, plan.hparams)
-        arm.state = arm.sweep.init(arm.keys, arm.hps)
-        arm.ckpt = io.Checkpoints(rd.checkpoints(plan.name))
+        directory = rd.checkpoints(plan.name)
+        if not io.checkpoints.step_dirs(directory):
+            raise io.RunDirError(f"{rd.path} holds no checkpoint of arm {plan.name!r} yet.")
+        arm.ckpt = io.Checkpoints(directory)
         try:
-            found = restore(arm, delete_bad=False)
+            step, unreadable = arm.ckpt.inspect(abstract_state(arm), expectation(arm))
+            if step is None:
+                raise io.RunDirError(f"{rd.path}: no checkpoint of arm {plan.name!r} can be read "
+                                     f"({unreadable_text(unreadable)}).")
+            arm.state = arm.sweep.init(arm.keys, arm.hps)
+            found = restore(arm, set_aside=False)
         finally:
             arm.ckpt.close()
         if not found:
-            raise io.RunDirError(f"{rd.path} holds no checkpoint of arm {plan.name!r} yet.")
+            raise io.RunDirError(f"{rd.path}: no checkpoint of arm {plan.name!r} can be read "
+                                 f"({unreadable_text(arm.ckpt.unreadable)}).")
         arms.append(arm)
     return spec, arms
 

@@ -38,31 +38,78 @@ class Clock:
         return self.total + (time.perf_counter() - self._start if self._start is not None else 0.0)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what SLURM, Kubernetes and `timeout` send) outside the chunk loop, raised by `raise_on_sigterm`."""
+
+
+class Stopped(KeyboardInterrupt):
+    """A command stopped by the user (Ctrl-C or SIGTERM); `sentence` says what is true for what was interrupted."""
+
+    def __init__(self, sentence: str, terminated: bool = False):
+        super().__init__(sentence)
+        self.sentence = sentence
+        self.terminated = terminated  # SIGTERM (exit status 143) rather than Ctrl-C (130)
+
+
+def stopped(err: KeyboardInterrupt, sentence: str) -> Stopped:
+    """`err` as a Stopped saying `sentence` (an inner Stopped says what is true more precisely and is kept)."""
+    if isinstance(err, Stopped):
+        return err
+    return Stopped(sentence, terminated=isinstance(err, Terminated) or getattr(err, "signum", None) == signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def raise_on_sigterm():
+    """While inside (in the main thread), SIGTERM raises `Terminated` as Ctrl-C raises KeyboardInterrupt, so that a
+    command ends with its one sentence and its locks released; the chunk loop's StopFlag treats it as the first
+    Ctrl-C instead."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handle(signum, frame):
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, handle)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 class StopFlag:
-    """SIGINT sets a flag (the loop stops after the chunk in flight); a second SIGINT raises at once."""
+    """SIGINT or SIGTERM sets a flag (the loop stops after the chunk in flight, checkpointed); a second SIGINT
+    raises at once. SIGTERM never stops at once: the grace period a scheduler gives before SIGKILL is for the
+    checkpoint. `signum` is the signal that asked first."""
 
     def __init__(self, say: Callable[[str], None]):
         self.requested = False
         self.forced = False
+        self.signum: int | None = None
         self.say = say
-        self._previous = None
+        self._previous: dict[int, object] = {}
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handle)
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._previous[signum] = signal.signal(signum, self._handle)
         return self
 
     def _handle(self, signum, frame):
-        if self.requested:
+        if self.requested and signum == signal.SIGINT:
             self.forced = True
-            signal.signal(signal.SIGINT, self._previous or signal.default_int_handler)
+            signal.signal(signal.SIGINT, self._previous.get(signal.SIGINT) or signal.default_int_handler)
             raise KeyboardInterrupt
-        self.requested = True
-        self.say("Stopping after the chunk in flight and saving a checkpoint (Ctrl-C again to stop now).")
+        if self.requested:
+            return
+        self.requested, self.signum = True, signum
+        again = "Ctrl-C again to stop now" if signum == signal.SIGINT else "SIGTERM; Ctrl-C twice stops now"
+        self.say(f"Stopping after the chunk in flight and saving a checkpoint ({again}).")
 
     def __exit__(self, *exc):
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous if previous is not None else signal.SIG_DFL)
+        self._previous = {}
         return False
 
 
@@ -110,11 +157,12 @@ class Progress:
             self.bar.stop()
         return False
 
-    def update(self, steps_done: int, rate: float, returns: dict[str, float], eta_s: float) -> None:
+    def update(self, steps_done: int, rate: float, returns: dict[str, float], eta_s: float, note: str = "") -> None:
+        """`note`: appended to the returns (e.g. the runs that skipped non-finite steps)."""
         if not self.enabled:
             return
         eta = f"eta {int(eta_s) // 60}:{int(eta_s) % 60:02d}" if math.isfinite(eta_s) else ""
-        ret = "  ".join(f"{arm} {value:.1f}" for arm, value in returns.items())
+        ret = "  ".join(f"{arm} {value:.1f}" for arm, value in returns.items()) + (f"  {note}" if note else "")
         if self.bar is not None:
             self.bar.update(self.task, completed=steps_done, steps=f"{si(steps_done)}/{si(self.total)} steps",
                             rate=f"{si(rate)} steps/s", eta=eta, returns=f"return {ret}")

@@ -2,9 +2,10 @@
 logging, checkpointing and evaluating between them.
 
 Everything that can be refused (bad options, a directory holding another run, a sweep that cannot fit
-in memory) is refused before the run directory is touched. A resumed sweep restores the newest readable
-checkpoint of each arm, drops the log rows written after it and continues: on CPU the numbers equal
-those of an uninterrupted run. Ctrl-C finishes the chunk in flight, saves it and raises `Interrupted`; a
+in memory, a checkpoint of another run than run.json's, `--steps` below what is done) is refused before the run
+directory is touched. A resumed sweep restores the newest readable checkpoint of each arm (checked against the
+run first: `survey`), drops the log rows written after it and continues: on CPU the numbers equal those of an
+uninterrupted run. Ctrl-C or SIGTERM finishes the chunk in flight, saves it and raises `Interrupted`; a
 second Ctrl-C stops at once, keeping the previous checkpoint. `after_chunk=TimeLimit(seconds)` stops the same
 way before a round of chunks that would end past a wall-clock budget (a cluster job's, a leased machine's). A
 write that fails (a full disk) raises io.WriteError naming the file and the checkpoints that are intact.
@@ -12,23 +13,25 @@ write that fails (a full disk) raises io.WriteError naming the file and the chec
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import pathlib
+import shlex
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 import jax
 import numpy as np
 
 from cdjax import io
-from cdjax.protocol import Setting
+from cdjax.protocol import ConfigError, Setting
 from cdjax.runner import budget
-from cdjax.runner.arms import (Arm, build, check_memory, compile_all, evaluate_arms, finished_evaluation, nanmean,
-                               restore)
-from cdjax.runner.console import Clock, Progress, StopFlag, library_log
+from cdjax.runner.arms import (Arm, abstract_state, build, check_memory, compile_all, evaluate_arms, expectation,
+                               finished_evaluation, nanmean, restore, unreadable_text)
+from cdjax.runner.console import Clock, Progress, StopFlag, Stopped, library_log, stopped
 from cdjax.runner.plan import plan_arms, run_record, same_run
-from cdjax.runner.spec import SweepSpec, resolve
+from cdjax.runner.spec import SweepSpec, out_dir, resolve
 from cdjax.sweep import unpad
 
 AfterChunk = Callable[[int, dict[str, int]], "bool | None"]
@@ -62,12 +65,14 @@ class TimeLimit:
 
 
 class Interrupted(KeyboardInterrupt):
-    """The sweep stopped early (Ctrl-C, or `after_chunk` said so) after saving its last completed chunk."""
+    """The sweep stopped early (Ctrl-C, SIGTERM, or `after_chunk` said so) after saving its last completed chunk;
+    `signum` is the signal that asked (None: `after_chunk`)."""
 
-    def __init__(self, run_dir: pathlib.Path, updates: dict[str, int]):
+    def __init__(self, run_dir: pathlib.Path, updates: dict[str, int], signum: int | None = None):
         super().__init__(f"interrupted after {updates} updates")
         self.run_dir = run_dir
         self.updates = updates
+        self.signum = signum
 
 
 def prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, list, dict]:
@@ -78,7 +83,8 @@ def prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, list, dict]:
 
 def _prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, Setting, list, dict]:
     """`prepare`, with the setting it resolved (once) for the rest of the sweep."""
-    rd = io.RunDir(pathlib.Path(spec.out))
+    rd = io.RunDir(out_dir(spec))
+    rd.check_name()  # before anything reads or writes there
     spec, setting = resolve(spec)
     old = None
     if resume:
@@ -103,57 +109,132 @@ def _prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, Setting, list, d
     return spec, setting, plans, record
 
 
-def _checkpointed(rd: io.RunDir, name: str) -> int:
-    """Updates of the newest checkpoint directory of an arm (-1: none), read without opening it."""
-    return max(io.checkpoints.step_dirs(rd.checkpoints(name)), default=-1)
+def _resume_hint(rd: io.RunDir) -> str:
+    return f"cdjax sweep --out {shlex.quote(str(rd.path))} --resume"
 
 
-def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | None = None) -> pathlib.Path:
+def survey(rd: io.RunDir, arms: list[Arm], restart: set[str]) -> dict[str, int]:
+    """Updates of the checkpoint each arm will resume from (-1: it starts at update 0), read from the checkpoints'
+    records alone (no array, nothing moved or written). One sentence (RunDirError) when a checkpoint belongs to
+    another run than run.json's (io.CheckpointMismatch), when no checkpoint of an arm can be read or an arm has
+    logged updates but no checkpoint (unless it is in `restart`), or when the run would end before what is done."""
+    done, logged = {}, None
+    for arm in arms:
+        if arm.name in restart:
+            done[arm.name] = -1
+            continue
+        step, unreadable = None, []
+        if io.checkpoints.step_dirs(rd.checkpoints(arm.name)):
+            ckpt = io.Checkpoints(rd.checkpoints(arm.name))
+            try:
+                step, unreadable = ckpt.inspect(abstract_state(arm), expectation(arm))
+            finally:
+                ckpt.close()
+        if step is None:
+            if logged is None:
+                logged = collections.Counter(r["arm"] for r in io.read_jsonl(rd.metrics))
+            lost = (f"no checkpoint of arm {arm.name!r} can be read ({unreadable_text(unreadable)})" if unreadable
+                    else f"arm {arm.name!r} has {logged[arm.name]} logged rows but no checkpoint"
+                    if logged[arm.name] else None)
+            if lost is not None:
+                raise io.RunDirError(f"{rd.path}: {lost}; nothing was changed: add --restart-arm {arm.name} to train "
+                                     "it again from update 0 (its checkpoints are moved aside, its log rows dropped).")
+        done[arm.name] = -1 if step is None else step
+        if done[arm.name] > arm.num_updates:
+            need = arm.plan.phase_steps + done[arm.name] * arm.steps_per_update
+            raise io.RunDirError(f"{rd.path}: arm {arm.name!r} has done {done[arm.name]} updates, more than the "
+                                 f"{arm.num_updates} that --steps gives it; nothing was changed: give --steps of at "
+                                 f"least {need:,}, or leave --steps out.")
+    return done
+
+
+def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | None = None,
+              restart: Sequence[str] = ()) -> pathlib.Path:
     """Train every arm of `spec` in chunks, logging and checkpointing into spec.out; returns the run dir.
 
     `after_chunk(rounds done, updates per arm)` is called before this process's first round of chunks (after the
     phases; rounds counts those of earlier processes of a resumed run) and after each round; True stops the
-    sweep as Ctrl-C does. Raises ConfigError / io.RunDirError (one sentence) for input that cannot run,
-    `Interrupted` when stopped early (after saving a checkpoint of every arm).
+    sweep as Ctrl-C does. `restart` (with `resume`): arms trained again from update 0, their checkpoints moved
+    aside and their log rows dropped. Raises ConfigError / io.RunDirError (one sentence) for input that cannot
+    run, `Interrupted` when stopped early (after saving a checkpoint of every arm), console.Stopped (a sentence
+    true for the moment) when a KeyboardInterrupt comes outside the chunk loop.
     """
-    spec, setting, plans, record = _prepare(spec, resume)
-    rd = io.RunDir(pathlib.Path(spec.out))
-    progress = Progress(spec.progress, record["total_env_steps"])
-    arms = [build(plan, spec, setting) for plan in plans]
-    states = check_memory(arms, spec)
-    for arm in arms:
-        arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
-    if setting.multi_device_note and arms and arms[0].sweep.num_devices > 1:
-        progress.say(f"Note: {setting.multi_device_note}")
-    progress.say(f"Compiling the programs of {', '.join(a.name for a in arms)} (nothing is written before they "
-                 "are compiled and fit in memory).")
-    t_compile = time.perf_counter()
-    done = {arm.name: _checkpointed(rd, arm.name) for arm in arms} if resume else {}
-    compile_all(arms, record["chunk_updates"], done)
-    t_compile = time.perf_counter() - t_compile
-    # init's output is the state, already counted; the phase and chunk programs donate it and return it
-    budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms for what, p in arm.programs.items()
-                                   if what != "init"})
+    rd = io.RunDir(out_dir(spec))
+    try:
+        spec, setting, plans, record = _prepare(spec, resume)
+        rd = io.RunDir(pathlib.Path(spec.out))
+        restart = set(restart)
+        if restart and not resume:
+            raise ConfigError("--restart-arm trains an arm of a run again: give it with --resume.")
+        unknown = sorted(restart - {p.name for p in plans})
+        if unknown:
+            raise ConfigError(f"--restart-arm {unknown[0]}: the run has no such arm; its arms are "
+                              f"{', '.join(p.name for p in plans)}.")
+        progress = Progress(spec.progress, record["total_env_steps"])
+        arms = [build(plan, spec, setting) for plan in plans]
+        states = check_memory(arms, spec)
+        for arm in arms:
+            arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
+        done = survey(rd, arms, restart) if resume else {}
+        if setting.multi_device_note and arms and arms[0].sweep.num_devices > 1:
+            progress.say(f"Note: {setting.multi_device_note}")
+        progress.say(f"Compiling the programs of {', '.join(a.name for a in arms)} (nothing is written before "
+                     "they are compiled and fit in memory).")
+        t_compile = time.perf_counter()
+        compile_all(arms, record["chunk_updates"], done)
+        t_compile = time.perf_counter() - t_compile
+        # init's output is the state, already counted; the phase and chunk programs donate it and return it
+        budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms for what, p in arm.programs.items()
+                                       if what != "init"})
+    except KeyboardInterrupt as err:
+        where = (f"{rd.path} is as it was; resume with `{_resume_hint(rd)}`" if resume
+                 else f"nothing was written to {rd.path}")
+        raise stopped(err, f"Interrupted before training started (while planning or compiling); {where}.") from None
 
-    rd.create()  # the first write: everything above could still refuse
-    with rd.lock():
-        if not resume and rd.exists():  # another process started this run while we compiled
-            raise io.RunDirError(f"{rd.path} already holds a run; continue it with --resume, or choose another --out.")
-        rd.write(record)
-        return _train(Loop(rd, spec, setting, arms, record["chunk_updates"], progress, after_chunk), resume,
-                      t_compile)
+    try:
+        rd.create()  # the first write: everything above could still refuse
+        with rd.lock():
+            if not resume and rd.exists():  # another process started this run while we compiled
+                raise io.RunDirError(f"{rd.path} already holds a run; continue it with --resume, or choose another "
+                                     "--out.")
+            if not resume:
+                rd.write(record)
+            return _train(Loop(rd, spec, setting, arms, record["chunk_updates"], progress, after_chunk,
+                               record=record, restart=restart), resume, t_compile)
+    except (Interrupted, Stopped):
+        raise
+    except KeyboardInterrupt as err:  # between the compilation and the loop: run.json may be written, no update
+        raise stopped(err, f"Interrupted before training started; no update was trained in {rd.path}"
+                           + (f"; resume with `{_resume_hint(rd)}`." if rd.exists() else ".")) from None
 
 
 def _train(loop: "Loop", resume: bool, t_compile: float) -> pathlib.Path:
-    """Run the loop; a failed write names the checkpoints that are intact."""
+    """Run the loop; a failed write names the checkpoints that are intact; a KeyboardInterrupt outside the chunk
+    loop (restoring, the final evaluation) becomes a Stopped that says what is true then."""
     with library_log(loop.rd.log, loop.say):
         try:
-            loop.start(resume, t_compile)
+            try:
+                loop.start(resume, t_compile)
+            except KeyboardInterrupt as err:
+                raise stopped(err, f"Interrupted before training {'resumed' if resume else 'started'}; "
+                                   f"{loop.rd.path} keeps {'its checkpoints' if resume else 'run.json and no update'}; "
+                                   f"resume with `{_resume_hint(loop.rd)}`.") from None
+            finally:
+                if not loop.started:
+                    loop.close()
             try:
                 loop.run()
+            except KeyboardInterrupt as err:
+                if isinstance(err, Interrupted):
+                    raise
+                raise stopped(err, f"Stopped at once, without saving the chunk in flight; {loop.intact('')}") from None
             finally:
                 loop.close()
-            loop.finish()
+            try:
+                loop.finish()
+            except KeyboardInterrupt as err:
+                raise stopped(err, f"Interrupted after training (every arm is trained and checkpointed) during the "
+                                   f"final evaluation or plots; `{_resume_hint(loop.rd)}` makes them.") from None
         except io.WriteError as err:
             raise io.WriteError(f"{err}; {loop.intact()}") from None
     return loop.rd.path
@@ -177,19 +258,34 @@ class Loop:
     steps_this_process: int = 0  # env steps trained by this process (for its rate)
     extra_compile: float = 0.0  # seconds compiling chunk sizes that were not compiled in advance
     complete_at_start: bool = False  # a resume found every arm done
+    record: dict | None = None  # run.json to write (a resume writes it once every arm is restored)
+    restart: set = dataclasses.field(default_factory=set)  # arms a resume trains again from update 0
+    started: bool = False  # `start` is done
 
     def say(self, text: str) -> None:
         self.progress.say(text)
 
     def start(self, resume: bool, t_compile: float) -> None:
-        """Initialise every arm (and restore it when resuming), trim the logs to the checkpoints, say the plan."""
+        """Initialise every arm (and restore it when resuming), write run.json, trim the logs to the checkpoints,
+        say the plan."""
         t0 = time.perf_counter()
         for arm in self.arms:
             arm.state = arm.programs.pop("init")(arm.keys, arm.hps)
             arm.ckpt = io.Checkpoints(self.rd.checkpoints(arm.name))
-            if not (resume and restore(arm)):
-                arm.ckpt.delete_all()  # a fresh start of this arm: older checkpoints are stale
+            if not resume:
+                continue
+            if arm.name in self.restart:
+                moved = arm.ckpt.set_aside_all("restarted")
+                self.say(f"Restarting arm {arm.name} from update 0"
+                         + (f"; its checkpoints were moved aside ({', '.join(p.name for p in moved)})." if moved
+                            else "."))
+            elif not restore(arm) and arm.ckpt.unreadable:
+                raise io.RunDirError(
+                    f"{self.rd.path}: no checkpoint of arm {arm.name!r} can be read "
+                    f"({unreadable_text(arm.ckpt.unreadable)}; moved aside, kept); add --restart-arm {arm.name} to "
+                    "train it again from update 0.")
         if resume:
+            self.rd.write(self.record)  # only now: a resume that refused above left run.json as it was
             self._trim_logs()
         jax.block_until_ready([a.state for a in self.arms])
         self.rounds = max(math.ceil(a.updates / self.chunk) for a in self.arms)
@@ -203,25 +299,41 @@ class Loop:
                  + f"; setup {time.perf_counter() - t0:.1f} s, compile {t_compile:.1f} s.")
         purge = {a.name: a.env_steps(a.updates + 1) for a in self.arms} if resume else None
         self.tb = io.TensorBoard(self.rd, purge_steps=purge)
+        self.started = True
 
     def _trim_logs(self) -> None:
-        done = {a.name: a.updates for a in self.arms}
+        """Cut every log to the restored checkpoints (an arm started again from update 0 keeps no row), and count
+        the steps each run skipped so far."""
+        done = {a.name: a.updates if a.saved >= 0 else -1 for a in self.arms}
         dropped, torn = io.truncate_jsonl(self.rd.metrics, done)
-        io.truncate_jsonl(self.rd.eval, done)
+        for path in (self.rd.eval, self.rd.phase):
+            more, more_torn = io.truncate_jsonl(path, done)
+            dropped, torn = dropped + more, torn + more_torn
+        skipped = self.setting.metrics.skipped
+        if skipped is not None:
+            by_arm = {a.name: a for a in self.arms}
+            for row in io.read_jsonl(self.rd.metrics):
+                arm = by_arm.get(row["arm"])
+                labels = arm.plan.labels if arm is not None else ()
+                if arm is not None and row.get(skipped) and row.get("hp") in labels and row["seed"] < self.spec.seeds:
+                    arm.skipped[labels.index(row["hp"]) * self.spec.seeds + int(row["seed"])] += row[skipped]
         progress = ", ".join(f"{a.name} {a.updates}/{a.num_updates}" for a in self.arms)
         note = ""
         if dropped:
             note = f"; dropped {dropped} log rows written after the last checkpoint" + (
-                f" ({torn} of them a torn line left by a process killed while writing)" if torn else "")
+                f" ({torn} of them a torn line left by a process killed while writing, or a line that is not a "
+                "row: bytes that are not UTF-8, fields of the wrong types)" if torn else "")
         self.say(f"Resuming {self.rd.path}: updates done per arm: {progress}{note}.")
+        for arm in self.arms:
+            self._say_skipped(arm)
 
-    def intact(self) -> str:
-        """Which checkpoints survive a failed write, and how to go on."""
+    def intact(self, when: str = " once that is fixed") -> str:
+        """Which checkpoints survive a failed write (or a stop), and how to go on."""
         steps = {a.name: a.ckpt.latest() for a in self.arms if a.ckpt is not None}
         kept = [f"{name} at update {step}" for name, step in steps.items() if step is not None]
         where = (f"the previous checkpoints are intact ({', '.join(kept)})" if kept
                  else "no checkpoint had been written yet")
-        return f"{where}; resume with `cdjax sweep --out {self.rd.path} --resume` once that is fixed."
+        return f"{where}; resume with `{_resume_hint(self.rd)}`{when}."
 
     # -- one step of the loop each ---------------------------------------------------------------------
 
@@ -270,16 +382,37 @@ class Loop:
         ret = self.setting.metrics.ret
         if ret in metrics:
             arm.last_return = nanmean(metrics[ret][:, -1])
+        skipped = self.setting.metrics.skipped
+        if skipped in metrics:
+            arm.skipped = arm.skipped + np.nan_to_num(np.asarray(metrics[skipped], float)).sum(axis=1)
+            self._say_skipped(arm)
         if self.setting.watch is not None and not arm.warned:
             warning = self.setting.watch(arm.name, arm.plan.config, metrics)
             if warning is not None:
                 self.say(warning)
                 arm.warned = True
 
+    def _say_skipped(self, arm: Arm) -> None:
+        """Say (once per new count of runs) which runs skipped optimiser steps for a non-finite loss or gradient."""
+        bad = np.flatnonzero(arm.skipped > 0)
+        if len(bad) <= arm.skipped_said:
+            return
+        arm.skipped_said = len(bad)
+        seeds = self.spec.seeds
+        runs = ", ".join(f"{arm.plan.labels[r // seeds]} seed {r % seeds}: {int(arm.skipped[r])} steps" for r in bad[:6])
+        self.say(f"Arm {arm.name}: {len(bad)} of {arm.num_runs} runs skipped optimiser steps whose loss or gradient "
+                 f"was not finite ({runs}{', ...' if len(bad) > 6 else ''}); those steps left the parameters as "
+                 f"they were ({self.setting.metrics.skipped} in metrics.jsonl counts them).")
+
+    def nonfinite_note(self) -> str:
+        """For the progress line: the arms some of whose runs skipped non-finite steps."""
+        bad = [f"{a.name} {int((a.skipped > 0).sum())}/{a.num_runs}" for a in self.arms if (a.skipped > 0).any()]
+        return f"non-finite steps skipped in runs: {', '.join(bad)}" if bad else ""
+
     def save(self, arm: Arm) -> None:
         if arm.saved != arm.updates:
             done = {"updates": arm.updates, "env_steps": arm.env_steps(), "wall_s": arm.wall_offset + self.clock.now(),
-                    "chunk_updates": self.chunk}
+                    "chunk_updates": self.chunk, "run": arm.identity}
             keep = arm.trainer.saved_leaves() if arm.trainer.saved_leaves is not None else None
             arm.ckpt.save(arm.updates, arm.state, done, keep=keep)
             arm.saved = arm.updates
@@ -292,7 +425,7 @@ class Loop:
             self.save(arm)
         for arm in self.arms:
             arm.ckpt.wait()
-        raise Interrupted(self.rd.path, {a.name: a.updates for a in self.arms})
+        raise Interrupted(self.rd.path, {a.name: a.updates for a in self.arms}, self.flag.signum if self.flag else None)
 
     def round(self) -> bool:
         """One chunk of every arm with updates left, logged and (every checkpoint_every rounds) saved;
@@ -322,7 +455,7 @@ class Loop:
         rate = self.steps_this_process / max(self.clock.total, 1e-9)
         left = sum((a.num_updates - a.updates) * a.steps_per_update * a.num_runs for a in self.arms)
         self.progress.update(min(a.env_steps() for a in self.arms), rate, {a.name: a.last_return for a in self.arms},
-                             left / rate if rate > 0 else math.inf)
+                             left / rate if rate > 0 else math.inf, self.nonfinite_note())
 
     def stop_asked(self) -> bool:
         asked = self.after_chunk is not None and self.after_chunk(self.rounds, {a.name: a.updates for a in self.arms})
@@ -366,8 +499,9 @@ class Loop:
             self.say(f"{self.rd.path} is complete: every arm has done its {self.arms[0].num_updates} updates.")
         else:
             rate = self.steps_this_process / max(self.clock.total, 1e-9)
+            note = self.nonfinite_note()
             self.say(f"Trained in {self.clock.total:.1f} s ({rate:,.0f} env steps/s over all runs); "
-                     f"compile {self.extra_compile:.1f} s more.")
+                     f"compile {self.extra_compile:.1f} s more" + (f"; {note}." if note else "."))
         if not self.spec.final_eval:
             return
         deterministic = not self.setting.eval_sampled

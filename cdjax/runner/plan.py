@@ -35,7 +35,11 @@ def validate_grid(setting: Setting, grid: Mapping[str, Sequence[float]]) -> dict
     for name, values in grid.items():
         if name not in fields:
             raise ConfigError(f"Unknown hyper-parameter {name!r}; choose from: {', '.join(sorted(fields))}.")
-        values = tuple(float(v) for v in (values if isinstance(values, (list, tuple)) else (values,)))
+        raw = values if isinstance(values, (list, tuple)) else (values,)
+        try:
+            values = tuple(float(v) for v in raw)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name} takes numbers, got {list(raw)!r}.") from None
         if not values:
             raise ConfigError(f"{name} needs at least one value.")
         if len(set(values)) != len(values):
@@ -125,13 +129,15 @@ def run_record(spec: SweepSpec, plans: list[ArmPlan], setting: Setting) -> dict:
         "eval_episodes": spec.eval_episodes,
         "final_eval": spec.final_eval,
         "bootstrap_reps": spec.bootstrap_reps,
-        "metrics": {"return": m.ret, "discounted_return": m.discounted_ret, "panels": [list(p) for p in m.panels]},
+        "metrics": {"return": m.ret, "discounted_return": m.discounted_ret, "panels": [list(p) for p in m.panels],
+                    **({"skipped": m.skipped} if m.skipped is not None else {})},
         "command": spec.command,
     }
 
 
-# What may differ between the run.json of a directory and the spec that resumes it: the length of the run.
-MAY_CHANGE = ("command", "total_env_steps", "requested_env_steps", "num_updates")
+# What may differ between the run.json of a directory and the spec that resumes it: the length of the run (and the
+# setting's metric names, rewritten from the setting as it is now).
+MAY_CHANGE = ("command", "total_env_steps", "requested_env_steps", "num_updates", "metrics")
 ARM_MAY_CHANGE = ("num_updates", "total_env_steps")
 
 

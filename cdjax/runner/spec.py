@@ -37,9 +37,28 @@ class SweepSpec:
     command: str = ""  # the command line, recorded in run.json
 
     def resolved(self, setting: Setting) -> "SweepSpec":
-        """The spec with its setting's defaults filled in (base config, arms)."""
-        return dataclasses.replace(self, config=self.config if self.config is not None else setting.config_type(),
-                                   arms=tuple(self.arms) or setting.default_arms)
+        """The spec with its setting's defaults filled in (base config, arms); ConfigError (one sentence) for a
+        config or phase of another setting."""
+        config = self.config if self.config is not None else setting.config_type()
+        arms = (self.arms,) if isinstance(self.arms, str) else self.arms
+        if not isinstance(arms, (list, tuple)):
+            raise ConfigError(f"--arms needs arm names, got {arms!r}.")
+        if not isinstance(config, setting.config_type):
+            raise ConfigError(f"The {setting.name} setting takes a {setting.config_type.__name__} as its config, not a "
+                              f"{type(config).__name__}; give the setting that config belongs to "
+                              f"(SweepSpec(setting=...), --setting) or a {setting.config_type.__name__}.")
+        if self.phase is not None and setting.phase is not None and not isinstance(self.phase,
+                                                                                     setting.phase.spec_type):
+            raise ConfigError(f"The {setting.name} setting's phase takes a {setting.phase.spec_type.__name__}, not a "
+                              f"{type(self.phase).__name__}.")
+        return dataclasses.replace(self, config=config, arms=tuple(arms) or setting.default_arms)
+
+
+def out_dir(spec: SweepSpec) -> pathlib.Path:
+    """The run directory a spec names (ConfigError, one sentence, for anything that is not a path)."""
+    if not isinstance(spec.out, (str, pathlib.PurePath)) or str(spec.out) == "":
+        raise ConfigError(f"--out must name a directory, got {spec.out!r}.")
+    return pathlib.Path(spec.out)
 
 
 def resolve(spec: SweepSpec) -> tuple[SweepSpec, Setting]:
@@ -67,7 +86,15 @@ def check_bounds(spec: SweepSpec) -> None:
         if not isinstance(value, int) or isinstance(value, bool) or value < low or (high is not None and value > high):
             what = f"an integer from {low:,} to {high:,}" if high is not None else f"an integer of at least {low:,}"
             raise ConfigError(f"{flag(name)} must be {what}, got {value!r}.")
-    if not spec.arms:
-        raise ConfigError("--arms needs at least one arm.")
+    for name in ("final_eval", "progress"):
+        if not isinstance(getattr(spec, name), bool):
+            raise ConfigError(f"SweepSpec.{name} must be true or false, got {getattr(spec, name)!r}.")
+    out_dir(spec)
+    if not isinstance(spec.grid, Mapping):
+        raise ConfigError(f"SweepSpec.grid must map hyper-parameter names to values, got {spec.grid!r}.")
+    if not isinstance(spec.command, str):
+        raise ConfigError(f"SweepSpec.command must be a string, got {spec.command!r}.")
+    if not spec.arms or not all(isinstance(a, str) for a in spec.arms):
+        raise ConfigError(f"--arms needs at least one arm name, got {spec.arms!r}.")
     if len(set(spec.arms)) != len(spec.arms):
         raise ConfigError(f"--arms lists an arm twice: {' '.join(spec.arms)}.")

@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import jax
 
-from cdjax.agents.atari.config import ALE_PREFIX, ARMS, AtariConfig, AtariHParams
+from cdjax.agents.atari.config import ALE_PREFIX, ARMS, HP_RANGES, AtariConfig, AtariHParams
 from cdjax.agents.atari.learner import A2C, learner, make_env
 from cdjax.agents.atari.minatar import GAMES, MinAtarEnv
-from cdjax.checks import UNIT, hparam_checker
 from cdjax.consistency import collapse_warning
 from cdjax.protocol import ConfigError, Metrics, Preset, Setting, Trainer
 
@@ -37,7 +36,7 @@ def arm_config(name: str, base: AtariConfig) -> AtariConfig:
     return base.replace(arm=name)
 
 
-check_hparam = hparam_checker({"gamma": UNIT, "rms_decay": UNIT})
+check_hparam = HP_RANGES.check_one
 
 
 def make_trainer(config: AtariConfig) -> Trainer:
@@ -112,7 +111,7 @@ SETTING = Setting(
     arm_fields=("arm",), arms_help="a2c, a2c-model (alpha = 0) or a2c-cd", default_arms=("a2c", "a2c-cd"),
     unused_hparams=lambda config, with_phase: UNUSED[config.arm],
     shown_hparams=lambda config: ("alpha",) if config.arm == "a2c-cd" else (), check_hparam=check_hparam,
-    metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, panels=(
+    metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, skipped="train/skipped_step", panels=(
         ("policy/entropy", "policy entropy", False),
         ("model/latent_mse", "latent model one-step MSE", True),
         ("loss/consistency", "consistency loss", True),

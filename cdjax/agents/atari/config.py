@@ -12,6 +12,7 @@ from typing import Literal
 
 from flax import struct
 
+from cdjax.checks import POSITIVE, PROBABILITY_BELOW_1, UNIT, Choice, Count, Fields, HParamRanges, Real, Text
 from cdjax.consistency import KINDS, windows_per_sequence
 from cdjax.protocol import ConfigError
 
@@ -54,8 +55,7 @@ class AtariConfig:
     num_updates: int = 1000  # updates of one run (the sweep sets it from --steps)
 
     def __post_init__(self):
-        if self.arm not in ARMS:
-            raise ConfigError(f"arm must be one of {', '.join(ARMS)}, got {self.arm!r}.")
+        FIELDS.check(self)  # every field's type and range (cdjax.checks); what follows relates fields
         if self.is_ale:
             if not ale_available():
                 raise ConfigError(f"env={self.env!r}: {ALE_INSTALL}")
@@ -64,19 +64,13 @@ class AtariConfig:
         elif self.env not in GAMES:
             raise ConfigError(f"Unknown env {self.env!r}; choose a MinAtar game ({', '.join(GAMES)}) or "
                               "ale-<game> (e.g. ale-breakout).")
-        if self.encoder not in KINDS:
-            raise ConfigError(f"encoder must be one of {', '.join(KINDS)}, got {self.encoder!r}.")
-        for name in ("num_envs", "rollout_len", "horizon", "episode_length", "frame_skip", "conv_channels", "latent",
-                     "model_hidden", "encoder_dim", "cc_unroll"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}.")
-        if self.num_updates < 0 or self.cc_windows < 0:
-            raise ConfigError("--num-updates and --cc-windows must not be negative.")
         if self.horizon > self.rollout_len:
-            raise ConfigError(f"--horizon={self.horizon} must not exceed --rollout-len={self.rollout_len}: a "
+            raise ConfigError(f"horizon={self.horizon} must not exceed rollout_len={self.rollout_len}: a "
                               "consistency window lies inside one rollout.")
-        if not 0.0 <= self.sticky_prob < 1.0:
-            raise ConfigError(f"--sticky-prob must be in [0, 1), got {self.sticky_prob}.")
+        if self.cc_windows > self.rollout_len - self.horizon + 1:
+            raise ConfigError(f"cc_windows={self.cc_windows} is more than the {self.rollout_len - self.horizon + 1} "
+                              f"k-step windows a rollout of {self.rollout_len} steps holds (k={self.horizon}); use 0 "
+                              "for all of them.")
 
     def replace(self, **changes) -> "AtariConfig":
         return dataclasses.replace(self, **changes)
@@ -104,6 +98,15 @@ class AtariConfig:
         return self.num_envs * self.rollout_len
 
 
+# The kind and range of every Config field (cdjax.checks; the Literal and bool fields take theirs from their
+# annotations), checked when a Config is built.
+FIELDS = Fields(
+    AtariConfig, env=Text(), num_envs=Count(1), rollout_len=Count(1), horizon=Count(1),
+    cc_windows=Count(1, zero="all windows"), cc_unroll=Count(1), episode_length=Count(1),
+    sticky_prob=Real(PROBABILITY_BELOW_1), frame_skip=Count(1), conv_channels=Count(1), latent=Count(1),
+    model_hidden=Count(1), encoder=Choice(KINDS), encoder_dim=Count(1), num_updates=Count(1))
+
+
 @struct.dataclass
 class AtariHParams:
     """Floats that can be vmapped with the seeds (float32 scalars in a sweep)."""
@@ -121,3 +124,7 @@ class AtariHParams:
     cc_model: float = 1.0  # multiplier of alpha on the consistency gradient reaching the model and the encoder
     cc_policy: float = 0.1  # multiplier of alpha on the consistency gradient reaching the policy (via the actions)
     enc_aux_coef: float = 1.0  # weight of the grounded-gru encoder's auxiliary loss (encoder only)
+
+
+# The range of every HParams field (the rest: not negative), checked on the command line's grid and by `init`.
+HP_RANGES = HParamRanges(AtariHParams, rms_decay=UNIT, rms_eps=POSITIVE, gamma=UNIT, max_grad_norm=POSITIVE)

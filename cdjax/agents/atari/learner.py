@@ -31,9 +31,10 @@ from flax import struct
 
 from cdjax import consistency
 from cdjax.agents.atari import losses
-from cdjax.agents.atari.config import AtariConfig, AtariHParams
+from cdjax.agents.atari.config import HP_RANGES, AtariConfig, AtariHParams
 from cdjax.agents.atari.minatar import MinAtarEnv
 from cdjax.agents.atari.networks import ActorCritic, LatentModel, torso_of
+from cdjax.checks import check_type
 from cdjax.envs import EpisodeStats
 from cdjax.optim import skip_if_not_finite
 
@@ -85,6 +86,7 @@ class A2C:
     """The learner of one Config; pure methods, jit/vmap them at the entry point."""
 
     def __init__(self, config: AtariConfig):
+        check_type(config, AtariConfig)
         self.config = config
         self.env = make_env(config, config.num_envs)
         self.num_actions = self.env.num_actions
@@ -120,6 +122,7 @@ class A2C:
         return skip_if_not_finite(optax.multi_transform(groups, labels))
 
     def init(self, key: jax.Array, hp: AtariHParams) -> A2CState:
+        HP_RANGES.check(hp)  # concrete values (a call outside jit) get the command line's checks
         key_params, key_env, key_next = jax.random.split(key, 3)
         params = self.init_params(key_params)
         nan = jnp.full((), jnp.nan, jnp.float32)

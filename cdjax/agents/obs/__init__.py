@@ -25,10 +25,9 @@ import jax.numpy as jnp
 from cdjax import envs
 from cdjax import normalize as nz
 from cdjax.agents.obs.agent import ObsAgent, TrainState, make_agent, make_train
-from cdjax.agents.obs.config import Config, HParams, stack_hparams
+from cdjax.agents.obs.config import HP_RANGES, Config, HParams, stack_hparams
 from cdjax.agents.obs.mbmf import MbMfPhase, make_mbmf_phase, total_env_steps, validate_phase
 from cdjax.agents.obs.presets import PRESETS
-from cdjax.checks import ANY, UNIT, hparam_checker
 from cdjax.consistency import collapse_warning
 from cdjax.envs.resume import needed_leaves
 from cdjax.protocol import ConfigError, Metrics, Phase, Setting, Trainer
@@ -71,7 +70,7 @@ def unused_hparams(config: Config, with_phase: bool) -> dict[str, float | None]:
     return {name: FIXED.get(name) for name in (UNUSED_WITH_PHASE if with_phase else UNUSED)[config.arm]}
 
 
-check_hparam = hparam_checker({"gamma": UNIT, "gae_lambda": UNIT, "init_log_std": ANY})
+check_hparam = HP_RANGES.check_one
 
 
 @functools.lru_cache(maxsize=None)
@@ -144,7 +143,7 @@ SETTING = Setting(
     arms_help="model-free, mbmf, cd, or cd-kN for cd with horizon N", default_arms=("mbmf", "cd"),
     unused_hparams=unused_hparams, shown_hparams=lambda config: ("alpha",) if config.arm == "cd" else (),
     check_hparam=check_hparam,
-    metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, panels=(
+    metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, skipped="train/skipped_steps", panels=(
         ("model/openloop_mse_k", "open-loop MSE at k steps", True),
         ("model/openloop_mse_50", "open-loop MSE at 50 steps", True),
         ("loss/consistency", "consistency loss", True),

@@ -30,9 +30,10 @@ from flax import struct
 from cdjax import consistency
 from cdjax import normalize as nz
 from cdjax.agents.obs import losses, networks
-from cdjax.agents.obs.config import Config, HParams
+from cdjax.agents.obs.config import HP_RANGES, Config, HParams
 from cdjax.agents.obs.optim import make_optimizer
 from cdjax.agents.obs.rollout import Transition, closed_loop, open_loop
+from cdjax.checks import check_type
 from cdjax.envs import EnvState, EpisodeStats, make_env, strong_types
 from cdjax.numerics import masked_mean
 
@@ -116,6 +117,7 @@ class ObsAgent:
     """
 
     def __init__(self, config: Config):
+        check_type(config, Config)
         self.config = config
         self.env = make_env(config)
         self.O, self.A = self.env.observation_size, self.env.action_size
@@ -147,6 +149,7 @@ class ObsAgent:
         return networks.act_from_noise(mean, std, jax.random.normal(key, mean.shape))
 
     def init(self, key: jax.Array, hp: HParams) -> TrainState:
+        HP_RANGES.check(hp)  # concrete values (a call outside jit) get the command line's checks
         hp = hp.as_float32()
         key_env, key_params, key_train = jax.random.split(key, 3)
         env_state = self.env.reset(key_env)
@@ -350,6 +353,7 @@ class ObsAgent:
             "env/reward_mean": masked_mean(traj.reward, traj.valid),
             "env/invalid_fraction": (~traj.valid).astype(jnp.float32).mean(),
             "opt/skipped_updates": opt_state.total_notfinite.astype(jnp.float32),
+            "train/skipped_steps": (opt_state.total_notfinite - state.opt_state.total_notfinite).astype(jnp.float32),
         })
         new_state = TrainState(
             params=params, opt_state=opt_state, norms=norms, env_state=env_state, episodes=episodes,

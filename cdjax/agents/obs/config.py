@@ -14,6 +14,7 @@ from typing import Literal
 import jax.numpy as jnp
 from flax import struct
 
+from cdjax.checks import ANY, POSITIVE, UNIT, Choice, Count, Fields, HParamRanges
 from cdjax.consistency import KINDS, windows_per_sequence
 from cdjax.protocol import ConfigError
 
@@ -109,47 +110,18 @@ def validate(config: Config) -> None:
     """Raise ConfigError (one sentence) for a configuration that cannot run; never compiles anything."""
     from cdjax import envs  # local import: envs imports brax, config must stay light
 
+    FIELDS.check(config)  # every field's type and range (cdjax.checks); what follows relates fields
     if config.env not in envs.available_envs():
         raise ConfigError(
             f"Unknown env {config.env!r}; choose one of: {', '.join(sorted(envs.available_envs()))}."
         )
-    if config.arm not in ("model-free", "mbmf", "cd"):
-        raise ConfigError(f"Unknown arm {config.arm!r}; choose model-free, mbmf or cd.")
-    if config.encoder not in ENCODERS:
-        raise ConfigError(f"Unknown encoder {config.encoder!r}; choose one of: {', '.join(ENCODERS)}.")
-    if config.reset_mode not in ("cached", "fresh"):
-        raise ConfigError(f"Unknown reset_mode {config.reset_mode!r}; choose cached or fresh.")
-    if config.policy_std not in ("state", "global"):
-        raise ConfigError(f"Unknown policy_std {config.policy_std!r}; choose state or global.")
-    if config.entropy not in ("squashed", "gaussian"):
-        raise ConfigError(f"Unknown entropy {config.entropy!r}; choose squashed or gaussian.")
-    if config.weight_init not in ("orthogonal", "lecun"):
-        raise ConfigError(f"Unknown weight_init {config.weight_init!r}; choose orthogonal or lecun.")
-    if config.clip_scope not in ("group", "policy-value"):
-        raise ConfigError(f"Unknown clip_scope {config.clip_scope!r}; choose group or policy-value.")
-    if not isinstance(config.activation, str) or not callable(getattr(_linen(), config.activation, None)):
+    if not callable(getattr(_linen(), config.activation, None)):
         raise ConfigError(f"Unknown activation {config.activation!r}; use a flax.linen activation such as swish, "
                           "tanh or relu.")
-    positive = (
-        "num_envs", "rollout_len", "horizon", "num_updates", "num_epochs", "num_minibatches",
-        "episode_length", "action_repeat", "encoder_dim", "cc_unroll", "eval_horizon", "eval_envs",
-    )
-    for name in positive:
-        value = getattr(config, name)
-        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-            raise ConfigError(f"{name} must be a positive integer, got {value!r}.")
-    if not isinstance(config.cc_epochs, int) or not 0 <= config.cc_epochs <= config.num_epochs:
+    if config.cc_epochs > config.num_epochs:
         raise ConfigError(f"cc_epochs must be between 0 (all epochs) and num_epochs={config.num_epochs}, got {config.cc_epochs!r}.")
-    if not isinstance(config.cc_windows, int) or config.cc_windows < 0:
-        raise ConfigError(f"cc_windows must be 0 (all windows) or a positive integer, got {config.cc_windows!r}.")
-    if not isinstance(config.segment_len, int) or config.segment_len < 0:
-        raise ConfigError(f"segment_len must be 0 (the whole rollout) or a positive integer, got {config.segment_len!r}.")
     if config.rollout_len % config.segment != 0:
         raise ConfigError(f"segment_len={config.segment_len} does not divide rollout_len={config.rollout_len}.")
-    for name in ("policy_hidden", "value_hidden", "model_hidden"):
-        widths = getattr(config, name)
-        if len(widths) == 0 or any((not isinstance(w, int)) or w <= 0 for w in widths):
-            raise ConfigError(f"{name} must be a non-empty tuple of positive integers, got {widths!r}.")
     if config.horizon > config.segment:
         raise ConfigError(
             f"horizon (k={config.horizon}) is longer than the minibatch sequences (segment_len={config.segment}); "
@@ -167,6 +139,15 @@ def validate(config: Config) -> None:
         )
     if config.eval_envs > config.num_envs:
         raise ConfigError(f"eval_envs={config.eval_envs} is larger than num_envs={config.num_envs}.")
+
+
+# The kind and range of every Config field (cdjax.checks; the Literal, tuple and bool fields take theirs from
+# their annotations), checked when a Config is built.
+FIELDS = Fields(
+    Config, encoder=Choice(ENCODERS), num_envs=Count(1), rollout_len=Count(1), horizon=Count(1), num_updates=Count(1),
+    num_epochs=Count(1), num_minibatches=Count(1), segment_len=Count(1, zero="the whole rollout"),
+    episode_length=Count(1), action_repeat=Count(1), encoder_dim=Count(1), cc_windows=Count(1, zero="all windows"),
+    cc_unroll=Count(1), cc_epochs=Count(1, zero="all epochs"), eval_horizon=Count(1), eval_envs=Count(1))
 
 
 def _linen():
@@ -200,6 +181,11 @@ class HParams:
 
     def as_float32(self) -> "HParams":
         return HParams(**{f.name: jnp.asarray(getattr(self, f.name), jnp.float32) for f in dataclasses.fields(self)})
+
+
+# The range of every HParams field (the rest: not negative), checked on the command line's grid and by `init`.
+HP_RANGES = HParamRanges(HParams, gamma=UNIT, gae_lambda=UNIT, init_log_std=ANY, max_grad_norm=POSITIVE,
+                         adam_eps=POSITIVE, clip_eps=POSITIVE, reward_scale=POSITIVE)
 
 
 def stack_hparams(hps: list[HParams]) -> HParams:

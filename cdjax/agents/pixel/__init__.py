@@ -17,9 +17,8 @@ from __future__ import annotations
 
 import re
 
-from cdjax.agents.pixel.config import PixelConfig, PixelHParams
+from cdjax.agents.pixel.config import HP_RANGES, PixelConfig, PixelHParams
 from cdjax.agents.pixel.learner import PixelLearner
-from cdjax.checks import POSITIVE, hparam_checker
 from cdjax.consistency import collapse_warning
 from cdjax.protocol import ConfigError, Metrics, Preset, Setting, Trainer
 
@@ -38,7 +37,7 @@ def arm_config(name: str, base: PixelConfig) -> PixelConfig:
         raise ConfigError(f"Arm {name!r}: {err}") from None
 
 
-check_hparam = hparam_checker({"lr": POSITIVE, "clip": POSITIVE})
+check_hparam = HP_RANGES.check_one
 
 
 def make_trainer(config: PixelConfig) -> Trainer:
@@ -98,7 +97,7 @@ SETTING = Setting(
     unused_hparams=lambda config, phase: {} if config.use_consistency else {n: None for n in CONSISTENCY_ONLY},
     shown_hparams=lambda config: ("alpha",) if config.use_consistency else (),
     check_hparam=check_hparam,
-    metrics=Metrics(ret="heldout/loglik_k", discounted_ret="heldout/loglik_50", panels=(
+    metrics=Metrics(ret="heldout/loglik_k", discounted_ret="heldout/loglik_50", skipped="train/skipped_steps", panels=(
         ("heldout/imitation", "held-out imitation loss", True),
         ("loss/imitation", "imitation loss", True),
         ("model/elbo_per_frame", "ELBO per frame (nats)", False),

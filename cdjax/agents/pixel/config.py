@@ -7,6 +7,7 @@ from typing import Literal
 
 from flax import struct
 
+from cdjax.checks import POSITIVE, UNIT, Choice, Count, Fields, HParamRanges, Real, Text
 from cdjax.consistency import KINDS
 from cdjax.protocol import ConfigError
 
@@ -53,21 +54,14 @@ class PixelConfig:
     num_updates: int = 1000  # updates of one run
 
     def __post_init__(self):
-        if self.env not in PIXEL_ENVS:
-            raise ConfigError(f"--env {self.env!r} has no pixel camera; choose one of {', '.join(PIXEL_ENVS)}.")
+        FIELDS.check(self)  # every field's type and range (cdjax.checks); what follows relates fields
         if self.image_size % (2 ** self.conv_layers):
-            raise ConfigError(f"--image-size {self.image_size} must be a multiple of 2^conv_layers = "
+            raise ConfigError(f"image_size={self.image_size} must be a multiple of 2^conv_layers = "
                               f"{2 ** self.conv_layers}.")
-        if self.encoder not in KINDS:
-            raise ConfigError(f"--encoder {self.encoder!r}: choose one of {', '.join(KINDS)}.")
-        if not 1 <= self.horizon < self.seq_len:
-            raise ConfigError(f"--horizon {self.horizon} must be at least 1 and below --seq-len {self.seq_len}.")
+        if not self.horizon < self.seq_len:
+            raise ConfigError(f"horizon={self.horizon} must be below seq_len={self.seq_len}.")
         if not self.horizon <= self.eval_horizon:
-            raise ConfigError(f"--horizon {self.horizon} must not exceed --eval-horizon {self.eval_horizon}.")
-        for name in ("frame_stack", "num_sequences", "heldout_sequences", "batch_size", "context", "cc_windows",
-                     "eval_episode_length", "hidden", "latent", "embed_dim"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(self, name)}.")
+            raise ConfigError(f"horizon={self.horizon} must not exceed eval_horizon={self.eval_horizon}.")
 
     @property
     def use_consistency(self) -> bool:
@@ -82,6 +76,17 @@ class PixelConfig:
         return dataclasses.replace(self, **kw)
 
 
+# The kind and range of every Config field (cdjax.checks; the Literal, tuple and bool fields take theirs from
+# their annotations), checked when a Config is built.
+FIELDS = Fields(
+    PixelConfig, env=Choice(PIXEL_ENVS), expert=Text(), image_size=Count(1), frame_stack=Count(1),
+    conv_layers=Count(1, high=16), conv_channels=Count(1), embed_dim=Count(1), hidden=Count(1), latent=Count(1),
+    mlp=Count(1), min_std=Real(POSITIVE), num_sequences=Count(1), heldout_sequences=Count(1), seq_len=Count(2),
+    batch_size=Count(1), burn_in=Count(0), context=Count(1), eval_horizon=Count(1), horizon=Count(1),
+    cc_windows=Count(1), encoder=Choice(KINDS), encoder_dim=Count(1), eval_episode_length=Count(1),
+    num_updates=Count(1))
+
+
 @struct.dataclass
 class PixelHParams:
     """Traced float32 scalars (vmappable with the seeds)."""
@@ -94,3 +99,7 @@ class PixelHParams:
     cc_policy: float = 1.0  # multiplier of l_cc's gradient into the policy through imagined actions (paper: 1)
     enc_aux_coef: float = 1.0  # weight of the grounded encoder's own loss (reconstruction + spread floor)
     gamma: float = 0.99  # discount of the evaluation's discounted return
+
+
+# The range of every HParams field (the rest: not negative), checked on the command line's grid and by `init`.
+HP_RANGES = HParamRanges(PixelHParams, lr=POSITIVE, clip=POSITIVE, gamma=UNIT)

@@ -101,15 +101,17 @@ def export_from_run(run_dir: str | pathlib.Path, path: str | pathlib.Path, arm: 
     from cdjax.runner import restore_arms
 
     run_dir = pathlib.Path(run_dir)
-    evals = [e for e in io.read_jsonl(run_dir / "eval.jsonl") if e["arm"] == arm and e["deterministic"]]
+    _, arms = restore_arms(run_dir)
+    found = next((a for a in arms if a.name == arm), None)
+    if found is None:
+        raise ConfigError(f"{run_dir} has no arm {arm!r}.")
+    labels = list(found.plan.labels)
+    evals = [e for e in io.read_jsonl(run_dir / "eval.jsonl") if e["arm"] == arm and e.get("deterministic", True)
+             and e.get("eval/return") is not None and e.get("hp") in labels]
     if not evals:
         raise ConfigError(f"{run_dir} has no deterministic evaluation of arm {arm!r}.")
-    _, arms = restore_arms(run_dir)
-    found = next(a for a in arms if a.name == arm)
-    labels = list(found.plan.labels)
-    seeds = sorted({e["seed"] for e in evals})
     best = max(evals, key=lambda e: e["eval/return"])
-    run = labels.index(best["hp"]) * len(seeds) + seeds.index(best["seed"])
+    run = labels.index(best["hp"]) * (found.num_runs // len(labels)) + best["seed"]
     acting = jax.device_get(jax.tree.map(lambda x: x[run], found.trainer.policy(found.state)))
     expert = Expert(found.plan.config, acting["params"]["policy"], acting["norms"], float(best["eval/return"]))
     save_expert(path, expert)

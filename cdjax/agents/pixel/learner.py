@@ -31,9 +31,11 @@ import optax
 from flax import struct
 
 from cdjax import consistency
+from cdjax.agents.pixel.config import HP_RANGES, PixelConfig
 from cdjax.agents.pixel.data import Dataset, PixelWorld
 from cdjax.agents.pixel.expert import actor, expert_for
 from cdjax.agents.pixel.model import LtqModel, stack_frames
+from cdjax.checks import check_type
 
 HELDOUT_BATCH = 4  # held-out sequences scored per update
 
@@ -62,6 +64,7 @@ class PixelLearner:
 
     def __init__(self, config, world=None):
         """world: the rendered task with the expert (PixelWorld, the default), or a stand-in with its interface."""
+        check_type(config, PixelConfig)
         self.config = config
         if world is None:
             expert = expert_for(config.env, config.expert)
@@ -83,6 +86,7 @@ class PixelLearner:
         return self.init_from_data(key_rest, hp, data, heldout)
 
     def init_from_data(self, key: jax.Array, hp, data: Dataset, heldout: Dataset) -> PixelState:
+        HP_RANGES.check(hp)  # concrete values (a call outside jit) get the command line's checks
         key_params, key_train = jax.random.split(key)
         params = self.model.init(key_params)
         return PixelState(params=params, opt_state=optimizer(hp).init(params), data=data, heldout=heldout,
@@ -173,7 +177,9 @@ class PixelLearner:
         params = optax.apply_updates(state.params, updates)
         metrics.update(self.heldout_metrics(state.params, state.heldout, key_heldout))
         metrics.update({"loss/total": total, "grad/norm": optax.global_norm(grads),
-                        "data/expert_reward": state.data.reward})
+                        "data/expert_reward": state.data.reward,
+                        "train/skipped_steps": (opt_state.total_notfinite - state.opt_state.total_notfinite
+                                                ).astype(jnp.float32)})
         return state.replace(params=params, opt_state=opt_state, key=key, step=state.step + 1), metrics
 
     # --- acting from pixels (evaluation) -------------------------------------------------------
