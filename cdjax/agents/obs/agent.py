@@ -146,7 +146,8 @@ class ObsAgent:
         nan = jnp.full((), jnp.nan, jnp.float32)
         state = TrainState(
             params=params, opt_state=opt_state, norms=nz.Norms.create(self.O), env_state=env_state,
-            episodes=EpisodeStats.create(self.config.num_envs),
+            # a staggered env's first episode starts part-way into its time limit: its return is not logged
+            episodes=EpisodeStats.create(self.config.num_envs, skip=env_state.t > 0),
             history=History.create(self.config.history_len - 1, self.config.eval_envs, self.O, self.A),
             last_return=nan, last_disc_return=nan, key=key_train, update_step=jnp.zeros((), jnp.int32))
         return strong_types(state)

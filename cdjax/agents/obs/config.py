@@ -44,6 +44,7 @@ class Config:
     episode_length: int = 1000  # time-out in physics steps (agent steps x action_repeat, as Brax); a truncation
     action_repeat: int = 1  # physics control steps per agent step
     reset_mode: ResetMode = "cached"  # cached: each env resets to its own first start (as Brax); fresh: new random start
+    stagger_resets: bool = False  # each env starts at its own random point of the time limit; that first, shorter episode is not logged
     activation: str = "swish"  # activation of the policy and value MLPs (a flax.linen name: swish, tanh, ...)
     policy_std: PolicyStd = "state"  # policy std: state (softplus head, as Brax) or global (one log-std per dim)
     entropy: Entropy = "squashed"  # entropy bonus: of the tanh-squashed action (one-sample) or of the Gaussian
@@ -119,6 +120,8 @@ def validate(config: Config) -> None:
         raise ConfigError(f"Unknown encoder {config.encoder!r}; choose one of: {', '.join(ENCODERS)}.")
     if config.reset_mode not in ("cached", "fresh"):
         raise ConfigError(f"Unknown reset_mode {config.reset_mode!r}; choose cached or fresh.")
+    if not isinstance(config.stagger_resets, bool):
+        raise ConfigError(f"stagger_resets must be true or false, got {config.stagger_resets!r}.")
     if config.policy_std not in ("state", "global"):
         raise ConfigError(f"Unknown policy_std {config.policy_std!r}; choose state or global.")
     if config.entropy not in ("squashed", "gaussian"):

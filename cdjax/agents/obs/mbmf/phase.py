@@ -14,8 +14,8 @@ once; it also vmaps over seeds). In the phase's own `phase.num_envs` environment
    rounds: the (stochastic) policy acts, MPC labels the states it visits, the pairs are aggregated, the
    policy is retrained;
 5. the value is fitted to TD(lambda) returns of the DAgger rollouts (`value_epochs`, optional), and the
-   TrainState goes back ready for `agent.update`, its PPO environments as they were (the phase acts in
-   its own), PPO's optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every
+   TrainState goes back ready for `agent.update`, its PPO environments and their episode statistics as
+   they were (the phase acts in its own), PPO's optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every
    env step taken.
 
 Why MSE on tanh(mu) rather than the Gaussian likelihood of atanh(action): random-shooting actions are
@@ -114,7 +114,7 @@ class PolicyStage:
 def phase_env(config: Config, phase: MbMfPhase, agent: ObsAgent) -> BatchedEnv:
     """The environments the phase acts in: the agent's when the sizes agree, else a new BatchedEnv."""
     B = phase.envs(config)
-    if B == config.num_envs:
+    if B == config.num_envs and not agent.env.stagger:  # the phase's episode statistics count every episode
         return agent.env
     return BatchedEnv(make_single_env(config.env), B, config.episode_length, config.action_repeat,
                       config.reset_mode)
@@ -364,7 +364,7 @@ class MbMfProgram:
         # The PPO environments are as init left them (the phase acted in its own): each keeps the reset target
         # it was created with, which a checkpoint therefore need not store.
         new_state = state.replace(params=params, norms=models.norms, env_state=state.env_state,
-                                  episodes=EpisodeStats.create(self.config.num_envs), key=key)
+                                  episodes=state.episodes, key=key)
         return strong_types(new_state), info
 
 
@@ -374,8 +374,8 @@ def make_mbmf_phase(config: Config, phase: MbMfPhase, agent: ObsAgent | None = N
 
     `state` is what agent.init returns (or any TrainState of `config`); params["model"] and
     params["policy"] come back trained, params["value"] fitted (value_epochs > 0), norms updated, the PPO
-    environments and opt_state untouched (the phase acts in environments of its own), episode statistics fresh,
-    the encoder untouched.
+    environments, their episode statistics (init's: fresh, staggered first episodes marked) and opt_state
+    untouched (the phase acts in environments of its own, never staggered), the encoder untouched.
     info["env_steps"] (int32) counts the env steps the phase took: charge them to the arm's budget.
     """
     return MbMfProgram(config, phase, agent).run
