@@ -9,6 +9,7 @@ it can be vmapped alongside the seeds (alpha grids, learning-rate grids) without
 from __future__ import annotations
 
 import dataclasses
+import os
 from typing import Literal
 
 import jax.numpy as jnp
@@ -60,6 +61,7 @@ class Config:
     cc_epochs: int = 0  # PPO epochs (the first ones) whose minibatches include the consistency term; 0 = all
     eval_horizon: int = 50  # longer open-loop horizon for the compounding-error metric (paper: 50)
     eval_envs: int = 8  # environments whose recent history is kept for the open-loop error metrics
+    yardstick: str = ""  # held-out real trajectories (.npz, cdjax/agents/obs/yardstick.py) the model is also scored on every update; "" none
 
     def __post_init__(self):
         validate(self)
@@ -170,6 +172,10 @@ def validate(config: Config) -> None:
         )
     if config.eval_envs > config.num_envs:
         raise ConfigError(f"eval_envs={config.eval_envs} is larger than num_envs={config.num_envs}.")
+    if not isinstance(config.yardstick, str):
+        raise ConfigError(f"yardstick must be a file name or empty, got {config.yardstick!r}.")
+    if config.yardstick and not os.path.isfile(config.yardstick):
+        raise ConfigError(f"The yardstick file {config.yardstick} does not exist.")
 
 
 def _linen():
