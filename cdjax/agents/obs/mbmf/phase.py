@@ -6,13 +6,19 @@ once; it also vmaps over seeds). In the phase's own `phase.num_envs` environment
 1. random data: `random_steps` steps per env of uniform actions in [-1, 1];
 2. model: params["model"] (Gaussian over the normalised delta-s and reward) trained with Adam(hp.lr_model),
    `model_epochs` shuffled epochs of minibatches over a ring buffer of real transitions (objective:
-   `model_objective` below); the running statistics (state.norms) are updated from the new data first;
+   `model_objective` below; with `onpolicy_fraction` > 0 that share of every minibatch comes from the MPC
+   data once there is some, as Nagabandi et al.'s `fraction_use_new`); the running statistics
+   (state.norms) are updated from the new data first;
 3. aggregation, `aggregation_iters` times: random-shooting MPC (`mpc`) on the learned model acts for
-   `mpc_steps_per_iter` steps, its transitions are appended to the buffer, the model is retrained;
+   `mpc_steps_per_iter` steps, its transitions are appended to the buffer, the model is retrained. The
+   candidates are scored by the model's reward or, `mpc_reward="true"`, by the task's reward of the predicted
+   observations (cdjax.envs.rewards); the MPC acts with the best candidate's first action or the mean first
+   action of its `mpc_elites` best;
 4. distillation: the aggregation states are re-planned with the final model (`relabel`), the policy's
    deterministic action tanh(mu(s)) is regressed (MSE) on those MPC actions, then `distill_iters` DAgger
-   rounds: the (stochastic) policy acts, MPC labels the states it visits, the pairs are aggregated, the
-   policy is retrained;
+   rounds: the policy acts (sampling, or with its mean action: `dagger_deterministic`), MPC labels the
+   states it visits, the pairs are aggregated, the policy is retrained; `label_checks` then measures on the
+   policy's states how noisy the labels are and how close the policy came to their mean;
 5. the value is fitted to TD(lambda) returns of the DAgger rollouts (`value_epochs`, optional), and the
    TrainState goes back ready for `agent.update`, its PPO environments and their episode statistics as
    they were (the phase acts in its own), PPO's optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every
@@ -49,10 +55,14 @@ from cdjax.agents.obs.config import Config, HParams
 from cdjax.agents.obs.mbmf.data import Labelled, Rollout, Transitions, model_objective
 from cdjax.agents.obs.mbmf.spec import MbMfPhase, validate_phase
 from cdjax.agents.obs.rollout import env_step
-from cdjax.envs import BatchedEnv, EnvState, EpisodeStats, make_single_env, strong_types
+from cdjax.envs import BatchedEnv, EnvState, EpisodeStats, make_single_env, rewards, strong_types
 from cdjax.numerics import masked_mean
 from cdjax.optim import clipped_adam
 from cdjax.replay import RingBuffer, fit
+
+
+LABEL_CHECK_STATES = 256  # states of the distilled policy on which the labels' noise is measured (label_checks)
+LABEL_DRAWS = 4  # independent MPC labels per such state
 
 
 def _first_last(values: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -121,14 +131,26 @@ def phase_env(config: Config, phase: MbMfPhase, agent: ObsAgent) -> BatchedEnv:
 
 
 def make_mpc_controller(agent: ObsAgent, phase: MbMfPhase) -> Callable:
-    """controller(model_params, norms, obs [B, O], key) -> MPC actions [B, A] on the learned model."""
+    """controller(model_params, norms, obs [B, O], key) -> MPC actions [B, A] on the learned model.
+
+    Candidates are scored by the model's predicted reward (`mpc_reward="model"`) or by the task's reward of
+    the predicted observations (`"true"`, cdjax.envs.rewards); the action is the best candidate's first one,
+    or the mean first action of the `mpc_elites` best.
+    """
     A = agent.env.action_size
+    true_reward = rewards.reward_fn(agent.config.env) if phase.mpc_reward == "true" else None
+    repeat = agent.config.action_repeat
 
     def controller(model_params, norms, obs, key):
-        step_fn = lambda s, a: agent.model_step(model_params, norms, s, a)  # noqa: E731  [O], [A] -> [O], []
+        def step_fn(s, a):  # [O], [A] -> [O], []
+            next_s, reward = agent.model_step(model_params, norms, s, a)
+            if true_reward is not None:
+                reward = true_reward(s, a, next_s, repeat)
+            return next_s, reward
+
         actions, _ = mpc.batched_random_shooting(key, step_fn, obs, horizon=phase.mpc_horizon,
                                                  num_candidates=phase.mpc_candidates, action_size=A,
-                                                 discount=phase.mpc_discount)
+                                                 discount=phase.mpc_discount, num_elites=phase.mpc_elites)
         return actions
 
     return controller
@@ -164,6 +186,11 @@ class MbMfProgram:
         start = acting.replace(stats=acting.stats.start_rollout())
         return jax.lax.scan(step, start, jax.random.split(key, length))
 
+    def dagger_action(self, policy_params, norms, obs: jax.Array, key: jax.Array) -> jax.Array:
+        """The policy's action in a DAgger rollout [B, A]: its mean action tanh(mu) (`dagger_deterministic`) or a
+        sample with its current noise."""
+        return self.agent.act({"policy": policy_params}, norms, obs, None if self.phase.dagger_deterministic else key)
+
     def update_norms(self, norms: nz.Norms, data: Transitions) -> nz.Norms:
         return refresh_norms(norms, data.obs, data.next_obs, data.reward, data.valid)
 
@@ -184,9 +211,12 @@ class MbMfProgram:
         return self.distill_loss(policy_params, data, norms)[1]["distill/abs_error"]
 
     def fit_model(self, model_fit: Fitted, norms, data: RingBuffer, tx, key) -> tuple[Fitted, dict]:
+        """Retrain the model on the buffer; with onpolicy_fraction > 0 that share of every minibatch comes from
+        the MPC data, which follows the random data (its B x random_steps transitions) in the buffer."""
         loss = functools.partial(self.model_batch_loss, norms=norms)
         params, opt_state, metrics = fit(loss, model_fit.params, model_fit.opt_state, tx, data, self.phase.model_epochs,
-                                         self.phase.model_minibatch, key)
+                                         self.phase.model_minibatch, key, split=self.B * self.phase.random_steps,
+                                         fraction=self.phase.onpolicy_fraction)
         return Fitted(params, opt_state), metrics
 
     def fit_policy(self, policy_fit: Fitted, norms, data: RingBuffer, tx, key) -> Fitted:
@@ -209,6 +239,29 @@ class MbMfProgram:
         plan = lambda inp: self.controller(model_params, norms, inp[0], inp[1])  # noqa: E731
         labels = jax.lax.map(plan, (obs.reshape(n_chunks, chunk, self.O), keys)).reshape(-1, self.A)[:n]
         return buffer.replace(data=buffer.data.replace(action=buffer.data.action.at[:n].set(labels)))
+
+    def label_checks(self, policy_params, model_params, norms, states: jax.Array, key: jax.Array) -> dict:
+        """How learnable the distillation targets are, on up to LABEL_CHECK_STATES of `states` [N, O].
+
+        The MPC's label at a state is random (its candidates are), so a policy that regressed it perfectly
+        would still differ from single labels. With LABEL_DRAWS independent labels per state:
+        labels/self_error: |one label - the mean of the others|, what no policy can beat by much;
+        labels/mean_abs: |mean label|, the size of what is there to learn;
+        distill/abs_error_mean: |policy - mean label|, how close the policy came to it;
+        distill/abs_error_zero: |0 - one label|, the error of the zero action (an untrained tanh policy's).
+        All are means over states and action dimensions.
+        """
+        n = min(LABEL_CHECK_STATES, states.shape[0])
+        obs = states[:: states.shape[0] // n][:n]  # spread over the rollout's steps and envs
+        labels = jax.lax.map(lambda k: self.controller(model_params, norms, obs, k),
+                             jax.random.split(key, LABEL_DRAWS))  # [D, n, A]
+        mean = labels.mean(0)
+        others = (labels.sum(0)[None] - labels) / (LABEL_DRAWS - 1)
+        policy = self.agent.act({"policy": policy_params}, norms, obs, None)
+        return {"labels/self_error": jnp.abs(labels - others).mean(),
+                "labels/mean_abs": jnp.abs(mean).mean(),
+                "distill/abs_error_mean": jnp.abs(policy - mean).mean(),
+                "distill/abs_error_zero": jnp.abs(labels).mean()}
 
     def fit_value(self, value_params, norms, traj: Rollout, hp: HParams, key: jax.Array):
         """Regress V on TD(lambda) returns of traj [L, N] (recomputed with the current V every epoch)."""
@@ -304,7 +357,7 @@ class MbMfProgram:
     def policy_stage(self, state: TrainState, stage: ModelStage, hp: HParams, keys
                      ) -> tuple[PolicyStage, Rollout, dict]:
         """Step 4: behaviour cloning of the (relabelled) MPC actions, then the DAgger rounds."""
-        key_relabel, key_distill, key_dagger = keys
+        key_relabel, key_distill, key_dagger, key_check = keys
         model_params, norms = stage.model.params, stage.norms
         policy_tx = clipped_adam(hp.lr_distill, hp)
         labelled = stage.labelled
@@ -320,7 +373,7 @@ class MbMfProgram:
 
             def act_and_label(obs, key):
                 key_act, key_plan = jax.random.split(key)
-                action = self.agent.act({"policy": stage.policy.params}, norms, obs, key_act)
+                action = self.dagger_action(stage.policy.params, norms, obs, key_act)
                 return action, self.controller(model_params, norms, obs, key_plan)
 
             acting, traj = self.rollout(stage.acting, act_and_label, key_roll, self.phase.distill_steps_per_iter,
@@ -337,6 +390,9 @@ class MbMfProgram:
         stage = PolicyStage(stage.acting, policy_fit, labelled)
         stage, (dag, trajs) = jax.lax.scan(dagger, stage, jax.random.split(key_dagger, self.phase.distill_iters))
         info["distill/abs_error"] = self.buffer_abs_error(stage.policy.params, norms, stage.labelled)
+        # the states the distilled policy visits (last DAgger round), else the first labelled ones
+        states = trajs.obs[-1].reshape(-1, self.O) if self.phase.distill_iters else stage.labelled.data.obs
+        info.update(self.label_checks(stage.policy.params, model_params, norms, states, key_check))
         info["dagger/abs_error_new_first"], info["dagger/abs_error_new_last"] = _first_last(dag["abs_error_new"])
         info["dagger/reward_mean_first"], info["dagger/reward_mean_last"] = _first_last(dag["reward_mean"])
         info["dagger/episode_return"] = _first_last(dag["episode_return"])[1]
@@ -345,10 +401,11 @@ class MbMfProgram:
     def run(self, state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
         hp = hp.as_float32()
         (key, key_reset, key_random, key_model, key_agg, key_relabel, key_distill, key_dagger, key_value,
-         _) = jax.random.split(state.key, 10)
+         key_check) = jax.random.split(state.key, 10)
         model_tx = clipped_adam(hp.lr_model, hp)
         models, info = self.models_stage(state, hp, model_tx, (key_reset, key_random, key_model, key_agg))
-        policies, trajs, policy_info = self.policy_stage(state, models, hp, (key_relabel, key_distill, key_dagger))
+        policies, trajs, policy_info = self.policy_stage(state, models, hp,
+                                                         (key_relabel, key_distill, key_dagger, key_check))
         info.update(policy_info)
 
         # 5. The value on the DAgger rollouts ([R, L, B] -> [L, R*B]: each round a separate segment).
