@@ -27,6 +27,9 @@ VARIANTS = {  # name -> MbMfPhase overrides
     "true-elite64": dict(mpc_reward="true", mpc_elites=64),
     "det-dagger": dict(dagger_deterministic=True),
     "onpolicy": dict(onpolicy_fraction=0.9),
+    # all of Nagabandi et al.'s that the phase offers, with elite-mean labels
+    "nagabandi-elite16": dict(mpc_reward="true", mpc_elites=16, dagger_deterministic=True, onpolicy_fraction=0.9),
+    "nagabandi-elite64": dict(mpc_reward="true", mpc_elites=64, dagger_deterministic=True, onpolicy_fraction=0.9),
 }
 SOURCES = ("random", "zero", "mpc", "policy-mean", "policy-sampled")
 

@@ -125,7 +125,9 @@ def _describe_phase(info: Mapping[str, float]) -> str:
             f"{info.get('mpc/reward_mean_last', math.nan):.3g}, distilled policy "
             f"{info.get('dagger/reward_mean_last', math.nan):.3g}; the policy's distance to the mean MPC label "
             f"{info.get('distill/abs_error_mean', math.nan):.3g} (zero action: "
-            f"{info.get('distill/abs_error_zero', math.nan):.3g}, one label: {info.get('labels/self_error', math.nan):.3g}).")
+            f"{info.get('distill/abs_error_zero', math.nan):.3g}, one label: {info.get('labels/self_error', math.nan):.3g})"
+            + (f"; PPO starts (reward per step, sampled): distilled {info['handover/sampled_reward_mean']:.3g}, untrained "
+               f"{info['fresh/sampled_reward_mean']:.3g}" if "handover/sampled_reward_mean" in info else "") + ".")
 
 
 def preset_of_env(given: Mapping) -> str | None:

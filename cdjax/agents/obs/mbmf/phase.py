@@ -53,7 +53,7 @@ from cdjax.agents.obs import losses, mpc, networks
 from cdjax.agents.obs.agent import ObsAgent, TrainState, make_agent, model_target, refresh_norms
 from cdjax.agents.obs.config import Config, HParams
 from cdjax.agents.obs.mbmf.data import Labelled, Rollout, Transitions, model_objective
-from cdjax.agents.obs.mbmf.spec import MbMfPhase, validate_phase
+from cdjax.agents.obs.mbmf.spec import HANDOVER_CHECKS, MbMfPhase, validate_phase
 from cdjax.agents.obs.rollout import env_step
 from cdjax.envs import BatchedEnv, EnvState, EpisodeStats, make_single_env, rewards, strong_types
 from cdjax.numerics import masked_mean
@@ -61,7 +61,7 @@ from cdjax.optim import clipped_adam
 from cdjax.replay import RingBuffer, fit
 
 
-LABEL_CHECK_STATES = 256  # states of the distilled policy on which the labels' noise is measured (label_checks)
+LABEL_CHECK_STATES = 64  # states of the distilled policy on which the labels' noise is measured (label_checks)
 LABEL_DRAWS = 4  # independent MPC labels per such state
 
 
@@ -263,6 +263,27 @@ class MbMfProgram:
                 "distill/abs_error_mean": jnp.abs(policy - mean).mean(),
                 "distill/abs_error_zero": jnp.abs(labels).mean()}
 
+    def handover_checks(self, fresh_params, fresh_norms, policy_params, norms, hp: HParams, key: jax.Array):
+        """What PPO starts from: the distilled policy against the untrained one (what the model-free arm starts
+        from, with init's statistics), each sampling (as PPO's first rollout acts) and with its mean action,
+        `handover_steps` steps from the same reset states of the phase's environments -> (reward per step of
+        each, env steps taken)."""
+        key_reset, key_act = jax.random.split(key)
+        out = {}
+        for name, params, stats_, sample in (("handover/sampled", policy_params, norms, True),
+                                             ("handover/mean_action", policy_params, norms, False),
+                                             ("fresh/sampled", fresh_params, fresh_norms, True),
+                                             ("fresh/mean_action", fresh_params, fresh_norms, False)):
+            def act(obs, k, params=params, stats_=stats_, sample=sample):
+                action = self.agent.act({"policy": params}, stats_, obs, k if sample else None)
+                return action, action
+
+            acting = Acting(self.env.reset(key_reset), EpisodeStats.create(self.B), jnp.zeros((), jnp.int32))
+            _, traj = self.rollout(acting, act, key_act, self.phase.handover_steps, hp.gamma)
+            out[f"{name}_reward_mean"] = masked_mean(traj.reward, traj.valid)
+        steps = HANDOVER_CHECKS * self.B * self.phase.handover_steps * self.config.action_repeat
+        return out, jnp.asarray(steps, jnp.int32)
+
     def fit_value(self, value_params, norms, traj: Rollout, hp: HParams, key: jax.Array):
         """Regress V on TD(lambda) returns of traj [L, N] (recomputed with the current V every epoch)."""
         L, N = traj.reward.shape
@@ -401,7 +422,7 @@ class MbMfProgram:
     def run(self, state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
         hp = hp.as_float32()
         (key, key_reset, key_random, key_model, key_agg, key_relabel, key_distill, key_dagger, key_value,
-         key_check) = jax.random.split(state.key, 10)
+         key_check, key_handover) = jax.random.split(state.key, 11)
         model_tx = clipped_adam(hp.lr_model, hp)
         models, info = self.models_stage(state, hp, model_tx, (key_reset, key_random, key_model, key_agg))
         policies, trajs, policy_info = self.policy_stage(state, models, hp,
@@ -417,6 +438,11 @@ class MbMfProgram:
             info["value/loss"] = jnp.full((), jnp.nan, jnp.float32)
 
         info["env_steps"] = policies.acting.env_steps
+        if self.phase.handover_steps:
+            checks, steps = self.handover_checks(state.params["policy"], state.norms, policies.policy.params,
+                                                 models.norms, hp, key_handover)
+            info.update(checks)
+            info["env_steps"] = info["env_steps"] + steps
         params = dict(state.params, model=models.model.params, policy=policies.policy.params, value=value_params)
         # The PPO environments are as init left them (the phase acted in its own): each keeps the reset target
         # it was created with, which a checkpoint therefore need not store.
@@ -433,6 +459,8 @@ def make_mbmf_phase(config: Config, phase: MbMfPhase, agent: ObsAgent | None = N
     params["policy"] come back trained, params["value"] fitted (value_epochs > 0), norms updated, the PPO
     environments, their episode statistics (init's: fresh, staggered first episodes marked) and opt_state
     untouched (the phase acts in environments of its own, never staggered), the encoder untouched.
+    With handover_steps > 0, info also holds the reward per step of the distilled and of the untrained policy,
+    sampled and with their mean action, from the same reset states (`handover_checks`).
     info["env_steps"] (int32) counts the env steps the phase took: charge them to the arm's budget.
     """
     return MbMfProgram(config, phase, agent).run

@@ -9,6 +9,7 @@ from cdjax.agents.obs.config import Config
 from cdjax.protocol import ConfigError
 
 ModelObjective = Literal["mse", "nll"]
+HANDOVER_CHECKS = 4  # rollouts of `handover_steps`: distilled and untrained policy, each sampled and with its mean action
 MpcReward = Literal["model", "true"]
 
 
@@ -32,25 +33,26 @@ class MbMfPhase:
     mpc_horizon: int = 20  # random-shooting planning horizon (Nagabandi, cheetah: 20; ant: 5)
     mpc_candidates: int = 1000  # action sequences sampled per state (Nagabandi, cheetah: 1000; ant: 15000)
     mpc_discount: float = 1.0  # predicted reward t weighted by discount**t (Nagabandi: 1, undiscounted)
-    mpc_reward: MpcReward = "model"  # scores candidates by: model, its predicted reward; true, the task's reward of the predicted states (cdjax.envs.rewards)
-    mpc_elites: int = 1  # the MPC acts with the mean first action of its best mpc_elites candidates (1: the best, Nagabandi)
-    onpolicy_fraction: float = 0.0  # share of each model minibatch drawn from the MPC (on-policy) data once there is some (Nagabandi's fraction_use_new); 0: all data alike
+    mpc_reward: MpcReward = "model"  # candidates scored by the model's reward, or "true": the task's reward of predicted obs
+    mpc_elites: int = 1  # the MPC acts with the mean first action of its best mpc_elites candidates (1: Nagabandi's)
+    onpolicy_fraction: float = 0.0  # share of model minibatches from the MPC data (Nagabandi's fraction_use_new); 0: uniform
     distill_iters: int = 3  # DAgger rounds after the first behaviour cloning (Nagabandi, cheetah: 3)
     distill_steps_per_iter: int = 200  # policy steps per env per DAgger round (Nagabandi, cheetah: 2 x 1000 in all)
-    dagger_deterministic: bool = False  # DAgger rollouts act with the policy's mean action tanh(mu) instead of sampling
+    dagger_deterministic: bool = False  # DAgger rollouts act with the policy's mean action tanh(mu), not a sample
     distill_epochs: int = 200  # shuffled epochs over the distillation buffer per (re)training (Nagabandi: 70-300)
     distill_minibatch: int = 512  # (state, MPC action) pairs per policy gradient step; also the value's (Nagabandi: 512)
     distill_buffer_size: int = 0  # distillation dataset capacity (ring buffer); 0 = every labelled state
     relabel: bool = True  # re-plan the aggregation states with the final model before cloning (no env steps)
     relabel_chunk: int = 1024  # states planned for at once when relabelling (memory: chunk x candidates x width)
     value_epochs: int = 10  # epochs fitting the value to TD(lambda) returns of the DAgger rollouts; 0 = untouched
+    handover_steps: int = 0  # steps per env of 4 checks of the policy PPO gets against an untrained one; 0 = none
 
     def envs(self, config: Config) -> int:
         return self.num_envs or config.num_envs
 
     def steps_per_env(self) -> int:
         return self.random_steps + self.aggregation_iters * self.mpc_steps_per_iter + \
-            self.distill_iters * self.distill_steps_per_iter
+            self.distill_iters * self.distill_steps_per_iter + HANDOVER_CHECKS * self.handover_steps
 
     def model_capacity(self, config: Config) -> int:
         """Transitions the model buffer holds."""
@@ -76,7 +78,7 @@ def validate_phase(config: Config, phase: MbMfPhase) -> None:
     positive = ("random_steps", "model_epochs", "model_minibatch", "mpc_horizon", "mpc_candidates", "mpc_elites",
                 "distill_epochs", "distill_minibatch", "relabel_chunk")
     non_negative = ("num_envs", "aggregation_iters", "mpc_steps_per_iter", "distill_iters",
-                    "distill_steps_per_iter", "buffer_size", "distill_buffer_size", "value_epochs")
+                    "distill_steps_per_iter", "buffer_size", "distill_buffer_size", "value_epochs", "handover_steps")
     for name in positive + non_negative:
         value = getattr(phase, name)
         low = 1 if name in positive else 0
