@@ -101,7 +101,9 @@ def _fake_part(root, task, unit, part, arms, seeds=10, updates=20, spu=100, cut=
                            "phase/random/reward_mean": -0.3, "phase/mpc/reward_mean_last": 0.2 + 0.01 * s,
                            "phase/dagger/reward_mean_last": 0.1, "phase/labels/self_error": 0.13,
                            "phase/labels/mean_abs": 0.11, "phase/distill/abs_error_mean": 0.05,
-                           "phase/distill/abs_error_zero": 0.15, "phase/model/heldout_mse_last": 0.02}
+                           "phase/distill/abs_error_zero": 0.15, "phase/model/heldout_mse_last": 0.02,
+                           "phase/handover/sampled_reward_mean": 0.3, "phase/fresh/sampled_reward_mean": -0.1,
+                           "phase/handover/mean_action_reward_mean": 0.5, "phase/fresh/mean_action_reward_mean": 0.0}
                     phase.append(row)
                 for u in range(1, (cut or updates) + 1):
                     r = level * u * (1 + 0.01 * s)
@@ -168,6 +170,7 @@ def test_fake_units_give_every_table_and_the_across_task_statistics(fake, tmp_pa
     best = max(agg, key=lambda a: a["iqm"])
     assert best["arm"] == "cd-k20-paper" and 0.0 <= best["low"] <= best["iqm"] <= best["high"] <= 1.0
     assert set(profiles) == {"model-free", "mbmf", "cd-k5", "cd-k20-paper", "cd-k20"}
+    assert "| ant | 0.3 [0.3, 0.3] | -0.1 [-0.1, -0.1] | 0.5 [0.5, 0.5] | 0 [0, 0] | 1 [1, 1] | 2.4 [2.4, 2.4] |" in text
     for needle in ("## Across tasks (rliable)", "P(X > Y)", "## The Mb-Mf phase", "## The consistency schedule",
                    "CD k=20 (paper's schedule)", "open-loop MSE at 50 (yardstick)", "## Units", "FAKE GPU",
                    "figures/profiles.png", "figures/returns.png"):

@@ -68,6 +68,10 @@ PHASE_COLUMNS = (  # phase.jsonl (its keys carry "phase/"), (title)
     ("dagger/reward_mean_last", "distilled policy"), ("labels/self_error", "one label vs the others' mean"),
     ("labels/mean_abs", "|mean label|"), ("distill/abs_error_mean", "policy vs mean label"),
     ("distill/abs_error_zero", "zero action vs labels"), ("model/heldout_mse_last", "model held-out MSE"))
+START_COLUMNS = (  # the phase's handover checks: the policy PPO gets against an untrained one, same reset states
+    ("handover/sampled_reward_mean", "distilled, sampled"), ("fresh/sampled_reward_mean", "untrained, sampled"),
+    ("handover/mean_action_reward_mean", "distilled, mean action"),
+    ("fresh/mean_action_reward_mean", "untrained, mean action"))
 
 
 def arm_key(arm: dict, hp: dict) -> str:
@@ -116,7 +120,7 @@ class TaskData:
     evals: dict
     phase: dict
     budget: float  # env steps the arms are compared at
-    stated: float  # the task's budget (TASK_BUDGETS, else the largest one asked)
+    stated: float  # the env steps per run its runs asked for (the largest)
     complete: bool  # every arm reached its planned env steps
 
 
@@ -141,7 +145,7 @@ def _phase_rows(path: pathlib.Path, keys: dict) -> dict:
         key = keys.get((row.get("arm"), str(row.get("hp", ""))))
         if key is None:
             continue
-        for name, _ in PHASE_COLUMNS:
+        for name, _ in PHASE_COLUMNS + START_COLUMNS:
             value = row.get(f"phase/{name}")
             out.setdefault(key, {}).setdefault(name, []).append(math.nan if value is None else float(value))
     return {k: {n: np.array(v) for n, v in d.items()} for k, d in out.items()}
@@ -205,7 +209,7 @@ def load(roots: Sequence[pathlib.Path]) -> list[TaskData]:
             spu = max(r.info.get("env_steps_per_update", 0) for r in runs)
             curves = {k: _cut(c, budget + spu / 2) for k, c in curves.items()}
             evals = {k: None for k in evals}  # evaluations were made at each run's end, not at the common budget
-        stated = TASK_BUDGETS[name].steps if name in TASK_BUDGETS else max(planned.values(), default=math.nan)
+        stated = max(planned.values(), default=math.nan)
         tasks.append(TaskData(name, runs, curves, evals, phase, budget, stated, complete))
     return tasks
 
@@ -250,8 +254,8 @@ def arm_rows(task: TaskData, reps: int) -> list[dict]:
         for name, _ in DIAGNOSTICS:
             row[name] = stats.iqm_interval(plots.per_seed_final(c, name), reps)[:3] if name in c.metrics \
                 else (math.nan,) * 3
-        start = c.metrics.get("env/reward_mean")  # the first PPO rollout's reward per step
-        first = start[:, np.argmax(c.present.any(0) & np.isfinite(start).any(0))] if start is not None else []
+        start = c.metrics.get("env/reward_mean")  # the first PPO rollout's reward per step (update 1)
+        first = start[:, np.flatnonzero(c.updates == 1)[0]] if start is not None and (c.updates == 1).any() else []
         row["start_reward"] = stats.iqm_interval(first, reps)[:3] if len(first) else (math.nan,) * 3
         rows.append(row)
     return rows
@@ -278,16 +282,33 @@ def diagnostics_table(rows: list[dict]) -> str:
                          for r in rows if r["arm"] != "model-free"))
 
 
-def phase_table(tasks: list[TaskData], rows: list[dict], reps: int) -> str:
-    """Per task: the phase's rewards per step (random, MPC, distilled policy), its label checks (arm mbmf), and the
-    first PPO rollout's reward per step of model-free and Mb-Mf."""
-    by = {(r["task"], r["arm"]): r for r in rows}
-    head = ("task",) + tuple(title for _, title in PHASE_COLUMNS) + ("first PPO rollout: model-free", "Mb-Mf")
+def _phase_of(task: TaskData) -> dict | None:
+    """The phase's per-seed values of the Mb-Mf arm (every phase of a task is the same program and seeds; another
+    arm's when Mb-Mf has not run)."""
+    return task.phase.get("mbmf") or next((v for v in task.phase.values() if v), None)
+
+
+def phase_table(tasks: list[TaskData], reps: int) -> str:
+    """Per task: the phase's rewards per step (random, MPC, distilled policy) and its label checks."""
+    head = ("task",) + tuple(title for _, title in PHASE_COLUMNS)
     lines = []
     for t in tasks:
-        ph = t.phase.get("mbmf") or next((v for v in t.phase.values() if v), None)
+        ph = _phase_of(t)
+        lines.append([t.name] + [_cell(stats.iqm_interval(ph[n], reps)[:3], 3) if ph and n in ph else "n/a"
+                                 for n, _ in PHASE_COLUMNS])
+    return _table(head, lines)
+
+
+def start_table(tasks: list[TaskData], rows: list[dict], reps: int) -> str:
+    """Per task: the handover checks (reward per step of the policy PPO gets and of an untrained one, from the same
+    reset states) and the first PPO rollout's reward per step of model-free and Mb-Mf."""
+    by = {(r["task"], r["arm"]): r for r in rows}
+    head = ("task",) + tuple(title for _, title in START_COLUMNS) + ("first PPO rollout: model-free", "Mb-Mf")
+    lines = []
+    for t in tasks:
+        ph = _phase_of(t)
         cells = [t.name] + [_cell(stats.iqm_interval(ph[n], reps)[:3], 3) if ph and n in ph else "n/a"
-                            for n, _ in PHASE_COLUMNS]
+                            for n, _ in START_COLUMNS]
         cells += [_cell(by[(t.name, a)]["start_reward"], 3) if (t.name, a) in by else "n/a" for a in ("model-free", "mbmf")]
         lines.append(cells)
     return _table(head, lines)
@@ -549,8 +570,10 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
             state = ("every arm reached it" if t.complete else
                      f"**not every arm reached it**: compared at {t.budget:,.0f} env steps, the most all arms reached")
             arms = ", ".join(LABELS.get(a, a) for a in _arm_order(t.curves))
-            lines.append(f"- {t.name}: {t.stated:,.0f} env steps per run (the Mb-Mf phase's included); {state}. "
-                         f"Arms: {arms}.")
+            plan = TASK_BUDGETS.get(t.name)
+            differs = f" (PLAN.md's budget: {plan.steps:,})" if plan is not None and plan.steps != t.stated else ""
+            lines.append(f"- {t.name}: {t.stated:,.0f} env steps per run asked{differs} (the Mb-Mf phase's included); "
+                         f"{state}. Arms: {arms}.")
         if missing:
             lines.append(f"- not run yet: {', '.join(missing)}.")
         lines += ["", "## Verdicts per task (final return, 95% intervals)", ""]
@@ -586,9 +609,13 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
                   f"![returns]({returns_png.relative_to(out)})", "",
                   "## The Mb-Mf phase: does it hand PPO a better start?", "",
                   "Rewards per step inside the phase (random actions, the MPC on the learned model, the distilled "
-                  "policy in the DAgger rounds), the MPC labels' noise (mean absolute difference per action dimension "
-                  "on the distilled policy's states), and the reward per step of the first PPO rollout:", "",
-                  phase_table(tasks, rows, reps), "",
+                  "policy in the DAgger rounds) and the MPC labels' noise (mean absolute difference per action "
+                  "dimension, on the distilled policy's states; IQM over seeds):", "",
+                  phase_table(tasks, reps), "",
+                  "The start PPO gets: reward per step of the distilled policy and of an untrained one (what the "
+                  "model-free arm starts from), sampling as PPO's first rollout does and with the mean action, from "
+                  "the same reset states (the phase's handover checks), and the first PPO rollout of each arm:", "",
+                  start_table(tasks, rows, reps), "",
                   "## Model and consistency diagnostics (end of training)", "",
                   "Open-loop MSE on the arm's own states: its model imagining k and 50 steps from the recent real "
                   "states of 8 of its envs, in its own normalisation; on the yardstick: the same model on the task's "
