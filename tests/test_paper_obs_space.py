@@ -212,3 +212,27 @@ def test_every_unit_fits_a_lease_by_its_estimate():
         for part in unit.parts:
             assert part.seeds >= (5 if part.name == "schedule" else 10)
     assert cli.main(["units"]) == 0
+
+
+@pytest.mark.parametrize("name", sorted(UNITS))
+def test_every_units_sweeps_plan_without_an_error(name):
+    """Each part's `cdjax sweep` command line, as `train --unit` builds it, plans (arms, grid, phase, budget) with
+    no ConfigError; nothing is compiled."""
+    from cdjax import agents
+    from cdjax.cli import build_parser, sweep_spec
+    from cdjax.runner.plan import plan_arms
+
+    unit = UNITS[name]
+    setting = agents.get("obs")
+    for part in unit.parts:
+        argv = ["sweep", "--preset", f"paper-{unit.task}", "--out", "unused", *cli.yardstick_option(unit.task, []),
+                "--arms", *part.arms, "--seeds", str(part.seeds), "--steps", str(unit.budget.steps), *part.options]
+        plans = plan_arms(sweep_spec(build_parser(setting).parse_args(argv), setting))
+        assert {p.name for p in plans} == set(part.arms)
+        for plan in plans:
+            assert plan.config.stagger_resets and plan.config.yardstick.endswith(f"{unit.task}.npz")
+            assert len(plan.hparams) == part.runs_per_arm
+            assert (plan.phase is not None) == (plan.config.arm != "model-free")
+            assert abs(plan.total_env_steps - unit.budget.steps) <= plan.config.env_steps_per_update
+            if "--cc-epochs" in part.options:
+                assert plan.config.cc_epochs == 0

@@ -70,8 +70,11 @@ def test_every_update_logs_the_yardstick_and_a_wrong_file_fails_in_one_sentence(
     assert agent.yardstick.k == 4 and agent.yardstick.long == 10
     assert np.isfinite(numbers["model/yardstick_mse_k"]) and np.isfinite(numbers["model/yardstick_mse_50"])
     assert make_agent(config.replace(arm="model-free")).yardstick is None  # no model, nothing to score
+    missing = POINT.replace(yardstick=str(tmp_path / "missing.npz"))  # a run.json read elsewhere still loads
     with pytest.raises(ConfigError, match="does not exist"):
-        POINT.replace(yardstick=str(tmp_path / "missing.npz"))
+        make_agent(missing)
+    with pytest.raises(ConfigError, match="yardstick must be a file name"):
+        POINT.replace(yardstick=3)
     y = yardstick.load(path)
     other = yardstick.save(tmp_path / "ant.npz", y.obs, y.action, y.length, {**y.meta, "env": "ant"})
     with pytest.raises(ConfigError, match="was collected on 'ant'"):

@@ -113,7 +113,8 @@ class Unit:
 def _units() -> dict[str, Unit]:
     mf_mbmf = Part("mf-mbmf", ("model-free", "mbmf"))
     cd20 = Part("cd-k20", ("cd-k20",), ("--cc-policy", "1", "0.1"), runs_per_arm=2)  # paper weights and defaults
-    cd5 = Part("cd-k5", ("cd-k5",), PAPER_WEIGHTS + ("--cc-windows", "4"))  # 4 of a sequence's 16 windows
+    # 4 of a 20-step sequence's 16 windows (the base config's horizon too: it is validated before the arm sets it)
+    cd5 = Part("cd-k5", ("cd-k5",), PAPER_WEIGHTS + ("--cc-windows", "4", "--horizon", "5"))
     # CD k=20 at cdjax's weights on the paper's schedule: against cd-k20's cdjax-weights runs (the same seeds)
     schedule = Part("schedule", ("cd-k20",), PAPER_SCHEDULE, rate_factor=0.7)
     units = {}

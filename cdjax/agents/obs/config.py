@@ -9,7 +9,6 @@ it can be vmapped alongside the seeds (alpha grids, learning-rate grids) without
 from __future__ import annotations
 
 import dataclasses
-import os
 from typing import Literal
 
 import jax.numpy as jnp
@@ -172,10 +171,8 @@ def validate(config: Config) -> None:
         )
     if config.eval_envs > config.num_envs:
         raise ConfigError(f"eval_envs={config.eval_envs} is larger than num_envs={config.num_envs}.")
-    if not isinstance(config.yardstick, str):
+    if not isinstance(config.yardstick, str):  # the file itself is read (and checked) when the agent is built
         raise ConfigError(f"yardstick must be a file name or empty, got {config.yardstick!r}.")
-    if config.yardstick and not os.path.isfile(config.yardstick):
-        raise ConfigError(f"The yardstick file {config.yardstick} does not exist.")
 
 
 def _linen():
