@@ -266,21 +266,28 @@ class MbMfProgram:
     def handover_checks(self, fresh_params, fresh_norms, policy_params, norms, hp: HParams, key: jax.Array):
         """What PPO starts from: the distilled policy against the untrained one (what the model-free arm starts
         from, with init's statistics), each sampling (as PPO's first rollout acts) and with its mean action,
-        `handover_steps` steps from the same reset states of the phase's environments -> (reward per step of
-        each, env steps taken)."""
+        `handover_steps` steps from the same reset states and noise of the phase's environments -> (reward per step
+        of each, env steps taken). The four rollouts are one scan, vmapped over them (one physics body to compile).
+        """
         key_reset, key_act = jax.random.split(key)
-        out = {}
-        for name, params, stats_, sample in (("handover/sampled", policy_params, norms, True),
-                                             ("handover/mean_action", policy_params, norms, False),
-                                             ("fresh/sampled", fresh_params, fresh_norms, True),
-                                             ("fresh/mean_action", fresh_params, fresh_norms, False)):
-            def act(obs, k, params=params, stats_=stats_, sample=sample):
-                action = self.agent.act({"policy": params}, stats_, obs, k if sample else None)
+        four = lambda a, b: jnp.stack([a, a, b, b])  # noqa: E731  distilled, distilled, untrained, untrained
+        params = jax.tree.map(four, policy_params, fresh_params)
+        stats_ = jax.tree.map(four, norms, fresh_norms)
+        sample = jnp.array([True, False, True, False])
+
+        def reward_per_step(params, stats_, sample):
+            def act(obs, k):
+                action = jnp.where(sample, self.agent.act({"policy": params}, stats_, obs, k),
+                                   self.agent.act({"policy": params}, stats_, obs, None))
                 return action, action
 
             acting = Acting(self.env.reset(key_reset), EpisodeStats.create(self.B), jnp.zeros((), jnp.int32))
             _, traj = self.rollout(acting, act, key_act, self.phase.handover_steps, hp.gamma)
-            out[f"{name}_reward_mean"] = masked_mean(traj.reward, traj.valid)
+            return masked_mean(traj.reward, traj.valid)
+
+        rewards = jax.vmap(reward_per_step)(params, stats_, sample)
+        names = ("handover/sampled", "handover/mean_action", "fresh/sampled", "fresh/mean_action")
+        out = {f"{name}_reward_mean": rewards[i] for i, name in enumerate(names)}
         steps = HANDOVER_CHECKS * self.B * self.phase.handover_steps * self.config.action_repeat
         return out, jnp.asarray(steps, jnp.int32)
 
