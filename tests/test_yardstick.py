@@ -55,6 +55,11 @@ def test_windows_and_errors_against_hand_computed_numbers(point_file):
     np.testing.assert_allclose(float(frozen["model/yardstick_mse_k"]), hand_k, rtol=1e-5)
     np.testing.assert_allclose(float(frozen["model/yardstick_mse_50"]), hand_long, rtol=1e-5)
     assert hand_k > 0 and hand_long > 0
+    # a dimension that does not move on the yardstick is left out (its scale sits at the floor)
+    still = yardstick.Windows(w.start, w.action, w.target_k + np.array([0, 0, 0, 5.0], np.float32), w.target_long,
+                              np.array([*w.scale[:3], yardstick.SCALE_FLOOR], np.float32), w.k, w.long)
+    exact_still = yardstick.errors(PointMass.dynamics, still)
+    assert float(exact_still["model/yardstick_mse_k"]) < 1e-10
 
 
 def test_every_update_logs_the_yardstick_and_a_wrong_file_fails_in_one_sentence(point_file, tmp_path):

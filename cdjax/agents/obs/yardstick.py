@@ -11,8 +11,10 @@ with the results; every model of every arm and seed is scored on the same window
 
 Scoring: from the first observation of every window the model imagines `long` steps under the window's real
 actions (`rollout.open_loop`); the error at step j is the mean over observation dimensions of
-((imagined - real) / scale)^2, `scale` the per-dimension standard deviation of the file's observations
-(floored), averaged over windows. Windows start every `stride` steps and never cross the end of an episode.
+((imagined - real) / scale)^2, `scale` the per-dimension standard deviation of the file's observations, averaged
+over windows. Dimensions that do not move on the yardstick (standard deviation at most SCALE_FLOOR: humanoid's
+observation holds 19 constant entries) are left out: dividing by their floored scale would let them swamp the
+rest. Windows start every `stride` steps and stay inside each trajectory's valid part.
 
 File (.npz, written by `save`): obs [N, T+1, O] float32, action [N, T, A] float32, length [N] int32 (valid
 steps of each trajectory), scale [O] float32, optionally reward [N, T] float32 (the simulator's), and
@@ -32,7 +34,7 @@ import numpy as np
 from cdjax.agents.obs.rollout import open_loop
 from cdjax.protocol import ConfigError
 
-SCALE_FLOOR = 1e-3  # the smallest per-dimension scale (an observation that barely moves on the yardstick)
+SCALE_FLOOR = 1e-3  # per-dimension scales are floored here; dimensions at the floor are left out of the error
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,10 +123,11 @@ def errors(model_step, windows: Windows) -> dict[str, jax.Array]:
     horizon is named 50, as the agent's own metric, whatever `windows.long` is.)"""
     actions = jnp.swapaxes(jnp.asarray(windows.action), 0, 1)  # [long, W, A]
     _, imagined = open_loop(model_step, jnp.asarray(windows.start), actions)  # [long, W, O]
-    scale = jnp.asarray(windows.scale)
+    keep = np.flatnonzero(windows.scale > SCALE_FLOOR)  # static: the dimensions that move on the yardstick
+    scale = jnp.asarray(windows.scale[keep])
 
     def mse(pred, target):
-        return (((pred - jnp.asarray(target)) / scale) ** 2).mean()
+        return (((pred[:, keep] - jnp.asarray(target)[:, keep]) / scale) ** 2).mean()
 
     return {"model/yardstick_mse_k": mse(imagined[windows.k - 1], windows.target_k),
             "model/yardstick_mse_50": mse(imagined[windows.long - 1], windows.target_long)}
