@@ -78,8 +78,11 @@ def cmd_train(args, passthrough: list[str]) -> int:
             record["parts"].append({"name": part.name, "skipped": f"{left:.0f} s left"})
             code = code or 75
             continue
+        # the report recomputes every statistic: the sweep's own plots need few bootstrap replications; nothing
+        # outlives the lease, so checkpoints only serve a resume inside it
         options = ["--arms", *part.arms, "--seeds", str(part.seeds), "--steps", str(unit.budget.steps),
-                   "--no-progress", "--time-limit", str(int(left)), *part.options, *passthrough]
+                   "--no-progress", "--bootstrap-reps", "200", "--checkpoint-every", "5",
+                   "--time-limit", str(int(left)), *part.options, *passthrough]
         t0 = time.monotonic()
         status = sweep(unit.task, out / part.name, options)
         record["parts"].append({"name": part.name, "command": "cdjax sweep --preset paper-" + unit.task + " "
