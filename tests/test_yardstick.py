@@ -4,7 +4,6 @@ trajectories collected once, every model scored on the same windows in the same 
 import json
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 

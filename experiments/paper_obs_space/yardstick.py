@@ -36,7 +36,6 @@ def collect(task: str, trajectories: int = TRAJECTORIES, steps: int = STEPS, see
     non-finite (`length`). meta["terminated_at"] says where each trajectory's episode would have ended.
     """
     import jax
-    import jax.numpy as jnp
     import numpy as np
 
     from cdjax.envs import make_single_env, strong_types
