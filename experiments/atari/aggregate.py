@@ -16,7 +16,8 @@ is the reference. The probability of improvement does not depend on it (per game
 rank; rliable's `probability_of_improvement`, averaged over games).
 
 Statistics: rliable (Agarwal et al. 2021), 95% stratified-bootstrap intervals (runs resampled within games).
-Writes OUT/aggregate.md, OUT/aggregate.json and OUT/profiles.png, and prints the markdown.
+Writes OUT/aggregate.md, OUT/aggregate.json and OUT/profiles.png, and the five games' table and curves at the checked
+rates (OUT/results.md, OUT/curves.png: experiments.atari.report's), and prints the markdown.
 """
 
 from __future__ import annotations
@@ -255,8 +256,13 @@ def main(argv=None) -> str:
                                      for name, dirs in (("checked rates", CHECKED), ("all at 2e-2", SHARED))},
          "aggregate": sets, "published": pub}, indent=1))
     figure(sets, args.out / "profiles.png")
-    print(text)
-    print(f"Wrote {args.out / 'aggregate.md'}, {args.out / 'aggregate.json'} and {args.out / 'profiles.png'}")
+    datas = [checked[game]["data"] for game in GAMES]
+    table = report.markdown([row for data in datas for row in report.table_rows(data, args.bootstrap_reps)])
+    (args.out / "results.md").write_text(table)
+    report.figure(datas, args.out / "curves.png", args.bootstrap_reps)
+    print(table + "\n" + text)
+    print(f"Wrote {', '.join(str(args.out / n) for n in ('aggregate.md', 'aggregate.json', 'profiles.png', 'results.md'))}"
+          f" and {args.out / 'curves.png'}")
     return text
 
 
