@@ -30,11 +30,11 @@ reserve=${EVAL_RESERVE:-240}
 train=$(( limit - reserve )); [ "$train" -lt 60 ] && train=60
 mkdir -p "$out/runs"
 if ! python -c "import gymnax" 2>/dev/null; then
-  pip install --quiet --no-index --no-deps --find-links .whl gymnax==1.0.1 gymnasium==1.3.0 \
+  pip install --quiet --no-index --no-deps --find-links .whl --find-links .whl-atari gymnax==1.0.1 gymnasium==1.3.0 \
     farama-notifications==0.0.6 seaborn==0.13.2 cloudpickle==3.1.2 || { echo "gymnax is missing: carry .whl"; exit 1; }
 fi
 if printf '%s\n' "${games[@]}" | grep -q '^ale-' && ! python -c "import ale_py" 2>/dev/null; then
-  pip install --quiet --no-index --no-deps --find-links .whl --find-links .whl-ale ale-py==0.12.1 || { echo "ale-py is missing: carry .whl-ale (or .whl) holding its wheel"; exit 1; }
+  pip install --quiet --no-index --no-deps --find-links .whl --find-links .whl-atari --find-links .whl-ale ale-py==0.12.1 || { echo "ale-py is missing: carry .whl-ale (or .whl) holding its wheel"; exit 1; }
 fi
 ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -lt 1 ] && ngpu=1
 share=$(( (${#games[@]} + ngpu - 1) / ngpu ))
