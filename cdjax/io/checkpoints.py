@@ -37,6 +37,7 @@ import warnings
 from typing import Any, Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from cdjax import multihost
@@ -124,7 +125,11 @@ def expand(stored: dict[str, Any], layout: dict | None, like):
         elif layout is not None and name in layout["zeros"]:
             value = np.zeros(data_like.shape, data_like.dtype)
         elif layout is not None and name in layout["same"]:
-            value = np.asarray(stored[layout["same"][name]])  # its own buffer: a state may be donated
+            twin = stored[layout["same"][name]]  # a copy, its own buffer: a state may be donated
+            if isinstance(twin, jax.Array) and not twin.is_fully_addressable:  # (several processes, one's checkpoint)
+                value = jnp.array(twin, copy=True)
+            else:
+                value = np.asarray(twin)
         else:
             out.append(leaf)  # not stored: no later update reads it, or init gives it again
             continue
