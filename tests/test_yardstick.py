@@ -77,7 +77,7 @@ def test_every_update_logs_the_yardstick_and_a_wrong_file_fails_in_one_sentence(
     missing = POINT.replace(yardstick=str(tmp_path / "missing.npz"))  # a run.json read elsewhere still loads
     with pytest.raises(ConfigError, match="does not exist"):
         make_agent(missing)
-    with pytest.raises(ConfigError, match="yardstick must be a file name"):
+    with pytest.raises(ConfigError, match="yardstick must be a string, got 3"):
         POINT.replace(yardstick=3)
     y = yardstick.load(path)
     other = yardstick.save(tmp_path / "ant.npz", y.obs, y.action, y.length, {**y.meta, "env": "ant"})

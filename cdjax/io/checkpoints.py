@@ -408,12 +408,13 @@ class Checkpoints:
         return [self.set_aside(step, why) for step in reversed(self.steps())]
 
     def close(self) -> None:
-        """Wait for a save in flight and release the manager (a failed save was reported by `wait`). Nothing is waited
-        for once another process was lost (its barriers would never pass)."""
+        """Wait for a save in flight and release the manager (a failed save was reported by `wait`, which follows
+        every save; orbax raises the same failure again while closing, dropped here). Nothing is waited for once
+        another process was lost (its barriers would never pass)."""
         if multihost.LOST.is_set():
             return
-        try:
-            self.manager.wait_until_finished()
-        except Exception:  # noqa: BLE001
-            pass
-        self.manager.close()
+        for step in (self.manager.wait_until_finished, self.manager.close):
+            try:
+                step()
+            except Exception:  # noqa: BLE001
+                pass
