@@ -34,7 +34,7 @@ KILLS_ITSELF = pathlib.Path(__file__).with_name("_multihost_process.py")
 
 def _env(devices: int) -> dict:
     return dict(os.environ, CDJAX_JAX_CACHE=str(CACHE), JAX_PLATFORMS="cpu",
-                XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
+                XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}".strip())
 
 
 def _port() -> int:
