@@ -41,6 +41,23 @@ PIXEL_TINY = PixelConfig(**PIXEL_PRESETS["pixel-tiny"].config, arm="ltq-cd", enc
 PIXEL_HP = PixelHParams(lr=3e-3, imitation_coef=100.0)  # imitation weighed against the summed ELBO
 
 
+@functools.lru_cache(maxsize=None)
+def pixel_programs():
+    """(learner, jit(init), jit(update), traced) of PIXEL_TINY on synthetic frames, built once per test session
+    (tests/test_pixel_model.py and tests/test_sweep.py share them); traced["count"]: update's traces."""
+    from cdjax.agents.pixel.learner import PixelLearner
+    from cdjax.agents.pixel.synthetic import SyntheticWorld
+
+    learner = PixelLearner(PIXEL_TINY, world=SyntheticWorld(PIXEL_TINY))
+    traced = {"count": 0}
+
+    def counted(state, hp):
+        traced["count"] += 1
+        return learner.update(state, hp)
+
+    return learner, jax.jit(learner.init), jax.jit(counted), traced
+
+
 # The point-mass config POINT on the command line, with 2 seeds and 2 updates (of 192 env steps) per chunk.
 TINY_ARGS = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon", "4", "--num-epochs", "2",
              "--num-minibatches", "2", "--episode-length", "40", "--policy-hidden", "16", "--value-hidden", "16",

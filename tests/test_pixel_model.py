@@ -26,7 +26,7 @@ from cdjax.cli import main
 from cdjax.runner import restore_arms
 from experiments.pixel.report import write_strips
 
-from _shared import PIXEL_HP, PIXEL_TINY, TINY_ARGS, logged_rows
+from _shared import PIXEL_HP, PIXEL_TINY, TINY_ARGS, logged_rows, pixel_programs
 
 # ltq-cd with the l2 encoder: the whole update (ELBO, imitation, consistency) with the smallest program to compile;
 # the GRU encoders (the default is grounded-gru) are checked in the consistency test.
@@ -41,26 +41,22 @@ def learner_for(config=TINY):
 
 @pytest.fixture(scope="module")
 def learner():
-    return learner_for()
+    return pixel_programs()[0]
 
 
 @pytest.fixture(scope="module")
 def traced():
-    return {"count": 0}
+    return pixel_programs()[3]
 
 
 @pytest.fixture(scope="module")
-def update(learner, traced):
-    def counted(state, hp):
-        traced["count"] += 1
-        return learner.update(state, hp)
-
-    return jax.jit(counted)
+def update():
+    return pixel_programs()[2]
 
 
 @pytest.fixture(scope="module")
-def init(learner):
-    return jax.jit(learner.init)
+def init():
+    return pixel_programs()[1]
 
 
 @pytest.fixture(scope="module")
@@ -278,7 +274,7 @@ def test_float32_switch_gives_the_numbers_of_before_and_bfloat16_agrees_within_i
     operands (float32 parameters, optimiser state and ELBO sums) change every metric of 3 updates by less than 2e-3
     relative, and the gradient of the loss of one batch by less than 1e-2 (relative L2 per parameter group)."""
     assert (TINY.compute_dtype, TINY.conv_impl, HP.lr_policy) == ("float32", "grouped", 0.0)
-    after, metrics = three_updates(update, state)
+    _, metrics = three_updates(update, state)
     for name, value in BEFORE.items():
         np.testing.assert_allclose(metrics[name], value, rtol=1e-6, err_msg=name)
     mixed = learner_for(TINY.replace(compute_dtype="bfloat16"))
@@ -412,3 +408,4 @@ def test_the_policys_rate_scales_only_the_policys_steps_and_zero_is_adam_at_lr()
             scale = 4.0 if group == "policy" else 1.0
             for a, b in zip(jax.tree.leaves(updates["policy"][group]), jax.tree.leaves(updates["before"][group])):
                 np.testing.assert_allclose(a, scale * b, rtol=1e-6)
+
