@@ -409,3 +409,50 @@ def test_the_policys_rate_scales_only_the_policys_steps_and_zero_is_adam_at_lr()
             for a, b in zip(jax.tree.leaves(updates["policy"][group]), jax.tree.leaves(updates["before"][group])):
                 np.testing.assert_allclose(a, scale * b, rtol=1e-6)
 
+
+def test_roofline_counts_each_product_and_convolution_and_scanned_bodies_times_their_length():
+    """experiments.pixel.roofline's FLOPs (2 per multiply-add, as XLA counts them) on hand-counted programs: a
+    convolution, its two gradients under the runs' vmap (the input's without the zeros a stride inserts), a product
+    in a scan of 10 steps; the tiny model's update alike in every conv_impl; XLA's cost analysis counts that scan's
+    body once, the roofline's figures are its counts over its own time."""
+    from jax import lax
+
+    from experiments.pixel import roofline
+
+    R, N, S, C, F, K = 3, 2, 8, 5, 6, 4  # runs, batch, size, input and output channels, kernel window
+    x, w, g = jnp.ones((R, N, S, S, C)), jnp.ones((R, K, K, C, F)), jnp.ones((R, N, S // 2, S // 2, F))
+    forward = 2 * N * (S // 2) ** 2 * F * K * K * C  # stride 2, SAME: [N, S/2, S/2, F] outputs of K*K*C taps each
+
+    def loss(x, w, g):
+        return (lax.conv_general_dilated(x, w, (2, 2), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")) * g).sum()
+
+    def count(fn, *args):
+        return roofline.matrix_flops(jax.make_jaxpr(fn)(*args).jaxpr)
+
+    assert count(loss, x[0], w[0], g[0]) == (forward, 0)
+    # grouped convolutions (feature_group_count R), the input's gradient from an input dilated 2x2
+    assert count(jax.vmap(jax.value_and_grad(loss, (0, 1))), x, w, g) == (3 * R * forward, 0)
+    m = jnp.ones((F, F))
+
+    def scanned(y):
+        return lax.scan(lambda c, _: (c @ m, None), y, None, length=10)[0]
+
+    y = jnp.ones((16, F))
+    step = 2 * 16 * F * F
+    assert count(lambda y: lax.cond(y[0, 0] > 0, scanned, lambda y: y @ m, y), y) == (10 * step, 0)
+    assert count(lambda y: lax.while_loop(lambda c: c[0, 0] < 5, lambda c: c @ m, y), y) == (step, 1)
+    # the model's FLOPs do not depend on how its convolutions are arranged (per-run's custom rule also computes the
+    # frames' gradient, dead code that XLA drops and the count must too)
+    hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
+    counts = set()
+    for impl in ("grouped", "per-run", "matmul"):
+        lrn = learner_for(TINY.replace(conv_impl=impl))
+        states = jax.eval_shape(jax.vmap(lrn.init), jax.random.split(jax.random.key(0), 2), hps)
+        counts.add(roofline.program_flops(jax.vmap(lrn.update), states, hps))
+    assert len(counts) == 1 and min(counts)[0] > 0, counts
+    row = roofline.roofline(scanned, (y,), frames=16, peak=1.0, repeats=1)
+    assert row["flops_per_frame"] == 10 * step / 16 and row["while_loops_counted_once"] == 0
+    assert row["xla_flops_per_frame"] < 2 * step / 16  # XLA: the body once (and a few elementwise flops)
+    assert row["achieved_tflops"] == pytest.approx(10 * step / row["update_s"] / 1e12)
+    assert row["of_peak"] == pytest.approx(row["achieved_tflops"]) and row["frames_per_s"] == pytest.approx(
+        16 / row["update_s"])
