@@ -19,6 +19,7 @@ SLURM, Kubernetes and `timeout` send: handled as the first Ctrl-C); a sweep stop
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import pathlib
 import re
@@ -262,9 +263,10 @@ def cmd_plot(args: argparse.Namespace) -> None:
 
 
 class _QuietForeignThreads:
-    """sys.stderr for the `cdjax` command: once a write has failed (io.WRITE_FAILED), text written from threads
-    that Python did not create (tensorstore's callbacks finishing orbax's abandoned checkpoint writes: "Event loop
-    is closed" tracebacks, printed before the command's one sentence) is dropped; everything else passes."""
+    """sys.stderr for the `cdjax` command: once a write has failed (io.WRITE_FAILED), text written from any thread
+    but the main one (tensorstore's callbacks and orbax's own threads finishing its abandoned checkpoint writes:
+    "Event loop is closed" tracebacks and absl's "RESOURCE_EXHAUSTED" errors, printed before the command's one
+    sentence) is dropped; everything else passes."""
 
     def __init__(self, stream):
         self._stream = stream
@@ -272,7 +274,7 @@ class _QuietForeignThreads:
     def write(self, text: str) -> int:
         import threading
 
-        if io.WRITE_FAILED.is_set() and isinstance(threading.current_thread(), threading._DummyThread):
+        if io.WRITE_FAILED.is_set() and threading.current_thread() is not threading.main_thread():
             return len(text)
         return self._stream.write(text)
 
@@ -346,7 +348,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     as_program = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     if as_program and not isinstance(sys.stderr, _QuietForeignThreads):
-        sys.stderr = _QuietForeignThreads(sys.stderr)
+        quiet = _QuietForeignThreads(sys.stderr)
+        for handler in logging.getLogger().handlers:  # orbax's import gives the root logger a handler on stderr
+            if isinstance(handler, logging.StreamHandler) and handler.stream is sys.stderr:
+                handler.setStream(quiet)
+        sys.stderr = quiet
     from cdjax.runner import Interrupted, TimeLimit
     from cdjax.runner.console import Stopped, Terminated, raise_on_sigterm
 

@@ -47,13 +47,19 @@ class RingBuffer:
 
 
 def fit(loss_fn: Callable, params, opt_state, tx: optax.GradientTransformation, buffer: RingBuffer,
-        epochs: int, minibatch: int, key: jax.Array):
+        epochs: int, minibatch: int, key: jax.Array, split: int = 0, fraction: float = 0.0):
     """`epochs` shuffled passes of minibatches over the filled part of `buffer`.
 
     loss_fn(params, batch) -> (loss, metrics); batch leaves [minibatch, ...]. An epoch is
     ceil(filled / minibatch) gradient steps (a traced trip count: the data grows between calls), the
     last minibatch wrapping around to the start of the permutation. Returns (params, opt_state, mean
     metrics of the last epoch).
+
+    With `fraction` > 0 (static) the buffer is two datasets: slots [0, split) ("old", e.g. random-action
+    data, added first and never overwritten) and [split, filled) ("new"); every minibatch then holds
+    round(fraction * minibatch) items of a shuffled pass over the new part and the rest of one over the old
+    part (each wrapping around on its own), as long as the new part holds anything; before that, all of it
+    comes from the old part. An epoch is still ceil(filled / minibatch) steps.
     """
     size = buffer.size
     filled = buffer.filled
@@ -61,15 +67,29 @@ def fit(loss_fn: Callable, params, opt_state, tx: optax.GradientTransformation, 
     take = lambda idx: jax.tree.map(lambda d: d[idx], buffer.data)  # noqa: E731
     shapes = jax.eval_shape(lambda p: loss_fn(p, take(jnp.arange(minibatch)))[1], params)
     zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+    slots = jnp.arange(size)
+    n_new = round(fraction * minibatch) if fraction > 0 else 0
+    n_old = minibatch - n_new
+    old_size = jnp.minimum(filled, split) if n_new else filled
+    new_size = filled - old_size
+
+    def shuffled(key, first, count):
+        """A random permutation of slots [first, first + count), the other slots after them."""
+        inside = (slots >= first) & (slots < first + count)
+        return jnp.argsort(jnp.where(inside, jax.random.uniform(key, (size,)), 2.0))
 
     def epoch(carry, key):
         params, opt_state = carry
-        # A random permutation of the filled slots first, the empty slots after them.
-        order = jnp.argsort(jnp.where(jnp.arange(size) < filled, jax.random.uniform(key, (size,)), 2.0))
+        key_old, key_new = jax.random.split(key) if n_new else (key, key)  # fraction 0: the one pass as before
+        order_old = shuffled(key_old, 0, old_size)
+        order_new = shuffled(key_new, old_size, new_size) if n_new else None
 
         def step(i, inner):
             params, opt_state, acc = inner
-            idx = order[(i * minibatch + jnp.arange(minibatch)) % jnp.maximum(filled, 1)]
+            idx = order_old[(i * minibatch + jnp.arange(minibatch)) % jnp.maximum(old_size, 1)]
+            if n_new:  # the last n_new items from the new part, once it holds any
+                fresh = order_new[(i * n_new + jnp.arange(n_new)) % jnp.maximum(new_size, 1)]
+                idx = jnp.concatenate([idx[:n_old], jnp.where(new_size > 0, fresh, idx[n_old:])])
             grads, metrics = jax.grad(loss_fn, has_aux=True)(params, take(idx))
             updates, opt_state = tx.update(grads, opt_state, params)
             return optax.apply_updates(params, updates), opt_state, jax.tree.map(jnp.add, acc, metrics)

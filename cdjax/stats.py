@@ -16,7 +16,6 @@ import warnings
 from typing import Callable, Sequence
 
 import numpy as np
-import scipy.stats
 
 try:  # rliable.library imports arch, whose 7.x releases (the ones rliable 1.2 accepts) fail under pandas 3; and a
     # machine without rliable (the GPU image: no wheel) still plots, evaluates and draws strips with the fallback
@@ -43,7 +42,10 @@ def iqm_columns(scores: np.ndarray) -> np.ndarray:
     Equal to `rliable.metrics.aggregate_iqm(scores[..., p])` for each p (a 25% trimmed mean over
     runs x tasks), computed for all p at once so that a bootstrap over long curves stays fast.
     """
-    return scipy.stats.trim_mean(scores.reshape(-1, scores.shape[-1]), proportiontocut=0.25, axis=0)
+    # scipy.stats.trim_mean(flat, 0.25, axis=0) without its per-call overhead (~1 ms, once per bootstrap replication)
+    flat = scores.reshape(-1, scores.shape[-1])
+    cut = int(0.25 * flat.shape[0])
+    return np.sort(flat, axis=0)[cut:flat.shape[0] - cut].mean(axis=0)
 
 
 def mean_columns(scores: np.ndarray) -> np.ndarray:

@@ -3,11 +3,12 @@
     python -m experiments.thin_logs SRC_DIR DEST_DIR [--points 250] [--tail 60]
 
 Every run directory under SRC_DIR (a directory holding run.json) is copied to the same relative path under
-DEST_DIR with its run.json, eval.jsonl, summary.md and log.txt where they exist, and its metrics.jsonl thinned
-and gzipped (metrics.jsonl.gz, which `cdjax.io.read_jsonl` reads in place of a missing metrics.jsonl):
+DEST_DIR with its run.json, eval.jsonl, summary.md, log.txt, phase.jsonl and machine.json where they exist, and
+its metrics.jsonl thinned and gzipped (metrics.jsonl.gz, which `cdjax.io.read_jsonl` reads in place of a missing
+metrics.jsonl):
 per run (arm, hyper-parameter label, seed), every update of the last `tail` logged updates (the window the
 reports average over) and, before them, evenly spaced updates so that a run keeps about `points` rows; each
-run's first and last rows are always kept. Checkpoints, TensorBoard files and videos are left behind.
+run's first two and last rows are always kept. Checkpoints, TensorBoard files and videos are left behind.
 The reports read the copies as they read the originals; throughputs computed from the first and last rows
 are unchanged.
 """
@@ -21,7 +22,7 @@ import json
 import pathlib
 import shutil
 
-KEPT = ("run.json", "eval.jsonl", "summary.md", "log.txt")
+KEPT = ("run.json", "eval.jsonl", "summary.md", "log.txt", "phase.jsonl", "machine.json")
 
 
 def thin_rows(rows: list[dict], points: int, tail: int) -> list[dict]:
@@ -35,7 +36,7 @@ def thin_rows(rows: list[dict], points: int, tail: int) -> list[dict]:
         step = max(1, -(-len(head) // max(points - len(last), 1)))
         keep.update(head[::step])
         keep.update(last)
-        keep.update((idx[0], idx[-1]))
+        keep.update((idx[0], idx[-1]) + tuple(idx[1:2]))  # the second: the first update after a phase's row
     return [rows[i] for i in sorted(keep)]
 
 

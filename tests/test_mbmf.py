@@ -17,7 +17,7 @@ from cdjax.replay import RingBuffer, fit
 from _shared import POINT, compiled
 
 HP = HParams(alpha=1.0)
-# Nagabandi et al. distil the MPC into a tanh MLP policy (as the paper-* presets do); with swish, the default of
+# Nagabandi et al. distil the MPC into a tanh MLP policy (the first paper-* presets did too); with swish, the default of
 # the PPO learner, this 16-unit policy clones the controller less closely (distillation error 0.36 vs 0.32).
 CONFIG = POINT.replace(activation="tanh")
 PHASE = MbMfPhase(num_envs=16, random_steps=25, aggregation_iters=2, mpc_steps_per_iter=20, model_epochs=100,

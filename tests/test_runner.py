@@ -208,6 +208,25 @@ def test_plan_grids_labels_and_refusals(tmp_path):
     with pytest.raises(io.RunDirError, match="holds no run"):
         prepare(dataclasses.replace(spec, out=tmp_path / "b"), resume=True)
 
+    # A record of an older cdjax lacks the fields added since (here the newest Config, HParams and sweep fields):
+    # it is the same run, and a resume reads them as their defaults; a recorded value that differs is not.
+    path = tmp_path / "a" / "run.json"
+    record = json.loads(path.read_text())
+    older = json.loads(path.read_text())
+    for config in [older["base_config"]] + [arm["config"] for arm in older["arms"]]:
+        del config["yardstick"], config["stagger_resets"]
+    for arm in older["arms"]:
+        for hp in arm["hparams"]:
+            del hp["lr_distill"]
+    del older["bootstrap_reps"]
+    path.write_text(json.dumps(older))
+    prepare(spec, resume=True)
+    older["arms"][1]["config"]["policy_hidden"] = [64]
+    path.write_text(json.dumps(older))
+    with pytest.raises(io.RunDirError, match="holds a different run"):
+        prepare(spec, resume=True)
+    path.write_text(json.dumps(record))
+
 
 # ---------------------------------------------------------------------------------------------------
 # The Mb-Mf phase inside a sweep: budgets, logs, the same numbers as the library phase, no repeat on resume.

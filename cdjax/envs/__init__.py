@@ -8,6 +8,10 @@
   is reset (the policy sees the reset observation in `EnvState.obs`),
 - automatic resets, either to each environment's own first start (as Brax's AutoResetWrapper does;
   cheap) or to a fresh random start (one more reset per step),
+- optionally staggered starts (`stagger=True`): `reset` puts each environment at its own random point of
+  the time limit, so that its first episode is cut short and later episode ends are spread out instead of
+  all falling on the same step (`EpisodeStats.create(B, skip=state.t > 0)` keeps those shortened first
+  episodes out of the logged returns),
 - a guard against non-finite physics: an environment whose state, observation or reward is not
   finite is reset, its transition is marked `valid=False` and its numbers are replaced by zeros,
   so that no NaN reaches a loss or a parameter.
@@ -130,12 +134,13 @@ class BatchedEnv:
     """`num_envs` auto-resetting copies of a single env. Not a pytree: close over it."""
 
     def __init__(self, env, num_envs: int, episode_length: int, action_repeat: int = 1,
-                 reset_mode: str = "cached"):
+                 reset_mode: str = "cached", stagger: bool = False):
         self.env = env
         self.num_envs = num_envs
         self.episode_length = episode_length
         self.action_repeat = action_repeat
         self.reset_mode = reset_mode
+        self.stagger = stagger  # reset() starts each env at its own random point of the time limit
         # Brax's observation_size property runs reset op by op (~30 s for an MJX env on a CPU): trace it instead.
         shapes = jax.eval_shape(env.reset, jax.random.key(0))
         self.observation_size = int(shapes.obs.shape[-1])
@@ -151,10 +156,16 @@ class BatchedEnv:
         return strong_types(jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs)))
 
     def reset(self, key: jax.Array) -> EnvState:
+        """Every env at the start of an episode; with `stagger`, env i's clock starts at a uniform random agent
+        step of the time limit (t counts physics steps), so its first episode is shorter than the others."""
         key_reset, key_next = jax.random.split(key)
         core = self._reset_core(key_reset)
-        return EnvState(core=core, first=core, obs=core.obs.astype(jnp.float32),
-                        t=jnp.zeros((self.num_envs,), jnp.int32), key=key_next)
+        t = jnp.zeros((self.num_envs,), jnp.int32)
+        if self.stagger:  # an extra split only here: unstaggered envs draw exactly what they always drew
+            key_next, key_t = jax.random.split(key_next)
+            agent_steps = max(-(-self.episode_length // self.action_repeat), 1)
+            t = jax.random.randint(key_t, (self.num_envs,), 0, agent_steps).astype(jnp.int32) * self.action_repeat
+        return EnvState(core=core, first=core, obs=core.obs.astype(jnp.float32), t=t, key=key_next)
 
     def restart_obs(self, state: EnvState) -> jax.Array | None:
         """[B, obs] observation that an env whose episode ends restarts from, where it is fixed in
@@ -207,4 +218,5 @@ class BatchedEnv:
 def make_env(config) -> BatchedEnv:
     """The batched, auto-resetting environment that `config` describes."""
     env = make_single_env(config.env)
-    return BatchedEnv(env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode)
+    return BatchedEnv(env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode,
+                      stagger=getattr(config, "stagger_resets", False))

@@ -17,12 +17,17 @@ class EpisodeStats:
     done_count: jax.Array  # [] episodes finished in this rollout
     done_ret: jax.Array  # [] sum of their returns
     done_disc_ret: jax.Array  # [] sum of their discounted returns
+    skip: jax.Array  # [B] bool: the env's current episode is not counted when it ends (a staggered, shortened first one)
 
     @classmethod
-    def create(cls, batch: int) -> "EpisodeStats":
+    def create(cls, batch: int, skip: jax.Array | None = None) -> "EpisodeStats":
+        """Fresh statistics; `skip` [B] bool marks envs whose current episode must not be counted (e.g.
+        `env_state.t > 0` after a staggered reset: that episode was started part-way into its time limit)."""
         z = jnp.zeros((batch,), jnp.float32)
         s = jnp.zeros((), jnp.float32)
-        return cls(z, z, jnp.ones((batch,), jnp.float32), s, s, s)
+        skip = jnp.zeros((batch,), bool) if skip is None else jnp.asarray(skip, bool)
+        assert skip.shape == (batch,), skip.shape
+        return cls(z, z, jnp.ones((batch,), jnp.float32), s, s, s, skip)
 
     def start_rollout(self) -> "EpisodeStats":
         s = jnp.zeros((), jnp.float32)
@@ -36,10 +41,11 @@ class EpisodeStats:
                 jnp.where(finished, self.done_disc_ret / n, previous))
 
     def record(self, reward, ended, counted, gamma) -> "EpisodeStats":
-        """Add one step; `counted` marks episode ends whose return is reported (not NaN resets)."""
+        """Add one step; `counted` marks episode ends whose return is reported (not NaN resets, not the
+        episodes marked `skip`, whose mark an end clears)."""
         ret = self.ret + reward
         disc_ret = self.disc_ret + self.disc * reward
-        counted = counted.astype(jnp.float32)
+        counted = (counted & ~self.skip).astype(jnp.float32)
         return EpisodeStats(
             ret=jnp.where(ended, 0.0, ret),
             disc_ret=jnp.where(ended, 0.0, disc_ret),
@@ -47,4 +53,5 @@ class EpisodeStats:
             done_count=self.done_count + counted.sum(),
             done_ret=self.done_ret + (counted * ret).sum(),
             done_disc_ret=self.done_disc_ret + (counted * disc_ret).sum(),
+            skip=self.skip & ~ended,
         )

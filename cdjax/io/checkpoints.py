@@ -377,9 +377,10 @@ class Checkpoints:
         return [self.set_aside(step, why) for step in reversed(self.steps())]
 
     def close(self) -> None:
-        """Wait for a save in flight and release the manager (a failed save was reported by `wait`)."""
-        try:
-            self.manager.wait_until_finished()
-        except Exception:  # noqa: BLE001
-            pass
-        self.manager.close()
+        """Wait for a save in flight and release the manager (a failed save was reported by `wait`, which follows
+        every save; orbax raises the same failure again while closing, dropped here)."""
+        for step in (self.manager.wait_until_finished, self.manager.close):
+            try:
+                step()
+            except Exception:  # noqa: BLE001
+                pass

@@ -179,6 +179,18 @@ class _QuietFileHandler(logging.FileHandler):
     def handleError(self, record):  # noqa: N802 - logging's name
         pass
 
+    def flush(self):
+        try:
+            super().flush()
+        except OSError:  # what is buffered when the disk is full is dropped like every other line
+            pass
+
+    def close(self):
+        try:
+            super().close()
+        except OSError:
+            pass
+
 
 @contextlib.contextmanager
 def library_log(path: pathlib.Path | None, say: Callable[[str], None]):

@@ -142,6 +142,9 @@ ARM_MAY_CHANGE = ("num_updates", "total_env_steps")
 
 
 def same_run(old: dict, new: dict) -> bool:
+    """Whether `new` (the record a resume would write) is the run `old` records, but for its length. A key the old
+    record lacks (a Config, HParams, phase or sweep field added to cdjax after the run was made) is not a
+    difference: reading the old record gives it its default, which is how the run was trained."""
     def strip(run):
         out = {k: v for k, v in run.items() if k not in MAY_CHANGE}
         out["base_config"] = {k: v for k, v in run["base_config"].items() if k != "num_updates"}
@@ -149,7 +152,16 @@ def same_run(old: dict, new: dict) -> bool:
                         "config": {k: v for k, v in a["config"].items() if k != "num_updates"}} for a in run["arms"]]
         return out
 
-    return strip(old) == strip(new)
+    return _known(strip(old), strip(new)) == strip(old)
+
+
+def _known(old, new):
+    """`new` without the dictionary keys `old` lacks, at every depth (lists compared element by element)."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        return {k: _known(old[k], v) for k, v in new.items() if k in old}
+    if isinstance(old, list) and isinstance(new, list) and len(old) == len(new):
+        return [_known(o, n) for o, n in zip(old, new)]
+    return new
 
 
 def spec_of(run: dict, out: str | pathlib.Path, **changes) -> SweepSpec:

@@ -68,6 +68,20 @@ def budget(data: dict) -> float:
     return min(a["steps"][-1] for a in data["arms"].values() if a["steps"].size)
 
 
+def seed_scores(data: dict, label: str) -> dict[str, np.ndarray]:
+    """Per seed [S] of one arm (label) of a run: "final" and "auc" training returns up to the game's budget (the
+    largest env-step count all of its arms reached) and "eval", the mean return of the seed's latest evaluation (NaN
+    where a seed has none)."""
+    a, cut = data["arms"][label], budget(data)
+    keep = a["steps"] <= cut
+    steps, returns = a["steps"][keep], a["returns"][:, keep]
+    present = np.ones(returns.shape, bool)  # every update logged a point (NaN before a first episode end)
+    ev = data["evals"].get(label, {})
+    evals = np.array([np.nan if ev.get(s, (0, None))[1] is None else ev[s][1] for s in range(returns.shape[0])])
+    return {"final": stats.final_values(returns, present), "auc": stats.area_under_curve(returns, present, steps),
+            "eval": evals}
+
+
 def table_rows(data: dict, reps: int) -> list[dict]:
     cut = budget(data)
     out = []
@@ -76,17 +90,14 @@ def table_rows(data: dict, reps: int) -> list[dict]:
         runs[a["arm"]] = runs.get(a["arm"], 0) + a["returns"].shape[0]
     for arm, a in data["arms"].items():
         keep = a["steps"] <= cut
-        steps, returns = a["steps"][keep], a["returns"][:, keep]
-        present = np.ones(returns.shape, bool)  # every update logged a point (NaN before a first episode end)
-        final = stats.final_values(returns, present)
-        auc = stats.area_under_curve(returns, present, steps)
+        steps = a["steps"][keep]
+        scores = seed_scores(data, arm)
         ev = data["evals"].get(arm, {})
-        eval_values = [ev[s][1] for s in sorted(ev) if ev[s][1] is not None]
         wall = np.nanmax(a["wall"][:, keep])
         out.append({
-            "game": data["game"], "arm": arm, "seeds": int(returns.shape[0]), "budget": cut,
-            "final": stats.iqm_interval(final, reps), "auc": stats.iqm_interval(auc, reps),
-            "eval": stats.iqm_interval(eval_values, reps),
+            "game": data["game"], "arm": arm, "seeds": int(a["returns"].shape[0]), "budget": cut,
+            "final": stats.iqm_interval(scores["final"], reps), "auc": stats.iqm_interval(scores["auc"], reps),
+            "eval": stats.iqm_interval(scores["eval"], reps),
             "eval_steps": sorted({ev[s][3] for s in ev}), "eval_episodes": sorted({ev[s][2] for s in ev}),
             "eval_modes": sorted({ev[s][4] for s in ev}),
             # the arm's program runs all of its hyper-parameter combinations x seeds together

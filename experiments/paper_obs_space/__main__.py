@@ -1,18 +1,20 @@
-"""python -m experiments.paper_obs_space {train,figure,report} (see the package docstring)."""
+"""python -m experiments.paper_obs_space {units,train,report} (see the package docstring)."""
 
 from __future__ import annotations
 
 import argparse
 import datetime
 import json
+import os
 import pathlib
 import platform
 import sys
 import time
 
-from experiments.paper_obs_space import ABLATION_TASKS, ARMS, TASKS
+from experiments.paper_obs_space import TASKS, UNITS
 
 HERE = pathlib.Path(__file__).resolve().parent
+UNIT_LIMIT_S = 1260  # a unit's sweeps (compile, phases, training) stop by then; its evaluations and packing follow
 
 
 def machine_record(wall_s: float, exit_code: int) -> dict:
@@ -33,44 +35,98 @@ def machine_record(wall_s: float, exit_code: int) -> dict:
             "date": datetime.date.today().isoformat(), "wall_s": round(wall_s, 1), "exit_code": exit_code}
 
 
-def cmd_train(args, passthrough: list[str]) -> int:
+def yardstick_option(task: str, passthrough: list[str]) -> list[str]:
+    """--yardstick <the task's file>, unless the command line sets one or another env (a small try on the point
+    mass, say): given relative to the working directory, as run.json records it."""
+    if any(a in ("--yardstick", "--env") or a.startswith(("--yardstick=", "--env=")) for a in passthrough):
+        return []
+    path = HERE / "yardstick" / f"{task}.npz"
+    return ["--yardstick", os.path.relpath(path)] if path.exists() else []
+
+
+def sweep(task: str, out: pathlib.Path, args: list[str]) -> int:
+    """`cdjax sweep --preset paper-<task>` with `args`, into `out`, plus out/machine.json; the exit status."""
     from cdjax.cli import main as cdjax_main
 
-    out = pathlib.Path(args.out or f"runs/paper/{args.task}")
-    argv = ["sweep", "--preset", f"paper-{args.task}", "--out", str(out), *passthrough]
+    argv = ["sweep", "--preset", f"paper-{task}", "--out", str(out), *yardstick_option(task, args), *args]
     t0 = time.perf_counter()
     code = 0
     try:
         cdjax_main(argv)
-    except SystemExit as stop:  # 130: interrupted (e.g. `timeout -s INT`), the run keeps its logs
+    except SystemExit as stop:  # 75: stopped by --time-limit, 130: interrupted; the run keeps its logs
         code = int(stop.code or 0)
     if (out / "run.json").exists():
         (out / "machine.json").write_text(json.dumps(machine_record(time.perf_counter() - t0, code), indent=1))
     return code
 
 
-def cmd_figure(args) -> int:
+def cmd_train(args, passthrough: list[str]) -> int:
+    if args.task:
+        return sweep(args.task, pathlib.Path(args.out or f"runs/paper/{args.task}"), passthrough)
+    unit = UNITS[args.unit]
+    out = pathlib.Path(args.out or f"runs/units/{unit.name}")
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.monotonic()
+    record = {"unit": unit.name, "task": unit.task, "limit_s": args.limit, "started": datetime.datetime.now().isoformat(
+        timespec="seconds"), "estimate_s": round(unit.estimate()["total"]), "parts": []}
+    estimates = unit.estimate()["parts"]
+    code = 0
+    for i, part in enumerate(unit.parts):
+        later = sum(estimates[p.name]["total"] for p in unit.parts[i + 1:])
+        left = args.limit - (time.monotonic() - start) - later
+        if left < 120:
+            record["parts"].append({"name": part.name, "skipped": f"{left:.0f} s left"})
+            code = code or 75
+            continue
+        # the report recomputes every statistic: the sweep's own plots need few bootstrap replications; nothing
+        # outlives the lease, so checkpoints only serve a resume inside it
+        options = ["--arms", *part.arms, "--seeds", str(part.seeds), "--steps", str(unit.budget.steps),
+                   "--no-progress", "--bootstrap-reps", "200", "--checkpoint-every", "5",
+                   "--time-limit", str(int(left)), *part.options, *passthrough]
+        t0 = time.monotonic()
+        status = sweep(unit.task, out / part.name, options)
+        record["parts"].append({"name": part.name, "command": "cdjax sweep --preset paper-" + unit.task + " "
+                                + " ".join(options), "exit_code": status, "wall_s": round(time.monotonic() - t0, 1)})
+        code = code or status
+        (out / "unit.json").write_text(json.dumps(record, indent=1))
+    record["wall_s"] = round(time.monotonic() - start, 1)
+    (out / "unit.json").write_text(json.dumps(record, indent=1))
+    return code
+
+
+def cmd_units(args) -> int:
+    print("| unit | task | parts (arms x seeds) | runs | env steps per run | estimated wall-clock |")
+    print("|---|---|---|---|---|---|")
+    for unit in UNITS.values():
+        est = unit.estimate()
+        parts = "; ".join(f"{p.name}: {' '.join(p.arms)}{' x2 weights' if p.runs_per_arm > 1 else ''} x {p.seeds}"
+                          for p in unit.parts)
+        runs = sum(p.runs for p in unit.parts)
+        flag = " (provisional)" if unit.budget.provisional else ""
+        print(f"| {unit.name} | {unit.task} | {parts} | {runs} | {unit.budget.steps / 1e6:g}M{flag} | "
+              f"{est['total'] / 60:.1f} min |")
+    return 0
+
+
+def cmd_keep(args) -> int:
+    """Copy what the report needs of the run directories under PATHS (a unit unpacked) into data/<unit>/<part>/."""
     from experiments.paper_obs_space import report
 
-    tasks = report.load_tasks(args.runs, ABLATION_TASKS if args.which == "k-ablation" else TASKS)
-    if not tasks:
-        print(f"No task run found under {', '.join(map(str, args.runs))}.", file=sys.stderr)
+    found = report.find_runs(args.paths)
+    if not found:
+        print(f"No run directory under {', '.join(map(str, args.paths))}.", file=sys.stderr)
         return 2
-    arms = ARMS if args.which == "k-ablation" else ("mbmf", "cd-k20")
-    name = "k_ablation.png" if args.which == "k-ablation" else "returns.png"
-    png, data = report.figure(tasks, arms, pathlib.Path(args.out) / name)
-    print(f"Wrote {png} and {data}")
+    for path in found:
+        target = report.keep_run(report.load_run(path), pathlib.Path(args.data))
+        print(f"{path} -> {target}")
     return 0
 
 
 def cmd_report(args) -> int:
     from experiments.paper_obs_space import report
 
-    tasks = report.load_tasks(args.runs)
-    if not tasks:
-        print(f"No task run found under {', '.join(map(str, args.runs))}.", file=sys.stderr)
-        return 2
-    path = report.write_results(tasks, pathlib.Path(args.out), reps=args.reps)
+    tasks = report.load(args.runs)
+    path = report.write_results(tasks, pathlib.Path(args.out), reps=args.reps, keep=args.keep)
     print(f"Wrote {path}")
     return 0
 
@@ -78,25 +134,28 @@ def cmd_report(args) -> int:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.paper_obs_space", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
-    t = sub.add_parser("train", help="one task, arms model-free/mbmf/cd-k5/cd-k20 (other options go to cdjax sweep)")
-    t.add_argument("--task", required=True, choices=TASKS)
-    t.add_argument("--out", help="run directory (default runs/paper/<task>)")
-    runs_help = "directories holding <task>/ run dirs or kept data; per task the first that has it wins"
-    f = sub.add_parser("figure", help="one figure of the paper from the runs")
-    f.add_argument("which", choices=("returns", "k-ablation"))
-    f.add_argument("--runs", nargs="+", type=pathlib.Path, default=[pathlib.Path("runs/paper")], help=runs_help)
-    f.add_argument("--out", default=str(HERE / "figures"))
-    r = sub.add_parser("report", help="both figures, tables, kept data and RESULTS.md")
-    r.add_argument("--runs", nargs="+", type=pathlib.Path, default=[pathlib.Path("runs/paper"), HERE / "data"],
-                   help=runs_help)
+    sub.add_parser("units", help="the units of the experiment, their budgets and estimated wall-clock")
+    t = sub.add_parser("train", help="one unit (or one task's preset as it stands); other options go to cdjax sweep")
+    which = t.add_mutually_exclusive_group(required=True)
+    which.add_argument("--unit", choices=list(UNITS))
+    which.add_argument("--task", choices=TASKS, help="the preset's arms in one sweep")
+    t.add_argument("--out", help="the unit's directory (default runs/units/<unit>) or the run directory")
+    t.add_argument("--limit", type=float, default=UNIT_LIMIT_S, help="seconds the unit's sweeps may take in all")
+    k = sub.add_parser("keep", help="add a unit's run directories (unpacked from device.sh's UNIT.tar.gz) to data/")
+    k.add_argument("paths", nargs="+", type=pathlib.Path)
+    k.add_argument("--data", default=str(HERE / "data"))
+    r = sub.add_parser("report", help="RESULTS.md, figures and tables from the kept data (or run directories)")
+    r.add_argument("--runs", nargs="+", type=pathlib.Path, default=[HERE / "data"],
+                   help="directories searched for run directories (run.json); default the kept data")
     r.add_argument("--out", default=str(HERE))
     r.add_argument("--reps", type=int, default=2000, help="bootstrap replications")
+    r.add_argument("--keep", action="store_true", help="also copy the runs' data (thinned) into OUT/data/")
     args, rest = p.parse_known_args(argv)
     if args.command == "train":
         return cmd_train(args, rest)
     if rest:
         p.error(f"unknown option(s): {' '.join(rest)}")
-    return cmd_figure(args) if args.command == "figure" else cmd_report(args)
+    return {"units": cmd_units, "keep": cmd_keep, "report": cmd_report}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -1,27 +1,48 @@
 #!/usr/bin/env bash
-# Train several tasks at once, one per GPU, each stopped after a time limit; pack the logs.
+# One unit of the observation-space experiment on a one-GPU machine: started once, polled, packed (PLAN.md).
 #
-#   bash experiments/paper_obs_space/device.sh OUT SECONDS TASK [TASK ...] [-- extra train options]
+#   bash experiments/paper_obs_space/device.sh UNIT [WAIT_S]
 #
-# Task i runs on GPU i (CUDA_VISIBLE_DEVICES=i) as `python -m experiments.paper_obs_space train --task TASK
-# --out runs/paper/TASK`. A run that is still going after SECONDS gets SIGINT: it finishes the chunk in
-# flight, saves a checkpoint and its logs, and the report compares the arms at the env steps all reached.
-# OUT/TASK.tar.gz holds the run directory without checkpoints and TensorBoard files; OUT/TASK.log the output.
+# The first call starts `python -m experiments.paper_obs_space train --unit UNIT` as its own process session
+# (setsid: it outlives the call, not the machine) in runs/units/UNIT/ and waits. Every call waits up to WAIT_S
+# seconds (default 560: a device command may run 10 minutes) for the unit to end, then says either
+# "RUNNING: call again" (call the same command again at once: the machine goes back 30 s after a call) or
+# "DONE", after packing into $OUT (default runs/units-out):
+#   UNIT.tar.gz  the unit's run directories without checkpoints and TensorBoard files, metrics thinned and
+#                gzipped (experiments.thin_logs), with run.json, phase.jsonl, eval.jsonl, machine.json, log.txt,
+#                summary.md and the unit's unit.json (commands, exit codes, wall-clock)
+#   UNIT.log     the unit's whole output
+# The unit's sweeps stop by their --time-limit (train --limit, 1260 s from the unit's start, compile included);
+# each then evaluates and plots (a minute or two). UNIT_ARGS holds more `train` options (e.g. --steps for a try).
+# The GPU image has no `cdjax` console script: everything runs as python -m.
 set -u
-out=$1; limit=$2; shift 2
-tasks=(); while [ $# -gt 0 ] && [ "$1" != "--" ]; do tasks+=("$1"); shift; done
-[ "${1:-}" = "--" ] && shift
-mkdir -p "$out" runs/paper
-pids=()
-for i in "${!tasks[@]}"; do
-  t=${tasks[$i]}
-  CUDA_VISIBLE_DEVICES=$i timeout -s INT -k 60 "$limit" \
-    python -m experiments.paper_obs_space train --task "$t" --out "runs/paper/$t" "$@" \
-    >"$out/$t.log" 2>&1 &
-  pids+=($!)
+unit=$1; wait_s=${2:-560}
+work=runs/units/$unit
+out=${OUT:-runs/units-out}
+mkdir -p "$work" "$out"
+t0=$(date +%s)
+export PYTHONUNBUFFERED=1
+if [ ! -f "$work/started" ]; then
+  nvidia-smi -L 2>/dev/null || true
+  date +%s > "$work/started"
+  setsid bash -c "python -m experiments.paper_obs_space train --unit $unit --out $work ${UNIT_ARGS:-} \
+    > $work/unit.log 2>&1; echo \$? > $work/exit_code" < /dev/null > /dev/null 2>&1 &
+  echo "STARTED unit $unit at $(date -u +%H:%M:%S) UTC"
+fi
+while [ ! -f "$work/exit_code" ]; do
+  if [ $(( $(date +%s) - t0 )) -ge "$wait_s" ]; then
+    echo "RUNNING: unit $unit, $(( $(date +%s) - $(cat "$work/started") )) s since it started; call again:"
+    echo "  bash experiments/paper_obs_space/device.sh $unit"
+    grep -v -i -E "warn|^\s*$" "$work/unit.log" | tail -n 6
+    exit 0
+  fi
+  sleep 5
 done
-for p in "${pids[@]}"; do wait "$p"; done
-for t in "${tasks[@]}"; do
-  tar -czf "$out/$t.tar.gz" --exclude=checkpoints --exclude=tb -C runs/paper "$t"
-  echo "== $t"; tail -n 6 "$out/$t.log"
-done
+thin=runs/units-thin
+rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
+cp "$work/unit.json" "$thin/$unit/" 2>/dev/null
+tar -czf "$out/$unit.tar.gz" -C "$thin" "$unit"
+cp "$work/unit.log" "$out/$unit.log"
+echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
+ls -l "$out"
+grep -v -i -E "warn|^\s*$" "$work/unit.log" | grep -E "Trained in|Evaluation|phase of|Stopped|Done:|cdjax:" | tail -n 20

@@ -1,10 +1,21 @@
-"""Figures and RESULTS.md of the observation-space experiments, from the run directories of `train`.
+"""RESULTS.md of the observation-space experiment, from the kept data of its units (or their run directories).
 
-Arms are compared at the same environment-step budget: when a run was stopped early (e.g. by a time
-limit), every arm of that task is cut at the largest env-step count that all of its arms reached, and the
-table says so. Statistics are cdjax.stats' (through cdjax.plots' curves): IQM over seeds with 95% stratified-bootstrap intervals
-(rliable), final = mean of the last 10% of each seed's logged points, AUC = env-step weighted mean of
-each seed's curve.
+    python -m experiments.paper_obs_space report                       # from data/ (the kept data)
+    python -m experiments.paper_obs_space report --runs DIR data --keep  # add the units unpacked in DIR to data/
+
+Every run directory found under --runs (a directory with run.json; a unit's parts are run directories) is read;
+its arms are named by what they are (`arm_key`: model-free, mbmf, cd-k5, cd-k20-paper, cd-k20,
+cd-k20-paper-schedule) and grouped by task (run.json's env). Arms of a task are compared at the same env steps:
+the task's budget when every arm reached it, else the largest count all of them reached (and RESULTS.md says so).
+
+Statistics: per task and arm the IQM over seeds with a 95% stratified-bootstrap interval (rliable, cdjax.stats)
+of the final return (the last 10% of each seed's logged points) and of the area under the curve (each seed's curve
+averaged over env steps), undiscounted and discounted, and of the deterministic evaluation; across tasks
+rliable's probability of improvement (per task P(X > Y) over seeds, averaged over tasks) and performance profiles
+and IQM of min-max normalised final returns (per task over every seed of every arm). The diagnostics are the
+means over the last 10% of each seed's points (IQM over seeds): the model's own open-loop error and its error on
+the common yardstick (yardstick/), l_cc, the encoder's spread, the masked windows, and the consistency gradient's
+size against PPO's on the policy and against the NLL's on the model.
 """
 
 from __future__ import annotations
@@ -17,106 +28,218 @@ import json
 import math
 import pathlib
 import shutil
-from typing import Sequence
+from typing import Iterable, Sequence
 
 import numpy as np
 
 from cdjax import io, plots, stats
-from experiments.paper_obs_space import ABLATION_TASKS, ARMS, TASKS
+from experiments.paper_obs_space import ARMS, SCHEDULE_TASKS, TASK_BUDGETS, TASKS
 
 HERE = pathlib.Path(__file__).resolve().parent
 RETURN, DISC = plots.RETURN, plots.DISC_RETURN
-# Diagnostics of the model and the consistency term, reported at the end of training (IQM of final values).
+MAIN_ARMS = ("model-free", "mbmf", "cd-k5", "cd-k20-paper", "cd-k20")
+LABELS = {"model-free": "model-free", "mbmf": "Mb-Mf", "cd-k5": "CD k=5", "cd-k20-paper": "CD k=20 (paper's weights)",
+          "cd-k20": "CD k=20 (cdjax's weights)", "cd-k20-paper-schedule": "CD k=20 (paper's schedule)"}
+COLORS = {"model-free": "#7f7f7f", "mbmf": "#1f77b4", "cd-k5": "#ff7f0e", "cd-k20-paper": "#d62728",
+          "cd-k20": "#9467bd", "cd-k20-paper-schedule": "#2ca02c"}
+# (metric, column title, how the final value is formed): diagnostics at the end of training
 DIAGNOSTICS = (
-    ("model/openloop_mse_k", "open-loop MSE at k"),
-    ("model/openloop_mse_50", "open-loop MSE at 50"),
+    ("model/openloop_mse_k", "open-loop MSE at k (own states)"),
+    ("model/openloop_mse_50", "open-loop MSE at 50 (own states)"),
+    ("model/yardstick_mse_k", "open-loop MSE at k (yardstick)"),
+    ("model/yardstick_mse_50", "open-loop MSE at 50 (yardstick)"),
     ("loss/consistency", "l_cc"),
-    ("encoder/spread_real", "encoder spread (real)"),
-    ("encoder/spread_imagined", "encoder spread (imagined)"),
+    ("encoder/spread_real", "encoder spread"),
     ("consistency/masked_fraction", "masked windows"),
+    ("ratio/policy", "l_cc grad / PPO grad (policy)"),
+    ("ratio/model", "l_cc grad / NLL grad (model)"),
 )
-# Per-seed, per-update columns kept in the committed data (metrics.jsonl itself is large).
-KEEP = ("arm", "hp", "seed", "update", "env_steps", "wall_s", RETURN, DISC, "episode/count", "env/invalid_fraction",
-        "opt/skipped_updates") + tuple(name for name, _ in DIAGNOSTICS)
-LABELS = {"model-free": "model-free", "mbmf": "Mb-Mf", "cd-k5": "CD k=5", "cd-k20": "CD k=20"}
-COLORS = {"model-free": "#7f7f7f", "mbmf": "#1f77b4", "cd-k5": "#ff7f0e", "cd-k20": "#d62728"}
+RATIOS = {"ratio/policy": ("grad/consistency/policy", "grad/ppo/policy"),
+          "ratio/model": ("grad/consistency/model", "grad/model_nll/model")}
+# the columns of metrics.jsonl kept in data/ (metrics.jsonl.gz)
+KEEP = ("arm", "hp", "seed", "update", "env_steps", "wall_s", RETURN, DISC, "episode/count", "env/reward_mean",
+        "env/invalid_fraction", "opt/skipped_updates", "policy/std") + tuple(
+    n for n, _ in DIAGNOSTICS if not n.startswith("ratio/")) + tuple(x for pair in RATIOS.values() for x in pair)
+# (X, Y) pairs whose probability of improvement P(X > Y) is reported across tasks
+PAIRS = (("cd-k20-paper", "mbmf"), ("cd-k20", "mbmf"), ("cd-k5", "mbmf"), ("cd-k20-paper", "cd-k5"),
+         ("mbmf", "model-free"), ("cd-k20-paper", "model-free"))
+PHASE_COLUMNS = (  # phase.jsonl (its keys carry "phase/"), (title)
+    ("random/reward_mean", "random actions"), ("mpc/reward_mean_last", "MPC"),
+    ("dagger/reward_mean_last", "distilled policy"), ("labels/self_error", "one label vs the others' mean"),
+    ("labels/mean_abs", "|mean label|"), ("distill/abs_error_mean", "policy vs mean label"),
+    ("distill/abs_error_zero", "zero action vs labels"), ("model/heldout_mse_last", "model held-out MSE"))
+START_COLUMNS = (  # the phase's handover checks: the policy PPO gets against an untrained one, same reset states
+    ("handover/sampled_reward_mean", "distilled, sampled"), ("fresh/sampled_reward_mean", "untrained, sampled"),
+    ("handover/mean_action_reward_mean", "distilled, mean action"),
+    ("fresh/mean_action_reward_mean", "untrained, mean action"))
+
+
+def arm_key(arm: dict, hp: dict) -> str:
+    """The experiment's name of an (arm, hyper-parameters) of a run.json: model-free, mbmf, cd-k5, cd-k20-paper (both
+    paths of l_cc at alpha), cd-k20 (cdjax's weights), cd-k20-paper-schedule (l_cc in every epoch), else arm/label."""
+    kind = arm.get("arm") or arm.get("config", {}).get("arm")
+    if kind in ("model-free", "mbmf"):
+        return kind
+    config = arm.get("config", {})
+    k = config.get("horizon")
+    paper_weights = hp.get("cc_policy") == 1.0 and hp.get("cc_model", 1.0) == 1.0
+    every_epoch = config.get("cc_epochs") == 0 and config.get("num_epochs", 1) > 1
+    if kind == "cd" and k == 5:
+        return "cd-k5"
+    if kind == "cd" and k == 20:
+        if every_epoch:
+            return "cd-k20-paper-schedule" + ("" if not paper_weights else "-paper-weights")
+        return "cd-k20-paper" if paper_weights else "cd-k20"
+    return f"{arm.get('name')}"
 
 
 @dataclasses.dataclass
-class Task:
-    name: str
-    run_dir: pathlib.Path
+class Run:
+    """One run directory (a unit's part): its record, curves and evaluations by arm key."""
+
+    path: pathlib.Path
     info: dict  # run.json
-    machine: dict  # machine.json written by `train` (device, versions), {} if absent
-    curves: dict[str, plots.Curves]  # arm name -> curves (cut at the common budget)
-    evals: dict  # plots.load_eval
-    budget: float  # env steps every arm reached (the comparison budget)
-    planned: float  # env steps per run asked for
-    complete: bool  # every arm reached its planned budget
+    machine: dict  # machine.json ({} if absent)
+    unit: dict  # the unit's unit.json ({} if absent)
+    curves: dict  # arm key -> plots.Curves
+    evals: dict  # arm key -> {"return": [S], ...} (deterministic evaluation)
+    phase: dict  # arm key -> {metric: [S] values}
+    planned: dict  # arm key -> env steps per run asked for (the phase's included)
+    phase_steps: dict  # arm key -> env steps of its Mb-Mf phase per run
+
+    @property
+    def task(self) -> str:
+        return self.info.get("base_config", {}).get("env", "?")
+
+
+@dataclasses.dataclass
+class TaskData:
+    name: str
+    runs: list[Run]
+    curves: dict  # arm key -> Curves, cut at `budget`
+    evals: dict
+    phase: dict
+    budget: float  # env steps the arms are compared at
+    stated: float  # the env steps per run its runs asked for (the largest)
+    complete: bool  # every arm reached its planned env steps
+
+
+def find_runs(roots: Iterable[pathlib.Path]) -> list[pathlib.Path]:
+    """Run directories (with run.json and metrics) under `roots`; a directory reached twice counts once."""
+    seen, out = set(), []
+    for root in roots:
+        root = pathlib.Path(root)
+        if not root.exists():
+            continue
+        for run_json in sorted(root.rglob("run.json")):
+            d = run_json.parent
+            if d.resolve() not in seen and io.jsonl_exists(d / "metrics.jsonl"):
+                seen.add(d.resolve())
+                out.append(d)
+    return out
+
+
+def _phase_rows(path: pathlib.Path, keys: dict) -> dict:
+    out: dict = {}
+    for row in io.read_jsonl(path / "phase.jsonl"):
+        key = keys.get((row.get("arm"), str(row.get("hp", ""))))
+        if key is None:
+            continue
+        for name, _ in PHASE_COLUMNS + START_COLUMNS:
+            value = row.get(f"phase/{name}")
+            out.setdefault(key, {}).setdefault(name, []).append(math.nan if value is None else float(value))
+    return {k: {n: np.array(v) for n, v in d.items()} for k, d in out.items()}
+
+
+def load_run(path: pathlib.Path) -> Run:
+    info = io.RunDir(path).read()
+    read = lambda name: json.loads((path / name).read_text()) if (path / name).exists() else {}  # noqa: E731
+    keys, planned, phase_steps = {}, {}, {}
+    for arm in info["arms"]:
+        for label, hp in zip(arm.get("hp_labels", ["default"]), arm.get("hparams", [{}])):
+            key = arm_key(arm, hp)
+            keys[(arm["name"], str(label))] = key
+            planned[key] = arm.get("total_env_steps", info.get("total_env_steps"))
+            phase_steps[key] = arm.get("phase_env_steps", 0)
+    curves = {}
+    for (arm, label), c in plots.load_metrics(path).items():
+        key = keys.get((arm, label), f"{arm} {label}")
+        for name, (num, den) in RATIOS.items():
+            if num in c.metrics and den in c.metrics:
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    c.metrics[name] = c.metrics[num] / c.metrics[den]
+        curves[key] = c
+    evals = {keys.get((a, h), a): v for (a, h, det), v in plots.load_eval(path).items() if det}
+    return Run(path, info, read("machine.json"), read("../unit.json") or read("unit.json"), curves, evals,
+               _phase_rows(path, keys), planned, phase_steps)
 
 
 def _cut(c: plots.Curves, budget: float) -> plots.Curves:
-    """The curves of an arm up to `budget` env steps (points after it dropped)."""
     keep = np.isfinite(c.env_steps) & (c.env_steps <= budget)
     return dataclasses.replace(c, updates=c.updates[keep], env_steps=c.env_steps[keep], present=c.present[:, keep],
                                metrics={k: v[:, keep] for k, v in c.metrics.items()})
 
 
-def load_task(run_dir: pathlib.Path, name: str) -> Task | None:
-    """A task's run directory (from `train`) or its kept data (data/<task>/ of a RESULTS.md); None if absent."""
-    if not (run_dir / "run.json").exists():
-        return None
-    if not io.jsonl_exists(run_dir / "metrics.jsonl"):  # a run directory, or kept data (metrics.jsonl.gz)
-        return None
-    info = io.RunDir(run_dir).read()
-    machine_path = run_dir / "machine.json"
-    machine = json.loads(machine_path.read_text()) if machine_path.exists() else {}
-    curves = {arm: c for (arm, _), c in plots.load_metrics(run_dir).items()}
-    planned = {a["name"]: a.get("total_env_steps", info.get("total_env_steps")) for a in info["arms"]}
-    reached = {}
-    for arm, c in curves.items():
-        everywhere = c.present.all(axis=0)  # points every seed logged
-        reached[arm] = float(np.nanmax(c.env_steps[everywhere])) if everywhere.any() else 0.0
-    complete = all(reached.get(arm, 0.0) >= planned[arm] for arm in planned)
-    budget = min(reached.values()) if reached else 0.0
-    if not complete:  # compare every arm at the env steps all of them reached
-        curves = {arm: _cut(c, budget + info.get("env_steps_per_update", 0) / 2) for arm, c in curves.items()}
-    return Task(name, run_dir, info, machine, curves, plots.load_eval(run_dir) if complete else {}, budget,
-                float(info.get("requested_env_steps", math.nan)), complete)
+def _reached(c: plots.Curves) -> float:
+    everywhere = c.present.all(axis=0)
+    return float(np.nanmax(c.env_steps[everywhere])) if everywhere.any() else 0.0
 
 
-def load_tasks(runs: Sequence[pathlib.Path], tasks: Sequence[str] = TASKS) -> list[Task]:
-    """Per task, the first of `runs` that holds it (runs/<task> or data/<task>)."""
-    out = []
-    for name in tasks:
-        for root in runs:
-            task = load_task(pathlib.Path(root) / name, name)
-            if task is not None:
-                out.append(task)
-                break
-    return out
+def load(roots: Sequence[pathlib.Path]) -> list[TaskData]:
+    """Every task found under `roots`, in TASKS order (others after)."""
+    by_task: dict[str, list[Run]] = {}
+    for path in find_runs(roots):
+        run = load_run(path)
+        by_task.setdefault(run.task, []).append(run)
+    order = [t for t in TASKS if t in by_task] + sorted(t for t in by_task if t not in TASKS)
+    tasks = []
+    for name in order:
+        runs = by_task[name]
+        curves, evals, phase, planned = {}, {}, {}, {}
+        for run in runs:  # an arm found twice (a unit run again): the first directory found wins
+            for key, c in run.curves.items():
+                if key not in curves:
+                    curves[key], planned[key] = c, run.planned.get(key, math.nan)
+                    evals[key] = run.evals.get(key)
+                    phase[key] = run.phase.get(key)
+        reached = {k: _reached(c) for k, c in curves.items()}
+        complete = all(reached[k] >= planned[k] for k in curves)
+        budget = min(reached.values()) if reached else 0.0
+        if not complete:
+            spu = max(r.info.get("env_steps_per_update", 0) for r in runs)
+            curves = {k: _cut(c, budget + spu / 2) for k, c in curves.items()}
+            evals = {k: None for k in evals}  # evaluations were made at each run's end, not at the common budget
+        stated = max(planned.values(), default=math.nan)
+        tasks.append(TaskData(name, runs, curves, evals, phase, budget, stated, complete))
+    return tasks
 
 
 # ---------------------------------------------------------------------------------------------------
 # Tables
 
 
-def _cell(iqm: float, lo: float, hi: float, digits: int = 4) -> str:
+def _fmt(x: float, digits: int = 4) -> str:
+    return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}g}"
+
+
+def _cell(v: tuple, digits: int = 4) -> str:
+    iqm, lo, hi = v[:3]
     if not np.isfinite(iqm):
         return "n/a"
-    fmt = lambda x: f"{x:.{digits}g}"  # noqa: E731
-    return fmt(iqm) if not np.isfinite(lo) else f"{fmt(iqm)} [{fmt(lo)}, {fmt(hi)}]"
+    return _fmt(iqm, digits) if not np.isfinite(lo) else f"{_fmt(iqm, digits)} [{_fmt(lo, digits)}, {_fmt(hi, digits)}]"
 
 
-def arm_rows(task: Task, reps: int = 2000) -> list[dict]:
-    """One row per arm: returns (final, AUC; IQM + CI), evaluation, diagnostics, budgets."""
+def _arm_order(keys: Iterable[str]) -> list[str]:
+    keys = list(keys)
+    return [a for a in ARMS if a in keys] + sorted(k for k in keys if k not in ARMS)
+
+
+def arm_rows(task: TaskData, reps: int) -> list[dict]:
     rows = []
-    arms_info = {a["name"]: a for a in task.info["arms"]}
-    for arm in [a for a in ARMS if a in task.curves] + [a for a in task.curves if a not in ARMS]:
-        c = task.curves[arm]
-        row = {"task": task.name, "arm": arm, "seeds": len(c.seeds),
+    for key in _arm_order(task.curves):
+        c = task.curves[key]
+        row = {"task": task.name, "arm": key, "seeds": len(c.seeds),
                "env_steps": float(np.nanmax(c.env_steps)) if c.env_steps.size else math.nan,
-               "phase_env_steps": arms_info.get(arm, {}).get("phase_env_steps", 0),
                "ppo_updates": int(c.updates.max()) if c.updates.size else 0}
         for stat, fn in (("final", plots.per_seed_final), ("auc", plots.per_seed_auc)):
             for target, name in (("return", RETURN), ("disc_return", DISC)):
@@ -126,40 +249,73 @@ def arm_rows(task: Task, reps: int = 2000) -> list[dict]:
         count = c.metrics.get("episode/count")
         row["episodes"] = float(np.nanmean(np.nansum(np.where(c.present, count, 0.0), axis=1))) \
             if count is not None else math.nan
-        ev = next((v for (a, _, det), v in task.evals.items() if a == arm and det), None)
+        ev = task.evals.get(key)
         row["eval_return"] = stats.iqm_interval(ev["return"], reps)[:3] if ev else (math.nan,) * 3
         for name, _ in DIAGNOSTICS:
             row[name] = stats.iqm_interval(plots.per_seed_final(c, name), reps)[:3] if name in c.metrics \
                 else (math.nan,) * 3
+        start = c.metrics.get("env/reward_mean")  # the first PPO rollout's reward per step (update 1)
+        first = start[:, np.flatnonzero(c.updates == 1)[0]] if start is not None and (c.updates == 1).any() else []
+        row["start_reward"] = stats.iqm_interval(first, reps)[:3] if len(first) else (math.nan,) * 3
         rows.append(row)
     return rows
 
 
+def _table(head: Sequence[str], lines: Iterable[Sequence[str]]) -> str:
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    out += ["| " + " | ".join(cells) + " |" for cells in lines]
+    return "\n".join(out)
+
+
 def returns_table(rows: list[dict]) -> str:
-    head = ("| task | arm | seeds | env steps | of which Mb-Mf phase | PPO updates | episodes ended / seed | "
-            "final return | AUC return | final disc. return | AUC disc. return | eval return (mean action) |")
-    lines = [head, "|" + "|".join(["---"] * (head.count("|") - 1)) + "|"]
-    for r in rows:
-        lines.append(f"| {r['task']} | {LABELS.get(r['arm'], r['arm'])} | {r['seeds']} | {r['env_steps']:,.0f} | "
-                     f"{r['phase_env_steps']:,} | {r['ppo_updates']} | {r['episodes']:,.0f} | {_cell(*r['final_return'])} | "
-                     f"{_cell(*r['auc_return'])} | {_cell(*r['final_disc_return'])} | {_cell(*r['auc_disc_return'])} | "
-                     f"{_cell(*r['eval_return'])} |")
-    return "\n".join(lines)
+    head = ("task", "arm", "seeds", "env steps", "PPO updates", "episodes / seed", "final return", "AUC return",
+            "final disc. return", "AUC disc. return", "eval return (mean action)")
+    return _table(head, ([r["task"], LABELS.get(r["arm"], r["arm"]), str(r["seeds"]), f"{r['env_steps']:,.0f}",
+                          str(r["ppo_updates"]), _fmt(r["episodes"]), _cell(r["final_return"]), _cell(r["auc_return"]),
+                          _cell(r["final_disc_return"]), _cell(r["auc_disc_return"]), _cell(r["eval_return"])]
+                         for r in rows))
 
 
 def diagnostics_table(rows: list[dict]) -> str:
-    head = "| task | arm | " + " | ".join(label for _, label in DIAGNOSTICS) + " |"
-    lines = [head, "|" + "|".join(["---"] * (head.count("|") - 1)) + "|"]
-    for r in rows:
-        if r["arm"] == "model-free":
-            continue
-        cells = " | ".join(_cell(*r[name], digits=3) for name, _ in DIAGNOSTICS)
-        lines.append(f"| {r['task']} | {LABELS.get(r['arm'], r['arm'])} | {cells} |")
-    return "\n".join(lines)
+    head = ("task", "arm") + tuple(title for _, title in DIAGNOSTICS)
+    return _table(head, ([r["task"], LABELS.get(r["arm"], r["arm"])] + [_cell(r[n], 3) for n, _ in DIAGNOSTICS]
+                         for r in rows if r["arm"] != "model-free"))
+
+
+def _phase_of(task: TaskData) -> dict | None:
+    """The phase's per-seed values of the Mb-Mf arm (every phase of a task is the same program and seeds; another
+    arm's when Mb-Mf has not run)."""
+    return task.phase.get("mbmf") or next((v for v in task.phase.values() if v), None)
+
+
+def phase_table(tasks: list[TaskData], reps: int) -> str:
+    """Per task: the phase's rewards per step (random, MPC, distilled policy) and its label checks."""
+    head = ("task",) + tuple(title for _, title in PHASE_COLUMNS)
+    lines = []
+    for t in tasks:
+        ph = _phase_of(t)
+        lines.append([t.name] + [_cell(stats.iqm_interval(ph[n], reps)[:3], 3) if ph and n in ph else "n/a"
+                                 for n, _ in PHASE_COLUMNS])
+    return _table(head, lines)
+
+
+def start_table(tasks: list[TaskData], rows: list[dict], reps: int) -> str:
+    """Per task: the handover checks (reward per step of the policy PPO gets and of an untrained one, from the same
+    reset states) and the first PPO rollout's reward per step of model-free and Mb-Mf."""
+    by = {(r["task"], r["arm"]): r for r in rows}
+    head = ("task",) + tuple(title for _, title in START_COLUMNS) + ("first PPO rollout: model-free", "Mb-Mf")
+    lines = []
+    for t in tasks:
+        ph = _phase_of(t)
+        cells = [t.name] + [_cell(stats.iqm_interval(ph[n], reps)[:3], 3) if ph and n in ph else "n/a"
+                            for n, _ in START_COLUMNS]
+        cells += [_cell(by[(t.name, a)]["start_reward"], 3) if (t.name, a) in by else "n/a" for a in ("model-free", "mbmf")]
+        lines.append(cells)
+    return _table(head, lines)
 
 
 def verdict(rows: list[dict], a: str, b: str, key: str = "final_return") -> str:
-    """'a > b', 'a < b' (95% intervals disjoint) or 'no clear difference' (they overlap), per task."""
+    """'A > B' / 'A < B' (95% intervals disjoint) or 'no clear difference' (they overlap)."""
     by = {r["arm"]: r for r in rows}
     if a not in by or b not in by:
         return "n/a"
@@ -167,17 +323,105 @@ def verdict(rows: list[dict], a: str, b: str, key: str = "final_return") -> str:
     if not (np.isfinite(ia) and np.isfinite(ib)):
         return "n/a"
     if np.isfinite(la) and np.isfinite(hb) and la > hb:
-        return f"{LABELS[a]} > {LABELS[b]} (IQM {ia:.4g} vs {ib:.4g}, intervals disjoint)"
+        return f"{LABELS[a]} > {LABELS[b]} ({ia:.4g} vs {ib:.4g}, disjoint)"
     if np.isfinite(lb) and np.isfinite(ha) and lb > ha:
-        return f"{LABELS[a]} < {LABELS[b]} (IQM {ia:.4g} vs {ib:.4g}, intervals disjoint)"
-    return f"no clear difference (IQM {ia:.4g} vs {ib:.4g}, intervals overlap)"
+        return f"{LABELS[a]} < {LABELS[b]} ({ia:.4g} vs {ib:.4g}, disjoint)"
+    return f"no clear difference ({ia:.4g} vs {ib:.4g}, overlap)"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Across tasks (rliable)
+
+
+def final_scores(tasks: list[TaskData], arms: Sequence[str] = MAIN_ARMS) -> dict[str, dict[str, np.ndarray]]:
+    """{task: {arm: final return per seed [S]}} (finite values only)."""
+    out = {}
+    for t in tasks:
+        per = {}
+        for a in arms:
+            if a in t.curves:
+                v = plots.per_seed_final(t.curves[a], RETURN)
+                per[a] = v[np.isfinite(v)]
+        out[t.name] = per
+    return out
+
+
+def normalised(scores: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, np.ndarray]]:
+    """Per task, (x - min) / (max - min) over every seed of every arm of that task."""
+    out = {}
+    for task, per in scores.items():
+        values = np.concatenate([v for v in per.values() if v.size]) if per else np.array([])
+        if values.size == 0:
+            continue
+        lo, hi = values.min(), values.max()
+        out[task] = {a: (v - lo) / (hi - lo) if hi > lo else np.zeros_like(v) for a, v in per.items()}
+    return out
+
+
+def _matrix(per_task: dict[str, np.ndarray], tasks: Sequence[str]) -> np.ndarray:
+    """[runs, tasks]: the first n seeds of each task, n the fewest any task has."""
+    n = min(per_task[t].size for t in tasks)
+    return np.stack([per_task[t][:n] for t in tasks], axis=1)
+
+
+def _rliable():
+    if stats.rly is None:
+        raise RuntimeError(f"rliable does not import ({stats.RLIABLE_ERROR}); the across-task statistics need it")
+    from rliable import metrics
+
+    return stats.rly, metrics
+
+
+def improvement(scores: dict[str, dict[str, np.ndarray]], pairs=PAIRS, reps: int = 2000, seed: int = 0) -> list[dict]:
+    """rliable's probability of improvement P(X > Y) with its 95% interval, over the tasks that have both arms."""
+    rly, metrics = _rliable()
+    out = []
+    for x, y in pairs:
+        tasks = [t for t, per in scores.items() if per.get(x) is not None and per.get(y) is not None
+                 and per[x].size > 1 and per[y].size > 1]
+        if not tasks:
+            continue
+        X = _matrix({t: scores[t][x] for t in tasks}, tasks)
+        Y = _matrix({t: scores[t][y] for t in tasks}, tasks)
+        saved = np.random.get_state()
+        np.random.seed(seed)
+        try:
+            point, interval = rly.get_interval_estimates({"p": (X, Y)}, metrics.probability_of_improvement, reps=reps)
+        finally:
+            np.random.set_state(saved)
+        out.append({"x": x, "y": y, "tasks": tasks, "p": float(np.asarray(point["p"]).squeeze()),
+                    "low": float(np.asarray(interval["p"])[0].squeeze()), "high": float(np.asarray(interval["p"])[1].squeeze())})
+    return out
+
+
+def aggregate(norm: dict[str, dict[str, np.ndarray]], arms: Sequence[str] = MAIN_ARMS, reps: int = 2000,
+              seed: int = 0) -> tuple[list[dict], dict]:
+    """IQM of normalised final returns across tasks (95% interval) per arm, and performance profiles
+    {arm: (taus, profile, low, high)}, over the tasks that have every arm listed."""
+    rly, metrics = _rliable()
+    arms = [a for a in arms if any(a in per for per in norm.values())]
+    tasks = [t for t, per in norm.items() if all(a in per and per[a].size > 1 for a in arms)]
+    if not tasks or not arms:
+        return [], {}
+    data = {a: _matrix({t: norm[t][a] for t in tasks}, tasks) for a in arms}
+    taus = np.linspace(0.0, 1.0, 51)
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        point, interval = rly.get_interval_estimates(data, lambda s: np.array([metrics.aggregate_iqm(s)]), reps=reps)
+        profiles, cis = rly.create_performance_profile(data, taus, reps=reps)
+    finally:
+        np.random.set_state(saved)
+    rows = [{"arm": a, "tasks": tasks, "iqm": float(point[a][0]), "low": float(interval[a][0][0]),
+             "high": float(interval[a][1][0])} for a in arms]
+    return rows, {a: (taus, np.asarray(profiles[a]), np.asarray(cis[a][0]), np.asarray(cis[a][1])) for a in arms}
 
 
 # ---------------------------------------------------------------------------------------------------
 # Figures
 
 
-def _series(c: plots.Curves, name: str, reps: int, max_points: int = 120):
+def _series(c: plots.Curves, name: str, reps: int, max_points: int = 100):
     values = c.metrics.get(name)
     if values is None or not np.isfinite(values).any():
         return None
@@ -186,17 +430,14 @@ def _series(c: plots.Curves, name: str, reps: int, max_points: int = 120):
     return c.env_steps[idx], point, low, high, n
 
 
-def figure(tasks: list[Task], arms: Sequence[str], path: pathlib.Path, reps: int = 1000) -> tuple[pathlib.Path, pathlib.Path]:
-    """Average return (top) and average discounted return (bottom) vs env steps, one column per task.
+def returns_figure(tasks: list[TaskData], path: pathlib.Path, arms: Sequence[str] = MAIN_ARMS, reps: int = 500):
+    """Average return (top) and average discounted return (bottom) vs env steps, a column per task; IQM over seeds
+    with 95% bands. Writes path (.png) and the numbers plotted (.csv)."""
+    from matplotlib.figure import Figure
 
-    Writes path (.png) and the plotted numbers next to it (.csv). Lines: IQM over seeds; bands: 95% CIs.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, max(1, len(tasks)), figsize=(4.2 * max(1, len(tasks)), 6.4), squeeze=False)
+    n = max(1, len(tasks))
+    fig = Figure(figsize=(4.2 * n, 6.4))
+    axes = fig.subplots(2, n, squeeze=False)
     rows = []
     for j, task in enumerate(tasks):
         for i, (name, ylabel) in enumerate(((RETURN, "average return"), (DISC, "average discounted return"))):
@@ -206,154 +447,195 @@ def figure(tasks: list[Task], arms: Sequence[str], path: pathlib.Path, reps: int
                 s = _series(c, name, reps) if c is not None else None
                 if s is None:
                     continue
-                x, point, low, high, n = s
-                ax.plot(x, point, color=COLORS.get(arm), label=LABELS.get(arm, arm), lw=1.5)
-                ax.fill_between(x, low, high, color=COLORS.get(arm), alpha=0.2, lw=0)
+                x, point, low, high, k = s
+                ax.plot(x, point, color=COLORS.get(arm), label=LABELS.get(arm, arm), lw=1.4)
+                ax.fill_between(x, low, high, color=COLORS.get(arm), alpha=0.18, lw=0)
                 rows += [{"task": task.name, "metric": name, "arm": arm, "env_steps": float(a), "iqm": float(b),
-                          "ci_low": float(lo), "ci_high": float(hi), "n_seeds": int(k)}
-                         for a, b, lo, hi, k in zip(x, point, low, high, n)]
+                          "ci_low": float(lo), "ci_high": float(hi), "n_seeds": int(m)}
+                         for a, b, lo, hi, m in zip(x, point, low, high, k)]
             ax.set_xlabel("environment steps")
             ax.set_ylabel(ylabel)
             if i == 0:
-                ax.set_title(task.name + ("" if task.complete else f" (cut at {task.budget:,.0f} steps)"))
+                ax.set_title(task.name + ("" if task.complete else f" (cut at {task.budget:,.0f})"))
             ax.grid(alpha=0.3)
     handles, labels = axes[0, 0].get_legend_handles_labels()
     if handles:
         fig.legend(handles, labels, loc="upper center", ncol=len(labels), frameon=False)
-    fig.tight_layout(rect=(0, 0, 1, 0.94))
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    data = path.with_suffix(".csv")
-    with data.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=["task", "metric", "arm", "env_steps", "iqm", "ci_low", "ci_high",
-                                               "n_seeds"])
-        writer.writeheader()
-        writer.writerows(rows)
-    return path, data
+    fig.savefig(path, dpi=100)
+    _csv(path.with_suffix(".csv"), rows)
+    return path
+
+
+def profiles_figure(profiles: dict, path: pathlib.Path):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5.5, 4))
+    ax = fig.subplots()
+    rows = []
+    for arm, (taus, prof, low, high) in profiles.items():
+        ax.plot(taus, prof, color=COLORS.get(arm), label=LABELS.get(arm, arm), lw=1.4)
+        ax.fill_between(taus, low, high, color=COLORS.get(arm), alpha=0.18, lw=0)
+        rows += [{"arm": arm, "tau": float(t), "fraction": float(p), "ci_low": float(lo), "ci_high": float(hi)}
+                 for t, p, lo, hi in zip(taus, prof, low, high)]
+    ax.set_xlabel("normalised final return tau (per task: min-max over all seeds and arms)")
+    ax.set_ylabel("fraction of runs with score > tau")
+    ax.grid(alpha=0.3)
+    ax.legend(frameon=False, fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    _csv(path.with_suffix(".csv"), rows)
+    return path
+
+
+def _csv(path: pathlib.Path, rows: list[dict]) -> None:
+    with path.open("w", newline="") as f:
+        if rows:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
 
 
 # ---------------------------------------------------------------------------------------------------
-# RESULTS.md
+# Kept data and RESULTS.md
 
 
-def keep_data(task: Task, out: pathlib.Path) -> pathlib.Path:
-    """data/<task>/: run.json, machine.json, phase.jsonl, eval.jsonl and selected columns of metrics.jsonl
-    (gzipped): enough for `report --runs data` to rebuild the tables and figures without the run directory."""
-    target = out / task.name
-    if target.resolve() == task.run_dir.resolve():
-        return target
+def keep_run(run: Run, data: pathlib.Path) -> pathlib.Path | None:
+    """data/<unit>/<part>/ (or data/<task>/<name>/): run.json, machine.json, phase.jsonl, eval.jsonl, the unit's
+    unit.json and KEEP's columns of metrics.jsonl (gzipped). None when the run is already under data/."""
+    if data.resolve() in run.path.resolve().parents:
+        return None
+    unit = run.unit.get("unit") or run.task
+    target = data / unit / run.path.name
     target.mkdir(parents=True, exist_ok=True)
-    with gzip.open(target / "metrics.jsonl.gz", "wt") as f:
-        for row in io.read_jsonl(task.run_dir / "metrics.jsonl"):
-            f.write(json.dumps({k: row[k] for k in KEEP if k in row}) + "\n")
+    text = "".join(json.dumps({k: row[k] for k in KEEP if k in row}) + "\n"
+                   for row in io.read_jsonl(run.path / "metrics.jsonl"))
+    (target / "metrics.jsonl.gz").write_bytes(gzip.compress(text.encode(), mtime=0))
     for name in ("run.json", "machine.json", "phase.jsonl", "eval.jsonl"):
-        if (task.run_dir / name).exists():
-            shutil.copy(task.run_dir / name, target / name)
+        if (run.path / name).exists():
+            shutil.copy(run.path / name, target / name)
+    if run.unit:
+        (data / unit / "unit.json").write_text(json.dumps(run.unit, indent=1))
     return target
 
 
-def settings(info: dict) -> str:
-    """One line of the settings a run.json records."""
-    c = info.get("base_config", {})
-    hp = (info.get("arms") or [{}])[-1].get("hparams", [{}])[0]
-    phase = info.get("phase") or {}
-    text = (f"{info.get('seeds')} seeds x {c.get('num_envs')} envs, rollout {c.get('rollout_len')}, "
-            f"{c.get('num_epochs')} epochs x {c.get('num_minibatches')} minibatches, policy {c.get('policy_hidden')}, "
-            f"model {c.get('model_hidden')}, encoder {c.get('encoder')}, {c.get('cc_windows') or 'all'} windows "
-            f"(unroll {c.get('cc_unroll')}), alpha {hp.get('alpha')}, gamma {hp.get('gamma')}, "
-            f"reward scale {hp.get('reward_scale')}")
-    if phase:
-        text += (f"; Mb-Mf phase: {phase.get('num_envs')} envs, {phase.get('random_steps')} random steps, "
-                 f"{phase.get('aggregation_iters')} x {phase.get('mpc_steps_per_iter')} MPC steps (horizon "
-                 f"{phase.get('mpc_horizon')}, {phase.get('mpc_candidates')} candidates), {phase.get('distill_iters')} x "
-                 f"{phase.get('distill_steps_per_iter')} DAgger steps")
-    return text
+def units_table(tasks: list[TaskData]) -> str:
+    head = ("task", "unit / part", "command", "device", "env steps per run asked", "reached", "wall-clock",
+            "training env steps/s")
+    lines = []
+    for t in tasks:
+        for run in t.runs:
+            name = f"{run.unit.get('unit', '-')} / {run.path.name}"
+            m = run.machine
+            reached = min((_reached(c) for c in run.curves.values()), default=0.0)
+            asked = max(run.planned.values(), default=math.nan)
+            wall = max((float(np.nanmax(c.metrics["wall_s"])) for c in run.curves.values() if "wall_s" in c.metrics
+                        and np.isfinite(c.metrics["wall_s"]).any()), default=math.nan)
+            steps = sum(len(c.seeds) * (_reached(c) - run.phase_steps.get(k, 0)) for k, c in run.curves.items())
+            lines.append([t.name, name, f"`{run.info.get('command', '')}`", m.get("device", "unknown"),
+                          f"{asked:,.0f}", f"{reached:,.0f}" + ("" if reached >= asked else " (cut)"),
+                          f"{m.get('wall_s', math.nan):.0f} s (training {wall:.0f} s)", _fmt(steps / wall, 3)])
+    return _table(head, lines)
 
 
-def write_results(tasks: list[Task], out: pathlib.Path = HERE, reps: int = 2000) -> pathlib.Path:
-    """Both figures, the tables, the data behind them and RESULTS.md into `out`."""
-    figures = out / "figures"
-    returns_png, _ = figure(tasks, ("mbmf", "cd-k20"), figures / "returns.png")
-    ablation = [t for t in tasks if t.name in ABLATION_TASKS]
-    ablation_png, _ = figure(ablation, ARMS, figures / "k_ablation.png") if ablation else (None, None)
-    all_png, _ = figure(tasks, ARMS, figures / "all_arms.png")
+def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2000, keep: bool = False
+                  ) -> pathlib.Path:
+    """Figures, tables, summary.json and RESULTS.md into `out` (and, with keep, the runs' data into out/data/)."""
+    out.mkdir(parents=True, exist_ok=True)
+    if keep:
+        for t in tasks:
+            for run in t.runs:
+                keep_run(run, out / "data")
     rows = [r for t in tasks for r in arm_rows(t, reps)]
+    figures = out / "figures"
+    lines = [
+        "# Observation-space experiment, powered: Mb-Mf vs Mb-Mf + consistency (Sodhani et al., 2019, section 5.1)",
+        "",
+        f"Generated {datetime.date.today().isoformat()} by `python -m experiments.paper_obs_space report` from the kept "
+        "data (`data/<unit>/<part>/`). The plan (units, budgets, commands): `PLAN.md`. Settings: the `paper-<task>` "
+        "presets in `cdjax/agents/obs/presets.py`.",
+        "",
+    ]
+    missing = [t for t in TASKS if t not in {x.name for x in tasks}]
+    if not tasks:
+        lines += ["No unit has run yet: see `PLAN.md` for the units and the commands.", ""]
+    analysis = out / "analysis.md"
+    if analysis.exists() and tasks:
+        lines += ["## Reading the results", "", analysis.read_text().strip(), ""]
+    if tasks:
+        lines += ["## Budgets", ""]
+        for t in tasks:
+            state = ("every arm reached it" if t.complete else
+                     f"**not every arm reached it**: compared at {t.budget:,.0f} env steps, the most all arms reached")
+            arms = ", ".join(LABELS.get(a, a) for a in _arm_order(t.curves))
+            plan = TASK_BUDGETS.get(t.name)
+            differs = f" (PLAN.md's budget: {plan.steps:,})" if plan is not None and plan.steps != t.stated else ""
+            lines.append(f"- {t.name}: {t.stated:,.0f} env steps per run asked{differs} (the Mb-Mf phase's included); "
+                         f"{state}. Arms: {arms}.")
+        if missing:
+            lines.append(f"- not run yet: {', '.join(missing)}.")
+        lines += ["", "## Verdicts per task (final return, 95% intervals)", ""]
+        pairs = (("cd-k20-paper", "mbmf"), ("cd-k20", "mbmf"), ("cd-k20-paper", "cd-k5"), ("mbmf", "model-free"))
+        lines.append(_table(("task",) + tuple(f"{LABELS[a]} vs {LABELS[b]}" for a, b in pairs),
+                            ([t.name] + [verdict([r for r in rows if r["task"] == t.name], a, b) for a, b in pairs]
+                             for t in tasks)))
+        scores = final_scores(tasks)
+        try:
+            imp = improvement(scores, reps=reps)
+            agg, profiles = aggregate(normalised(scores), reps=reps)
+        except RuntimeError as err:
+            imp, agg, profiles = [], [], {}
+            lines += ["", f"Across tasks: not computed ({err})."]
+        lines += ["", "## Across tasks (rliable)", "",
+                  "Probability of improvement P(X > Y) of the final return (per task over seeds, averaged over the "
+                  "tasks that have both arms), with 95% stratified-bootstrap intervals:", ""]
+        lines.append(_table(("X", "Y", "tasks", "P(X > Y)"), ([LABELS[p["x"]], LABELS[p["y"]], ", ".join(p["tasks"]),
+                                                                _cell((p["p"], p["low"], p["high"]), 3)] for p in imp)))
+        if agg:
+            lines += ["", f"IQM of the normalised final return over {', '.join(agg[0]['tasks'])} (per task min-max over "
+                      "every seed of every arm):", ""]
+            lines.append(_table(("arm", "IQM [95% CI]"), ([LABELS[a["arm"]], _cell((a["iqm"], a["low"], a["high"]), 3)]
+                                                          for a in agg)))
+            profile_png = profiles_figure(profiles, figures / "profiles.png")
+            lines += ["", f"![performance profiles]({profile_png.relative_to(out)})"]
+        returns_png = returns_figure(tasks, figures / "returns.png", reps=min(reps, 500))
+        lines += ["", "## Returns", "", returns_table(rows), "",
+                  "Final: the mean of the last 10% of each seed's logged points; AUC: each seed's curve averaged over "
+                  "env steps; IQM over seeds [95% stratified-bootstrap interval]. Training returns are those of "
+                  "whole episodes of the stochastic policy (with staggered resets, each env's first, shortened episode "
+                  "is not counted); the evaluation plays 10 fresh episodes with the mean action at the end.", "",
+                  f"![returns]({returns_png.relative_to(out)})", "",
+                  "## The Mb-Mf phase: does it hand PPO a better start?", "",
+                  "Rewards per step inside the phase (random actions, the MPC on the learned model, the distilled "
+                  "policy in the DAgger rounds) and the MPC labels' noise (mean absolute difference per action "
+                  "dimension, on the distilled policy's states; IQM over seeds):", "",
+                  phase_table(tasks, reps), "",
+                  "The start PPO gets: reward per step of the distilled policy and of an untrained one (what the "
+                  "model-free arm starts from), sampling as PPO's first rollout does and with the mean action, from "
+                  "the same reset states (the phase's handover checks), and the first PPO rollout of each arm:", "",
+                  start_table(tasks, rows, reps), "",
+                  "## Model and consistency diagnostics (end of training)", "",
+                  "Open-loop MSE on the arm's own states: its model imagining k and 50 steps from the recent real "
+                  "states of 8 of its envs, in its own normalisation; on the yardstick: the same model on the task's "
+                  "fixed held-out trajectories (`yardstick/<task>.npz`), in the yardstick's units (the same for every "
+                  "arm). Gradient ratios: the norm of alpha x l_cc's gradient over that of PPO's loss on the policy "
+                  "and of the model NLL on the model.", "", diagnostics_table(rows), ""]
+        sched = [t for t in tasks if t.name in SCHEDULE_TASKS and "cd-k20-paper-schedule" in t.curves]
+        if sched:
+            lines += ["## The consistency schedule: the presets' against the paper's", "",
+                      "CD k=20 at cdjax's weights with l_cc in the first epoch only (the presets) against every "
+                      "minibatch of every epoch (the paper), at equal env steps:", ""]
+            lines.append(_table(("task", "schedule", "seeds", "final return", "AUC return", "yardstick MSE at 50", "l_cc"),
+                                ([t.name, LABELS[a], str(r["seeds"]), _cell(r["final_return"]), _cell(r["auc_return"]),
+                                  _cell(r["model/yardstick_mse_50"], 3), _cell(r["loss/consistency"], 3)]
+                                 for t in sched for a in ("cd-k20", "cd-k20-paper-schedule")
+                                 for r in rows if r["task"] == t.name and r["arm"] == a)))
+            lines.append("")
+        lines += ["## Units: commands, devices, wall-clock", "", units_table(tasks), ""]
     (out / "data").mkdir(parents=True, exist_ok=True)
     (out / "data" / "summary.json").write_text(json.dumps(rows, indent=1, default=float))
-    for t in tasks:
-        keep_data(t, out / "data")
-
-    machines = sorted({json.dumps(t.machine.get("device", "unknown")) for t in tasks})
-    lines = [
-        "# Observation-space experiments: Mb-Mf vs Mb-Mf + consistency (Sodhani et al., 2019, section 5.1)",
-        "",
-        f"Generated {datetime.date.today().isoformat()} by `python -m experiments.paper_obs_space report`. "
-        f"Device(s): {', '.join(json.loads(m) for m in machines)}.",
-        "",
-        "What ran (every setting is in `cdjax/agents/obs/presets.py`, presets `paper-<task>`; per task below): PPO with a "
-        "Gaussian MLP policy; a Gaussian MLP model over the normalised change of state and the reward. Mb-Mf "
-        "and CD first run the Mb-Mf phase (random data, model, random-shooting MPC aggregation, DAgger "
-        "distillation into the policy, value fit; its env steps are counted in the budget), then PPO; CD adds "
-        "alpha x l_cc (trainable GRU encoder) on random k-step windows. Seeds are vmapped; the arms of a task "
-        "see the same seeds.",
-        "",
-        "Statistics: IQM over seeds with a 95% stratified-bootstrap interval (rliable). Final: mean of the last "
-        "10% of each seed's logged points; AUC: each seed's curve averaged over env steps; eval: 10 episodes "
-        "with the mean action at the end. Returns are those of the training episodes (stochastic policy).",
-        "",
-        "**Budgets are far below the paper's** (the paper trains for millions of TRPO steps): what one "
-        "30-minute GPU session allows for four arms x 10 seeds per task. Read the results as early-training "
-        "comparisons.",
-        "",
-        "Several tasks ran at once, one per GPU of a 2 x H200 host (each process saw one GPU); wall-clock "
-        "times are per task.",
-        "",
-        "## Verdicts (final return, 95% intervals)",
-        "",
-        "| task | CD k=20 vs Mb-Mf | CD k=20 vs CD k=5 | Mb-Mf vs model-free |",
-        "|---|---|---|---|",
-    ]
-    for t in tasks:
-        r = [x for x in rows if x["task"] == t.name]
-        lines.append(f"| {t.name} | {verdict(r, 'cd-k20', 'mbmf')} | {verdict(r, 'cd-k20', 'cd-k5')} | "
-                     f"{verdict(r, 'mbmf', 'model-free')} |")
-    analysis = out / "analysis.md"
-    if analysis.exists():
-        lines += ["", "## Reading the results", "", analysis.read_text().strip()]
-    lines += ["", "## Returns", "", returns_table(rows), "",
-              "## Model and consistency diagnostics (end of training)", "",
-              "Open-loop MSE: normalised-state error of the model imagining k and 50 steps from real states under "
-              "the real actions (8 envs per seed); k is the arm's own horizon (CD k=5: 5; Mb-Mf and CD k=20: 20), "
-              "and each arm is measured on the states its own policy visits. Encoder spread: mean distance of the encodings from their "
-              "mean (a collapsed encoder has spread ~0). Masked windows: fraction of consistency windows dropped "
-              "because an episode ended inside them.", "", diagnostics_table(rows), "",
-              "## Figures", "",
-              f"- Average return and average discounted return, Mb-Mf vs CD k=20: `{returns_png.relative_to(out)}` "
-              "(data: same name, .csv)",
-              ]
-    if ablation_png is not None:
-        lines.append(f"- k ablation (model-free, Mb-Mf, CD k=5, CD k=20) on {', '.join(t.name for t in ablation)}: "
-                     f"`{ablation_png.relative_to(out)}`")
-    lines.append(f"- All arms on every task: `{all_png.relative_to(out)}`")
-    lines += ["", f"![returns]({returns_png.relative_to(out)})", ""]
-    if ablation_png is not None:
-        lines += [f"![k ablation]({ablation_png.relative_to(out)})", ""]
-    lines += ["## Runs and commands", ""]
-    for t in tasks:
-        m = t.machine
-        state = "complete" if t.complete else f"stopped early: compared at {t.budget:,.0f} env steps (all arms cut there)"
-        lines += [f"### {t.name}", "",
-                  f"- command: `{t.info.get('command', '')}`",
-                  f"- settings: {settings(t.info)}",
-                  f"- budget asked: {t.planned:,.0f} env steps per run; {state}",
-                  f"- device: {m.get('device', 'unknown')}; jax {m.get('jax', '?')}, brax {m.get('brax', '?')}, "
-                  f"mujoco-mjx {m.get('mujoco_mjx', '?')}; {m.get('date', '')}; wall-clock {m.get('wall_s', math.nan):.0f} s",
-                  f"- data: `data/{t.name}/` (run.json; metrics.jsonl.gz per seed and update; phase.jsonl, the Mb-Mf "
-                  "phase's diagnostics per seed; eval.jsonl)", ""]
-    missing = [name for name in TASKS if name not in {t.name for t in tasks}]
-    if missing:
-        lines += ["## Not run yet", "", f"{', '.join(missing)}: no run directory was found for these tasks.", ""]
     path = out / "RESULTS.md"
     path.write_text("\n".join(lines) + "\n")
     return path

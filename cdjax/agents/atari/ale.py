@@ -1,12 +1,25 @@
 """The real Atari games through ale-py's vector environment and its XLA interface (optional extra `atari`, GPL-2.0).
 
 `AleEnv(config, num_envs, episodic_life)` has the interface of `cdjax.agents.atari.minatar.MinAtarEnv`: `reset(key)`,
-`step(state, actions) -> (state, AleStep)`, `episode_length`, `obs_shape`, `num_actions`. Its step and reset are
-ale-py's XLA custom calls (`AtariVectorEnv.xla()`): they run inside `jit` and `lax.scan`, but the emulators live
-in C++ outside JAX, so:
+`step(state, actions) -> (state, AleStep)`, `episode_length`, `obs_shape`, `num_actions`. Its reset and step are
+ale-py's XLA custom calls (the FFI targets behind `AtariVectorEnv.xla()`): they run inside `jit` and `lax.scan`, and
+the emulators live in C++ outside JAX, so:
 
-- one run per process: a sweep of ALE games takes `--seeds 1` (a vmap over more runs is refused in one sentence);
-- a checkpoint cannot hold the emulators: a resumed run starts fresh games (the env state and the running
+- **Runs are folded into one vector environment.** Under `vmap` over R runs (a sweep's seeds and hyper-parameter
+  combinations), the custom calls' batching rule (`jax.custom_batching.custom_vmap`) reshapes the runs' [R, B]
+  actions and reset seeds into one axis of R x B and steps one ale-py vector environment of R x B emulators, with
+  as many threads as the host has cores; run r owns emulators r*B .. r*B+B-1. Nested vmaps fold again. Each
+  emulator is seeded at reset from its run's key alone, so a run steps the same games whether it runs alone or
+  among others (tests/test_atari_ale.py).
+- **The emulators are made when a reset first runs**, not when it is traced: the reset's custom call takes its
+  vector environment's handle from a host callback that makes (once) the vector environment of that many
+  emulators for this `AleEnv`. Tracing for shapes (`jax.eval_shape`) makes none, and no compiled program holds
+  a pointer. Each `AleEnv` owns its emulators: two arms, or training and evaluation, never step the same games.
+  A state is stepped under the same vmaps that reset it (its handle names the vector environment of that size).
+- **One device.** The R x B emulators are stepped by one custom call on one device; a sweep sharded over several
+  devices would run the call on each of them. On a host with several GPUs, give the ALE sweep one
+  (`CUDA_VISIBLE_DEVICES=0`); several ALE sweeps can share a host, one per GPU.
+- **A checkpoint cannot hold the emulators**: a resumed run starts fresh games (the env state and the running
   episode returns come from init), so an ALE resume continues training but is not bit-identical.
 
 Preprocessing (ale-py's, the standard one of Mnih et al. 2015 / Machado et al. 2018): frame skip `frame_skip`
@@ -24,21 +37,40 @@ transition of the MinAtar tier) and the policy then acts on the new game.
 
 from __future__ import annotations
 
+import atexit
+import functools
+import threading
+import weakref
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
+from jax.experimental import io_callback
 
 from cdjax.protocol import ConfigError
 
 GAMES = {"ale-breakout": "breakout", "ale-seaquest": "seaquest", "ale-mspacman": "ms_pacman",
          "ale-frostbite": "frostbite", "ale-pong": "pong", "ale-spaceinvaders": "space_invaders"}
 INSTALL = "The ALE games need the optional extra `atari` (ale-py, GPL-2.0): pip install -e \".[atari]\"."
-ONE_RUN = "ALE games run one seed per process (their emulators live outside JAX): use --seeds 1 and one value per hyper-parameter."
+ONE_DEVICE = ("ALE games run on one device (the emulators of all runs are one vector environment on the host): "
+              "make one visible, e.g. CUDA_VISIBLE_DEVICES=0.")
+RESET, STEP = "atari_vector_xla_reset", "atari_vector_xla_step"  # ale-py's FFI targets (ale_py.vector_env)
+HANDLE = jax.ShapeDtypeStruct((8,), jnp.uint8)
+FRAMES = (4, 84, 84)  # ale-py's observation of one emulator: a stack of 4 grey 84x84 frames
+_LIVE: "weakref.WeakSet[AleEnv]" = weakref.WeakSet()  # every AleEnv of this process (their emulators close at exit)
+
+
+@atexit.register
+def _close_all() -> None:
+    """Drop every emulator before the interpreter is torn down (ale-py's bindings otherwise report them leaked)."""
+    for env in list(_LIVE):
+        env._vectors.clear()
 
 
 @struct.dataclass
 class AleState:
-    handle: jax.Array  # [8] uint8: ale-py's vector env handle (threads the custom calls' order)
+    handle: jax.Array  # [8] uint8: the vector env's handle (threads the custom calls' order)
     obs: jax.Array  # [B, 84, 84, 4] uint8: what the policy acts on
     lives: jax.Array  # [B] int32 lives left
     pending_reset: jax.Array  # [B] bool: the game ended on the last step; ale-py resets it on this one
@@ -57,23 +89,58 @@ class AleStep:
     game_over: jax.Array  # [B] bool: the game itself ended (terminated or timed out)
 
 
-def _one_run(fn):
-    """fn under vmap over one run is fn on the run; over more, refused (the emulators cannot be batched)."""
+@functools.cache
+def _register() -> None:
+    """ale-py's FFI targets registered with JAX (as `AtariVectorEnv.xla()` does; registering again is harmless)."""
+    import ale_py
+
+    lib = ale_py._ale_py
+    jax.ffi.register_ffi_target(RESET, lib.VectorXLAReset(), platform="cpu")
+    jax.ffi.register_ffi_target(STEP, lib.VectorXLAStep(), platform="cpu")
+    if hasattr(lib, "VectorXLAResetGPU"):
+        jax.ffi.register_ffi_target(RESET, lib.VectorXLAResetGPU(), platform="CUDA")
+        jax.ffi.register_ffi_target(STEP, lib.VectorXLAStepGPU(), platform="CUDA")
+
+
+@functools.cache
+def _num_actions(game: str) -> int:
+    """Actions of the game's minimal action set (what the vector env offers)."""
+    from ale_py.vector_env import AtariVectorEnv
+
+    return int(AtariVectorEnv(game, 1, num_threads=1).single_action_space.n)
+
+
+def _folded(fn, shared_input: bool):
+    """fn(*args) -> (handle, *per-env outputs [n, ...]), whose per-env inputs have a leading env axis [n], made
+    batchable by folding: under vmap over R, the per-env inputs [R, n, ...] become [R * n, ...] of one call and the
+    outputs are split back into [R, n, ...]; the handle output is the same for every run. With `shared_input`, the
+    first input is a handle (one value for all runs)."""
     wrapped = jax.custom_batching.custom_vmap(fn)
 
     @wrapped.def_vmap
     def rule(axis_size, in_batched, *args):
-        if axis_size != 1:
-            raise ConfigError(ONE_RUN)
-        args = [jax.tree.map(lambda x: x[0], a) if b else a for a, b in zip(args, in_batched)]
-        out = wrapped(*args)
-        return jax.tree.map(lambda x: x[None], out), jax.tree.map(lambda _: True, out)
+        head = ()
+        if shared_input:
+            handle, batched = args[0], in_batched[0]
+            head, args, in_batched = (handle[0] if batched else handle,), args[1:], in_batched[1:]
+        flat = [_fold(x, b, axis_size) for x, b in zip(args, in_batched)]
+        handle_out, *outs = wrapped(*head, *flat)
+        outs = [y.reshape((axis_size, -1) + y.shape[1:]) for y in outs]
+        handle_out = jnp.broadcast_to(handle_out, (axis_size,) + handle_out.shape)
+        return (handle_out, *outs), (True,) * (1 + len(outs))
 
     return wrapped
 
 
+def _fold(x: jax.Array, batched: bool, axis_size: int) -> jax.Array:
+    """[R, n, ...] (or an unbatched [n, ...], the same for every run) -> [R * n, ...]."""
+    if not batched:
+        x = jnp.broadcast_to(x, (axis_size,) + x.shape)
+    return x.reshape((-1,) + x.shape[2:])
+
+
 class AleEnv:
-    """`num_envs` games of ale-py's vector environment, stepped by XLA custom calls. Not a pytree."""
+    """`num_envs` games per run of ale-py's vector environment, stepped by XLA custom calls. Not a pytree."""
 
     def __init__(self, config, num_envs: int, episodic_life: bool = True):
         try:
@@ -82,13 +149,52 @@ class AleEnv:
             raise ConfigError(INSTALL) from None
         if config.env not in GAMES:
             raise ConfigError(f"Unknown ALE game {config.env!r}; choose one of {', '.join(GAMES)}.")
+        if jax.device_count() > 1:
+            raise ConfigError(ONE_DEVICE)
+        _register()
+        self.config, self._vector_type = config, AtariVectorEnv
         self.num_envs, self.episode_length, self.episodic_life = num_envs, config.episode_length, episodic_life
-        self.vector = vector_env(AtariVectorEnv, config, num_envs)
-        self.handle, xla_reset, xla_step = self.vector.xla()
-        self._reset = _one_run(lambda handle, seeds: xla_reset(handle, seeds))
-        self._step = _one_run(xla_step)
-        self.obs_shape = (84, 84, 4)
-        self.num_actions = int(self.vector.single_action_space.n)
+        self.obs_shape = FRAMES[1:] + FRAMES[:1]
+        self.num_actions = _num_actions(GAMES[config.env])
+        self._vectors: dict[int, object] = {}  # emulators -> this env's ale-py vector env of that many
+        self._lock = threading.Lock()
+        self._reset = _folded(self._reset_call, shared_input=False)
+        self._step = _folded(self._step_call, shared_input=True)
+        _LIVE.add(self)
+
+    # --- the emulators and the custom calls
+
+    def vector(self, n: int):
+        """This env's ale-py vector env of `n` emulators (made on first use, then kept)."""
+        with self._lock:
+            if n not in self._vectors:
+                self._vectors[n] = vector_env(self._vector_type, self.config, n)
+            return self._vectors[n]
+
+    def _handle(self, n: int) -> np.ndarray:
+        return np.frombuffer(self.vector(n).ale.handle(), dtype=np.uint8).copy()
+
+    def _reset_call(self, seeds: jax.Array):
+        """seeds [n] int32 -> (handle, obs [n, 4, 84, 84] uint8, lives [n] int32): new games in n emulators."""
+        n = seeds.shape[0]
+        handle = io_callback(functools.partial(self._handle, n), HANDLE, ordered=False)
+        per_env = jax.ShapeDtypeStruct((n,), jnp.int32)
+        call = jax.ffi.ffi_call(RESET, (HANDLE, jax.ShapeDtypeStruct((n,) + FRAMES, jnp.uint8), per_env, per_env,
+                                        per_env, per_env), has_side_effect=True)
+        handle, obs, _, lives, _, _ = call(handle, jnp.arange(n, dtype=jnp.int32), seeds)
+        return handle, obs, lives
+
+    def _step_call(self, handle: jax.Array, actions: jax.Array):
+        """(handle, actions [n] int32) -> (handle, obs [n, 4, 84, 84], reward [n] int32, terminated, truncated [n]
+        bool, lives [n] int32): one agent step of the n emulators the handle names."""
+        n = actions.shape[0]
+        per_env, flag = jax.ShapeDtypeStruct((n,), jnp.int32), jax.ShapeDtypeStruct((n,), jnp.bool_)
+        call = jax.ffi.ffi_call(STEP, (HANDLE, jax.ShapeDtypeStruct((n,) + FRAMES, jnp.uint8), per_env, flag, flag,
+                                       per_env, per_env, per_env, per_env), has_side_effect=True)
+        handle, obs, reward, term, trunc, _, lives, _, _ = call(handle, actions, jnp.ones((n,), jnp.float32))
+        return handle, obs, reward, term, trunc, lives
+
+    # --- the env interface
 
     @staticmethod
     def _frames(obs: jax.Array) -> jax.Array:
@@ -98,14 +204,14 @@ class AleEnv:
         """New games, seeded from `key` (the same key gives the same games)."""
         key_seeds, key_next = jax.random.split(key)
         seeds = jax.random.randint(key_seeds, (self.num_envs,), 0, 2**31 - 1, jnp.int32)
-        handle, (obs, info) = self._reset(self.handle, seeds)
-        return AleState(handle=handle, obs=self._frames(obs), lives=info["lives"].astype(jnp.int32),
+        handle, obs, lives = self._reset(seeds)
+        return AleState(handle=handle, obs=self._frames(obs), lives=lives.astype(jnp.int32),
                         pending_reset=jnp.zeros((self.num_envs,), bool), key=key_next)
 
     def step(self, state: AleState, action: jax.Array) -> tuple[AleState, AleStep]:
         assert action.shape == (self.num_envs,), action.shape
-        handle, (obs, reward, term, trunc, info) = self._step(state.handle, action.astype(jnp.int32))
-        obs, lives = self._frames(obs), info["lives"].astype(jnp.int32)
+        handle, obs, reward, term, trunc, lives = self._step(state.handle, action.astype(jnp.int32))
+        obs, lives = self._frames(obs), lives.astype(jnp.int32)
         valid = ~state.pending_reset
         game_end = term & valid
         truncated = trunc & valid & ~game_end
@@ -117,10 +223,12 @@ class AleEnv:
                         key=state.key), out
 
 
-def vector_env(vector_type, config, num_envs: int):
-    """ale-py's vector env (`vector_type`: ale_py.vector_env.AtariVectorEnv) with this module's preprocessing; its
-    own Python-side reset(seed=...) and step(actions) step the same games as `AleEnv` does inside XLA."""
+def vector_env(vector_type, config, num_envs: int, num_threads: int = 0):
+    """ale-py's vector env (`vector_type`: ale_py.vector_env.AtariVectorEnv) with this module's preprocessing and
+    `num_threads` threads (0: one per core); its own Python-side reset(seed=...) and step(actions) step the same games
+    as `AleEnv` does inside XLA."""
     return vector_type(
         GAMES[config.env], num_envs, frameskip=config.frame_skip, maxpool=True, stack_num=4, img_height=84,
         img_width=84, grayscale=True, noop_max=30, use_fire_reset=True, episodic_life=False, reward_clipping=False,
-        repeat_action_probability=config.sticky_prob, max_num_frames_per_episode=config.episode_length * config.frame_skip)
+        repeat_action_probability=config.sticky_prob, max_num_frames_per_episode=config.episode_length * config.frame_skip,
+        num_threads=num_threads)

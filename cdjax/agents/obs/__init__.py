@@ -120,9 +120,13 @@ def make_trainer(config: Config) -> Trainer:
 
 
 def _describe_phase(info: Mapping[str, float]) -> str:
-    return (f"episode return: random actions {info.get('random/episode_return', math.nan):.1f}, MPC "
-            f"{info.get('mpc/episode_return', math.nan):.1f}, distilled policy "
-            f"{info.get('dagger/episode_return', math.nan):.1f}.")
+    return (f"reward per step: random actions {info.get('random/reward_mean', math.nan):.3g}, MPC "
+            f"{info.get('mpc/reward_mean_last', math.nan):.3g}, distilled policy "
+            f"{info.get('dagger/reward_mean_last', math.nan):.3g}; the policy's distance to the mean MPC label "
+            f"{info.get('distill/abs_error_mean', math.nan):.3g} (zero action: "
+            f"{info.get('distill/abs_error_zero', math.nan):.3g}, one label: {info.get('labels/self_error', math.nan):.3g})"
+            + (f"; PPO starts (reward per step, sampled): distilled {info['handover/sampled_reward_mean']:.3g}, untrained "
+               f"{info['fresh/sampled_reward_mean']:.3g}" if "handover/sampled_reward_mean" in info else "") + ".")
 
 
 def preset_of_env(given: Mapping) -> str | None:

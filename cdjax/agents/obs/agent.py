@@ -29,7 +29,7 @@ from flax import struct
 
 from cdjax import consistency
 from cdjax import normalize as nz
-from cdjax.agents.obs import losses, networks
+from cdjax.agents.obs import losses, networks, yardstick
 from cdjax.agents.obs.config import HP_RANGES, Config, HParams
 from cdjax.agents.obs.optim import make_optimizer
 from cdjax.agents.obs.rollout import Transition, closed_loop, open_loop
@@ -126,6 +126,11 @@ class ObsAgent:
         self.policy, self.value = self.modules["policy"], self.modules["value"]
         self.model = self.modules.get("model")
         self.encoder = self.modules.get("encoder")
+        self.yardstick = None  # the windows of config.yardstick the model is scored on (cdjax/agents/obs/yardstick.py)
+        if config.yardstick and self.model is not None:
+            data = yardstick.load(config.yardstick)
+            yardstick.check_matches(data, config.env, self.O, self.A, config.yardstick)
+            self.yardstick = yardstick.Windows.of(data, self.k, config.eval_horizon)
 
     def model_step(self, model_params, norms, obs, action):
         mean, _ = self.model.apply(model_params, nz.normalize(norms.obs, obs), action)
@@ -158,7 +163,8 @@ class ObsAgent:
         nan = jnp.full((), jnp.nan, jnp.float32)
         state = TrainState(
             params=params, opt_state=opt_state, norms=nz.Norms.create(self.O), env_state=env_state,
-            episodes=EpisodeStats.create(self.config.num_envs),
+            # a staggered env's first episode starts part-way into its time limit: its return is not logged
+            episodes=EpisodeStats.create(self.config.num_envs, skip=env_state.t > 0),
             history=History.create(self.config.history_len - 1, self.config.eval_envs, self.O, self.A),
             last_return=nan, last_disc_return=nan, key=key_train, update_step=jnp.zeros((), jnp.int32))
         return strong_types(state)
@@ -344,6 +350,9 @@ class ObsAgent:
         history = state.history.push(traj)
         if self.model is not None:  # the model of the last update with the statistics it was trained with
             metrics.update(self.openloop_metrics(state.params["model"], state.norms, history))
+        if self.yardstick is not None:  # the same model on the common yardstick
+            step = lambda s, a: self.model_step(state.params["model"], state.norms, s, a)[0]  # noqa: E731
+            metrics.update(yardstick.errors(step, self.yardstick))
         last_return, _ = episodes.mean_returns(state.last_return)
         _, last_disc = episodes.mean_returns(state.last_disc_return)
         metrics.update({

@@ -45,6 +45,7 @@ class Config:
     episode_length: int = 1000  # time-out in physics steps (agent steps x action_repeat, as Brax); a truncation
     action_repeat: int = 1  # physics control steps per agent step
     reset_mode: ResetMode = "cached"  # cached: each env resets to its own first start (as Brax); fresh: new random start
+    stagger_resets: bool = False  # each env starts at a random point of its time limit (that first episode is not logged)
     activation: str = "swish"  # activation of the policy and value MLPs (a flax.linen name: swish, tanh, ...)
     policy_std: PolicyStd = "state"  # policy std: state (softplus head, as Brax) or global (one log-std per dim)
     entropy: Entropy = "squashed"  # entropy bonus: of the tanh-squashed action (one-sample) or of the Gaussian
@@ -60,6 +61,7 @@ class Config:
     cc_epochs: int = 0  # PPO epochs (the first ones) whose minibatches include the consistency term; 0 = all
     eval_horizon: int = 50  # longer open-loop horizon for the compounding-error metric (paper: 50)
     eval_envs: int = 8  # environments whose recent history is kept for the open-loop error metrics
+    yardstick: str = ""  # held-out real trajectories (.npz) the model is also scored on each update (yardstick.py); "": none
 
     def __post_init__(self):
         validate(self)

@@ -4,7 +4,11 @@ This is the controller of Mb-Mf (Nagabandi et al., 2017), which Sodhani et al.
 (2019) use as their model-based baseline: at every environment step, sample
 ``num_candidates`` action sequences uniformly from ``[-1, 1]^(horizon x action_size)``,
 roll each one out through a dynamics function, sum the (discounted) predicted
-rewards, and execute the first action of the best sequence.
+rewards, and execute the first action of the best sequence. With ``num_elites > 1``
+it executes the mean first action of the ``num_elites`` best sequences instead
+(one step of the cross-entropy method's refit, without iterating): the best
+sequence's first action is mostly noise when the horizon is long, because the
+first action decides a small part of the sequence's return.
 
 The controller is generic over the dynamics. ``step_fn(state, action) ->
 (next_state, reward)`` may be
@@ -37,6 +41,7 @@ __all__ = [
     "sample_action_sequences",
     "rollout_returns",
     "select_best",
+    "select_elite_mean",
     "random_shooting",
     "batched_random_shooting",
 ]
@@ -237,6 +242,36 @@ def select_best(
     return action, info
 
 
+def select_elite_mean(
+    actions: jax.Array, returns: jax.Array, num_elites: int
+) -> Tuple[jax.Array, Dict[str, jax.Array]]:
+    """Mean first action of the ``num_elites`` best candidates, ignoring non-finite returns.
+
+    Non-finite returns rank last (as ``-inf``); elites without a finite return are left out of the
+    mean, and with no finite return at all the action is zeros. ``num_elites = 1`` is ``select_best``.
+
+    Args:
+      actions: ``[N, H, A]``.
+      returns: ``[N]``.
+      num_elites: static int, ``1 <= num_elites <= N``.
+    Returns:
+      action: ``[A]``; info as ``select_best``'s (``best_return`` is the best elite's).
+    """
+    n, _, a = actions.shape
+    _check_positive_int("num_elites", num_elites)
+    if num_elites > n:
+        raise ValueError(f"num_elites={num_elites} is more than the {n} candidates")
+    best, info = select_best(actions, returns)
+    if num_elites == 1:
+        return best, info
+    safe = jnp.where(jnp.isfinite(returns), returns, -jnp.inf)
+    top, idx = lax.top_k(safe, num_elites)
+    weight = jnp.isfinite(top).astype(actions.dtype)
+    total = jnp.sum(weight)
+    mean = jnp.sum(actions[idx, 0] * weight[:, None], axis=0) / jnp.maximum(total, 1.0)
+    return jnp.where(total > 0, mean, jnp.zeros((a,), actions.dtype)), info
+
+
 # --------------------------------------------------------------------------------------
 # Controllers.
 # --------------------------------------------------------------------------------------
@@ -251,6 +286,7 @@ def random_shooting(
     num_candidates: int,
     action_size: int,
     discount: float | jax.Array = 1.0,
+    num_elites: int = 1,
 ) -> Tuple[jax.Array, Dict[str, jax.Array]]:
     """Random-shooting MPC for one state.
 
@@ -263,9 +299,11 @@ def random_shooting(
       num_candidates: ``N``, number of sampled action sequences (static int).
       action_size: ``A`` (static int). Actions are in ``[-1, 1]``.
       discount: scalar in ``(0, 1]`` weighting reward ``t`` by ``discount**t``.
+      num_elites: static int; 1 acts with the best candidate's first action, more with the
+        mean first action of that many best candidates (``select_elite_mean``).
     Returns:
-      action: ``[A]``, first action of the best candidate (zeros if every predicted
-        return is non-finite).
+      action: ``[A]``, first action of the best candidate, or the elites' mean (zeros if every
+        predicted return is non-finite).
       info: dict of scalars ``best_return``, ``mean_return``, ``frac_finite``.
     """
     _check_single_key(key)
@@ -274,7 +312,7 @@ def random_shooting(
         key, horizon=horizon, num_candidates=num_candidates, action_size=action_size
     )
     returns = rollout_returns(step_fn, state, actions, discount)
-    return select_best(actions, returns)
+    return select_elite_mean(actions, returns, num_elites)
 
 
 def batched_random_shooting(
@@ -286,6 +324,7 @@ def batched_random_shooting(
     num_candidates: int,
     action_size: int,
     discount: float | jax.Array = 1.0,
+    num_elites: int = 1,
 ) -> Tuple[jax.Array, Dict[str, jax.Array]]:
     """Random-shooting MPC for a batch of states, one independent controller per env.
 
@@ -296,7 +335,7 @@ def batched_random_shooting(
       key: a single PRNG key.
       step_fn: as in :func:`random_shooting`, for ONE unbatched state.
       states: pytree whose every leaf has leading batch axis ``B``.
-      horizon, num_candidates, action_size, discount: as in :func:`random_shooting`.
+      horizon, num_candidates, action_size, discount, num_elites: as in :func:`random_shooting`.
     Returns:
       actions: ``[B, A]``.
       info: dict of ``[B]`` arrays (``best_return``, ``mean_return``, ``frac_finite``).
@@ -315,6 +354,7 @@ def batched_random_shooting(
             num_candidates=num_candidates,
             action_size=action_size,
             discount=discount,
+            num_elites=num_elites,
         )
 
     return jax.vmap(one_env)(keys, states)

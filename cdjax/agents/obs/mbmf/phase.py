@@ -6,16 +6,22 @@ once; it also vmaps over seeds). In the phase's own `phase.num_envs` environment
 1. random data: `random_steps` steps per env of uniform actions in [-1, 1];
 2. model: params["model"] (Gaussian over the normalised delta-s and reward) trained with Adam(hp.lr_model),
    `model_epochs` shuffled epochs of minibatches over a ring buffer of real transitions (objective:
-   `model_objective` below); the running statistics (state.norms) are updated from the new data first;
+   `model_objective` below; with `onpolicy_fraction` > 0 that share of every minibatch comes from the MPC
+   data once there is some, as Nagabandi et al.'s `fraction_use_new`); the running statistics
+   (state.norms) are updated from the new data first;
 3. aggregation, `aggregation_iters` times: random-shooting MPC (`mpc`) on the learned model acts for
-   `mpc_steps_per_iter` steps, its transitions are appended to the buffer, the model is retrained;
+   `mpc_steps_per_iter` steps, its transitions are appended to the buffer, the model is retrained. The
+   candidates are scored by the model's reward or, `mpc_reward="true"`, by the task's reward of the predicted
+   observations (cdjax.envs.rewards); the MPC acts with the best candidate's first action or the mean first
+   action of its `mpc_elites` best;
 4. distillation: the aggregation states are re-planned with the final model (`relabel`), the policy's
    deterministic action tanh(mu(s)) is regressed (MSE) on those MPC actions, then `distill_iters` DAgger
-   rounds: the (stochastic) policy acts, MPC labels the states it visits, the pairs are aggregated, the
-   policy is retrained;
+   rounds: the policy acts (sampling, or with its mean action: `dagger_deterministic`), MPC labels the
+   states it visits, the pairs are aggregated, the policy is retrained; `label_checks` then measures on the
+   policy's states how noisy the labels are and how close the policy came to their mean;
 5. the value is fitted to TD(lambda) returns of the DAgger rollouts (`value_epochs`, optional), and the
-   TrainState goes back ready for `agent.update`, its PPO environments as they were (the phase acts in
-   its own), PPO's optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every
+   TrainState goes back ready for `agent.update`, its PPO environments and their episode statistics as
+   they were (the phase acts in its own), PPO's optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every
    env step taken.
 
 Why MSE on tanh(mu) rather than the Gaussian likelihood of atanh(action): random-shooting actions are
@@ -47,12 +53,16 @@ from cdjax.agents.obs import losses, mpc, networks
 from cdjax.agents.obs.agent import ObsAgent, TrainState, make_agent, model_target, refresh_norms
 from cdjax.agents.obs.config import Config, HParams
 from cdjax.agents.obs.mbmf.data import Labelled, Rollout, Transitions, model_objective
-from cdjax.agents.obs.mbmf.spec import MbMfPhase, validate_phase
+from cdjax.agents.obs.mbmf.spec import HANDOVER_CHECKS, MbMfPhase, validate_phase
 from cdjax.agents.obs.rollout import env_step
-from cdjax.envs import BatchedEnv, EnvState, EpisodeStats, make_single_env, strong_types
+from cdjax.envs import BatchedEnv, EnvState, EpisodeStats, make_single_env, rewards, strong_types
 from cdjax.numerics import masked_mean
 from cdjax.optim import clipped_adam
 from cdjax.replay import RingBuffer, fit
+
+
+LABEL_CHECK_STATES = 64  # states of the distilled policy on which the labels' noise is measured (label_checks)
+LABEL_DRAWS = 4  # independent MPC labels per such state
 
 
 def _first_last(values: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -114,21 +124,33 @@ class PolicyStage:
 def phase_env(config: Config, phase: MbMfPhase, agent: ObsAgent) -> BatchedEnv:
     """The environments the phase acts in: the agent's when the sizes agree, else a new BatchedEnv."""
     B = phase.envs(config)
-    if B == config.num_envs:
+    if B == config.num_envs and not agent.env.stagger:  # the phase's episode statistics count every episode
         return agent.env
     return BatchedEnv(make_single_env(config.env), B, config.episode_length, config.action_repeat,
                       config.reset_mode)
 
 
 def make_mpc_controller(agent: ObsAgent, phase: MbMfPhase) -> Callable:
-    """controller(model_params, norms, obs [B, O], key) -> MPC actions [B, A] on the learned model."""
+    """controller(model_params, norms, obs [B, O], key) -> MPC actions [B, A] on the learned model.
+
+    Candidates are scored by the model's predicted reward (`mpc_reward="model"`) or by the task's reward of
+    the predicted observations (`"true"`, cdjax.envs.rewards); the action is the best candidate's first one,
+    or the mean first action of the `mpc_elites` best.
+    """
     A = agent.env.action_size
+    true_reward = rewards.reward_fn(agent.config.env) if phase.mpc_reward == "true" else None
+    repeat = agent.config.action_repeat
 
     def controller(model_params, norms, obs, key):
-        step_fn = lambda s, a: agent.model_step(model_params, norms, s, a)  # noqa: E731  [O], [A] -> [O], []
+        def step_fn(s, a):  # [O], [A] -> [O], []
+            next_s, reward = agent.model_step(model_params, norms, s, a)
+            if true_reward is not None:
+                reward = true_reward(s, a, next_s, repeat)
+            return next_s, reward
+
         actions, _ = mpc.batched_random_shooting(key, step_fn, obs, horizon=phase.mpc_horizon,
                                                  num_candidates=phase.mpc_candidates, action_size=A,
-                                                 discount=phase.mpc_discount)
+                                                 discount=phase.mpc_discount, num_elites=phase.mpc_elites)
         return actions
 
     return controller
@@ -164,6 +186,11 @@ class MbMfProgram:
         start = acting.replace(stats=acting.stats.start_rollout())
         return jax.lax.scan(step, start, jax.random.split(key, length))
 
+    def dagger_action(self, policy_params, norms, obs: jax.Array, key: jax.Array) -> jax.Array:
+        """The policy's action in a DAgger rollout [B, A]: its mean action tanh(mu) (`dagger_deterministic`) or a
+        sample with its current noise."""
+        return self.agent.act({"policy": policy_params}, norms, obs, None if self.phase.dagger_deterministic else key)
+
     def update_norms(self, norms: nz.Norms, data: Transitions) -> nz.Norms:
         return refresh_norms(norms, data.obs, data.next_obs, data.reward, data.valid)
 
@@ -184,9 +211,12 @@ class MbMfProgram:
         return self.distill_loss(policy_params, data, norms)[1]["distill/abs_error"]
 
     def fit_model(self, model_fit: Fitted, norms, data: RingBuffer, tx, key) -> tuple[Fitted, dict]:
+        """Retrain the model on the buffer; with onpolicy_fraction > 0 that share of every minibatch comes from
+        the MPC data, which follows the random data (its B x random_steps transitions) in the buffer."""
         loss = functools.partial(self.model_batch_loss, norms=norms)
         params, opt_state, metrics = fit(loss, model_fit.params, model_fit.opt_state, tx, data, self.phase.model_epochs,
-                                         self.phase.model_minibatch, key)
+                                         self.phase.model_minibatch, key, split=self.B * self.phase.random_steps,
+                                         fraction=self.phase.onpolicy_fraction)
         return Fitted(params, opt_state), metrics
 
     def fit_policy(self, policy_fit: Fitted, norms, data: RingBuffer, tx, key) -> Fitted:
@@ -209,6 +239,57 @@ class MbMfProgram:
         plan = lambda inp: self.controller(model_params, norms, inp[0], inp[1])  # noqa: E731
         labels = jax.lax.map(plan, (obs.reshape(n_chunks, chunk, self.O), keys)).reshape(-1, self.A)[:n]
         return buffer.replace(data=buffer.data.replace(action=buffer.data.action.at[:n].set(labels)))
+
+    def label_checks(self, policy_params, model_params, norms, states: jax.Array, key: jax.Array) -> dict:
+        """How learnable the distillation targets are, on up to LABEL_CHECK_STATES of `states` [N, O].
+
+        The MPC's label at a state is random (its candidates are), so a policy that regressed it perfectly
+        would still differ from single labels. With LABEL_DRAWS independent labels per state:
+        labels/self_error: |one label - the mean of the others|, what no policy can beat by much;
+        labels/mean_abs: |mean label|, the size of what is there to learn;
+        distill/abs_error_mean: |policy - mean label|, how close the policy came to it;
+        distill/abs_error_zero: |0 - one label|, the error of the zero action (an untrained tanh policy's).
+        All are means over states and action dimensions.
+        """
+        n = min(LABEL_CHECK_STATES, states.shape[0])
+        obs = states[:: states.shape[0] // n][:n]  # spread over the rollout's steps and envs
+        labels = jax.lax.map(lambda k: self.controller(model_params, norms, obs, k),
+                             jax.random.split(key, LABEL_DRAWS))  # [D, n, A]
+        mean = labels.mean(0)
+        others = (labels.sum(0)[None] - labels) / (LABEL_DRAWS - 1)
+        policy = self.agent.act({"policy": policy_params}, norms, obs, None)
+        return {"labels/self_error": jnp.abs(labels - others).mean(),
+                "labels/mean_abs": jnp.abs(mean).mean(),
+                "distill/abs_error_mean": jnp.abs(policy - mean).mean(),
+                "distill/abs_error_zero": jnp.abs(labels).mean()}
+
+    def handover_checks(self, fresh_params, fresh_norms, policy_params, norms, hp: HParams, key: jax.Array):
+        """What PPO starts from: the distilled policy against the untrained one (what the model-free arm starts
+        from, with init's statistics), each sampling (as PPO's first rollout acts) and with its mean action,
+        `handover_steps` steps from the same reset states and noise of the phase's environments -> (reward per step
+        of each, env steps taken). The four rollouts are one scan, vmapped over them (one physics body to compile).
+        """
+        key_reset, key_act = jax.random.split(key)
+        four = lambda a, b: jnp.stack([a, a, b, b])  # noqa: E731  distilled, distilled, untrained, untrained
+        params = jax.tree.map(four, policy_params, fresh_params)
+        stats_ = jax.tree.map(four, norms, fresh_norms)
+        sample = jnp.array([True, False, True, False])
+
+        def reward_per_step(params, stats_, sample):
+            def act(obs, k):
+                action = jnp.where(sample, self.agent.act({"policy": params}, stats_, obs, k),
+                                   self.agent.act({"policy": params}, stats_, obs, None))
+                return action, action
+
+            acting = Acting(self.env.reset(key_reset), EpisodeStats.create(self.B), jnp.zeros((), jnp.int32))
+            _, traj = self.rollout(acting, act, key_act, self.phase.handover_steps, hp.gamma)
+            return masked_mean(traj.reward, traj.valid)
+
+        rewards = jax.vmap(reward_per_step)(params, stats_, sample)
+        names = ("handover/sampled", "handover/mean_action", "fresh/sampled", "fresh/mean_action")
+        out = {f"{name}_reward_mean": rewards[i] for i, name in enumerate(names)}
+        steps = HANDOVER_CHECKS * self.B * self.phase.handover_steps * self.config.action_repeat
+        return out, jnp.asarray(steps, jnp.int32)
 
     def fit_value(self, value_params, norms, traj: Rollout, hp: HParams, key: jax.Array):
         """Regress V on TD(lambda) returns of traj [L, N] (recomputed with the current V every epoch)."""
@@ -304,7 +385,7 @@ class MbMfProgram:
     def policy_stage(self, state: TrainState, stage: ModelStage, hp: HParams, keys
                      ) -> tuple[PolicyStage, Rollout, dict]:
         """Step 4: behaviour cloning of the (relabelled) MPC actions, then the DAgger rounds."""
-        key_relabel, key_distill, key_dagger = keys
+        key_relabel, key_distill, key_dagger, key_check = keys
         model_params, norms = stage.model.params, stage.norms
         policy_tx = clipped_adam(hp.lr_distill, hp)
         labelled = stage.labelled
@@ -320,7 +401,7 @@ class MbMfProgram:
 
             def act_and_label(obs, key):
                 key_act, key_plan = jax.random.split(key)
-                action = self.agent.act({"policy": stage.policy.params}, norms, obs, key_act)
+                action = self.dagger_action(stage.policy.params, norms, obs, key_act)
                 return action, self.controller(model_params, norms, obs, key_plan)
 
             acting, traj = self.rollout(stage.acting, act_and_label, key_roll, self.phase.distill_steps_per_iter,
@@ -337,6 +418,9 @@ class MbMfProgram:
         stage = PolicyStage(stage.acting, policy_fit, labelled)
         stage, (dag, trajs) = jax.lax.scan(dagger, stage, jax.random.split(key_dagger, self.phase.distill_iters))
         info["distill/abs_error"] = self.buffer_abs_error(stage.policy.params, norms, stage.labelled)
+        # the states the distilled policy visits (last DAgger round), else the first labelled ones
+        states = trajs.obs[-1].reshape(-1, self.O) if self.phase.distill_iters else stage.labelled.data.obs
+        info.update(self.label_checks(stage.policy.params, model_params, norms, states, key_check))
         info["dagger/abs_error_new_first"], info["dagger/abs_error_new_last"] = _first_last(dag["abs_error_new"])
         info["dagger/reward_mean_first"], info["dagger/reward_mean_last"] = _first_last(dag["reward_mean"])
         info["dagger/episode_return"] = _first_last(dag["episode_return"])[1]
@@ -345,10 +429,11 @@ class MbMfProgram:
     def run(self, state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
         hp = hp.as_float32()
         (key, key_reset, key_random, key_model, key_agg, key_relabel, key_distill, key_dagger, key_value,
-         _) = jax.random.split(state.key, 10)
+         key_check, key_handover) = jax.random.split(state.key, 11)
         model_tx = clipped_adam(hp.lr_model, hp)
         models, info = self.models_stage(state, hp, model_tx, (key_reset, key_random, key_model, key_agg))
-        policies, trajs, policy_info = self.policy_stage(state, models, hp, (key_relabel, key_distill, key_dagger))
+        policies, trajs, policy_info = self.policy_stage(state, models, hp,
+                                                         (key_relabel, key_distill, key_dagger, key_check))
         info.update(policy_info)
 
         # 5. The value on the DAgger rollouts ([R, L, B] -> [L, R*B]: each round a separate segment).
@@ -360,11 +445,16 @@ class MbMfProgram:
             info["value/loss"] = jnp.full((), jnp.nan, jnp.float32)
 
         info["env_steps"] = policies.acting.env_steps
+        if self.phase.handover_steps:
+            checks, steps = self.handover_checks(state.params["policy"], state.norms, policies.policy.params,
+                                                 models.norms, hp, key_handover)
+            info.update(checks)
+            info["env_steps"] = info["env_steps"] + steps
         params = dict(state.params, model=models.model.params, policy=policies.policy.params, value=value_params)
         # The PPO environments are as init left them (the phase acted in its own): each keeps the reset target
         # it was created with, which a checkpoint therefore need not store.
         new_state = state.replace(params=params, norms=models.norms, env_state=state.env_state,
-                                  episodes=EpisodeStats.create(self.config.num_envs), key=key)
+                                  episodes=state.episodes, key=key)
         return strong_types(new_state), info
 
 
@@ -374,8 +464,10 @@ def make_mbmf_phase(config: Config, phase: MbMfPhase, agent: ObsAgent | None = N
 
     `state` is what agent.init returns (or any TrainState of `config`); params["model"] and
     params["policy"] come back trained, params["value"] fitted (value_epochs > 0), norms updated, the PPO
-    environments and opt_state untouched (the phase acts in environments of its own), episode statistics fresh,
-    the encoder untouched.
+    environments, their episode statistics (init's: fresh, staggered first episodes marked) and opt_state
+    untouched (the phase acts in environments of its own, never staggered), the encoder untouched.
+    With handover_steps > 0, info also holds the reward per step of the distilled and of the untrained policy,
+    sampled and with their mean action, from the same reset states (`handover_checks`).
     info["env_steps"] (int32) counts the env steps the phase took: charge them to the arm's budget.
     """
     return MbMfProgram(config, phase, agent).run

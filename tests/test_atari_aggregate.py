@@ -1,0 +1,45 @@
+"""The MinAtar aggregate (experiments.atari.aggregate) on hand-made scores: the normalisation puts random play at 0
+and each game's pooled IQM at 1 whatever the game's scale, and the probability of improvement is 1 when every run of
+one arm beats every run of the other on every game, 0.5 for the same runs, and a game's share of winning pairs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from experiments.atari import aggregate
+
+GAMES = aggregate.GAMES
+
+
+def _games(cd: dict[str, list[float]], a2c: dict[str, list[float]]) -> dict:
+    return {g: {"a2c": {"eval": np.asarray(a2c[g], float), "auc": np.asarray(a2c[g], float)},
+                "a2c-cd": {"eval": np.asarray(cd[g], float), "auc": np.asarray(cd[g], float)}} for g in GAMES}
+
+
+def test_normalisation_maps_random_play_to_0_and_the_pooled_iqm_to_1():
+    scale = {g: 10.0 ** i for i, g in enumerate(GAMES)}  # returns of 1 to 10,000
+    runs = [0.0, 1.0, 2.0, 3.0]  # with the other arm's, pooled 0..7: IQM (trimming 2 of 8 each side) 3.5
+    games = _games({g: [scale[g] * (x + 4) for x in runs] for g in GAMES}, {g: [scale[g] * x for x in runs] for g in GAMES})
+    randoms = {g: scale[g] * 0.5 for g in GAMES}
+    norm = aggregate.normalised(games, randoms, "eval")
+    assert norm["a2c"].shape == (4, len(GAMES))
+    for i in range(len(GAMES)):  # every game alike once normalised: (x - 0.5) / (3.5 - 0.5)
+        np.testing.assert_allclose(norm["a2c"][:, i], (np.asarray(runs) - 0.5) / 3.0)
+        np.testing.assert_allclose(norm["a2c-cd"][:, i], (np.asarray(runs) + 3.5) / 3.0)
+
+
+def test_probability_of_improvement_by_hand():
+    low, high = [1.0, 2.0, 3.0], [4.0, 5.0, 6.0]
+    randoms = dict.fromkeys(GAMES, 0.0)
+    ahead = aggregate.aggregate(_games(dict.fromkeys(GAMES, high), dict.fromkeys(GAMES, low)), randoms, reps=20)
+    assert ahead["eval"]["poi"][0] == 1.0 and ahead["eval"]["iqm"]["a2c-cd"][0] > ahead["eval"]["iqm"]["a2c"][0]
+    same = aggregate.aggregate(_games(dict.fromkeys(GAMES, low), dict.fromkeys(GAMES, low)), randoms, reps=20)
+    assert same["auc"]["poi"][0] == 0.5
+    # one game where a2c-cd wins 2 of the 9 pairs (3 > 1, 3 > 2), the others as `same`: the mean over games
+    mixed = dict.fromkeys(GAMES, low) | {"breakout": [0.0, 0.5, 3.0]}
+    result = aggregate.aggregate(_games(mixed, dict.fromkeys(GAMES, low)), randoms, reps=20)
+    assert result["eval"]["poi_per_game"]["breakout"] == pytest.approx((2 + 0.5) / 9)  # 3 = 3 ties: half a pair
+    assert result["eval"]["poi"][0] == pytest.approx(((2.5 / 9) + 0.5 * (len(GAMES) - 1)) / len(GAMES))
+    curve, _ = result["eval"]["profiles"]["a2c"]
+    assert curve[0] == 1.0 and curve[-1] == 0.0  # every run above tau 0, none above tau 2
