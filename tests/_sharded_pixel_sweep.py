@@ -9,6 +9,7 @@ chunks, from shapes) and nothing else: the caller inits the runs and runs them o
 shares with tests/test_pixel_model.py."""
 
 import json
+import os
 import pathlib
 import re
 import sys
@@ -20,13 +21,14 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 from _shared import PIXEL_HP, PIXEL_TINY
 
-from cdjax import io
+from cdjax import io, runtime
 from cdjax.agents import pixel
 from cdjax.agents.pixel.learner import PixelLearner
 from cdjax.agents.pixel.synthetic import SyntheticWorld
 from cdjax.sweep import make_sweep
 
 assert jax.device_count() == 2, jax.devices()
+runtime.configure(cache_dir=os.environ.get(runtime.CACHE_ENV, pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"))
 DIR = pathlib.Path(sys.argv[1])
 HPS = [PIXEL_HP, PIXEL_HP.replace(lr=1e-3)]  # the caller's
 LENGTH = 2  # updates per chunk

@@ -29,7 +29,7 @@ def test_pixel_runs_split_over_two_devices_hold_no_collective_and_equal_one_devi
     """The pixel sweep splits its runs "local"ly (a shard_map of the update programs): on 2 forced CPU devices its
     compiled chunk holds no collective (XLA's partitioner, for contrast, all-gathers a convolution with per-run
     kernels under the runs' vmap, which the local split does not); its 4 runs' metrics equal each run's on one device
-    (this process: the programs tests/test_pixel_model.py compiles); a checkpoint of the two-device runs, restored
+    (this process: the model tests/test_pixel_model.py compiles); a checkpoint of the two-device runs, restored
     here on one device, continues as they do. The observation-space trainers (MJX's init crashed XLA:GPU's compiler
     under shard_map) keep the partitioner's split."""
     import jax
@@ -40,7 +40,10 @@ def test_pixel_runs_split_over_two_devices_hold_no_collective_and_equal_one_devi
     from cdjax.sweep import make_sweep
 
     assert make_sweep(host_trainer(POINT)).split == make_sweep(host_trainer(PENDULUM)).split == "partition"
-    learner, init, update, _ = pixel_programs()
+    learner, init, _, _ = pixel_programs()
+    # its own jit of the update (test_pixel_model counts its update's traces; the sweep's keys and the restored state
+    # come committed to the device, another trace), compiled as that one: the persistent cache holds the program
+    update = jax.jit(learner.update)
     trainer = pixel.trainer_of(learner)
     hps = [PIXEL_HP, PIXEL_HP.replace(lr=1e-3)]  # run r: hps[r // 2], seeds' keys as the sweep's grid gives them
     keys, _ = make_sweep(trainer).grid(seed=3, num_seeds=2, hps=hps)
