@@ -11,6 +11,8 @@
 #                  (--lr) x the policy's (--lr-policy; 0 = the model's), LR_UPDATES updates (default 500) or the
 #                  time limit; PIXEL_SET (e.g. "--compute-dtype bfloat16 --conv-impl per-run") picks the arrangement
 #                  the roofline found fastest; no evaluation (the held-out ELBO, imitation and likelihood decide)
+#   devices        (a multi-GPU machine, issue 25) the pixel sweep's frames/s on 1, 2 and 4 of its GPUs in one
+#                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah
 #   TASK-ARM       the experiment at the presets' length: TASK halfcheetah, reacher or pusher, ARM ltq or ltq-cd
 #                  (ltq-cd: alpha 100, cc_policy 0 and 1), 10 seeds, 10,000 updates or what fits before the time
 #                  limit (stated in the run's log), then evaluated from pixels, plotted and its strips drawn
@@ -35,6 +37,9 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
     roofline)
       echo "python -m experiments.pixel.roofline --env halfcheetah --runs 30 --profile $work/profile" \
         "--out $work/roofline.json" ;;
+    devices)
+      echo "python -m experiments.pixel.speed --env halfcheetah --runs 32 --devices ${DEVICE_COUNTS:-1 2 4}" \
+        "--out $work/devices.json" ;;
     lr-check)
       echo "timeout -s INT -k 60 $(( limit + 300 )) python -m cdjax.cli sweep --setting pixel" \
         "--preset pixel-halfcheetah --expert $experts/halfcheetah/expert.msgpack --arms ltq --seeds 5" \
@@ -47,7 +52,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--time-limit $limit --out $work/pixel; timeout -k 30 200 python -m cdjax.cli eval $work/pixel --episodes 4;" \
         "python -m cdjax.cli plot $work/pixel; timeout -k 10 150 python -m experiments.pixel.report --strips" \
         "$work/pixel $work/strips" ;;
-    *) echo "unknown unit $1: roofline, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq, ltq-cd)" >&2
+    *) echo "unknown unit $1: roofline, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq, ltq-cd)" >&2
        return 1 ;;
   esac
 }
@@ -73,7 +78,7 @@ done
 thin=runs/pixel-units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
 mkdir -p "$thin/$unit"
-for f in command roofline.json roofline.md profile strips; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
+for f in command roofline.json roofline.md profile devices.json strips; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
 tar -czf "$out/$unit.tar.gz" -C "$thin" "$unit"
 cp "$work/unit.log" "$out/$unit.log"
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
