@@ -185,7 +185,7 @@ def memory_stats() -> dict:
     import jax
 
     try:
-        return jax.devices()[0].memory_stats() or {}
+        return jax.local_devices()[0].memory_stats() or {}
     except Exception:  # noqa: BLE001
         return {}
 

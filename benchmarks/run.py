@@ -5,6 +5,7 @@
     python -m benchmarks.run --suite envs       # num_envs 512..8192, one seed
     python -m benchmarks.run --suite devices    # a sweep on 1 device vs all devices (multi-GPU hosts)
     python -m benchmarks.run --tiny --suite all # CPU smoke test of every part (CI)
+    python -m benchmarks.run --suite seeds --distributed   # one process per host (SLURM: srun); the sweep spans all
     python -m benchmarks.run --merge DIR [DIR ...] --write-results benchmarks/RESULTS.md   # no device needed
 
 Each suite writes results.json / results.md / results.png into --out (default
@@ -30,6 +31,7 @@ from benchmarks import report  # noqa: E402
 from benchmarks.common import FULL, TINY, Spec, Timing, cleanup  # noqa: E402
 
 SUITES = ("compare", "seeds", "envs", "devices")
+DISTRIBUTED_SUITES = ("seeds", "devices")  # the suites whose sweeps span every process's devices
 COMPARE_CASES = ("brax-ppo", "ceiling", "collect", "model-free", "mbmf", "cd-fast", "cd-paper", "cd-w2-unroll",
                  "cd-default")
 SCALING_CASES = ("cd-fast", "model-free", "mbmf", "cd-paper")  # the designated CD first: its 32-vs-1 ratio is a target
@@ -69,13 +71,18 @@ def parse(argv):
                         "summarise its device ops (benchmarks.profile_summary) into the results")
     p.add_argument("--trace-top", type=int, default=25, help="--trace: ops listed per case (default 25)")
     p.add_argument("--distributed", action="store_true",
-                   help="call jax.distributed.initialize() first (several hosts; see README)")
+                   help="join the other processes first (cdjax.multihost.initialize: one process per host or GPU, "
+                        "each running this command); the seeds and devices suites then sweep over every process's "
+                        "devices, and process 0 writes the results (see README)")
     p.add_argument("--coordinator", help="--distributed: coordinator host:port (default: auto-detected)")
     p.add_argument("--num-processes", type=int, help="--distributed: number of processes (default: auto-detected)")
     p.add_argument("--process-id", type=int, help="--distributed: this process's id (default: auto-detected)")
     p.add_argument("--dry-run", action="store_true", help="print the plan (configs, env steps) and exit")
     args = p.parse_args(argv)
     args.suite = list(SUITES) if "all" in args.suite else list(dict.fromkeys(args.suite))
+    if args.distributed and set(args.suite) - set(DISTRIBUTED_SUITES):
+        p.error(f"--distributed measures sweeps over every process's devices: give --suite "
+                f"{' '.join(DISTRIBUTED_SUITES)} (compare and envs are single-device by design)")
     return args
 
 
@@ -117,7 +124,12 @@ class Suite:
         from benchmarks.scaling import classify_error
 
         elapsed = time.perf_counter() - self.t0
-        if elapsed > self.args.budget_s:
+        over = elapsed > self.args.budget_s
+        if self.args.distributed:  # a case's sweep spans every process: all skip it when one's budget is used
+            from cdjax import multihost
+
+            over = any(multihost.exchange("1" if over else ""))
+        if over:
             row = {"case": label, "status": f"skipped (time budget {self.args.budget_s:.0f} s used)"}
             print(f"[{elapsed:6.0f}s] {label}: skipped, time budget used", flush=True)
             return row
@@ -205,7 +217,7 @@ def run_devices(suite: Suite, spec: Spec, timing: Timing, args) -> None:
     from benchmarks.scaling import seed_scaling
 
     suite.part("devices")
-    meshes = [1] + ([jax.device_count()] if jax.device_count() > 1 else [])
+    meshes = [1] + ([jax.device_count()] if jax.device_count() > 1 else [])  # (1: each process on its own device)
     if jax.device_count() == 1:
         print("devices: only one device here; measuring the 1-device mesh only", flush=True)
     for n in meshes:
@@ -260,8 +272,9 @@ def main(argv=None) -> dict:
     import jax
 
     if args.distributed:
-        jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
-                                   process_id=args.process_id)
+        from cdjax import multihost
+
+        multihost.initialize(args.coordinator, args.num_processes, args.process_id)
     if args.cache:
         from cdjax import runtime
 
@@ -282,7 +295,8 @@ def main(argv=None) -> dict:
     if out_dir is None and not args.tiny:
         slug = "".join(c if c.isalnum() else "-" for c in info["device"].lower()).strip("-")
         out_dir = str(REPO / "benchmarks" / "results" / f"{date}-{slug}-{'-'.join(args.suite)}")
-    if jax.process_index() != 0:
+    writer = jax.process_index() == 0
+    if not writer:
         out_dir = None
     suite = Suite(args, meta, out_dir)
     timing = Timing(updates=args.updates, max_seconds=args.max_case_s)
@@ -293,11 +307,12 @@ def main(argv=None) -> dict:
         fn(suite, s, timing, args)
     results = report.add_ratios(suite.results)
     md = report.write_out(results, out_dir) if out_dir else report.markdown(results)
-    if args.write_results:
+    if args.write_results and writer:
         report.write_results_md(results, args.write_results, command)
     if out_dir:
         print(f"\nwrote {out_dir}/results.json, results.md, results.png", flush=True)
-    print("\n" + md, flush=True)
+    if writer:
+        print("\n" + md, flush=True)
     return results
 
 

@@ -9,6 +9,8 @@ RESOURCE_EXHAUSTED (recorded as "OOM"; larger counts of that arm are not tried).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from typing import Iterator
 
 from benchmarks.common import (Spec, Timing, cleanup, compile_timed, compiled_footprint, is_oom, process_peak,
@@ -19,24 +21,27 @@ from benchmarks.throughput import cdjax_cases
 def sweep_case(spec: Spec, case: str, runs: int, timing: Timing, mesh_devices: int | None = None) -> dict:
     """`runs` vmapped seeds of cdjax case `case` at spec (spec.num_envs envs per seed), one update per call."""
     import jax
-    import jax.numpy as jnp
+    import numpy as np
 
-    from cdjax import make_agent
+    from cdjax import make_agent, multihost
     from cdjax.sweep import make_sweep, runs_mesh
 
     what, overrides, hp_overrides = cdjax_cases(spec)[case]
     config = spec.config(**overrides)
-    devices = jax.devices()[:mesh_devices] if mesh_devices else jax.devices()
+    # all devices (of every process, with --distributed), or the first of this process's own
+    devices = jax.devices() if not mesh_devices or mesh_devices >= jax.device_count() else \
+        jax.local_devices()[:mesh_devices]
+    spans_processes = len({d.process_index for d in devices}) > 1
+    if spans_processes:  # every process makes the same calls of the program: no early stop on this one's clock
+        timing = dataclasses.replace(timing, max_seconds=math.inf)
     sweep = make_sweep(make_agent(config), mesh=runs_mesh(devices))
     keys, hps = sweep.grid(seed=0, num_seeds=runs, hps=[spec.hparams(**hp_overrides)])
     state = sweep.init(keys, hps)
     # Sweep.lower gives the chunk program (state, hps, num_updates) -> (state, metrics); num_updates is static.
     compiled, lower_s, compile_s = compile_timed(sweep, state, hps, 1)
     carry, times = time_calls(lambda c: compiled(c[0], hps), (state, None), timing)
-    try:  # a global array spanning several hosts cannot always be read back here
-        ok = bool(jnp.isfinite(carry[1]["loss/total"][:runs]).all())
-    except Exception:  # noqa: BLE001
-        ok = None
+    fetch = multihost.fetch if spans_processes else jax.device_get  # whole, on every process
+    ok = bool(np.isfinite(np.asarray(fetch(carry[1]["loss/total"]))[:runs]).all())
     return {"case": case, "kind": "sweep", "env": spec.env, "num_envs": spec.num_envs, "seeds": runs,
             "padded_runs": int(keys.shape[0]), "mesh_devices": len(devices), "rollout_len": spec.rollout_len,
             "status": "ok", "what": what, "lower_s": lower_s, "xla_compile_s": compile_s,

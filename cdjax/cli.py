@@ -4,6 +4,7 @@
     cdjax sweep --out runs/ant-cd --resume
     cdjax eval  runs/ant-cd --episodes 100
     cdjax plot  runs/ant-cd
+    srun cdjax sweep --distributed --env ant --seeds 64 --out /shared/runs/ant   # one process per node (cdjax.multihost)
 
 Every option of `sweep` comes from a dataclass field (cdjax.options): the SweepSpec's, one per field of the
 setting's Config (except the fields an arm name sets and `num_updates`, derived from --steps), one per
@@ -13,13 +14,15 @@ and one per field of the setting's phase (--phase-<field>). `--setting` picks th
 Bad input ends with one sentence on stderr and exit status 2; an interrupted command says in one sentence what is
 true for it (a sweep checkpoints the chunk in flight first) and exits with 130 after Ctrl-C, 143 after SIGTERM (what
 SLURM, Kubernetes and `timeout` send: handled as the first Ctrl-C); a sweep stopped by its --time-limit exits with 75
-(EX_TEMPFAIL: continue it with --resume).
+(EX_TEMPFAIL: continue it with --resume). A sweep of several processes (--distributed) whose process was lost ends
+the others with one sentence and exit status 69 (EX_UNAVAILABLE: continue it with --resume).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import pathlib
 import re
@@ -29,7 +32,7 @@ import sys
 import time
 from typing import Sequence
 
-from cdjax import agents, io, options, runtime
+from cdjax import agents, io, multihost, options, runtime
 from cdjax.protocol import ConfigError, Setting
 from cdjax.runner.spec import FLAGS, INT32_MAX, SweepSpec
 
@@ -59,11 +62,49 @@ def _runtime_options() -> argparse.ArgumentParser:
     return parent
 
 
-def _add_sweep(sub, setting: Setting, runtime_parent) -> None:
+def _distributed_options() -> argparse.ArgumentParser:
+    parent = argparse.ArgumentParser(add_help=False)
+    group = parent.add_argument_group(
+        "several processes (cdjax.multihost): one per node or per GPU, each running this same command; --out on a "
+        "file system they all see")
+    group.add_argument("--distributed", action="store_true",
+                       help="join the other processes (jax.distributed.initialize) and share the runs over every "
+                            "process's devices; process 0 writes the run directory")
+    group.add_argument("--coordinator", metavar="HOST:PORT",
+                       help="with --distributed: process 0's address and a free port (default: found by JAX under "
+                            "SLURM, Open MPI and Cloud TPU)")
+    group.add_argument("--num-processes", type=options.count, metavar="N",
+                       help="with --distributed: how many processes (default: found by JAX, as --coordinator)")
+    group.add_argument("--process-id", type=options.count, metavar="I",
+                       help="with --distributed: this process's number, 0 to N-1 (default: found by JAX)")
+    group.add_argument("--heartbeat-timeout", type=options.seconds, metavar="SECONDS",
+                       help=f"with --distributed: a process silent this long counts as lost (default "
+                            f"{multihost.DEFAULT_HEARTBEAT_S}, JAX's)")
+    return parent
+
+
+def _join(args: argparse.Namespace) -> None:
+    """--distributed: join the other processes before anything runs in JAX; its options alone are refused."""
+    given = [flag for flag, value in (("--coordinator", args.coordinator), ("--num-processes", args.num_processes),
+                                      ("--process-id", args.process_id), ("--heartbeat-timeout",
+                                                                          args.heartbeat_timeout)) if value is not None]
+    if not args.distributed:
+        if given:
+            raise UsageError(f"{given[0]} goes with --distributed (every process of the sweep runs the same command "
+                             "with --distributed).")
+        return
+    if args.command == "eval" and args.video:
+        raise UsageError("--video renders on one process: run `cdjax eval RUN_DIR --video` without --distributed (one "
+                         "process reads checkpoints that several wrote).")
+    heartbeat = math.ceil(args.heartbeat_timeout) if args.heartbeat_timeout is not None else None
+    multihost.initialize(args.coordinator, args.num_processes, args.process_id, heartbeat)
+
+
+def _add_sweep(sub, setting: Setting, parents: list) -> None:
     presets = "\n".join(f"  {name:<18} {p.about}" for name, p in setting.presets.items())
     sweep = sub.add_parser(
         "sweep", help="train arms x hyper-parameter grid x seeds, chunked, with logs and checkpoints",
-        allow_abbrev=False, formatter_class=argparse.RawDescriptionHelpFormatter, parents=[runtime_parent],
+        allow_abbrev=False, formatter_class=argparse.RawDescriptionHelpFormatter, parents=parents,
         description="Train every arm (one compiled program each) on the grid of the hyper-parameters given "
                     "as lists times --seeds, vmapped; log, checkpoint and show progress between chunks.\n"
                     f"Setting {setting.name}: {setting.about}; arms: {setting.arms_help}.\n"
@@ -108,9 +149,10 @@ def build_parser(setting: Setting | None = None) -> Parser:
                     description="Consistent dynamics models (Sodhani et al., 2019) on MuJoCo-MJX in JAX.")
     sub = parser.add_subparsers(dest="command", metavar="{sweep,eval,plot}", required=True, parser_class=Parser)
     runtime_parent = _runtime_options()
-    _add_sweep(sub, setting, runtime_parent)
+    distributed_parent = _distributed_options()
+    _add_sweep(sub, setting, [runtime_parent, distributed_parent])
     ev = sub.add_parser("eval", help="evaluate the saved policies of a run, per seed and per arm", allow_abbrev=False,
-                        parents=[runtime_parent])
+                        parents=[runtime_parent, distributed_parent])
     ev.add_argument("run_dir", metavar="RUN_DIR")
     ev.add_argument("--episodes", type=options.count, default=100, metavar="N", help="episodes per run (default 100)")
     mode = ev.add_mutually_exclusive_group()
@@ -186,7 +228,8 @@ def cmd_sweep(args: argparse.Namespace, setting: Setting, command: str, limit=No
     io.RunDir(pathlib.Path(args.out)).check_name()
     out = run_sweep(sweep_spec(args, setting, command), resume=args.resume, after_chunk=limit,
                     restart=tuple(args.restart_arm))
-    print(f"Done: {out}")
+    if multihost.is_writer():
+        print(f"Done: {out}")
 
 
 def say(text: str) -> None:
@@ -203,15 +246,23 @@ def cmd_eval(args: argparse.Namespace) -> None:
     if not 1 <= args.episodes <= INT32_MAX:
         raise UsageError(f"--episodes must be an integer from 1 to {INT32_MAX:,}, got {args.episodes}.")
     rd = io.RunDir(pathlib.Path(args.run_dir))
-    rd.check_name("RUN_DIR")
-    rd.read()  # a clear error for a directory that holds no run
+    writer = multihost.is_writer()
+    tell = say if writer else (lambda text: None)  # several processes: process 0 speaks for all
+    with multihost.together():
+        rd.check_name("RUN_DIR")
+        rd.read()  # a clear error for a directory that holds no run
     try:
-        with library_log(rd.log, say):
-            spec, arms = restore_arms(args.run_dir)
+        with library_log(rd.process_log(multihost.index()), tell):
+            with multihost.together():
+                spec, arms = restore_arms(args.run_dir)
             sampled = args.stochastic or (agents.get(spec.setting).eval_sampled and not args.deterministic)
-            records = evaluate_arms(rd, arms, spec.seeds, args.episodes, not sampled, say)
+            records = evaluate_arms(rd, arms, spec.seeds, args.episodes, not sampled, tell)
     except KeyboardInterrupt as err:
         raise stopped(err, f"Interrupted before the evaluation was done; nothing was added to {rd.eval}.") from None
+    except multihost.PeerLost as err:
+        raise multihost.PeerLost(f"{err}; nothing was added to {rd.eval}.", complete=True) from None
+    if not writer:
+        return
     _print_eval(records)
     print(f"Appended {len(records)} records to {rd.eval}")
     if args.video:
@@ -367,6 +418,8 @@ def main(argv: Sequence[str] | None = None) -> None:
                     raise UsageError(str(err).replace("`cdjax --help`", f"`cdjax {argv[0]} --help`")) from None
                 raise
             _configure(args)
+            if args.command in ("sweep", "eval"):
+                _join(args)
             if args.command == "sweep":
                 limit = TimeLimit(args.time_limit, start=started) if args.time_limit else None
                 cmd_sweep(args, setting, " ".join(["cdjax"] + [shlex.quote(a) for a in argv]), limit)
@@ -378,8 +431,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         _refused(str(err), as_program)
     except Interrupted as err:
         done = ", ".join(f"{arm} {n}" for arm, n in err.updates.items())
-        again = f"cdjax sweep --out {shlex.quote(str(err.run_dir))} --resume"
-        if limit is not None and limit.reached and err.signum is None:
+        again = f"cdjax sweep --out {shlex.quote(str(err.run_dir))} --resume{multihost.resume_flags()}"
+        if limit is not None and err.signum is None:  # (several processes: any process's time limit stops all)
             print(f"Stopped before the time limit ({args.time_limit:g} s); checkpoint saved (updates per arm: {done}). "
                   f"Continue with: {again}", file=sys.stderr)
             raise SystemExit(75) from None
@@ -389,6 +442,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         raise SystemExit(143 if terminated else 130) from None
     except Stopped as err:
         _interrupted(err.sentence, 143 if err.terminated else 130, as_program)
+    except multihost.PeerLost as err:  # ends at once: JAX's own shutdown would wait for the process that is gone
+        _interrupted(f"cdjax: {err}", multihost.PEER_LOST_STATUS, as_program)
     except KeyboardInterrupt as err:  # before a command started (parsing, imports, the cache)
         _interrupted("Interrupted before the command started; nothing was written.",
                      143 if isinstance(err, Terminated) else 130, as_program)

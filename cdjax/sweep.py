@@ -18,11 +18,11 @@ out alike either way (the run axis over the mesh), so checkpoints move between t
     state = sweep.init(keys, hps)                       # leaves [R, ...], sharded over devices
     state, metrics = sweep.run(state, hps, 10)          # 10 updates; metrics leaves [R, 10]
 
-Several hosts: call `jax.distributed.initialize()` in every process before anything else; then
-`jax.devices()` lists every host's devices, `make_sweep(trainer, mesh=runs_mesh())` builds a mesh over
-all of them and each process feeds the same global arrays (`jax.make_array_from_process_local_data`
-for inputs that differ per host). R must then be a multiple of the global device count; the sweep pads
-it here on one host only.
+Several processes (hosts, or one per GPU: `cdjax sweep --distributed`, cdjax.multihost): once every process has
+joined (`cdjax.multihost.initialize`, before anything else runs in JAX), `jax.devices()` lists every process's
+devices and the default mesh spans them all; `grid` gives every process the same global keys and HParams, each
+process computing the runs on its own devices, and R is padded to a multiple of the global device count. Every
+process must then call the same programs in the same order; `cdjax.multihost.fetch` brings results back whole.
 """
 
 from __future__ import annotations
@@ -35,6 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from cdjax import multihost
 
 AXIS = "runs"
 State = Any  # the trainer's state pytree
@@ -111,7 +113,7 @@ class Sweep:
             keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, axis=0)])
             stacked = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad)]), stacked)
         sharding = NamedSharding(self.mesh, PartitionSpec(AXIS))
-        return jax.device_put(keys, sharding), jax.device_put(stacked, sharding)
+        return multihost.put(keys, sharding), multihost.put(stacked, sharding)  # (jax.device_put in one process)
 
 
 def unpad(tree, num_runs: int):

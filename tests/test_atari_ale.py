@@ -21,7 +21,7 @@ from ale_py.vector_env import AtariVectorEnv  # noqa: E402
 
 from cdjax import io  # noqa: E402
 from cdjax.agents.atari import AtariConfig, AtariHParams, make_trainer  # noqa: E402
-from cdjax.agents.atari.ale import ONE_DEVICE, AleEnv, vector_env  # noqa: E402
+from cdjax.agents.atari.ale import ONE_DEVICE, ONE_PROCESS, AleEnv, vector_env  # noqa: E402
 from cdjax.cli import main  # noqa: E402
 from cdjax.protocol import ConfigError  # noqa: E402
 from cdjax.runner import Interrupted, resume_spec, run_sweep  # noqa: E402
@@ -96,7 +96,10 @@ def test_runs_vmapped_together_step_the_games_each_run_steps_alone(monkeypatch):
     monkeypatch.setattr(jax, "device_count", lambda *a: 2)
     with pytest.raises(ConfigError, match="one device"):
         AleEnv(CONFIG, 3)
-    assert ONE_DEVICE.endswith(".")
+    monkeypatch.setattr(jax, "process_count", lambda *a: 2)  # one device in each of two processes: --distributed
+    with pytest.raises(ConfigError, match="without --distributed"):
+        AleEnv(CONFIG, 3)
+    assert ONE_DEVICE.endswith(".") and ONE_PROCESS.endswith(".")
 
 
 # 2 seeds x 2 envs of the breakout preset with small networks and short games (benchmarks.ale's tiny config, so that

@@ -296,3 +296,23 @@ def test_seed_scaling_stops_growing_after_oom():
     assert calls == ["model-free x1", "model-free x8"]
     assert [r["status"] for r in rows] == ["ok", "OOM"] + ["not tried (smaller count was OOM)"] * 2
     assert [r["seeds"] for r in rows] == [1, 8, 32, 128]
+
+
+def test_distributed_runs_the_sweep_suites_and_skips_a_case_on_every_process(capsys, monkeypatch):
+    """--distributed takes the suites whose sweeps span every process (compare and envs are single-device); a case
+    is skipped on every process when one process's time budget is used (the exchange faked: process 1's)."""
+    import argparse
+
+    from benchmarks.run import Suite
+    from cdjax import multihost
+
+    with pytest.raises(SystemExit) as info:
+        main(["--tiny", "--suite", "seeds", "compare", "--distributed"])
+    assert info.value.code == 2 and "give --suite seeds devices" in capsys.readouterr().err
+    suite = Suite(argparse.Namespace(budget_s=1e9, distributed=True), {}, None)
+    monkeypatch.setattr(multihost, "exchange", lambda text: [text, "1"])  # process 1: its budget is used
+    row = suite.run_case("model-free x2", lambda: pytest.fail("a case skipped by another process ran here"))
+    assert row["status"].startswith("skipped (time budget")
+    monkeypatch.setattr(multihost, "exchange", lambda text: [text, ""])
+    ran = {"status": "ok", "env_steps_per_s": 1.0, "update_s": 1.0, "compile_s": 1.0}
+    assert suite.run_case("model-free x2", lambda: dict(ran))["status"] == "ok"

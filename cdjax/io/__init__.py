@@ -6,7 +6,8 @@
     phase.jsonl                    the pre-update phase's diagnostics per (arm, hp, seed)
     eval.jsonl                     evaluations (cdjax.evaluate.eval_records)
     cdjax.log                      what the libraries (orbax, absl, asyncio, warnings) said during the sweep
-    .lock                          flock-ed by the process that trains in the directory
+    cdjax.process<i>.log           the same, of process i > 0 of a sweep of several processes (cdjax.multihost)
+    .lock                          flock-ed by the process that trains in the directory (process 0 of several)
     tb/<arm>/<hp>/seed<s>/         TensorBoard event files
     checkpoints/<arm>/<updates>/   orbax checkpoints of the arm's state (cdjax.io.checkpoints); <updates>.unreadable
                                    and <updates>.restarted: checkpoints set aside (kept, no longer read)
@@ -106,6 +107,10 @@ class RunDir:
     @property
     def log(self) -> pathlib.Path:
         return self.path / "cdjax.log"
+
+    def process_log(self, index: int) -> pathlib.Path:
+        """The library log of process `index` of a sweep of several processes (cdjax.log for process 0)."""
+        return self.log if index == 0 else self.path / f"cdjax.process{index}.log"
 
     def tb(self, arm: str, hp: str, seed: int) -> pathlib.Path:
         return self.path / "tb" / arm / hp / f"seed{seed}"

@@ -19,6 +19,12 @@ The run axis is re-padded only for another device count: the real runs recorded 
 
 Checkpoints are atomic (orbax writes a temporary directory and renames it when complete). A save that fails (a
 full disk) raises `WriteError` naming it; the previous checkpoints stay as they were.
+
+Several processes (cdjax.multihost): the state's leaves are global arrays; every process calls save, restore and
+close in the same order, orbax writes each process's shards and process 0 the records and the final rename (a
+checkpoint is complete once every process has written its part). Whether a checkpoint can be read is agreed (one
+process that cannot read its shards makes it unreadable for all), only process 0 moves one aside, and an error that
+says another process is gone raises `multihost.PeerLost` instead of a WriteError.
 """
 
 from __future__ import annotations
@@ -31,8 +37,10 @@ import warnings
 from typing import Any, Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
+from cdjax import multihost
 from cdjax.io import RunDirError, WriteError, reason
 
 MAX_TO_KEEP = 2
@@ -117,14 +125,18 @@ def expand(stored: dict[str, Any], layout: dict | None, like):
         elif layout is not None and name in layout["zeros"]:
             value = np.zeros(data_like.shape, data_like.dtype)
         elif layout is not None and name in layout["same"]:
-            value = np.asarray(stored[layout["same"][name]])  # its own buffer: a state may be donated
+            twin = stored[layout["same"][name]]  # a copy, its own buffer: a state may be donated
+            if isinstance(twin, jax.Array) and not twin.is_fully_addressable:  # (several processes, one's checkpoint)
+                value = jnp.array(twin, copy=True)
+            else:
+                value = np.asarray(twin)
         else:
             out.append(leaf)  # not stored: no later update reads it, or init gives it again
             continue
         if tuple(value.shape) != tuple(data_like.shape) or value.dtype != data_like.dtype:
             raise ValueError(f"leaf {name} is {value.shape} {value.dtype} where {data_like.shape} {data_like.dtype} "
                              "was expected")
-        value = jax.device_put(value, leaf.sharding)
+        value = multihost.put(value, leaf.sharding)
         out.append(jax.random.wrap_key_data(value, impl=jax.random.key_impl(leaf)) if _is_key(leaf) else value)
     return jax.tree.unflatten(treedef, out)
 
@@ -238,9 +250,12 @@ class Checkpoints:
         self._pending = None
 
     def _failed(self, step: int | None, err: Exception):
-        for tmp in self.directory.glob(f"{step}.orbax-checkpoint-tmp*"):  # free what the failed save took
-            shutil.rmtree(tmp, ignore_errors=True)
         self._pending = None
+        if multihost.is_peer_error(err):  # a barrier of the save failed: another process is gone
+            raise multihost.lost(err) from None
+        if multihost.is_writer():
+            for tmp in self.directory.glob(f"{step}.orbax-checkpoint-tmp*"):  # free what the failed save took
+                shutil.rmtree(tmp, ignore_errors=True)
         raise WriteError(f"cannot write the checkpoint {self.directory / str(step)}: {reason(err)}") from None
 
     def _progress(self, step: int) -> dict:
@@ -313,49 +328,62 @@ class Checkpoints:
         CheckpointWarning and, with `set_aside`, renamed `<step>.unreadable` (kept: a resumed run writes that
         step again), and the previous one is tried. `self.unreadable` lists the steps passed over.
         """
-        ocp = self._ocp
         self.unreadable: list[tuple[int, str]] = []
         for step in reversed(self.steps()):
+            why = None
             try:
-                progress = self.check(step, like, expect)
-                layout = progress.pop("layout", None)
-                progress.pop("run", None)
-                names = dict(named_leaves(like))
-                wanted = layout["stored"] if layout is not None else [n for n, x in names.items() if x.size]
-                if any(name not in names for name in wanted):
-                    raise _Unreadable("its layout names a leaf it does not describe")
-                saved_runs, runs = (layout or {}).get("runs"), leading_runs(like)
-                repad = saved_runs is not None and runs is not None and saved_runs != runs
-                target = {}
-                for name in wanted:
-                    x = names[name]
-                    data = jax.eval_shape(jax.random.key_data, x) if _is_key(x) else x
-                    if repad:  # saved on another device count: read whole on one device, re-padded below
-                        target[name] = jax.ShapeDtypeStruct((saved_runs, *data.shape[1:]), data.dtype,
-                                                            sharding=jax.sharding.SingleDeviceSharding(
-                                                                next(iter(x.sharding.device_set))))
-                    else:
-                        target[name] = jax.ShapeDtypeStruct(data.shape, data.dtype, sharding=x.sharding)
-                try:
-                    stored = dict(self.manager.restore(step, args=ocp.args.Composite(
-                        state=ocp.args.StandardRestore(target)))["state"]) if target else {}
-                except Exception as err:  # noqa: BLE001 - the records were right: the array files are not
-                    raise _Unreadable(_why(err)) from None
-                if repad:
-                    stored = {name: repad_runs(np.asarray(v), runs) for name, v in stored.items()}
-                try:
-                    state = expand(stored, layout, like)
-                except (KeyError, TypeError, ValueError) as err:  # a layout record that does not fit what is stored
-                    raise _Unreadable(_why(err)) from None
+                restored = self._restore(step, like, expect)
             except _Unreadable as err:
-                self.unreadable.append((step, str(err)))
+                why = str(err)
+            if multihost.count() > 1:  # unreadable for one process (its shards), unreadable for all
+                why = next((text for text in multihost.exchange(why or "") if text), None)
+            if why is not None:
+                self.unreadable.append((step, why))
                 aside = self.set_aside(step) if set_aside else None
-                warnings.warn(f"Checkpoint {self.directory}/{step} cannot be restored ({err}); "
+                warnings.warn(f"Checkpoint {self.directory}/{step} cannot be restored ({why}); "
                               + (f"moved aside to {aside.name} (kept), " if aside is not None else "")
                               + "falling back to the previous one.", CheckpointWarning, stacklevel=2)
                 continue
-            return state, progress
+            return restored
         return None
+
+    def _restore(self, step: int, like, expect) -> tuple[Any, dict]:
+        """(state, progress) of checkpoint `step`, checked first (`check`); _Unreadable when its files cannot be
+        read or its records do not fit what is stored."""
+        ocp = self._ocp
+        progress = self.check(step, like, expect)
+        layout = progress.pop("layout", None)
+        progress.pop("run", None)
+        names = dict(named_leaves(like))
+        wanted = layout["stored"] if layout is not None else [n for n, x in names.items() if x.size]
+        if any(name not in names for name in wanted):
+            raise _Unreadable("its layout names a leaf it does not describe")
+        saved_runs, runs = (layout or {}).get("runs"), leading_runs(like)
+        repad = saved_runs is not None and runs is not None and saved_runs != runs
+        target = {}
+        for name in wanted:
+            x = names[name]
+            data = jax.eval_shape(jax.random.key_data, x) if _is_key(x) else x
+            if repad:  # saved on another device count: read whole on one device, re-padded below
+                target[name] = jax.ShapeDtypeStruct((saved_runs, *data.shape[1:]), data.dtype,
+                                                    sharding=jax.sharding.SingleDeviceSharding(
+                                                        next(iter(x.sharding.addressable_devices))))
+            else:
+                target[name] = jax.ShapeDtypeStruct(data.shape, data.dtype, sharding=x.sharding)
+        try:
+            stored = dict(self.manager.restore(step, args=ocp.args.Composite(
+                state=ocp.args.StandardRestore(target)))["state"]) if target else {}
+        except Exception as err:  # noqa: BLE001 - the records were right: the array files are not
+            if multihost.is_peer_error(err):
+                raise multihost.lost(err) from None
+            raise _Unreadable(_why(err)) from None
+        if repad:
+            stored = {name: repad_runs(np.asarray(v), runs) for name, v in stored.items()}
+        try:
+            state = expand(stored, layout, like)
+        except (KeyError, TypeError, ValueError) as err:  # a layout record that does not fit what is stored
+            raise _Unreadable(_why(err)) from None
+        return state, progress
 
     def set_aside(self, step: int, why: str = "unreadable") -> pathlib.Path:
         """Rename checkpoint `step` to `<step>.<why>` (`<step>.<why>-2`, ... if taken): kept on disk, no longer one
@@ -365,10 +393,13 @@ class Checkpoints:
         n = 2
         while target.exists():
             target, n = self.directory / f"{step}.{why}-{n}", n + 1
-        try:
-            os.rename(source, target)
-        except OSError as err:
-            raise WriteError(f"cannot move {source} aside to {target.name}: {reason(err)}") from None
+        with multihost.together():  # process 0 renames it; every process then sees it gone
+            if multihost.is_writer():
+                try:
+                    os.rename(source, target)
+                except OSError as err:
+                    raise WriteError(f"cannot move {source} aside to {target.name}: {reason(err)}") from None
+        target = pathlib.Path(multihost.from_writer(str(target)))
         self.manager.reload()
         return target
 
@@ -378,7 +409,10 @@ class Checkpoints:
 
     def close(self) -> None:
         """Wait for a save in flight and release the manager (a failed save was reported by `wait`, which follows
-        every save; orbax raises the same failure again while closing, dropped here)."""
+        every save; orbax raises the same failure again while closing, dropped here). Nothing is waited for once
+        another process was lost (its barriers would never pass)."""
+        if multihost.LOST.is_set():
+            return
         for step in (self.manager.wait_until_finished, self.manager.close):
             try:
                 step()

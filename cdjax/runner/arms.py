@@ -15,7 +15,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from cdjax import io
+from cdjax import io, multihost
 from cdjax.evaluate import eval_records, make_evaluator
 from cdjax.protocol import Setting, Trainer
 from cdjax.runner import budget
@@ -299,17 +299,20 @@ def evaluate_arms(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int,
     """Evaluate every run of every arm at its current state; append the records to eval.jsonl.
 
     One jit(vmap) program per arm over its runs (cdjax.evaluate.make_evaluator), fed only the policy
-    part of the state. Each run's evaluation key is its training key folded with EVAL_TAG.
+    part of the state. Each run's evaluation key is its training key folded with EVAL_TAG. Several processes: every
+    process evaluates its runs and gets every record; process 0 appends them.
     """
     t0 = time.perf_counter()
     records = []
     for arm in arms:
         evaluator = make_evaluator(arm.trainer, episodes=episodes, deterministic=deterministic)
         keys = jax.vmap(lambda k: jax.random.fold_in(k, EVAL_TAG))(arm.keys)
-        results = evaluator(arm.trainer.policy(arm.state), keys, arm.hps)
+        results = multihost.fetch(evaluator(arm.trainer.policy(arm.state), keys, arm.hps))
         records += eval_records(results, arm=arm.name, hp_labels=list(arm.plan.labels), seeds=range(num_seeds),
                                 deterministic=deterministic, update=arm.updates, env_steps=arm.env_steps())
-    io.append_jsonl(rd.eval, records)
+    with multihost.together():
+        if multihost.is_writer():
+            io.append_jsonl(rd.eval, records)
     means: dict[str, list[float]] = {}
     for row in records:
         if row.get("eval/return") is not None:

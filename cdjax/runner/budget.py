@@ -35,7 +35,7 @@ def tree_bytes(tree) -> int:
 
 def available(device: jax.Device | None = None) -> tuple[int, str]:
     """(bytes a sweep may use on `device`, what that is) — the device's free memory, else the host's."""
-    device = device or jax.devices()[0]
+    device = device or jax.local_devices()[0]  # (of this process: the others' are not addressable here)
     try:
         stats = device.memory_stats()
     except Exception:  # noqa: BLE001 - backends without memory statistics

@@ -122,13 +122,15 @@ def si(x: float) -> str:
 
 
 class Progress:
-    """A live bar on a terminal, else a line every LINE_EVERY_S; `say` prints a sentence above it."""
+    """A live bar on a terminal, else a line every LINE_EVERY_S; `say` prints a sentence above it. `quiet`: neither
+    (the processes of a sweep other than its writer, cdjax.multihost)."""
 
-    def __init__(self, enabled: bool, total_steps: int):
+    def __init__(self, enabled: bool, total_steps: int, quiet: bool = False):
         from rich.console import Console
 
         self.console = Console(stderr=True, highlight=False)
-        self.enabled = enabled
+        self.quiet = quiet
+        self.enabled = enabled and not quiet
         self.total = total_steps
         self.bar = None
         self.last_line = -float("inf")
@@ -142,6 +144,8 @@ class Progress:
             self.task = self.bar.add_task("training", total=total_steps, steps="", rate="", eta="", returns="")
 
     def say(self, text: str) -> None:
+        if self.quiet:
+            return
         if self.bar is not None:
             self.bar.console.print(text)
         else:

@@ -9,11 +9,18 @@ uninterrupted run. Ctrl-C or SIGTERM finishes the chunk in flight, saves it and 
 second Ctrl-C stops at once, keeping the previous checkpoint. `after_chunk=TimeLimit(seconds)` stops the same
 way before a round of chunks that would end past a wall-clock budget (a cluster job's, a leased machine's). A
 write that fails (a full disk) raises io.WriteError naming the file and the checkpoints that are intact.
+
+Several processes (`cdjax sweep --distributed`, cdjax.multihost): every process runs this same loop on its own
+devices' share of the runs. Process 0 alone writes the run directory and holds its lock; results are brought back
+whole to every process (`multihost.fetch`), and what one process alone meets (a refusal, a failed write, a signal,
+its time limit) is exchanged where every process is at the same point, so that all refuse, fail or stop after the
+same chunk, with the same checkpoint. A process that is lost ends the others with `multihost.PeerLost`.
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import math
 import pathlib
@@ -24,7 +31,7 @@ from typing import Callable, Sequence
 import jax
 import numpy as np
 
-from cdjax import io
+from cdjax import io, multihost
 from cdjax.protocol import ConfigError, Setting
 from cdjax.runner import budget
 from cdjax.runner.arms import (Arm, abstract_state, build, check_memory, compile_all, evaluate_arms, expectation,
@@ -110,7 +117,7 @@ def _prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, Setting, list, d
 
 
 def _resume_hint(rd: io.RunDir) -> str:
-    return f"cdjax sweep --out {shlex.quote(str(rd.path))} --resume"
+    return f"cdjax sweep --out {shlex.quote(str(rd.path))} --resume{multihost.resume_flags()}"
 
 
 def survey(rd: io.RunDir, arms: list[Arm], restart: set[str]) -> dict[str, int]:
@@ -160,45 +167,54 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     true for the moment) when a KeyboardInterrupt comes outside the chunk loop.
     """
     rd = io.RunDir(out_dir(spec))
+    writer = multihost.is_writer()
     try:
-        spec, setting, plans, record = _prepare(spec, resume)
-        rd = io.RunDir(pathlib.Path(spec.out))
-        restart = set(restart)
-        if restart and not resume:
-            raise ConfigError("--restart-arm trains an arm of a run again: give it with --resume.")
-        unknown = sorted(restart - {p.name for p in plans})
-        if unknown:
-            raise ConfigError(f"--restart-arm {unknown[0]}: the run has no such arm; its arms are "
-                              f"{', '.join(p.name for p in plans)}.")
-        progress = Progress(spec.progress, record["total_env_steps"])
-        arms = [build(plan, spec, setting) for plan in plans]
-        states = check_memory(arms, spec)
-        for arm in arms:
-            arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
-        done = survey(rd, arms, restart) if resume else {}
-        if setting.multi_device_note and arms and arms[0].sweep.num_devices > 1:
-            progress.say(f"Note: {setting.multi_device_note}")
-        progress.say(f"Compiling the programs of {', '.join(a.name for a in arms)} (nothing is written before "
-                     "they are compiled and fit in memory).")
-        t_compile = time.perf_counter()
-        compile_all(arms, record["chunk_updates"], done)
-        t_compile = time.perf_counter() - t_compile
-        # init's output is the state, already counted; the phase and chunk programs donate it and return it
-        budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms for what, p in arm.programs.items()
-                                       if what != "init"})
+        with multihost.together():  # several processes: each refuses what one refuses (in one sentence)
+            spec, setting, plans, record = _prepare(spec, resume)
+            rd = io.RunDir(pathlib.Path(spec.out))
+            restart = set(restart)
+            if restart and not resume:
+                raise ConfigError("--restart-arm trains an arm of a run again: give it with --resume.")
+            unknown = sorted(restart - {p.name for p in plans})
+            if unknown:
+                raise ConfigError(f"--restart-arm {unknown[0]}: the run has no such arm; its arms are "
+                                  f"{', '.join(p.name for p in plans)}.")
+            progress = Progress(spec.progress, record["total_env_steps"], quiet=not writer)
+            arms = [build(plan, spec, setting) for plan in plans]
+            states = check_memory(arms, spec)
+            for arm in arms:
+                arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
+            done = survey(rd, arms, restart) if resume else {}
+            if setting.multi_device_note and arms and arms[0].sweep.num_devices > 1:
+                progress.say(f"Note: {setting.multi_device_note}")
+            progress.say(f"Compiling the programs of {', '.join(a.name for a in arms)} (nothing is written before "
+                         "they are compiled and fit in memory).")
+            t_compile = time.perf_counter()
+            compile_all(arms, record["chunk_updates"], done)
+            t_compile = time.perf_counter() - t_compile
+            # init's output is the state, already counted; the phase and chunk programs donate it and return it
+            budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms
+                                           for what, p in arm.programs.items() if what != "init"})
     except KeyboardInterrupt as err:
         where = (f"{rd.path} is as it was; resume with `{_resume_hint(rd)}`" if resume
                  else f"nothing was written to {rd.path}")
         raise stopped(err, f"Interrupted before training started (while planning or compiling); {where}.") from None
+    except multihost.PeerLost as err:
+        raise multihost.PeerLost(f"{err} before training started; " + (
+            f"{rd.path} is as it was; resume with `{_resume_hint(rd)}`." if resume
+            else f"nothing was written to {rd.path}.")) from None
 
     try:
-        rd.create()  # the first write: everything above could still refuse
-        with rd.lock():
-            if not resume and rd.exists():  # another process started this run while we compiled
-                raise io.RunDirError(f"{rd.path} already holds a run; continue it with --resume, or choose another "
-                                     "--out.")
-            if not resume:
-                rd.write(record)
+        with contextlib.ExitStack() as held:
+            with multihost.together():  # process 0 makes the directory, holds it and writes run.json
+                if writer:
+                    rd.create()  # the first write: everything above could still refuse
+                    held.enter_context(rd.lock())
+                    if not resume and rd.exists():  # another process started this run while we compiled
+                        raise io.RunDirError(f"{rd.path} already holds a run; continue it with --resume, or choose "
+                                             "another --out.")
+                    if not resume:
+                        rd.write(record)
             return _train(Loop(rd, spec, setting, arms, record["chunk_updates"], progress, after_chunk,
                                record=record, restart=restart), resume, t_compile)
     except (Interrupted, Stopped):
@@ -206,12 +222,17 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     except KeyboardInterrupt as err:  # between the compilation and the loop: run.json may be written, no update
         raise stopped(err, f"Interrupted before training started; no update was trained in {rd.path}"
                            + (f"; resume with `{_resume_hint(rd)}`." if rd.exists() else ".")) from None
+    except multihost.PeerLost as err:
+        if err.complete:  # said by _train, with the checkpoints that are intact
+            raise
+        raise multihost.PeerLost(f"{err} before training started; no update was trained in {rd.path}"
+                                 + (f"; resume with `{_resume_hint(rd)}`." if resume or rd.exists() else ".")) from None
 
 
 def _train(loop: "Loop", resume: bool, t_compile: float) -> pathlib.Path:
-    """Run the loop; a failed write names the checkpoints that are intact; a KeyboardInterrupt outside the chunk
-    loop (restoring, the final evaluation) becomes a Stopped that says what is true then."""
-    with library_log(loop.rd.log, loop.say):
+    """Run the loop; a failed write or a lost process names the checkpoints that are intact; a KeyboardInterrupt
+    outside the chunk loop (restoring, the final evaluation) becomes a Stopped that says what is true then."""
+    with library_log(loop.rd.process_log(multihost.index()), loop.say):
         try:
             try:
                 loop.start(resume, t_compile)
@@ -237,6 +258,8 @@ def _train(loop: "Loop", resume: bool, t_compile: float) -> pathlib.Path:
                                    f"final evaluation or plots; `{_resume_hint(loop.rd)}` makes them.") from None
         except io.WriteError as err:
             raise io.WriteError(f"{err}; {loop.intact()}") from None
+        except multihost.PeerLost as err:
+            raise multihost.PeerLost(f"{err}; {loop.intact('')}", complete=True) from None
     return loop.rd.path
 
 
@@ -261,6 +284,7 @@ class Loop:
     record: dict | None = None  # run.json to write (a resume writes it once every arm is restored)
     restart: set = dataclasses.field(default_factory=set)  # arms a resume trains again from update 0
     started: bool = False  # `start` is done
+    writer: bool = dataclasses.field(default_factory=multihost.is_writer)  # this process writes the run directory
 
     def say(self, text: str) -> None:
         self.progress.say(text)
@@ -285,8 +309,10 @@ class Loop:
                     f"({unreadable_text(arm.ckpt.unreadable)}; moved aside, kept); add --restart-arm {arm.name} to "
                     "train it again from update 0.")
         if resume:
-            self.rd.write(self.record)  # only now: a resume that refused above left run.json as it was
-            self._trim_logs()
+            with multihost.together():
+                if self.writer:
+                    self.rd.write(self.record)  # only now: a resume that refused above left run.json as it was
+                    self._trim_logs()
         jax.block_until_ready([a.state for a in self.arms])
         self.rounds = max(math.ceil(a.updates / self.chunk) for a in self.arms)
         self.complete_at_start = resume and all(a.updates >= a.num_updates for a in self.arms)
@@ -341,7 +367,7 @@ class Loop:
         """The phase of every run of `arm`: logged as update 0, checkpointed as step 0."""
         wall_start = arm.wall_offset + self.clock.now()
         state, info = arm.phase_program()(arm.state, arm.hps)  # donates arm.state
-        info = io.host(unpad(info, arm.num_runs))
+        info = unpad(multihost.fetch(info), arm.num_runs)
         arm.state, arm.phase_done = state, True
         took = info.pop("env_steps")
         if not np.all(took == arm.plan.phase_steps):
@@ -351,9 +377,11 @@ class Loop:
         phase = self.setting.phase
         rows = io.phase_rows(arm.name, arm.plan.labels, self.spec.seeds, info, arm.plan.phase_steps, wall_start,
                              wall_end, phase.as_metrics)
-        io.append_jsonl(self.rd.metrics, rows)
-        io.append_jsonl(self.rd.phase, rows)
-        self.tb.write(rows)
+        with multihost.together():
+            if self.writer:
+                io.append_jsonl(self.rd.metrics, rows)
+                io.append_jsonl(self.rd.phase, rows)
+                self.tb.write(rows)
         self.steps_this_process += arm.plan.phase_steps * arm.num_runs
         ret = next((info[k] for k, v in phase.as_metrics.items() if v == self.setting.metrics.ret and k in info), None)
         if ret is not None and np.isfinite(ret).any():
@@ -371,13 +399,15 @@ class Loop:
     def commit(self, arm: Arm) -> None:
         """Fetch the pending chunk's metrics, log them, make its state the arm's state."""
         new_state, metrics, n, wall_start = arm.pending
-        metrics = {name: m[:, :n] for name, m in io.host(unpad(metrics, arm.num_runs)).items()}  # [R, chunk] -> n
+        metrics = {name: m[:, :n] for name, m in unpad(multihost.fetch(metrics), arm.num_runs).items()}  # [R, n]
         wall_end = arm.wall_offset + self.clock.now()
         rows = io.metric_rows(arm.name, arm.plan.labels, self.spec.seeds, metrics, arm.updates, arm.steps_per_update,
                               wall_start, wall_end, steps_offset=arm.plan.phase_steps)
         arm.state, arm.updates, arm.pending = new_state, arm.updates + n, None
-        io.append_jsonl(self.rd.metrics, rows)
-        self.tb.write(rows)
+        with multihost.together():  # a failed write ends every process before any checkpoint holds its updates
+            if self.writer:
+                io.append_jsonl(self.rd.metrics, rows)
+                self.tb.write(rows)
         self.steps_this_process += n * arm.steps_per_update * arm.num_runs
         ret = self.setting.metrics.ret
         if ret in metrics:
@@ -444,7 +474,7 @@ class Loop:
                 self.commit(arm)
             self.rounds += 1
             last = all(a.updates >= a.num_updates for a in self.arms)
-            if self.rounds % self.spec.checkpoint_every == 0 or last or self.flag.requested:
+            if self.rounds % self.spec.checkpoint_every == 0 or last or self.stop_requested():
                 for arm in active:
                     self.save(arm)
             for arm in active:
@@ -459,7 +489,22 @@ class Loop:
 
     def stop_asked(self) -> bool:
         asked = self.after_chunk is not None and self.after_chunk(self.rounds, {a.name: a.updates for a in self.arms})
-        return bool(asked) or self.flag.requested
+        if multihost.count() == 1:
+            return bool(asked) or self.flag.requested
+        return self._agree_stop(bool(asked))
+
+    def stop_requested(self) -> bool:
+        """Whether Ctrl-C or SIGTERM asked to stop (several processes: any of them; the same answer on all)."""
+        return self.flag.requested if multihost.count() == 1 else self._agree_stop(False)
+
+    def _agree_stop(self, asked: bool) -> bool:
+        """Several processes: stop if any process was asked to (its after_chunk, or a signal); a process stopped by
+        another's signal takes that signal as its own (its sentence and exit status are the same)."""
+        said = multihost.exchange(f"{int(asked)} {self.flag.signum if self.flag.requested else 0}")
+        signals = [int(text.split()[1]) for text in said if int(text.split()[1])]
+        if signals and not self.flag.requested:
+            self.flag.requested, self.flag.signum = True, signals[0]
+        return any(text.startswith("1") for text in said) or bool(signals)
 
     def run(self) -> None:
         with self.progress, StopFlag(self.say) as self.flag:
@@ -469,7 +514,7 @@ class Loop:
                         with self.clock.running():
                             self.run_phase(arm)
                             arm.ckpt.wait()
-                        if self.flag.requested:
+                        if self.stop_requested():
                             self.stop()
                 if self.stop_asked():  # before this process's first round (after the phases)
                     self.stop()
@@ -494,7 +539,7 @@ class Loop:
                 arm.ckpt.close()
 
     def finish(self) -> None:
-        """Say how training went; the final evaluation (once per run) and the plots."""
+        """Say how training went; the final evaluation (once per run) and the plots (process 0)."""
         if self.complete_at_start:
             self.say(f"{self.rd.path} is complete: every arm has done its {self.arms[0].num_updates} updates.")
         else:
@@ -505,10 +550,14 @@ class Loop:
         if not self.spec.final_eval:
             return
         deterministic = not self.setting.eval_sampled
-        if finished_evaluation(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes, deterministic):
+        done = self.writer and finished_evaluation(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes,
+                                                   deterministic)
+        if multihost.from_writer("done" if done else "") == "done":  # process 0 reads eval.jsonl, for all
             self.say("The final evaluation is already in eval.jsonl.")
         else:
             evaluate_arms(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes, deterministic, self.say)
+        if not self.writer:
+            return
         try:
             from cdjax.plots import plot_run
         except ImportError as err:  # an install without the plotting stack (e.g. a bare GPU image)

@@ -18,7 +18,7 @@ the emulators live in C++ outside JAX, so:
   A state is stepped under the same vmaps that reset it (its handle names the vector environment of that size).
 - **One device.** The R x B emulators are stepped by one custom call on one device; a sweep sharded over several
   devices would run the call on each of them. On a host with several GPUs, give the ALE sweep one
-  (`CUDA_VISIBLE_DEVICES=0`); several ALE sweeps can share a host, one per GPU.
+  (`CUDA_VISIBLE_DEVICES=0`); several ALE sweeps can share a host, one per GPU. Not with `--distributed` (one process).
 - **A checkpoint cannot hold the emulators**: a resumed run starts fresh games (the env state and the running
   episode returns come from init), so an ALE resume continues training but is not bit-identical.
 
@@ -55,6 +55,8 @@ GAMES = {"ale-breakout": "breakout", "ale-seaquest": "seaquest", "ale-mspacman":
 INSTALL = "The ALE games need the optional extra `atari` (ale-py, GPL-2.0): pip install -e \".[atari]\"."
 ONE_DEVICE = ("ALE games run on one device (the emulators of all runs are one vector environment on the host): "
               "make one visible, e.g. CUDA_VISIBLE_DEVICES=0.")
+ONE_PROCESS = ("ALE games run in one process on one device (the emulators of all runs are one vector environment on "
+               "its host): run this sweep without --distributed.")
 RESET, STEP = "atari_vector_xla_reset", "atari_vector_xla_step"  # ale-py's FFI targets (ale_py.vector_env)
 HANDLE = jax.ShapeDtypeStruct((8,), jnp.uint8)
 FRAMES = (4, 84, 84)  # ale-py's observation of one emulator: a stack of 4 grey 84x84 frames
@@ -149,6 +151,8 @@ class AleEnv:
             raise ConfigError(INSTALL) from None
         if config.env not in GAMES:
             raise ConfigError(f"Unknown ALE game {config.env!r}; choose one of {', '.join(GAMES)}.")
+        if jax.process_count() > 1:
+            raise ConfigError(ONE_PROCESS)
         if jax.device_count() > 1:
             raise ConfigError(ONE_DEVICE)
         _register()

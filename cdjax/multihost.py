@@ -1,0 +1,287 @@
+"""Several processes sharing one sweep (one per host, or one per GPU): JAX's distributed runtime, seen from the
+host side.
+
+    cdjax sweep --distributed ...       # SLURM, Open MPI, Cloud TPU: JAX finds the coordinator, the count and the id
+    cdjax sweep --distributed --coordinator HOST0:1234 --num-processes 2 --process-id I ...   # anywhere else
+
+Every process runs the same command: the same programs, called in the same order, on one mesh over every process's
+devices (`cdjax.sweep.runs_mesh()`), each process computing the runs on its own devices. Process 0 is the writer:
+it alone writes run.json, the logs, TensorBoard, the evaluations and the plots, and holds the run directory's lock;
+orbax writes each process's part of a checkpoint (the run directory must be on a file system every process sees).
+
+What one process decides alone (a refusal, a failed write, a Ctrl-C or SIGTERM, its --time-limit) is exchanged at
+fixed points (`exchange`, `together`), so that every process refuses, stops after the same chunk or fails with the
+same sentence. A process that dies is noticed by the others at their next exchange (at once: its connections close)
+or, inside a checkpoint's barrier, within the heartbeat timeout; they end with one sentence (`PeerLost`). When the
+dead one is process 0, which hosts the coordinator, JAX's runtime ends the others itself, with its own message.
+The run directory stays resumable either way: a checkpoint is complete only once every process has written its part.
+
+In one process (no --distributed) every function here is the identity, or does what one process would.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import re
+import sys
+import threading
+from typing import Any
+
+import jax
+import numpy as np
+
+PEER_LOST_STATUS = 69  # EX_UNAVAILABLE: a process of the sweep was lost; the run directory can be resumed
+DEFAULT_HEARTBEAT_S = 100  # jax.distributed.initialize's own default: a silent process is declared dead after this
+_MESSAGE_BYTES = 2048  # what one process can say in an exchange (a sentence; longer ones are cut)
+
+# Set once a peer was lost: from then on nothing waits for the others (checkpoint managers are not closed, since
+# closing waits at a barrier that the dead process will never reach).
+LOST = threading.Event()
+
+
+class PeerLost(RuntimeError):
+    """Another process of the sweep stopped answering (killed, or its host failed); one sentence. `complete`: the
+    sentence already says what is intact and how to go on."""
+
+    def __init__(self, sentence: str, complete: bool = False):
+        super().__init__(sentence)
+        self.complete = complete
+
+
+class Refused(ValueError):
+    """What another process refused or failed at, said by this one (the same sentence)."""
+
+
+def count() -> int:
+    """Processes in this sweep (1 without --distributed)."""
+    return jax.process_count()
+
+
+def index() -> int:
+    """This process's number (0 is the writer)."""
+    return jax.process_index()
+
+
+def is_writer() -> bool:
+    """Whether this process writes the run directory (process 0; the only process without --distributed)."""
+    return jax.process_index() == 0
+
+
+def _check_coordinator(coordinator: str) -> None:
+    from cdjax.protocol import ConfigError
+
+    host, _, port = coordinator.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(f"--coordinator must be HOST:PORT (e.g. node001:1234, the address of process 0 and a free "
+                          f"port), got {coordinator!r}.")
+
+
+def initialize(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None,
+               heartbeat_s: int | None = None) -> None:
+    """Join the other processes of the sweep (`jax.distributed.initialize`), before anything runs in JAX.
+
+    Arguments left None are found by JAX in SLURM, Open MPI and Cloud TPU environments. On the CPU, the processes'
+    collectives go over gloo. ConfigError (one sentence) when the arguments cannot work, JAX has already started,
+    or the others cannot be reached."""
+    from jax._src import xla_bridge
+
+    from cdjax.protocol import ConfigError
+
+    if coordinator is not None:
+        _check_coordinator(coordinator)
+    if num_processes is not None and num_processes < 1:
+        raise ConfigError(f"--num-processes must be at least 1, got {num_processes}.")
+    if process_id is not None and (process_id < 0 or (num_processes is not None and process_id >= num_processes)):
+        raise ConfigError(f"--process-id must be from 0 to --num-processes - 1, got {process_id}"
+                          + (f" of {num_processes}." if num_processes is not None else "."))
+    if xla_bridge.backends_are_initialized():
+        raise ConfigError("--distributed must join the other processes before JAX starts, and JAX has already "
+                          "started in this process; call cdjax.multihost.initialize first.")
+    with contextlib.suppress(AttributeError, ValueError):  # CPU collectives (the default in jax 0.10, set for others)
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    try:
+        jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
+                                   process_id=process_id, heartbeat_timeout_seconds=heartbeat_s or DEFAULT_HEARTBEAT_S)
+    except (ValueError, TypeError) as err:  # what JAX could not find (no SLURM, Open MPI or TPU environment)
+        missing = {"coordinator": "the coordinator's address", "number of processes": "the number of processes",
+                   "process id": "this process's number"}
+        what = next((words for key, words in missing.items() if key in str(err).lower()), _first_line(err))
+        raise ConfigError(f"--distributed could not find {what} (no SLURM, Open MPI or Cloud TPU environment says "
+                          "it); give --coordinator HOST:PORT --num-processes N --process-id I.") from None
+    except RuntimeError as err:
+        raise ConfigError(f"--distributed could not join the other processes ({_first_line(err)}); check that every "
+                          "process was started with the same --coordinator and --num-processes and that the "
+                          "coordinator's port is free and reachable.") from None
+    with _quiet_stdout():  # gloo says on stdout that it connected, at the first collective: here, not in the output
+        exchange("")
+
+
+@contextlib.contextmanager
+def _quiet_stdout():
+    """File descriptor 1 sent to /dev/null inside (what libraries print from C++ as well as from Python)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    return text[:300]
+
+
+# Words of the errors a lost peer causes: gloo's broken connections, the coordination service's barriers and
+# heartbeats, and the RPCs to a coordinator that is gone.
+_LOST_WORDS = re.compile(r"gloo|heartbeat|barrier|unavailable|coordination service|connection reset|connection closed|"
+                         r"connection refused|socket closed|deadline_exceeded|peer", re.IGNORECASE)
+
+
+def is_peer_error(err: BaseException) -> bool:
+    """Whether `err` (raised by a collective, an exchange or a checkpoint's barrier) says another process is gone."""
+    return count() > 1 and not isinstance(err, KeyboardInterrupt) and bool(_LOST_WORDS.search(str(err)))
+
+
+def lost(err: BaseException) -> PeerLost:
+    """The PeerLost that `err` says (sets LOST); the runtime's own words go to the library log."""
+    LOST.set()
+    logging.getLogger(__name__).warning("process %d of %d lost another process: %s", index(), count(), err)
+    text = str(err).lower()
+    how = ("its heartbeats stopped" if "heartbeat" in text else "its connection closed" if "connection" in text
+           else "the coordinator cannot be reached" if "coordination" in text or "unavailable" in text
+           else _first_line(err)[:120])
+    return PeerLost(f"Process {index()} of {count()} stopped: another process of the sweep stopped answering "
+                    f"(killed, or its host failed: {how})")
+
+
+def _gather(array: np.ndarray) -> np.ndarray:
+    """[P, ...]: every process's `array` (a collective)."""
+    from jax.experimental import multihost_utils
+
+    try:
+        return np.asarray(multihost_utils.process_allgather(array))
+    except KeyboardInterrupt:
+        raise
+    except Exception as err:  # noqa: BLE001 - whatever the runtime raises when a peer is gone
+        if is_peer_error(err):
+            raise lost(err) from None
+        raise
+
+
+def exchange(text: str) -> list[str]:
+    """Every process's `text`, in process order, on every process (a collective: every process calls it at the same
+    point of the same command). In one process: [text]."""
+    if count() == 1:
+        return [text]
+    data = text.encode("utf-8")[:_MESSAGE_BYTES]
+    buffer = np.zeros(_MESSAGE_BYTES + 4, np.uint8)
+    buffer[:4] = np.frombuffer(np.uint32(len(data)).tobytes(), np.uint8)
+    buffer[4:4 + len(data)] = np.frombuffer(data, np.uint8)
+    rows = _gather(buffer)
+    return [bytes(row[4:4 + int(np.frombuffer(row[:4].tobytes(), np.uint32)[0])]).decode("utf-8", "replace")
+            for row in rows]
+
+
+def from_writer(text: str) -> str:
+    """Process 0's `text`, on every process (a collective)."""
+    return exchange(text if is_writer() else "")[0]
+
+
+# What a process refused or failed at, as one letter in an exchange: the same class is raised on every process.
+def _kinds():
+    from cdjax import io
+    from cdjax.protocol import ConfigError
+
+    return {"W": io.WriteError, "M": io.CheckpointMismatch, "D": io.RunDirError, "C": ConfigError}
+
+
+def _encode(err: BaseException | None) -> str:
+    if err is None:
+        return ""
+    letter = next((k for k, cls in _kinds().items() if isinstance(err, cls)), "D")
+    return letter + str(err)
+
+
+def settle(err: BaseException | None) -> None:
+    """Exchange what each process refused or failed at (None: nothing) and raise, on every process, the first one
+    (a process raises its own; the others the same sentence, of the same class). In one process: raise `err`."""
+    if count() == 1:
+        if err is not None:
+            raise err
+        return
+    said = exchange(_encode(err))
+    first = next((text for text in said if text), None)
+    if first is None:
+        return
+    if err is not None:
+        raise err
+    cls = _kinds().get(first[0], Refused)
+    raise cls(first[1:])
+
+
+@contextlib.contextmanager
+def together():
+    """Run the block on every process; then every process raises the first one-sentence refusal any process met
+    inside it (ConfigError, RunDirError and its kinds), or goes on. Other exceptions (a KeyboardInterrupt, a bug)
+    leave at once: the others then see this process gone. In one process, the block as it is."""
+    if count() == 1:
+        yield
+        return
+    from cdjax import io
+    from cdjax.protocol import ConfigError
+
+    try:
+        yield
+    except (ConfigError, io.RunDirError) as err:
+        settle(err)
+    else:
+        settle(None)
+
+
+def fetch(tree):
+    """Device arrays -> numpy, whole, on every process (a collective in several processes: every process calls it
+    with the same arrays)."""
+    if count() == 1:
+        return jax.tree.map(np.asarray, jax.device_get(tree))
+    from jax.experimental import multihost_utils
+
+    try:
+        return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
+    except KeyboardInterrupt:
+        raise
+    except Exception as err:  # noqa: BLE001
+        if is_peer_error(err):
+            raise lost(err) from None
+        raise
+
+
+def _is_key(x) -> bool:
+    return hasattr(x, "dtype") and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def put(tree, sharding):
+    """Every leaf (the same values on every process) placed with `sharding`, which may span every process's devices.
+    In one process: jax.device_put."""
+    if count() == 1:
+        return jax.device_put(tree, sharding)
+
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:  # already global
+            return x if x.sharding == sharding else jax.jit(lambda a: a, out_shardings=sharding)(x)
+        if _is_key(x):
+            return jax.random.wrap_key_data(one(jax.random.key_data(x)), impl=jax.random.key_impl(x))
+        return jax.device_put(np.asarray(x), sharding)
+
+    return jax.tree.map(one, tree)
+
+
+def resume_flags() -> str:
+    """What a resume command adds to `cdjax sweep --out DIR --resume` for this sweep's processes."""
+    return " --distributed" if count() > 1 else ""
