@@ -323,8 +323,8 @@ def test_float32_layers_are_flax_layers_as_before_bit_for_bit():
         assert jax.tree.structure(params) == jax.tree.structure(old_params)
         for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(old_params)):
             np.testing.assert_array_equal(a, b)
-        out, vjp = jax.vjp(lambda p, i: new.apply(p, i), params, inp)
-        old_out, old_vjp = jax.vjp(lambda p, i: old.apply(p, i), params, inp)
+        out, vjp = jax.vjp(new.apply, params, inp)
+        old_out, old_vjp = jax.vjp(old.apply, params, inp)
         cotangent = jax.tree.map(lambda o: jax.random.normal(jax.random.key(3), o.shape), out)
         for a, b in zip(jax.tree.leaves((out, vjp(cotangent))), jax.tree.leaves((old_out, old_vjp(cotangent)))):
             np.testing.assert_array_equal(a, b)
@@ -354,7 +354,7 @@ def test_conv_arrangements_equal_the_grouped_convolution_under_the_runs_vmap(imp
             return (y * g).sum()
 
         got = jax.jit(jax.vmap(jax.value_and_grad(loss, (0, 1))))(x, w, g)
-        want = jax.jit(jax.vmap(jax.value_and_grad(lambda x, w, g: loss(x, w, g, reference), (0, 1))))(x, w, g)
+        want = jax.jit(jax.vmap(jax.value_and_grad(lambda x, w, g, ref=reference: loss(x, w, g, ref), (0, 1))))(x, w, g)
         for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
             if exact:  # float32: the same sums in another order
                 np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4)
@@ -398,7 +398,8 @@ def test_the_policys_rate_scales_only_the_policys_steps_and_zero_is_adam_at_lr()
     states = {name: opt.init(params) for name, opt in opts.items()}
     assert jax.tree.structure(states["zero"]) == jax.tree.structure(states["before"])
     for step in range(3):
-        grads = jax.tree.map(lambda p: 3 * jax.random.normal(jax.random.fold_in(next(keys), step), p.shape), params)
+        grads = jax.tree.map(lambda p, step=step: 3 * jax.random.normal(jax.random.fold_in(next(keys), step), p.shape),
+                             params)
         updates = {}
         for name, opt in opts.items():
             updates[name], states[name] = jax.jit(opt.update)(grads, states[name], params)
