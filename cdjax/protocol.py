@@ -52,6 +52,9 @@ class Trainer:
     # key -> an untrained policy (what `act` takes) without building the rest of the state; None: not offered
     fresh_policy: Callable[[jax.Array], Any] | None = None
     inner: Any = None  # the setting's own learner object, opaque to the host (its phase may use it)
+    # how a sweep splits its runs over devices (cdjax.sweep): "partition" (XLA's partitioner places the vmapped
+    # programs) or "local" (each device runs its own runs in a shard_map of the update programs: no collective)
+    runs_split: str = "partition"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -2,12 +2,16 @@
 
 A sweep has R runs (e.g. seeds x an alpha grid). Each run has its own PRNG key and its own HParams;
 `jax.vmap` batches them and `jax.sharding` splits the run axis over all local devices (a 1-D `Mesh`
-named "runs"): each device trains R / num_devices runs. XLA's partitioner places the vmapped program; for
-the point-mass trainer the compiled chunk holds no collective (tests/test_sweep.py), but
-the pixel model's vmapped convolutions (grouped convolutions with per-run weights) are all-gathered, which makes
-a pixel sweep slower on several GPUs than on one (the pixel setting says so when it runs on several). Splitting
-the runs with `jax.shard_map` removes those collectives on the CPU, but XLA:GPU's compiler (jax 0.11.2)
-crashed compiling the MJX trainers' init that way, so it is not used.
+named "runs"): each device trains R / num_devices runs. How the update programs are split (`split`):
+  "partition"  XLA's partitioner places the vmapped program (the default). For the point-mass trainer the compiled
+               chunk holds no collective (tests/test_sweep.py), but it all-gathers the pixel model's vmapped
+               convolutions (grouped convolutions with per-run weights): 102 all-gathers, and slower on 4 GPUs
+               than on one;
+  "local"      the update programs (run, chunk) are a `jax.shard_map` over the run axis: each device runs the vmap
+               of its own runs, with no collective (tests/_sharded_pixel_sweep.py). Init and the phase stay
+               partitioned: XLA:GPU (jax 0.11.2) crashed compiling the MJX trainers' init under shard_map.
+A trainer asks for "local" with `runs_split` (cdjax.protocol.Trainer; the pixel setting does). The state is laid
+out alike either way (the run axis over the mesh), so checkpoints move between the two and between device counts.
 
     sweep = make_sweep(make_trainer(config))        # any trainer with init(key, hp) and update(state, hp)
     keys, hps = sweep.grid(seed=0, num_seeds=8, hps=[HParams(alpha=0.0), HParams(alpha=1.0)])
@@ -57,6 +61,7 @@ class Sweep:
     _run: Callable  # jitted (state, hps, num_updates) -> (state, metrics [R, n])
     _phase: Callable | None = None  # jitted (state, hps) -> (state, info [R]): the pre-update phase of every run
     _chunk: Callable | None = None  # jitted (state, hps, length, n) -> (state, metrics [R, length]): n <= length run
+    split: str = "partition"  # how the update programs split the runs over the devices (make_sweep)
 
     @property
     def sharding(self) -> NamedSharding:
@@ -116,32 +121,50 @@ def unpad(tree, num_runs: int):
     return jax.tree.map(lambda x: x[:num_runs], tree)
 
 
-def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None) -> Sweep:
+SPLITS = ("partition", "local")
+
+
+def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None, split: str | None = None) -> Sweep:
     """The sweep programs of `trainer` (anything with pure init(key, hp) and update(state, hp), e.g.
     `cdjax.make_trainer(config)`); with `phase` (a pure run(state, hp) -> (state, info)), also that phase,
-    run before the updates."""
+    run before the updates. split: "partition" or "local" (the module docstring); default: the trainer's
+    `runs_split`, else "partition"."""
     mesh = mesh if mesh is not None else runs_mesh()
+    split = split or getattr(trainer, "runs_split", None) or "partition"
+    if split not in SPLITS:
+        raise ValueError(f"split {split!r}: choose one of {SPLITS}")
     sharded = NamedSharding(mesh, PartitionSpec(AXIS))
 
     def place(tree):
         return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, sharded), tree)
 
+    def over_runs(per_device: Callable, *static) -> Callable:
+        """(state, hps, *replicated) -> per_device(state, hps, *replicated, *static) on each device's own runs
+        ("local": a shard_map, no collective), or on all runs with the partitioner placing them ("partition")."""
+        if split == "partition":
+            return lambda state, hps, *rest: place(per_device(state, hps, *rest, *static))
+        runs, replicated = PartitionSpec(AXIS), PartitionSpec()
+        return lambda state, hps, *rest: jax.shard_map(
+            lambda s, h, *r: per_device(s, h, *r, *static), mesh=mesh,
+            in_specs=(runs, runs) + (replicated,) * len(rest), out_specs=runs, check_vma=False)(state, hps, *rest)
+
     @jax.jit
     def init(keys, hps):
         return place(jax.vmap(trainer.init)(keys, hps))
 
-    @functools.partial(jax.jit, static_argnums=2, donate_argnums=0)
-    def run(state, hps, num_updates):
+    def updates(state, hps, num_updates):
         def one_run(state, hp):
             return jax.lax.scan(lambda s, _: trainer.update(s, hp), state, None, length=num_updates)
 
-        state, metrics = jax.vmap(one_run)(state, hps)
-        return place(state), place(metrics)
+        return jax.vmap(one_run)(state, hps)
+
+    @functools.partial(jax.jit, static_argnums=2, donate_argnums=0)
+    def run(state, hps, num_updates):
+        return over_runs(updates, num_updates)(state, hps)
 
     update = jax.jit(trainer.update)  # a jit here only so that its trace serves both branches' shapes below
 
-    @functools.partial(jax.jit, static_argnums=2, donate_argnums=0)
-    def chunk(state, hps, length, n):
+    def first_updates(state, hps, n, length):
         def one_run(state, hp):
             _, skipped = jax.eval_shape(update, state, hp)  # the metrics' shapes (update's trace is cached)
             nan = jax.tree.map(lambda m: jnp.full(m.shape, jnp.nan, m.dtype), skipped)
@@ -151,8 +174,11 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None)
 
             return jax.lax.scan(step, state, jnp.arange(length))
 
-        state, metrics = jax.vmap(one_run)(state, hps)
-        return place(state), place(metrics)
+        return jax.vmap(one_run)(state, hps)
+
+    @functools.partial(jax.jit, static_argnums=2, donate_argnums=0)
+    def chunk(state, hps, length, n):
+        return over_runs(first_updates, length)(state, hps, n)
 
     phase_run = None
     if phase is not None:
@@ -162,4 +188,4 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None)
             state, info = jax.vmap(phase)(state, hps)
             return place(state), place(info)
 
-    return Sweep(trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run, _chunk=chunk)
+    return Sweep(trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run, _chunk=chunk, split=split)

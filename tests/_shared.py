@@ -9,6 +9,7 @@ import pytest
 from cdjax import io
 
 from cdjax import Config, HParams, make_agent, make_trainer
+from cdjax.agents.pixel import PRESETS as PIXEL_PRESETS, PixelConfig, PixelHParams
 
 POINT = Config(env="point", num_envs=16, rollout_len=12, horizon=4, num_updates=3, num_epochs=2,
                num_minibatches=2, episode_length=40, policy_hidden=(16,), value_hidden=(16,),
@@ -32,6 +33,29 @@ def compiled(config: Config):
 def host_trainer(config: Config):
     """The observation-space agent of a config as the host side sees it (cdjax.protocol.Trainer)."""
     return make_trainer(config)
+
+
+# The pixel setting's tiny model (tests/test_pixel_model.py, tests/_sharded_pixel_sweep.py): ltq-cd with the l2
+# encoder (the whole update with the smallest program to compile) and two convolutions instead of four.
+PIXEL_TINY = PixelConfig(**PIXEL_PRESETS["pixel-tiny"].config, arm="ltq-cd", encoder="l2").replace(conv_layers=2)
+PIXEL_HP = PixelHParams(lr=3e-3, imitation_coef=100.0)  # imitation weighed against the summed ELBO
+
+
+@functools.lru_cache(maxsize=None)
+def pixel_programs():
+    """(learner, jit(init), jit(update), traced) of PIXEL_TINY on synthetic frames, built once per test session
+    (tests/test_pixel_model.py and tests/test_sweep.py share them); traced["count"]: update's traces."""
+    from cdjax.agents.pixel.learner import PixelLearner
+    from cdjax.agents.pixel.synthetic import SyntheticWorld
+
+    learner = PixelLearner(PIXEL_TINY, world=SyntheticWorld(PIXEL_TINY))
+    traced = {"count": 0}
+
+    def counted(state, hp):
+        traced["count"] += 1
+        return learner.update(state, hp)
+
+    return learner, jax.jit(learner.init), jax.jit(counted), traced
 
 
 # The point-mass config POINT on the command line, with 2 seeds and 2 updates (of 192 env steps) per chunk.

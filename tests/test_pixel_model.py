@@ -1,9 +1,10 @@
 """The pixel setting's model, update and sweep (cdjax.agents.pixel) on synthetic frames (no physics: fast to compile;
 tests/test_pixels.py renders the real tasks).
 
-The world here is a stand-in for the rendered expert data: frames of noise with a random brightness, expert
-actions that are a fixed function of the newest frame's brightness (imitation is learnable), and a scene whose
-brightness follows the action for the evaluation episodes. Every test shares one compiled `update`."""
+The world here (cdjax.agents.pixel.synthetic) is a stand-in for the rendered expert data: frames of noise with a
+random brightness, expert actions that are a fixed function of the newest frame's brightness (imitation is
+learnable), and a scene whose brightness follows the action for the evaluation episodes. Every test shares one
+compiled `update`."""
 
 from __future__ import annotations
 
@@ -16,69 +17,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import struct
 
 from cdjax import agents, io
 from cdjax.agents import pixel
-from cdjax.agents.pixel import PRESETS, PixelConfig, PixelHParams, PixelLearner
-from cdjax.agents.pixel.data import Dataset, PixelEvalEnv
+from cdjax.agents.pixel import PixelHParams, PixelLearner
+from cdjax.agents.pixel.synthetic import SyntheticWorld
 from cdjax.cli import main
 from cdjax.runner import restore_arms
 from experiments.pixel.report import write_strips
 
-from _shared import TINY_ARGS, logged_rows
+from _shared import PIXEL_HP, PIXEL_TINY, TINY_ARGS, logged_rows, pixel_programs
 
 # ltq-cd with the l2 encoder: the whole update (ELBO, imitation, consistency) with the smallest program to compile;
 # the GRU encoders (the default is grounded-gru) are checked in the consistency test.
 # Two convolutions instead of four (the model is size-generic): a smaller program to compile.
-TINY = PixelConfig(**PRESETS["pixel-tiny"].config, arm="ltq-cd", encoder="l2").replace(conv_layers=2)
-HP = PixelHParams(lr=3e-3, imitation_coef=100.0)  # imitation weighed against the summed ELBO
+TINY, HP = PIXEL_TINY, PIXEL_HP
 A = 2
-
-
-@struct.dataclass
-class Core:
-    obs: jax.Array  # [B, 1] brightness of the scene
-    reward: jax.Array  # [B]
-    done: jax.Array  # [B]
-
-
-class SyntheticWorld:
-    """cdjax.agents.pixel.data.PixelWorld's interface without physics: generate(key, n, length) gives frames of
-    noise, and a scene whose brightness follows the action (reward: closeness of the action to 0.5) plays
-    the evaluation episodes."""
-
-    action_size = A
-
-    def __init__(self, config):
-        self.config = config
-
-    def reset(self, key, n):
-        obs = jax.random.uniform(key, (n, 1))
-        return Core(obs, jnp.zeros((n,), jnp.float32), jnp.zeros((n,), jnp.float32))
-
-    def step(self, core, action):
-        obs = jnp.clip(0.8 * core.obs + 0.2 * (action[:, :1] + 1) / 2, 0.0, 1.0)
-        return Core(obs, -jnp.abs(action[:, 0] - 0.5), jnp.zeros_like(core.done))
-
-    def frame(self, core):
-        S = self.config.image_size
-        return jnp.broadcast_to(jnp.round(255 * core.obs)[:, :, None, None], (core.obs.shape[0], S, S, 3)).astype(jnp.uint8)
-
-    def eval_env(self, num_envs):
-        return PixelEvalEnv(self, num_envs)
-
-    def generate(self, key, n, length):
-        """Frames of noise dimmed by a random brightness per frame; the expert's action is a function of the
-        newest frame's brightness."""
-        S, F = self.config.image_size, self.config.frame_stack
-        key_noise, key_brightness = jax.random.split(key)
-        brightness = jax.random.uniform(key_brightness, (n, length + F - 1))
-        noise = jax.random.uniform(key_noise, (n, length + F - 1, S, S, 3))
-        frames = jnp.round(255 * noise * brightness[..., None, None, None]).astype(jnp.uint8)
-        b = brightness[:, F - 1:]
-        actions = 0.9 * jnp.stack([2 * b - 1, jnp.cos(6 * b)], -1)
-        return Dataset(frames=frames, actions=actions, reward=jnp.zeros((), jnp.float32))
 
 
 def learner_for(config=TINY):
@@ -87,26 +41,22 @@ def learner_for(config=TINY):
 
 @pytest.fixture(scope="module")
 def learner():
-    return learner_for()
+    return pixel_programs()[0]
 
 
 @pytest.fixture(scope="module")
 def traced():
-    return {"count": 0}
+    return pixel_programs()[3]
 
 
 @pytest.fixture(scope="module")
-def update(learner, traced):
-    def counted(state, hp):
-        traced["count"] += 1
-        return learner.update(state, hp)
-
-    return jax.jit(counted)
+def update():
+    return pixel_programs()[2]
 
 
 @pytest.fixture(scope="module")
-def init(learner):
-    return jax.jit(learner.init)
+def init():
+    return pixel_programs()[1]
 
 
 @pytest.fixture(scope="module")
@@ -294,3 +244,216 @@ def test_subpixel_decoder_layer_rearranges_each_pixels_channels_into_a_2x2_block
         shapes.add((mean.shape, std.shape))
         assert float(std.min()) >= 0.01
     assert shapes == {((3, 16, 16, 3), (3, 16, 16, 3))}
+
+
+# --- precision, convolution arrangements and the policy's rate (cdjax.agents.pixel.convs; issue 22) ----------------
+
+# Metrics of 3 updates of the tiny model from the `state` fixture, recorded with the code before compute_dtype,
+# conv_impl and lr_policy existed (main at 384ba06, jax 0.10.2, a 2-core x86-64 CPU), where the float32 switch
+# reproduces them bit for bit; another CPU may round differently in the last places, hence rtol 1e-6 here (the
+# layers and the optimiser are compared bit for bit in-process below).
+BEFORE = {"loss/total": 3122.32470703125, "model/elbo_per_frame": -514.7382202148438,
+          "loss/imitation": 0.32997366786003113, "loss/consistency": 0.8981308937072754,
+          "heldout/loglik_k": -505.296630859375, "heldout/imitation": 0.37696373462677,
+          "grad/norm": 1075.06494140625}
+
+
+def three_updates(update, state):
+    for _ in range(3):
+        state, metrics = update(state, HP)
+    return state, {name: float(metrics[name]) for name in BEFORE}
+
+
+def relative(a, b) -> float:
+    a, b = (np.concatenate([np.ravel(np.asarray(x, np.float64)) for x in jax.tree.leaves(t)]) for t in (a, b))
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+def test_float32_switch_gives_the_numbers_of_before_and_bfloat16_agrees_within_its_rounding(learner, state, update):
+    """compute_dtype float32 (the default, with conv_impl grouped) is the model before the switch existed; bfloat16
+    operands (float32 parameters, optimiser state and ELBO sums) change every metric of 3 updates by less than 2e-3
+    relative, and the gradient of the loss of one batch by less than 1e-2 (relative L2 per parameter group)."""
+    assert (TINY.compute_dtype, TINY.conv_impl, HP.lr_policy) == ("float32", "grouped", 0.0)
+    _, metrics = three_updates(update, state)
+    for name, value in BEFORE.items():
+        np.testing.assert_allclose(metrics[name], value, rtol=1e-6, err_msg=name)
+    mixed = learner_for(TINY.replace(compute_dtype="bfloat16"))
+    assert jax.tree.structure(mixed.model.init(jax.random.key(0))) == jax.tree.structure(state.params)
+    after_mixed, metrics_mixed = three_updates(jax.jit(mixed.update), state)
+    for name, value in metrics.items():
+        np.testing.assert_allclose(metrics_mixed[name], value, rtol=2e-3, err_msg=name)
+    assert metrics_mixed != metrics  # it did compute in another precision
+    assert all(x.dtype == jnp.float32 for x in jax.tree.leaves((after_mixed.params, after_mixed.opt_state))
+               if jnp.issubdtype(x.dtype, jnp.floating))
+    # Adam's first steps are about lr * sign(g): compare the gradients themselves
+    frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
+    grads = [jax.jit(jax.grad(lambda p, lrn=lrn: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]))(state.params)
+             for lrn in (learner, mixed)]
+    for group in state.params:
+        assert relative(grads[1][group], grads[0][group]) < 1e-2, group
+
+
+def test_float32_layers_are_flax_layers_as_before_bit_for_bit():
+    """The encoder and decoder at compute_dtype float32 and conv_impl grouped: the parameters, outputs and gradients
+    of the flax layers the model was written with before (reference modules here), bit for bit."""
+    import flax.linen as nn
+
+    from cdjax.agents.pixel.model import ConvDecoder, ConvEncoder, depth_to_space
+
+    class Encoder(nn.Module):
+        @nn.compact
+        def __call__(self, x):
+            for _ in range(2):
+                x = nn.relu(nn.Conv(4, (4, 4), strides=(2, 2), padding="SAME")(x))
+            return nn.Dense(16)(x.reshape(x.shape[0], -1))
+
+    class Decoder(nn.Module):
+        @nn.compact
+        def __call__(self, x):
+            y = nn.relu(nn.Dense(4 * 4 * 4)(x)).reshape(-1, 4, 4, 4)
+            y = nn.relu(depth_to_space(nn.Conv(16, (3, 3), padding="SAME")(y)))
+            y = depth_to_space(nn.Conv(24, (3, 3), padding="SAME")(y))
+            return y[..., :3], nn.softplus(y[..., 3:]) + 0.01
+
+    x = jax.random.uniform(jax.random.key(1), (3, 16, 16, 12))
+    z = jax.random.normal(jax.random.key(2), (3, 20))
+    for new, old, inp in [(ConvEncoder(2, 4, 16), Encoder(), x), (ConvDecoder(16, 2, 4, 0.01), Decoder(), z)]:
+        params = new.init(jax.random.key(0), inp)
+        old_params = old.init(jax.random.key(0), inp)
+        assert jax.tree.structure(params) == jax.tree.structure(old_params)
+        for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(old_params)):
+            np.testing.assert_array_equal(a, b)
+        out, vjp = jax.vjp(new.apply, params, inp)
+        old_out, old_vjp = jax.vjp(old.apply, params, inp)
+        cotangent = jax.tree.map(lambda o: jax.random.normal(jax.random.key(3), o.shape), out)
+        for a, b in zip(jax.tree.leaves((out, vjp(cotangent))), jax.tree.leaves((old_out, old_vjp(cotangent)))):
+            np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("impl", ["per-run", "matmul"])
+@pytest.mark.parametrize("window,stride", [(4, 2), (3, 1)])
+def test_conv_arrangements_equal_the_grouped_convolution_under_the_runs_vmap(impl, window, stride):
+    """Each conv_impl computes lax.conv_general_dilated's value and both gradients under a vmap over runs with
+    per-run kernels (float32, and bfloat16 operands returning float32)."""
+    from jax import lax
+
+    from cdjax.agents.pixel import convs
+
+    fn = {"per-run": convs.per_run_conv, "matmul": convs.matmul_conv}[impl]
+    R, N, S, C, F = 3, 2, 8, 5, 6  # runs, batch, size, input and output channels
+    keys = jax.random.split(jax.random.key(window), 3)
+    x = jax.random.normal(keys[0], (R, N, S, S, C))
+    w = jax.random.normal(keys[1], (R, window, window, C, F))
+    g = jax.random.normal(keys[2], (R, N, S // stride, S // stride, F))
+    for conv, reference, exact in [(fn, lax.conv_general_dilated, True),
+                                   (convs.operands_in(fn, jnp.bfloat16),
+                                    convs.operands_in(lax.conv_general_dilated, jnp.bfloat16), False)]:
+        def loss(x, w, g, conv=conv):
+            y = conv(x, w, (stride, stride), "SAME", dimension_numbers=convs.NHWC)
+            assert y.dtype == jnp.float32
+            return (y * g).sum()
+
+        got = jax.jit(jax.vmap(jax.value_and_grad(loss, (0, 1))))(x, w, g)
+        want = jax.jit(jax.vmap(jax.value_and_grad(lambda x, w, g, ref=reference: loss(x, w, g, ref), (0, 1))))(x, w, g)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            if exact:  # float32: the same sums in another order
+                np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4)
+            else:  # the input's gradient is bfloat16 (the operand's dtype): rounded to 8 bits either way
+                assert relative(a, b) < 1e-2
+
+
+def test_the_runs_vmap_gives_grouped_convolutions_only_with_conv_impl_grouped():
+    """The lowered program of jit(vmap(update)) over 2 runs: grouped convolutions (feature_group_count 2) with
+    'grouped'; ungrouped convolutions, two per layer use, with 'per-run'; batched matrix products and no
+    convolution with 'matmul' (XLA then chooses how to run them; only a GPU measures which is faster)."""
+    import re
+
+    counts = {}
+    for impl in ("grouped", "per-run", "matmul"):
+        learner = learner_for(TINY.replace(conv_impl=impl))
+        hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
+        states = jax.eval_shape(jax.vmap(learner.init), jax.random.split(jax.random.key(0), 2), hps)
+        text = jax.jit(jax.vmap(learner.update)).lower(states, hps).as_text()
+        convolutions = re.findall(r"stablehlo\.convolution.*?feature_group_count = (\d+)", text)
+        counts[impl] = (len(convolutions), {int(g) for g in convolutions},
+                        len(re.findall(r"stablehlo\.dot_general.*?batching_dims = \[0\] x \[0\]", text)))
+    grouped, per_run, matmul = counts["grouped"], counts["per-run"], counts["matmul"]
+    assert grouped[0] > 0 and grouped[1] == {2}, grouped
+    assert per_run[0] == 2 * grouped[0] and per_run[1] == {1}, per_run
+    assert matmul[0] == 0 and matmul[2] > grouped[2], matmul
+
+
+def test_the_policys_rate_scales_only_the_policys_steps_and_zero_is_adam_at_lr():
+    import optax
+
+    from cdjax.agents.pixel.learner import optimizer
+
+    keys = iter(jax.random.split(jax.random.key(5), 64))
+    params = {g: {"w": jax.random.normal(next(keys), (3, 4)), "b": jax.random.normal(next(keys), (4,))}
+              for g in ("encoder", "core", "policy")}
+    hp = PixelHParams(lr=1e-3)
+    before = optax.apply_if_finite(optax.chain(optax.clip(hp.clip), optax.adam(hp.lr)),
+                                   max_consecutive_errors=1_000_000)
+    opts = {"before": before, "zero": optimizer(hp), "policy": optimizer(hp.replace(lr_policy=4e-3))}
+    states = {name: opt.init(params) for name, opt in opts.items()}
+    assert jax.tree.structure(states["zero"]) == jax.tree.structure(states["before"])
+    for step in range(3):
+        grads = jax.tree.map(lambda p, step=step: 3 * jax.random.normal(jax.random.fold_in(next(keys), step), p.shape),
+                             params)
+        updates = {}
+        for name, opt in opts.items():
+            updates[name], states[name] = jax.jit(opt.update)(grads, states[name], params)
+        for a, b in zip(jax.tree.leaves(updates["zero"]), jax.tree.leaves(updates["before"])):
+            np.testing.assert_array_equal(a, b)
+        for group in params:
+            scale = 4.0 if group == "policy" else 1.0
+            for a, b in zip(jax.tree.leaves(updates["policy"][group]), jax.tree.leaves(updates["before"][group])):
+                np.testing.assert_allclose(a, scale * b, rtol=1e-6)
+
+
+def test_roofline_counts_each_product_and_convolution_and_scanned_bodies_times_their_length():
+    """experiments.pixel.roofline's FLOPs (2 per multiply-add, as XLA counts them) on hand-counted programs: a
+    convolution, its two gradients under the runs' vmap (the input's without the zeros a stride inserts), a product
+    in a scan of 10 steps; the tiny model's update alike in every conv_impl; XLA's cost analysis counts that scan's
+    body once, the roofline's figures are its counts over its own time."""
+    from jax import lax
+
+    from experiments.pixel import roofline
+
+    R, N, S, C, F, K = 3, 2, 8, 5, 6, 4  # runs, batch, size, input and output channels, kernel window
+    x, w, g = jnp.ones((R, N, S, S, C)), jnp.ones((R, K, K, C, F)), jnp.ones((R, N, S // 2, S // 2, F))
+    forward = 2 * N * (S // 2) ** 2 * F * K * K * C  # stride 2, SAME: [N, S/2, S/2, F] outputs of K*K*C taps each
+
+    def loss(x, w, g):
+        return (lax.conv_general_dilated(x, w, (2, 2), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")) * g).sum()
+
+    def count(fn, *args):
+        return roofline.matrix_flops(jax.make_jaxpr(fn)(*args).jaxpr)
+
+    assert count(loss, x[0], w[0], g[0]) == (forward, 0)
+    # grouped convolutions (feature_group_count R), the input's gradient from an input dilated 2x2
+    assert count(jax.vmap(jax.value_and_grad(loss, (0, 1))), x, w, g) == (3 * R * forward, 0)
+    m = jnp.ones((F, F))
+
+    def scanned(y):
+        return lax.scan(lambda c, _: (c @ m, None), y, None, length=10)[0]
+
+    y = jnp.ones((16, F))
+    step = 2 * 16 * F * F
+    assert count(lambda y: lax.cond(y[0, 0] > 0, scanned, lambda y: y @ m, y), y) == (10 * step, 0)
+    assert count(lambda y: lax.while_loop(lambda c: c[0, 0] < 5, lambda c: c @ m, y), y) == (step, 1)
+    # the model's FLOPs do not depend on how its convolutions are arranged (per-run's custom rule also computes the
+    # frames' gradient, dead code that XLA drops and the count must too)
+    hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
+    counts = set()
+    for impl in ("grouped", "per-run", "matmul"):
+        lrn = learner_for(TINY.replace(conv_impl=impl))
+        states = jax.eval_shape(jax.vmap(lrn.init), jax.random.split(jax.random.key(0), 2), hps)
+        counts.add(roofline.program_flops(jax.vmap(lrn.update), states, hps))
+    assert len(counts) == 1 and min(counts)[0] > 0, counts
+    row = roofline.roofline(scanned, (y,), frames=16, peak=1.0, repeats=1)
+    assert row["flops_per_frame"] == 10 * step / 16 and row["while_loops_counted_once"] == 0
+    assert row["xla_flops_per_frame"] < 2 * step / 16  # XLA: the body once (and a few elementwise flops)
+    assert row["achieved_tflops"] == pytest.approx(10 * step / row["update_s"] / 1e12)
+    assert row["of_peak"] == pytest.approx(row["achieved_tflops"]) and row["frames_per_s"] == pytest.approx(
+        16 / row["update_s"])

@@ -11,6 +11,10 @@ of the same configuration (each as compile + steady-state seconds per update, an
   single   one run alone (R = 1), for the per-run ceiling.
 
 Arms: ltq-cd (the default) or ltq (--arm ltq). CPU options shrink everything (--set image_size=16 ...).
+
+With --devices N [N ...] it measures instead the sweep itself (cdjax.sweep, the pixel trainer's own split of the
+runs over devices) on the first N devices for each N, in one process: compile, then steady-state seconds per chunk
+of --chunk updates and frames/s (issue 25: 1, 2 and 4 GPUs, `--runs 32 --devices 1 2 4`).
 """
 
 from __future__ import annotations
@@ -53,6 +57,48 @@ def measure(config, runs: int, modes: list[str], trace: str = "") -> dict:
     return out
 
 
+def measure_devices(config, runs: int, counts: list[int], chunk: int) -> dict:
+    """frames/s of the pixel sweep's chunk of `chunk` updates of `runs` runs on the first N devices, per N."""
+    from cdjax.sweep import make_sweep, runs_mesh
+
+    setting = agents.get("pixel")
+    trainer = setting.make_trainer(config)
+    out = {"env": config.env, "arm": config.arm, "runs": runs, "chunk_updates": chunk,
+           "device": jax.devices()[0].device_kind, "frames_per_update_per_run": config.batch_size * config.seq_len}
+    for n in counts:
+        sweep = make_sweep(trainer, mesh=runs_mesh(jax.devices()[:n]))
+        keys, hps = sweep.grid(seed=0, num_seeds=runs, hps=[setting.hparams_type()])
+        state = sweep.init(keys, hps)
+        program = sweep.lower_chunk(state, hps, chunk).compile()
+        length = jnp.int32(chunk)
+
+        def call(carry, program=program, hps=hps, length=length):
+            return program(carry[0], hps, length)
+
+        first, carry = timed_chain(call, (state, None))
+        steady, _ = timed_chain(call, carry, repeats=3)
+        frames = runs * chunk * out["frames_per_update_per_run"]
+        out[f"{n}_devices"] = {"split": sweep.split, "padded_runs": int(keys.shape[0]), "first_chunk_s": round(first, 2),
+                               "chunk_s": round(steady, 4), "frames_per_s": round(frames / steady)}
+        print(n, out[f"{n}_devices"], flush=True)
+        del carry
+    base = out[f"{counts[0]}_devices"]["frames_per_s"]
+    for n in counts:
+        out[f"{n}_devices"]["speedup"] = round(out[f"{n}_devices"]["frames_per_s"] / base, 3)
+    return out
+
+
+def timed_chain(call, carry, repeats: int = 1):
+    """(mean seconds of `repeats` calls, each on the last's output: the chunk donates its state, last carry)."""
+    import time
+
+    start = time.perf_counter()
+    for _ in range(repeats):
+        carry = call(carry)
+    jax.block_until_ready(carry[1])
+    return (time.perf_counter() - start) / repeats, carry
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="halfcheetah")
@@ -62,10 +108,17 @@ def main(argv=None) -> dict:
     parser.add_argument("--set", nargs="*", default=[], help="PixelConfig overrides NAME=VALUE, e.g. image_size=16 upsample=subpixel")
     parser.add_argument("--out", default="")
     parser.add_argument("--trace", default="", help="write a jax.profiler trace of each mode under this directory")
+    parser.add_argument("--devices", nargs="*", type=int, default=[],
+                        help="measure the sweep on the first N devices for each N instead (e.g. 1 2 4)")
+    parser.add_argument("--chunk", type=int, default=20, help="updates per timed chunk (with --devices)")
     args = parser.parse_args(argv)
     runtime.configure(cache_dir=runtime.default_cache_dir())
     setting = agents.get("pixel")
     given = dict(setting.presets[f"pixel-{args.env}"].config, arm=args.arm) | overrides(args.set)
+    if args.devices:
+        result = measure_devices(setting.config_type(**given), args.runs, args.devices, args.chunk)
+        write_json(result, args.out)
+        return result
     result = measure(setting.config_type(**given), args.runs, args.modes, args.trace)
     write_json(result, args.out)
     return result

@@ -46,8 +46,11 @@ def make_trainer(config: PixelConfig) -> Trainer:
 
 def trainer_of(learner: PixelLearner) -> Trainer:
     """The protocol's view of a learner (e.g. one built on another world than the rendered task)."""
+    # runs_split "local": under the partitioner the runs' vmapped convolutions (per-run weights) were all-gathered
+    # across devices (102 all-gathers in the chunk, 4 H200s slower than one); each device now runs its own runs
     return Trainer(config=learner.config, init=learner.init, update=learner.update, policy=learner.policy,
-                   act=learner.act, eval_env=learner.world.eval_env, saved_leaves=learner.saved_leaves, inner=learner)
+                   act=learner.act, eval_env=learner.world.eval_env, saved_leaves=learner.saved_leaves, inner=learner,
+                   runs_split="local")
 
 
 # alpha: the ELBO is summed over 12,288 pixel terms per frame and 50 steps, so at alpha = 1 l_cc's gradient on the
@@ -105,9 +108,10 @@ SETTING = Setting(
         ("encoder/spread_real", "encoder spread (real)", False))),
     presets=PRESETS, default_preset=preset_of_env, watch=collapse_warning,
     multi_device_note=(
-        "this pixel sweep splits its runs over several devices, which XLA's partitioner makes slower than one "
-        "device (it all-gathers the runs' vmapped convolutions: 30k frames/s on 4 H200s against 42k on one); "
-        "run one sweep per GPU instead (CUDA_VISIBLE_DEVICES=i), as experiments/pixel/device.sh does."))
+        "this pixel sweep splits its runs over several devices, each running its own runs with no collective; "
+        "that split is not yet measured on GPUs (the partitioner's split, which all-gathered the runs' vmapped "
+        "convolutions, ran 30k frames/s on 4 H200s against 42k on one). Until it is, one sweep per GPU "
+        "(CUDA_VISIBLE_DEVICES=i), as experiments/pixel/device.sh does, is the measured choice."))
 
 __all__ = ["ARMS", "PRESETS", "SETTING", "PixelConfig", "PixelHParams", "PixelLearner", "arm_config", "make_trainer",
            "trainer_of"]

@@ -14,6 +14,8 @@ from cdjax.protocol import ConfigError
 Arm = Literal["ltq", "ltq-cd"]
 ImagineActions = Literal["policy", "expert"]
 Upsample = Literal["transpose", "subpixel"]
+ComputeDtype = Literal["float32", "bfloat16"]
+ConvImpl = Literal["grouped", "per-run", "matmul"]
 PIXEL_ENVS = ("halfcheetah", "reacher", "pusher")
 
 
@@ -31,6 +33,11 @@ class PixelConfig:
     conv_channels: int = 64  # channels of every convolution
     upsample: Upsample = "subpixel"  # decoder layers: 4x4 stride-2 transposed convolutions ("transpose"), or (3x3
     # convolutions to 4x the channels, then depth_to_space; see model.ConvDecoder)
+    compute_dtype: ComputeDtype = "float32"  # operands of the encoder's and decoder's convolutions and dense
+    # layers: float32, or bfloat16 (parameters, optimiser state, the LSTM, the policy and the ELBO's sums stay
+    # float32; see convs.py)
+    conv_impl: ConvImpl = "grouped"  # how a sweep's vmapped runs meet the convolutions: grouped (XLA's grouped
+    # convolution), per-run (one ungrouped convolution per run) or matmul (patches x kernel, a batched product)
     embed_dim: int = 256  # e(o): the encoder's output size
     hidden: int = 256  # LSTM state size (h and c each)
     latent: int = 100  # z: per-step latent size
@@ -60,6 +67,9 @@ class PixelConfig:
                               f"{2 ** self.conv_layers}.")
         if not self.horizon < self.seq_len:
             raise ConfigError(f"horizon={self.horizon} must be below seq_len={self.seq_len}.")
+        if self.upsample == "transpose" and (self.compute_dtype, self.conv_impl) != ("float32", "grouped"):
+            raise ConfigError(f"upsample='transpose' runs only with compute_dtype='float32' and conv_impl='grouped' "
+                              f"(got {self.compute_dtype!r} and {self.conv_impl!r}); use upsample='subpixel'.")
         if not self.horizon <= self.eval_horizon:
             raise ConfigError(f"horizon={self.horizon} must not exceed eval_horizon={self.eval_horizon}.")
 
@@ -92,6 +102,7 @@ class PixelHParams:
     """Traced float32 scalars (vmappable with the seeds)."""
 
     lr: float = 1e-4  # Adam step size (the authors' code: 1e-4)
+    lr_policy: float = 0.0  # Adam step size of the imitation policy's parameters; 0: the same as lr
     clip: float = 1.0  # gradient clipping by value (the authors' code: 1.0)
     imitation_coef: float = 1.0  # weight of the imitation loss (mean squared error of the expert's actions)
     alpha: float = 1.0  # weight of l_cc (ltq-cd only)

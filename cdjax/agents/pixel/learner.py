@@ -54,9 +54,25 @@ def time_major(x: jax.Array) -> jax.Array:
     return jnp.swapaxes(x, 0, 1)
 
 
+def scale_by_group_rates(rates: dict, default) -> optax.GradientTransformation:
+    """Each top-level parameter group's updates times -rates[group] (-default for the groups not named): optax's
+    scale_by_learning_rate per group, with the same (empty) state."""
+
+    def update(updates, state, params=None):
+        del params
+        return {name: jax.tree.map(lambda g, r=rates.get(name, default): (-1 * r) * g, tree)
+                for name, tree in updates.items()}, state
+
+    return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
+
+
 def optimizer(hp) -> optax.GradientTransformation:
-    """Gradient clipping by value, then Adam (the authors' code: 1.0 and 1e-4); a non-finite step is skipped."""
-    return optax.apply_if_finite(optax.chain(optax.clip(hp.clip), optax.adam(hp.lr)), max_consecutive_errors=1_000_000)
+    """Gradient clipping by value, then Adam (the authors' code: 1.0 and 1e-4), the policy's parameters at their own
+    step size when `lr_policy` > 0; a non-finite step is skipped. With lr_policy 0 it is optax.adam(lr) after the
+    clipping, state and numbers alike."""
+    policy_lr = jnp.where(hp.lr_policy > 0, hp.lr_policy, hp.lr)
+    adam = optax.chain(optax.scale_by_adam(), scale_by_group_rates({"policy": policy_lr}, hp.lr))
+    return optax.apply_if_finite(optax.chain(optax.clip(hp.clip), adam), max_consecutive_errors=1_000_000)
 
 
 class PixelLearner:

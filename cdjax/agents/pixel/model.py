@@ -10,10 +10,12 @@ seeing o_t. With s_{-1} = 0 and a_{-1} = 0 (s = the LSTM state (h, c)):
     decoder    p(f_{t+F-1} | h_t, z_t)            diagonal Gaussian over the newest frame's pixels in [0, 1]
     policy     a_t ~= pi(h_t)                     tanh MLP, trained by imitation (mean squared error)
 
-e: 4 convolutions (4x4, stride 2, 64 channels, ReLU) and a dense layer to 256; the decoder mirrors it with
-transposed convolutions. The closed loop (`filter`) samples z from the posterior (it reads the frames);
-the open loop (`imagine`) samples z from the prior and never reads a frame. The ELBO is summed over the
-pixels, the latent dimensions and the time steps (not averaged per element, the authors' bug), in nats.
+e: 4 convolutions (4x4, stride 2, 64 channels, ReLU) and a dense layer to 256; the decoder mirrors it (3x3
+convolutions and depth_to_space, or transposed convolutions). How the convolutions are computed (their operands'
+dtype, and the arrangement a sweep's vmapped runs meet) is convs.py's. The closed loop (`filter`) samples z
+from the posterior (it reads the frames); the open loop (`imagine`) samples z from the prior and never reads a
+frame. The ELBO is summed over the pixels, the latent dimensions and the time steps (not averaged per element,
+the authors' bug), in nats.
 Every standard deviation is softplus(raw) + min_std, from its own output (not from the mean, another bug).
 """
 
@@ -26,6 +28,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from cdjax.agents.pixel.convs import conv_kwargs, dense_kwargs
 from cdjax.consistency import SequenceEncoder, init_encoder
 
 LOG_2PI = math.log(2 * math.pi)
@@ -54,15 +57,22 @@ def newest_frames(frames: jax.Array, stack: int) -> jax.Array:
 
 
 class ConvEncoder(nn.Module):
+    """Convolutions of 4x4, stride 2, ReLU, then a dense layer. compute_dtype and conv_impl: PixelConfig's (convs.py);
+    the output is float32 in any compute dtype."""
+
     layers: int
     channels: int
     features: int
+    compute_dtype: str = "float32"
+    conv_impl: str = "grouped"
 
     @nn.compact
     def __call__(self, x):  # [N, S, S, C] -> [N, features]
         for _ in range(self.layers):
-            x = nn.relu(nn.Conv(self.channels, (4, 4), strides=(2, 2), padding="SAME")(x))
-        return nn.Dense(self.features)(x.reshape(x.shape[0], -1))
+            conv = nn.Conv(self.channels, (4, 4), strides=(2, 2), padding="SAME",
+                           **conv_kwargs(self.conv_impl, self.compute_dtype))
+            x = nn.relu(conv(x))
+        return nn.Dense(self.features, **dense_kwargs(self.compute_dtype, output=True))(x.reshape(x.shape[0], -1))
 
 
 def depth_to_space(y: jax.Array, factor: int = 2) -> jax.Array:
@@ -79,26 +89,33 @@ class ConvDecoder(nn.Module):
     four times the channels, then each pixel's channels become a 2x2 block (depth_to_space). A 4x4 stride-2
     transposed convolution computes each output pixel from a 2x2 neighbourhood of its input, which a 3x3 window
     contains, so "subpixel" can represent every "transpose" layer; it avoids the input-dilated convolutions
-    (three zeros in four inputs) that a transposed convolution is lowered to."""
+    (three zeros in four inputs) that a transposed convolution is lowered to.
+
+    compute_dtype and conv_impl: PixelConfig's (convs.py, "subpixel" only); the means and scales are float32."""
 
     size: int
     layers: int
     channels: int
     min_std: float
     upsample: str = "subpixel"  # PixelConfig.upsample's default
+    compute_dtype: str = "float32"
+    conv_impl: str = "grouped"
 
-    def _up(self, y, features):
+    def _up(self, y, features, output=False):
         if self.upsample == "subpixel":
-            return depth_to_space(nn.Conv(4 * features, (3, 3), padding="SAME")(y))
+            conv = nn.Conv(4 * features, (3, 3), padding="SAME",
+                           **conv_kwargs(self.conv_impl, self.compute_dtype, output))
+            return depth_to_space(conv(y))
         return nn.ConvTranspose(features, (4, 4), strides=(2, 2), padding="SAME")(y)
 
     @nn.compact
     def __call__(self, x):  # [N, D] -> (mean, std) [N, S, S, 3]
         start = self.size // 2 ** self.layers
-        y = nn.relu(nn.Dense(start * start * self.channels)(x)).reshape(-1, start, start, self.channels)
+        dense = nn.Dense(start * start * self.channels, **dense_kwargs(self.compute_dtype))
+        y = nn.relu(dense(x)).reshape(-1, start, start, self.channels)
         for _ in range(self.layers - 1):
             y = nn.relu(self._up(y, self.channels))
-        y = self._up(y, 6)
+        y = self._up(y, 6, output=True)
         return y[..., :3], nn.softplus(y[..., 3:]) + self.min_std
 
 
@@ -164,8 +181,9 @@ class LtqModel:
     def __init__(self, config, action_size: int):
         self.config, self.A = config, action_size
         c = config
-        self.encoder = ConvEncoder(c.conv_layers, c.conv_channels, c.embed_dim)
-        self.decoder = ConvDecoder(c.image_size, c.conv_layers, c.conv_channels, c.min_std, c.upsample)
+        self.encoder = ConvEncoder(c.conv_layers, c.conv_channels, c.embed_dim, c.compute_dtype, c.conv_impl)
+        self.decoder = ConvDecoder(c.image_size, c.conv_layers, c.conv_channels, c.min_std, c.upsample,
+                                   c.compute_dtype, c.conv_impl)
         self.core = Core(c.hidden, c.latent, c.mlp, c.min_std)
         self.policy = Policy(tuple(c.policy_hidden), action_size)
         self.cc_encoder = None
