@@ -53,7 +53,8 @@ def test_pixel_runs_split_over_two_devices_hold_no_collective_and_equal_one_devi
                         for x in run]) for run in zip(*(jax.tree.leaves(f) for f in fresh))]
     np.savez(tmp_path / "fresh.npz", **{str(i): x for i, x in enumerate(leaves)})
 
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2",
+               JAX_PLATFORMS="cpu")
     script = pathlib.Path(__file__).with_name("_sharded_pixel_sweep.py")
     proc = subprocess.run([sys.executable, str(script), str(tmp_path)], check=False, capture_output=True, text=True,
                           env=env, timeout=900)
