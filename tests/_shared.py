@@ -22,6 +22,11 @@ PENDULUM = Config(env="inverted_pendulum", num_envs=32, rollout_len=32, horizon=
 PENDULUM_HP = HParams(alpha=1.0, lr_policy=1e-3, lr_value=1e-3)
 
 
+# For the few tests whose programs run long enough that executing them costs more than compiling them (learning runs,
+# MPC on MJX): XLA's default optimisation level instead of the test session's 0 (tests/conftest.py).
+OPTIMISED = {"xla_backend_optimization_level": 3}
+
+
 @functools.lru_cache(maxsize=None)
 def compiled(config: Config):
     """(agent, jit(init), jit(update)) for a config, built once per test session."""

@@ -16,6 +16,7 @@ from jax import lax
 
 from cdjax.envs import strong_types
 from cdjax.agents.obs import mpc
+from _shared import OPTIMISED
 
 # --------------------------------------------------------------------------------------
 # Toy system with a known optimum: 1-D point, s' = s + a, reward = -(s' - target)^2.
@@ -261,7 +262,7 @@ def reacher_rollouts():
 
     env = envs.get_environment("reacher", backend="mjx")
     key = jax.random.key(2019)  # same reset states and horizon for both controllers
-    run = jax.jit(functools.partial(_closed_loop, env))  # one program for both controllers
+    run = jax.jit(functools.partial(_closed_loop, env), compiler_options=OPTIMISED)  # one program for both controllers
     results = {}
     for name, use_mpc in (("mpc", True), ("random", False)):
         reward, dist, ctrl = jax.device_get(run(key, jnp.asarray(use_mpc)))

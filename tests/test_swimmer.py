@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from cdjax.envs.swimmer import Swimmer
+from _shared import OPTIMISED
 
 T = 200  # steps per rollout (8 s at dt = 0.04); one length, so one compile
 WARMUP = 50  # steps left out before averaging the velocity (first stroke, start-up turn)
@@ -200,7 +201,7 @@ def test_swimmer_learns_with_cdjax_on_cpu():
     state = jax.jit(trainer.init)(jax.random.key(0), hp)
     # 110 updates: the one test here that runs long enough for execution to cost more than compiling, so its update
     # is compiled at XLA's default optimisation level, not conftest's 0 (371 s -> about 90 s on a 2-core CPU)
-    update = jax.jit(trainer.update, compiler_options={"xla_backend_optimization_level": 3})
+    update = jax.jit(trainer.update, compiler_options=OPTIMISED)
     speed = []
     for _ in range(110):
         state, metrics = update(state, hp)

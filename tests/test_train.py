@@ -7,7 +7,7 @@ import pytest
 
 from cdjax import Config, ConfigError, HParams, make_agent, make_train, stack_hparams
 
-from _shared import PENDULUM, PENDULUM_HP, POINT, compiled
+from _shared import OPTIMISED, PENDULUM, PENDULUM_HP, POINT, compiled
 
 
 def _finite(tree):
@@ -99,7 +99,7 @@ def test_learning_on_mjx_pendulum():
     agent, init, _ = compiled(PENDULUM)
     # 100 updates: execution costs more than compiling here, so the update is compiled at XLA's default optimisation
     # level, not conftest's 0 (tests/conftest.py)
-    update = jax.jit(agent.update, compiler_options={"xla_backend_optimization_level": 3})
+    update = jax.jit(agent.update, compiler_options=OPTIMISED)
     state = init(jax.random.key(0), PENDULUM_HP)
     returns, errors = [], []
     for _ in range(100):
