@@ -459,9 +459,11 @@ def returns_figure(tasks: list[TaskData], path: pathlib.Path, arms: Sequence[str
                 ax.set_title(task.name + ("" if task.complete else f" (cut at {task.budget:,.0f})"))
             ax.grid(alpha=0.3)
     handles, labels = axes[0, 0].get_legend_handles_labels()
+    ncol = max(1, min(len(labels), 2 * n))  # two labels per task column: the legend never outgrows the figure
+    rows_legend = -(-len(labels) // ncol) if labels else 0
     if handles:
-        fig.legend(handles, labels, loc="upper center", ncol=len(labels), frameon=False)
-    fig.tight_layout(rect=(0, 0, 1, 0.93))
+        fig.legend(handles, labels, loc="upper center", ncol=ncol, frameon=False, fontsize=8)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.035 * rows_legend - 0.01))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     _csv(path.with_suffix(".csv"), rows)
@@ -529,13 +531,18 @@ def units_table(tasks: list[TaskData]) -> str:
         for run in t.runs:
             name = f"{run.unit.get('unit', '-')} / {run.path.name}"
             m = run.machine
+            # each arm against its own budget (an arm with a Mb-Mf phase plans whole PPO updates after the phase,
+            # so the arms of one sweep may ask for slightly different env steps)
             reached = min((_reached(c) for c in run.curves.values()), default=0.0)
             asked = max(run.planned.values(), default=math.nan)
+            low = min((v for v in run.planned.values() if v), default=asked)
+            asked_text = f"{asked:,.0f}" if low == asked else f"{low:,.0f} to {asked:,.0f} (by arm)"
+            cut = any(_reached(c) < (run.planned.get(k) or 0.0) for k, c in run.curves.items())
             wall = max((float(np.nanmax(c.metrics["wall_s"])) for c in run.curves.values() if "wall_s" in c.metrics
                         and np.isfinite(c.metrics["wall_s"]).any()), default=math.nan)
             steps = sum(len(c.seeds) * (_reached(c) - run.phase_steps.get(k, 0)) for k, c in run.curves.items())
             lines.append([t.name, name, f"`{run.info.get('command', '')}`", m.get("device", "unknown"),
-                          f"{asked:,.0f}", f"{reached:,.0f}" + ("" if reached >= asked else " (cut)"),
+                          asked_text, f"{reached:,.0f}" + (" (cut)" if cut else ""),
                           f"{m.get('wall_s', math.nan):.0f} s (training {wall:.0f} s)", _fmt(steps / wall, 3)])
     return _table(head, lines)
 
