@@ -71,17 +71,19 @@ class Task:
 
 
 # An arm of 20 runs (two weights x 10 seeds) runs its phase for all 20 at once: latency-bound, with twice the MPC
-# candidates per step; estimated 1.6 x the 10 runs' time.
-PHASE_20_RUNS = 1.6
+# candidates per step; measured on ant (H200, 2026-11-24): 72 s for 20 runs, 40 s for 10.
+PHASE_20_RUNS = 1.8
+# Phases: ant's is measured (40 s, units ant-1 and ant-3); the others are the first plan's arithmetic (90-130 s, which
+# over-estimated ant's by 2.25x) scaled by ant's measured / estimated ratio, until their first unit prints theirs.
 TASK_BUDGETS = {
-    "ant": Task("ant", 50_000_000, 1.5e6, "ant preset's CD arm, 20 runs on one H200: 1.62M/s "
-                "(experiments/consistency_weights/RESULTS.md)", phase_s=90),  # MPC horizon 5
+    "ant": Task("ant", 50_000_000, 1.6e6, "units ant-1..3 on one H200: 1.71M/s (model-free + Mb-Mf, 20 runs), "
+                "1.59M/s (CD k=20, 20 runs), 1.39M/s (CD k=5, 10 runs)", phase_s=40),  # MPC horizon 5
     "halfcheetah": Task("halfcheetah", 10_000_000, 0.35e6, "halfcheetah preset's CD arm, 20 runs on two H200: 0.76M/s; "
-                        "model-free 5 seeds on one: 0.32M/s (benchmarks/LEARNING.md)", phase_s=130),  # horizon 20
+                        "model-free 5 seeds on one: 0.32M/s (benchmarks/LEARNING.md)", phase_s=60),  # horizon 20
     "humanoid": Task("humanoid", 10_000_000, 0.4e6, "a guess: no humanoid rate measured at these settings",
-                     phase_s=120, provisional=True),  # MPC horizon 5, the slowest physics
+                     phase_s=55, provisional=True),  # MPC horizon 5, the slowest physics
     "swimmer": Task("swimmer", 5_000_000, 0.2e6, "a guess: the first paper run's swimmer trained at 72k/s with "
-                    "256 envs per run", phase_s=130, provisional=True),  # MPC horizon 20
+                    "256 envs per run", phase_s=60, provisional=True),  # MPC horizon 20
 }
 
 
