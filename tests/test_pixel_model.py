@@ -361,22 +361,32 @@ def test_conv_arrangements_equal_the_grouped_convolution_under_the_runs_vmap(imp
 def test_the_runs_vmap_gives_grouped_convolutions_only_with_conv_impl_grouped():
     """The lowered program of jit(vmap(update)) over 2 runs: grouped convolutions (feature_group_count 2) with
     'grouped'; ungrouped convolutions, two per layer use, with 'per-run'; batched matrix products and no
-    convolution with 'matmul' (XLA then chooses how to run them; only a GPU measures which is faster)."""
+    convolution with 'matmul' (XLA then chooses how to run them; only a GPU measures which is faster); both kinds
+    with 'auto', per layer."""
     import re
 
     counts = {}
-    for impl in ("grouped", "per-run", "matmul"):
-        learner = learner_for(TINY.replace(conv_impl=impl))
+    # 32 channels: "auto" keeps the middle layers grouped and runs the narrow first (12 in) and last (24 out) per run
+    wide = TINY.replace(conv_channels=32)
+    for impl in ("grouped", "per-run", "matmul", "auto"):
+        learner = learner_for(wide.replace(conv_impl=impl))
         hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
         states = jax.eval_shape(jax.vmap(learner.init), jax.random.split(jax.random.key(0), 2), hps)
         text = jax.jit(jax.vmap(learner.update)).lower(states, hps).as_text()
         convolutions = re.findall(r"stablehlo\.convolution.*?feature_group_count = (\d+)", text)
         counts[impl] = (len(convolutions), {int(g) for g in convolutions},
                         len(re.findall(r"stablehlo\.dot_general.*?batching_dims = \[0\] x \[0\]", text)))
-    grouped, per_run, matmul = counts["grouped"], counts["per-run"], counts["matmul"]
+        if impl == "auto":  # grouped (2 groups) and ungrouped convolutions, counted apart
+            counts["auto-split"] = (len([g for g in convolutions if g == "2"]), len([g for g in convolutions
+                                                                                    if g == "1"]))
+    grouped, per_run, matmul, auto = counts["grouped"], counts["per-run"], counts["matmul"], counts["auto"]
     assert grouped[0] > 0 and grouped[1] == {2}, grouped
     assert per_run[0] == 2 * grouped[0] and per_run[1] == {1}, per_run
     assert matmul[0] == 0 and matmul[2] > grouped[2], matmul
+    # auto: some layer uses grouped, the others one convolution per run (two here), every use either
+    in_groups, ungrouped = counts["auto-split"]
+    assert auto[1] == {1, 2} and in_groups > 0 and ungrouped > 0, auto
+    assert in_groups + ungrouped // 2 == grouped[0] and ungrouped % 2 == 0, counts["auto-split"]
 
 
 def test_the_policys_rate_scales_only_the_policys_steps_and_zero_is_adam_at_lr():

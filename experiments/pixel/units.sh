@@ -7,6 +7,11 @@
 # UNIT is one of
 #   roofline       python -m experiments.pixel.roofline on halfcheetah's preset (30 runs, the real task's data):
 #                  every compute_dtype/conv_impl variant, with a profile of each (roofline.json, .md, profile/)
+#   precision      float32 against a faster arrangement at equal updates: halfcheetah's preset arms (ltq, ltq-cd with
+#                  cc_policy 0 and 1), 10 seeds, PREC_UPDATES updates (default 300) each, once in float32/grouped and
+#                  once with PIXEL_SET (default "--compute-dtype bfloat16 --conv-impl auto"), then
+#                  experiments.pixel.precision: held-out ELBO, log-likelihoods and imitation error per seed
+#                  (precision.md); each sweep stops by half the unit's time limit
 #   lr-check       the learning-rate check: the ltq arm on halfcheetah, 5 seeds, a vmapped grid of the model's rate
 #                  (--lr) x the policy's (--lr-policy; 0 = the model's), LR_UPDATES updates (default 500) or the
 #                  time limit; PIXEL_SET (e.g. "--compute-dtype bfloat16 --conv-impl per-run") picks the arrangement
@@ -40,6 +45,15 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
     devices)
       echo "python -m experiments.pixel.speed --env halfcheetah --runs 32 --devices ${DEVICE_COUNTS:-1 2 4}" \
         "--out $work/devices.json" ;;
+    precision)
+      local fast=${PIXEL_SET:---compute-dtype bfloat16 --conv-impl auto}
+      local sweep="python -m cdjax.cli sweep --setting pixel --preset pixel-halfcheetah"
+      sweep="$sweep --expert $experts/halfcheetah/expert.msgpack --seeds 10 --steps $(( ${PREC_UPDATES:-300} * 800 ))"
+      sweep="$sweep --no-progress --no-final-eval --time-limit $(( limit / 2 ))"
+      echo "timeout -s INT -k 60 $(( limit / 2 + 120 )) $sweep --out $work/float32;" \
+        "timeout -s INT -k 60 $(( limit / 2 + 120 )) $sweep $fast --out $work/candidate;" \
+        "python -m experiments.pixel.precision $work/float32 $work/candidate --labels float32 '$fast'" \
+        "--out $work/precision.md" ;;
     lr-check)
       echo "timeout -s INT -k 60 $(( limit + 300 )) python -m cdjax.cli sweep --setting pixel" \
         "--preset pixel-halfcheetah --expert $experts/halfcheetah/expert.msgpack --arms ltq --seeds 5" \
@@ -52,7 +66,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--time-limit $limit --out $work/pixel; timeout -k 30 200 python -m cdjax.cli eval $work/pixel --episodes 4;" \
         "python -m cdjax.cli plot $work/pixel; timeout -k 10 150 python -m experiments.pixel.report --strips" \
         "$work/pixel $work/strips" ;;
-    *) echo "unknown unit $1: roofline, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq, ltq-cd)" >&2
+    *) echo "unknown unit $1: roofline, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq, ltq-cd)" >&2
        return 1 ;;
   esac
 }
@@ -78,7 +92,7 @@ done
 thin=runs/pixel-units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
 mkdir -p "$thin/$unit"
-for f in command roofline.json roofline.md profile devices.json strips; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
+for f in command roofline.json roofline.md profile devices.json strips precision.md precision.json; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
 tar -czf "$out/$unit.tar.gz" -C "$thin" "$unit"
 cp "$work/unit.log" "$out/$unit.log"
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"

@@ -15,7 +15,7 @@ Arm = Literal["ltq", "ltq-cd"]
 ImagineActions = Literal["policy", "expert"]
 Upsample = Literal["transpose", "subpixel"]
 ComputeDtype = Literal["float32", "bfloat16"]
-ConvImpl = Literal["grouped", "per-run", "matmul"]
+ConvImpl = Literal["grouped", "per-run", "auto", "matmul"]
 PIXEL_ENVS = ("halfcheetah", "reacher", "pusher")
 
 
@@ -37,7 +37,8 @@ class PixelConfig:
     # layers: float32, or bfloat16 (parameters, optimiser state, the LSTM, the policy and the ELBO's sums stay
     # float32; see convs.py)
     conv_impl: ConvImpl = "grouped"  # how a sweep's vmapped runs meet the convolutions: grouped (XLA's grouped
-    # convolution), per-run (one ungrouped convolution per run) or matmul (patches x kernel, a batched product)
+    # convolution), per-run (one ungrouped convolution per run), auto (per layer: per-run for the narrow first and
+    # last layers, grouped for the rest; convs.py) or matmul (patches x kernel, a batched product)
     embed_dim: int = 256  # e(o): the encoder's output size
     hidden: int = 256  # LSTM state size (h and c each)
     latent: int = 100  # z: per-step latent size

@@ -12,6 +12,12 @@ kernel, so the choice is how the per-run kernels meet:
               bit the model before these options): under the runs' vmap, grouped convolutions
     per-run   the same convolution, but the runs' vmap gives one ungrouped convolution per run (a custom batching
               rule, also for the input's and the kernel's gradients): R dense convolutions in one program
+    auto      per layer: per-run where the layer's input or output has fewer than AUTO_MIN_CHANNELS channels per run
+              (the encoder's first layer reads 3 x frame_stack, the decoder's last writes 24: a grouped convolution
+              of so few channels per group runs far below its FLOPs: on an H200 the decoder's last layer alone held
+              59 % of the grouped bfloat16 update's kernel time, experiments/pixel/data/roofline-h200/profile/),
+              grouped elsewhere (wide layers, where the grouped kernels are efficient and per-run's
+              slicing and stacking of every run's operands costs more)
     matmul    the convolution as one matrix product of patches (each output pixel's kernel window, gathered by
               strided slices) with the kernel reshaped to [kh*kw*C, O]: under the runs' vmap a batched matrix
               product (the runs its batch dimension). The patches are recomputed in the backward pass rather than
@@ -157,12 +163,25 @@ def operands_in(fn: Callable, dtype) -> Callable:
 
 
 _CONVS = {"grouped": None, "per-run": per_run_conv, "matmul": matmul_conv}
+AUTO_MIN_CHANNELS = 32  # conv_impl "auto": layers with fewer input or output channels than this run per-run
 
 
-def conv_kwargs(impl: str, compute_dtype: str, output: bool = False) -> dict:
+def layer_impl(impl: str, channels: tuple[int, int] | None = None) -> str:
+    """The arrangement of one layer of (input, output) `channels` per run: `impl`, or for "auto" per-run where
+    either is below AUTO_MIN_CHANNELS and grouped elsewhere."""
+    if impl != "auto":
+        return impl
+    if channels is None:
+        raise ValueError("conv_impl 'auto' needs the layer's input and output channels")
+    return "per-run" if min(channels) < AUTO_MIN_CHANNELS else "grouped"
+
+
+def conv_kwargs(impl: str, compute_dtype: str, output: bool = False, channels: tuple[int, int] | None = None
+                ) -> dict:
     """Keyword arguments of a flax nn.Conv layer for `impl` and `compute_dtype`; `output`: the layer whose result
-    leaves the network (float32 in any compute dtype). Float32 "grouped" gives {}: flax's own layer."""
-    fn = _CONVS[impl]
+    leaves the network (float32 in any compute dtype); `channels`: the layer's (input, output) channels per run,
+    which "auto" needs. Float32 "grouped" gives {}: flax's own layer."""
+    fn = _CONVS[layer_impl(impl, channels)]
     if compute_dtype == "float32":
         return {} if fn is None else {"conv_general_dilated": fn}
     dtype = jnp.dtype(compute_dtype)

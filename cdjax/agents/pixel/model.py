@@ -70,7 +70,7 @@ class ConvEncoder(nn.Module):
     def __call__(self, x):  # [N, S, S, C] -> [N, features]
         for _ in range(self.layers):
             conv = nn.Conv(self.channels, (4, 4), strides=(2, 2), padding="SAME",
-                           **conv_kwargs(self.conv_impl, self.compute_dtype))
+                           **conv_kwargs(self.conv_impl, self.compute_dtype, channels=(x.shape[-1], self.channels)))
             x = nn.relu(conv(x))
         return nn.Dense(self.features, **dense_kwargs(self.compute_dtype, output=True))(x.reshape(x.shape[0], -1))
 
@@ -104,7 +104,7 @@ class ConvDecoder(nn.Module):
     def _up(self, y, features, output=False):
         if self.upsample == "subpixel":
             conv = nn.Conv(4 * features, (3, 3), padding="SAME",
-                           **conv_kwargs(self.conv_impl, self.compute_dtype, output))
+                           **conv_kwargs(self.conv_impl, self.compute_dtype, output, (y.shape[-1], 4 * features)))
             return depth_to_space(conv(y))
         return nn.ConvTranspose(features, (4, 4), strides=(2, 2), padding="SAME")(y)
 
