@@ -615,6 +615,24 @@ def test_each_interrupt_says_what_is_true_for_its_command(runs, tmp_path, capsys
 # Paths and the environment
 
 
+def test_a_lock_left_before_run_json_does_not_block_a_fresh_start_but_other_files_do(tmp_path, capsys):
+    """A sweep stopped after it made its directory and took the lock, before run.json, leaves `.lock` alone: the
+    next fresh start trains there (and a directory with anything else of its own is still refused, untouched)."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / ".lock").write_text("")
+    with contextlib.redirect_stderr(StringIO()):
+        main(_argv("obs", out, extra=["--no-final-eval"]))
+    assert json.loads((out / "run.json").read_text())["arms"] and logged_rows(out)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / ".lock").write_text("")
+    (other / "notes.txt").write_text("mine")
+    line = _fails(capsys, _argv("obs", other))
+    assert line == f"cdjax: {other} exists and is not empty; choose another --out."
+    assert snapshot(other) == {".lock": b"", "notes.txt": b"mine"}
+
+
 def test_paths_and_the_cache_directory_are_checked_before_anything_is_written(tmp_path, capsys, monkeypatch):
     a_file = tmp_path / "a-file"
     a_file.write_text("keep me")

@@ -232,6 +232,12 @@ class RunDir:
             tmp.replace(self.run_json)
 
 
+# What a sweep stopped between making its directory and writing run.json leaves (the lock file, a write probe): a
+# directory holding only these has no run, and a fresh sweep may start in it. A live sweep that holds the lock is
+# still found: the new one takes the lock before it writes anything, and refuses in one sentence.
+LEFT_BEFORE_A_RUN = frozenset({".lock", ".cdjax-write-test"})
+
+
 def _exists(path: pathlib.Path) -> bool:
     try:
         return path.exists()

@@ -110,7 +110,7 @@ def _prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, Setting, list, d
         record["command"] = old.get("command", "")
     elif rd.exists():
         raise io.RunDirError(f"{rd.path} already holds a run; continue it with --resume, or choose another --out.")
-    elif rd.path.is_dir() and any(rd.path.iterdir()):
+    elif rd.path.is_dir() and any(p.name not in io.LEFT_BEFORE_A_RUN for p in rd.path.iterdir()):
         raise io.RunDirError(f"{rd.path} exists and is not empty; choose another --out.")
     rd.check_writable()
     return spec, setting, plans, record
