@@ -22,22 +22,9 @@ out=${OUT:-runs/units-out}
 mkdir -p "$work" "$out"
 t0=$(date +%s)
 export PYTHONUNBUFFERED=1
-if [ ! -f "$work/started" ]; then
-  nvidia-smi -L 2>/dev/null || true
-  date +%s > "$work/started"
-  setsid bash -c "python -m experiments.paper_obs_space train --unit $unit --out $work ${UNIT_ARGS:-} \
-    > $work/unit.log 2>&1; echo \$? > $work/exit_code" < /dev/null > /dev/null 2>&1 &
-  echo "STARTED unit $unit at $(date -u +%H:%M:%S) UTC"
-fi
-while [ ! -f "$work/exit_code" ]; do
-  if [ $(( $(date +%s) - t0 )) -ge "$wait_s" ]; then
-    echo "RUNNING: unit $unit, $(( $(date +%s) - $(cat "$work/started") )) s since it started; call again:"
-    echo "  bash experiments/paper_obs_space/device.sh $unit"
-    grep -v -i -E "warn|^\s*$" "$work/unit.log" | tail -n 6
-    exit 0
-  fi
-  sleep 5
-done
+. "$(dirname "$0")/../lease.sh"
+unit_run "$work" "python -m experiments.paper_obs_space train --unit $unit --out $work ${UNIT_ARGS:-}" "$wait_s" "$t0" \
+  "bash experiments/paper_obs_space/device.sh $unit" || exit 0
 thin=runs/units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
 cp "$work/unit.json" "$thin/$unit/" 2>/dev/null

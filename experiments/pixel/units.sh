@@ -73,22 +73,8 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
 
 cmd=$(command_of "$unit") || exit 2
 mkdir -p "$work" "$out"
-if [ ! -f "$work/started" ]; then
-  nvidia-smi -L 2>/dev/null || true
-  date +%s > "$work/started"
-  echo "$cmd" > "$work/command"
-  setsid bash -c "$cmd > $work/unit.log 2>&1; echo \$? > $work/exit_code" < /dev/null > /dev/null 2>&1 &
-  echo "STARTED unit $unit at $(date -u +%H:%M:%S) UTC: $cmd"
-fi
-while [ ! -f "$work/exit_code" ]; do
-  if [ $(( $(date +%s) - t0 )) -ge "$wait_s" ]; then
-    echo "RUNNING: unit $unit, $(( $(date +%s) - $(cat "$work/started") )) s since it started; call again:"
-    echo "  bash experiments/pixel/units.sh $unit"
-    grep -v -i -E "warn|^\s*$" "$work/unit.log" | tail -n 6
-    exit 0
-  fi
-  sleep 5
-done
+. "$(dirname "$0")/../lease.sh"
+unit_run "$work" "$cmd" "$wait_s" "$t0" "bash experiments/pixel/units.sh $unit" || exit 0
 thin=runs/pixel-units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
 mkdir -p "$thin/$unit"
