@@ -7,7 +7,8 @@ there, checkpointed, through its `after_chunk`), then the same sweep into DIR/2,
 from the call of `run_sweep` to that moment: planning, building, tracing, compiling, initialising and restoring.
 With an empty --cache-dir (JAX's persistent compilation cache) the first is a cold start; the second shows what
 this process's own cache of trainers and compiled programs saves. The runner's own line ("setup .. s, compile .. s")
-is printed too. Results: DIR/compile_time.json.
+is printed too, and each program's lowering (serial, in the calling thread) and compiling (in parallel threads) seconds.
+Results: DIR/compile_time.json.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ def main(argv=None) -> list[dict]:
 
     from cdjax import runtime
     from cdjax.cli import build_parser, setting_of, sweep_spec
-    from cdjax.runner import Interrupted, run_sweep
+    from cdjax.runner import Interrupted, arms, run_sweep
 
     if args.cache_dir:
         runtime.configure(cache_dir=args.cache_dir)
@@ -44,6 +45,7 @@ def main(argv=None) -> list[dict]:
                       "--no-final-eval"]
         setting = setting_of(sweep_argv)
         spec = sweep_spec(build_parser(setting).parse_args(sweep_argv), setting, "cdjax " + " ".join(sweep_argv))
+        arms.COMPILE_TIMES.clear()
         t0 = time.perf_counter()
         started = {}
 
@@ -55,9 +57,12 @@ def main(argv=None) -> list[dict]:
             run_sweep(spec, after_chunk=stop)
         except Interrupted:
             pass
+        programs = [dict(r, s=round(r["s"], 2)) for r in arms.COMPILE_TIMES]
         rows.append({"sweep": i, "seconds_to_training": round(started["s"], 2),
-                     "command": "cdjax " + " ".join(sweep_argv)})
+                     "command": "cdjax " + " ".join(sweep_argv), "programs": programs})
         print(f"sweep {i}: training would start {started['s']:.1f} s after run_sweep was called", flush=True)
+        for r in sorted(programs, key=lambda r: -r["s"]):
+            print(f"  {r['arm']:>12} {r['what']:<6} {r['step']:<8} {r['s']:7.2f} s", flush=True)
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     (pathlib.Path(args.out) / "compile_time.json").write_text(json.dumps(rows, indent=1))
     return rows

@@ -316,3 +316,20 @@ def test_distributed_runs_the_sweep_suites_and_skips_a_case_on_every_process(cap
     monkeypatch.setattr(multihost, "exchange", lambda text: [text, ""])
     ran = {"status": "ok", "env_steps_per_s": 1.0, "update_s": 1.0, "compile_s": 1.0}
     assert suite.run_case("model-free x2", lambda: dict(ran))["status"] == "ok"
+
+
+def test_compile_time_names_each_program_and_the_second_sweep_compiles_nothing(tmp_path):
+    """benchmarks.compile_time: the first sweep's rows name every program of every arm it lowered and compiled;
+    the same sweep again in this process takes all of them from its own cache."""
+    from benchmarks import compile_time
+    from test_run_dir import OBS, OBS_STEPS  # test_run_dir's (and test_failures') programs: from JAX's cache
+
+    rows = compile_time.main(["--out", str(tmp_path), "--", *OBS, "--steps", OBS_STEPS])
+    first, second = rows
+    done = {(r["arm"], r["what"], r["step"]) for r in first["programs"]}
+    for arm in ("cd",):
+        for what in ("init", "chunk"):
+            assert {(arm, what, "lower"), (arm, what, "compile")} <= done, done
+    assert all(r["s"] >= 0 for r in first["programs"])
+    assert second["programs"] == [] and second["seconds_to_training"] < first["seconds_to_training"]
+    assert json.loads((tmp_path / "compile_time.json").read_text()) == rows

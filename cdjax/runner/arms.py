@@ -28,6 +28,10 @@ EVAL_TAG = 0x0E7A1  # folded into each run's training key to get its evaluation 
 # same spec (a notebook's next cell, a resume in the same process) builds, traces and compiles nothing again.
 _BUILT: dict = {}
 _COMPILED: dict = {}
+# Where compile time goes: a row per program this process lowered or compiled ({"arm", "what", "step": "lower" or
+# "compile", "s"}; lowering runs in the calling thread, compiling in compile_all's threads, so the compile rows
+# overlap in time). Read by benchmarks.compile_time; cleared by whoever reads it.
+COMPILE_TIMES: list[dict] = []
 
 
 @dataclasses.dataclass
@@ -168,7 +172,9 @@ def _lowered(arm: Arm, what: str, lower: Callable, *args):
     """lower(*args) of arm's sweep, from this process's cache when it was lowered before for the same inputs."""
     key = (id(arm.sweep), what, "lowered", _avals(args))
     if key not in _COMPILED:
+        t0 = time.perf_counter()
         _COMPILED[key] = (arm.sweep, lower(*args))  # the sweep held: its id stays its own while the entry lives
+        COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "lower", "s": time.perf_counter() - t0})
     return _COMPILED[key][1]
 
 
@@ -181,8 +187,10 @@ def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None):
     lowered = _lowered(arm, what, lower, *args)
 
     def compile_():
+        t0 = time.perf_counter()
         program = lowered.compile()
         _COMPILED[key] = (arm.sweep, program)
+        COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "compile", "s": time.perf_counter() - t0})
         return program
 
     return compile_() if pool is None else pool.submit(compile_)
