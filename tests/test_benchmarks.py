@@ -318,10 +318,15 @@ def test_distributed_runs_the_sweep_suites_and_skips_a_case_on_every_process(cap
     assert suite.run_case("model-free x2", lambda: dict(ran))["status"] == "ok"
 
 
-def test_compile_time_names_each_program_and_the_second_sweep_compiles_nothing(tmp_path):
+def test_compile_time_names_each_program_and_the_second_sweep_compiles_nothing(tmp_path, monkeypatch):
     """benchmarks.compile_time: the first sweep's rows name every program of every arm it lowered and compiled;
     the same sweep again in this process takes all of them from its own cache."""
     from benchmarks import compile_time
+    from cdjax.runner import arms
+
+    # as a fresh process: another test of this worker may have built the same sweep (JAX's disk cache still serves)
+    monkeypatch.setattr(arms, "_BUILT", {})
+    monkeypatch.setattr(arms, "_COMPILED", {})
     from test_run_dir import OBS, OBS_STEPS  # test_run_dir's (and test_failures') programs: from JAX's cache
 
     rows = compile_time.main(["--out", str(tmp_path), "--", *OBS, "--steps", OBS_STEPS])
