@@ -394,6 +394,13 @@ def improvement(scores: dict[str, dict[str, np.ndarray]], pairs=PAIRS, reps: int
     return out
 
 
+def schedule_improvement(task: TaskData, reps: int) -> str:
+    """P(paper's schedule > the presets') of one task's final returns over seeds, with its 95% interval."""
+    scores = final_scores([task], ("cd-k20", "cd-k20-paper-schedule"))
+    imp = improvement(scores, (("cd-k20-paper-schedule", "cd-k20"),), reps=reps)
+    return _cell((imp[0]["p"], imp[0]["low"], imp[0]["high"]), 3) if imp else "n/a"
+
+
 def aggregate(norm: dict[str, dict[str, np.ndarray]], arms: Sequence[str] = MAIN_ARMS, reps: int = 2000,
               seed: int = 0) -> tuple[list[dict], dict]:
     """IQM of normalised final returns across tasks (95% interval) per arm, and performance profiles
@@ -639,6 +646,11 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
                                   _cell(r["model/yardstick_mse_50"], 3), _cell(r["loss/consistency"], 3)]
                                  for t in sched for a in ("cd-k20", "cd-k20-paper-schedule")
                                  for r in rows if r["task"] == t.name and r["arm"] == a)))
+            lines += ["", "Per task, the paper's schedule against the presets' (final return: verdict from the IQMs' "
+                      "intervals; rliable's probability of improvement over seeds):", ""]
+            lines.append(_table(("task", "final return", "P(paper's schedule > presets')"),
+                                ([t.name, verdict([r for r in rows if r["task"] == t.name], "cd-k20-paper-schedule",
+                                                  "cd-k20"), schedule_improvement(t, reps)] for t in sched)))
             lines.append("")
         lines += ["## Units: commands, devices, wall-clock", "", units_table(tasks), ""]
     (out / "data").mkdir(parents=True, exist_ok=True)
