@@ -2,6 +2,7 @@
 true reward for scoring candidates, an on-policy share of every model minibatch, deterministic DAgger rollouts,
 and the label checks that say whether the distilled policy learnt the controller. Point mass; one compiled phase."""
 
+import dataclasses
 import functools
 
 import jax
@@ -156,3 +157,23 @@ def test_invalid_options_fail_in_one_sentence():
         validate_phase(CONFIG, MbMfPhase(mpc_candidates=8, mpc_elites=9))
     with pytest.raises(ConfigError, match="dagger_deterministic must be true or false"):
         validate_phase(CONFIG, MbMfPhase(dagger_deterministic="yes"))
+
+
+def test_hand_policy_false_keeps_the_initial_policy_and_everything_else_the_phase_trains():
+    """The ablation `hand_policy=False`: the same phase (same key, same env steps), PPO gets the initial policy
+    back while the model, the normalisation and the value are the phase's, exactly as with the distilled hand-over."""
+    tiny = MbMfPhase(num_envs=4, random_steps=6, aggregation_iters=1, mpc_steps_per_iter=4, model_epochs=2,
+                     model_minibatch=8, mpc_horizon=2, mpc_candidates=8, distill_iters=1, distill_steps_per_iter=4,
+                     distill_epochs=2, distill_minibatch=8, value_epochs=1)
+    trainer, init, _ = compiled(CONFIG)
+    start = init(jax.random.key(0), HParams())
+    (handed, info_h), (kept, info_k) = (jax.jit(make_mbmf_phase(CONFIG, p, trainer))(start, HParams())
+                                        for p in (tiny, dataclasses.replace(tiny, hand_policy=False)))
+    same = lambda a, b: all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))  # noqa: E731
+    assert same(kept.params["policy"], start.params["policy"]) and not same(handed.params["policy"], start.params["policy"])
+    for name in ("model", "value", "encoder"):
+        assert same(kept.params[name], handed.params[name]), name
+    assert not same(kept.params["model"], start.params["model"]) and not same(kept.params["value"], start.params["value"])
+    assert same(kept.norms, handed.norms) and int(info_k["env_steps"]) == int(info_h["env_steps"])
+    with pytest.raises(ConfigError, match="hand_policy must be true or false"):
+        validate_phase(CONFIG, MbMfPhase(hand_policy=1))

@@ -3,6 +3,7 @@ report rebuilds RESULTS.md from the kept data, compares arms at a common budget 
 (rliable) and the diagnostics of a fake experiment's units."""
 
 import json
+import re
 import math
 
 import numpy as np
@@ -69,7 +70,9 @@ def test_report_of_the_unit_and_a_rebuild_from_the_kept_data(trained, tmp_path):
 # ---------------------------------------------------------------------------------------------------
 # A fake experiment: two tasks, the units' arms written by hand.
 
-LEVELS = {"model-free": 1.0, "mbmf": 1.2, "cd-k5": 1.4, "cd-k20-paper": 2.0, "cd-k20": 1.1, "cd-k20-paper-schedule": 1.6}
+LEVELS = {"model-free": 1.0, "mbmf": 1.2, "cd-k5": 1.4, "cd-k20-paper": 2.0, "cd-k20": 1.1, "cd-k20-paper-schedule": 1.6,
+          "mbmf-value0": 1.3, "mbmf-model-only": 0.9}
+ABLATED = {"mbmf-value0", "mbmf-model-only"}  # halfcheetah-5 only
 
 
 def _arm(name, kind, horizon, hps, cc_epochs=1, steps=2000, phase=100):
@@ -78,13 +81,15 @@ def _arm(name, kind, horizon, hps, cc_epochs=1, steps=2000, phase=100):
             "total_env_steps": steps, "phase_env_steps": 0 if kind == "model-free" else phase}
 
 
-def _fake_part(root, task, unit, part, arms, seeds=10, updates=20, spu=100, cut=None):
+def _fake_part(root, task, unit, part, arms, seeds=10, updates=20, spu=100, cut=None, phase=None):
     """A run directory by hand: return = level x update x (1 + 0.01 seed); every diagnostic logged."""
     d = root / unit / part
     d.mkdir(parents=True)
     info = {"version": 1, "base_config": {"env": task}, "seeds": seeds, "seed": 0, "env_steps_per_update": spu,
             "requested_env_steps": updates * spu, "total_env_steps": updates * spu,
             "command": f"cdjax sweep --preset paper-{task} ...", "arms": arms}
+    if phase is not None:
+        info["phase"] = phase
     for a in arms:
         a["config"]["env"] = task
     (d / "run.json").write_text(json.dumps(info))
@@ -93,7 +98,7 @@ def _fake_part(root, task, unit, part, arms, seeds=10, updates=20, spu=100, cut=
     rows, phase, evals = [], [], []
     for a in arms:
         for hp, label in zip(a["hparams"], a["hp_labels"]):
-            key = report.arm_key(a, hp)
+            key = report.arm_key(a, hp, info.get("phase"))
             level = LEVELS[key]
             for s in range(seeds):
                 if a["arm"] != "model-free":
@@ -134,6 +139,8 @@ def fake(tmp_path_factory):
         _fake_part(root, task, f"{task}-3", "cd-k5", [_arm("cd-k5", "cd", 5, [{"cc_policy": 1.0}])])
         _fake_part(root, task, f"{task}-3", "schedule", [_arm("cd-k20", "cd", 20, [{"cc_policy": 0.1}], cc_epochs=0)],
                    seeds=5)
+    for part, spec in (("value0", {"value_epochs": 0}), ("model-only", {"value_epochs": 0, "hand_policy": False})):
+        _fake_part(root, "halfcheetah", "halfcheetah-5", part, [_arm("mbmf", "mbmf", 20, [{}])], seeds=5, phase=spec)
     return root
 
 
@@ -143,6 +150,10 @@ def test_arm_keys_name_what_the_arms_are():
     assert report.arm_key(_arm("cd-k20", "cd", 20, [], cc_epochs=0), {"cc_policy": 0.1}) == "cd-k20-paper-schedule"
     assert report.arm_key(_arm("cd-k5", "cd", 5, []), {"cc_policy": 1.0}) == "cd-k5"
     assert report.arm_key(_arm("x", "mbmf", 20, []), {}) == "mbmf"
+    assert report.arm_key(_arm("x", "mbmf", 20, []), {}, {"value_epochs": 10, "hand_policy": True}) == "mbmf"
+    assert report.arm_key(_arm("x", "mbmf", 20, []), {}, {"value_epochs": 0, "hand_policy": True}) == "mbmf-value0"
+    assert report.arm_key(_arm("x", "mbmf", 20, []), {}, {"value_epochs": 0, "hand_policy": False}) == "mbmf-model-only"
+    assert report.arm_key(_arm("x", "model-free", 20, []), {}, {"value_epochs": 0}) == "model-free"
 
 
 def test_fake_units_give_every_table_and_the_across_task_statistics(fake, tmp_path):
@@ -151,7 +162,7 @@ def test_fake_units_give_every_table_and_the_across_task_statistics(fake, tmp_pa
     text = (out / "RESULTS.md").read_text()
     tasks = report.load([fake])
     assert [t.name for t in tasks] == ["ant", "halfcheetah"] and all(t.complete for t in tasks)
-    assert set(tasks[0].curves) == set(LEVELS)
+    assert set(tasks[0].curves) == set(LEVELS) - ABLATED and set(tasks[1].curves) == set(LEVELS)
     rows = {r["arm"]: r for r in report.arm_rows(tasks[0], 50)}
     # final = the last 10% of 20 updates (19, 20) per seed, IQM over 10 seeds; AUC = the env-step-weighted mean
     middle = np.mean(1 + 0.01 * np.arange(2, 8))  # the IQM of 10 seeds: the mean of the middle six
@@ -171,6 +182,13 @@ def test_fake_units_give_every_table_and_the_across_task_statistics(fake, tmp_pa
     assert best["arm"] == "cd-k20-paper" and 0.0 <= best["low"] <= best["iqm"] <= best["high"] <= 1.0
     assert set(profiles) == {"model-free", "mbmf", "cd-k5", "cd-k20-paper", "cd-k20"}
     assert "| ant | 0.3 [0.3, 0.3] | -0.1 [-0.1, -0.1] | 0.5 [0.5, 0.5] | 0 [0, 0] | 1 [1, 1] | 2.4 [2.4, 2.4] |" in text
+    # the schedule: the paper's (1.6) above the presets' (1.1) in every seed; the hand-over ablation on halfcheetah only
+    schedule = text[text.index("Per task, the paper's schedule"):text.index("## Why the Mb-Mf start")]
+    assert re.search(r"\| ant \| CD k=20 \(paper's schedule\) > CD k=20 \(cdjax's weights\) \([\d.]+ vs [\d.]+, "
+                     r"disjoint\) \| 1 \[1, 1\] \|", schedule)
+    ablation = text[text.index("## Why the Mb-Mf start"):text.index("## Units")]
+    assert "| halfcheetah | Mb-Mf, value not fitted | 5 |" in ablation and "| ant |" not in ablation
+    assert ablation.index("| halfcheetah | model-free |") < ablation.index("| halfcheetah | Mb-Mf, model only")
     for needle in ("## Across tasks (rliable)", "P(X > Y)", "## The Mb-Mf phase", "## The consistency schedule",
                    "CD k=20 (paper's schedule)", "open-loop MSE at 50 (yardstick)", "## Units", "FAKE GPU",
                    "figures/profiles.png", "figures/returns.png"):
@@ -205,12 +223,13 @@ def test_verdicts_follow_the_intervals():
 
 
 def test_every_unit_fits_a_lease_by_its_estimate():
-    """The plan's units: one task each, >= 10 seeds per arm (the schedule's >= 5), estimated inside the time limit."""
+    """The plan's units: one task each, >= 10 seeds per arm (the schedule's and the hand-over ablation's >= 5),
+    estimated inside the time limit."""
     assert {u.task for u in UNITS.values()} == {"ant", "humanoid", "halfcheetah", "swimmer"}
     for unit in UNITS.values():
         assert unit.estimate()["total"] < cli.UNIT_LIMIT_S * 0.9, unit.name
         for part in unit.parts:
-            assert part.seeds >= (5 if part.name == "schedule" else 10)
+            assert part.seeds >= (5 if part.name in ("schedule", "value0", "model-only") else 10)
     assert cli.main(["units"]) == 0
 
 

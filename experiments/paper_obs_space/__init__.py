@@ -26,7 +26,9 @@ import dataclasses
 
 TASKS = ("ant", "humanoid", "halfcheetah", "swimmer")
 # Arm keys of the report: (arm name in the sweep, what tells them apart) -> ARMS; see report.arm_key.
-ARMS = ("model-free", "mbmf", "cd-k5", "cd-k20-paper", "cd-k20", "cd-k20-paper-schedule")
+ARMS = ("model-free", "mbmf", "cd-k5", "cd-k20-paper", "cd-k20", "cd-k20-paper-schedule", "mbmf-value0",
+        "mbmf-model-only")
+START_TASKS = ("halfcheetah",)  # why the Mb-Mf start learns slower there: the hand-over's parts ablated (unit -5)
 ABLATION_TASKS = ("ant", "humanoid")  # the paper's k ablation (with the model-free arm)
 SCHEDULE_TASKS = ("ant", "halfcheetah")  # the consistency schedule, the presets' against the paper's
 
@@ -78,8 +80,8 @@ PHASE_20_RUNS = 1.8
 TASK_BUDGETS = {
     "ant": Task("ant", 50_000_000, 1.6e6, "units ant-1..3 on one H200: 1.71M/s (model-free + Mb-Mf, 20 runs), "
                 "1.59M/s (CD k=20, 20 runs), 1.39M/s (CD k=5, 10 runs)", phase_s=40),  # MPC horizon 5
-    "halfcheetah": Task("halfcheetah", 10_000_000, 0.35e6, "halfcheetah preset's CD arm, 20 runs on two H200: 0.76M/s; "
-                        "model-free 5 seeds on one: 0.32M/s (benchmarks/LEARNING.md)", phase_s=60),  # horizon 20
+    "halfcheetah": Task("halfcheetah", 10_000_000, 0.37e6, "units halfcheetah-1 and -3 on one H200: 0.37M/s "
+                        "(model-free + Mb-Mf, 20 runs), 0.29M/s (CD k=5, 10 runs)", phase_s=88),  # horizon 20
     "humanoid": Task("humanoid", 10_000_000, 0.4e6, "a guess: no humanoid rate measured at these settings",
                      phase_s=55, provisional=True),  # MPC horizon 5, the slowest physics
     "swimmer": Task("swimmer", 5_000_000, 0.2e6, "a guess: the first paper run's swimmer trained at 72k/s with "
@@ -119,6 +121,12 @@ def _units() -> dict[str, Unit]:
     cd5 = Part("cd-k5", ("cd-k5",), PAPER_WEIGHTS + ("--cc-windows", "4", "--horizon", "5"))
     # CD k=20 at cdjax's weights on the paper's schedule: against cd-k20's cdjax-weights runs (the same seeds)
     schedule = Part("schedule", ("cd-k20",), PAPER_SCHEDULE, rate_factor=0.7)
+    # Mb-Mf with parts of the hand-over left out, 5 seeds each (fewer runs train slower in aggregate: ~0.6x):
+    # the value not fitted to the DAgger returns; PPO from the untrained policy and value (the phase's model and
+    # normalisation only). Against mbmf (the distilled policy and fitted value) and model-free (nothing).
+    value0 = Part("value0", ("mbmf",), ("--phase-value-epochs", "0"), seeds=5, rate_factor=0.6)
+    model_only = Part("model-only", ("mbmf",), ("--phase-hand-policy", "false", "--phase-value-epochs", "0"), seeds=5,
+                      rate_factor=0.6)
     units = {}
     for task in TASKS:
         units[f"{task}-1"] = Unit(f"{task}-1", task, (mf_mbmf,), "model-free and Mb-Mf")
@@ -126,6 +134,9 @@ def _units() -> dict[str, Unit]:
         units[f"{task}-3"] = Unit(f"{task}-3", task, (cd5,), "CD k=5, the paper's weights")
         if task in SCHEDULE_TASKS:
             units[f"{task}-4"] = Unit(f"{task}-4", task, (schedule,), "CD k=20, cdjax's weights, the paper's schedule")
+        if task in START_TASKS:
+            units[f"{task}-5"] = Unit(f"{task}-5", task, (value0, model_only),
+                                      "Mb-Mf's hand-over ablated: the value not fitted; the model only")
     return units
 
 

@@ -39,9 +39,12 @@ HERE = pathlib.Path(__file__).resolve().parent
 RETURN, DISC = plots.RETURN, plots.DISC_RETURN
 MAIN_ARMS = ("model-free", "mbmf", "cd-k5", "cd-k20-paper", "cd-k20")
 LABELS = {"model-free": "model-free", "mbmf": "Mb-Mf", "cd-k5": "CD k=5", "cd-k20-paper": "CD k=20 (paper's weights)",
-          "cd-k20": "CD k=20 (cdjax's weights)", "cd-k20-paper-schedule": "CD k=20 (paper's schedule)"}
+          "cd-k20": "CD k=20 (cdjax's weights)", "cd-k20-paper-schedule": "CD k=20 (paper's schedule)",
+          "mbmf-value0": "Mb-Mf, value not fitted", "mbmf-model-only": "Mb-Mf, model only (untrained policy)"}
 COLORS = {"model-free": "#7f7f7f", "mbmf": "#1f77b4", "cd-k5": "#ff7f0e", "cd-k20-paper": "#d62728",
-          "cd-k20": "#9467bd", "cd-k20-paper-schedule": "#2ca02c"}
+          "cd-k20": "#9467bd", "cd-k20-paper-schedule": "#2ca02c", "mbmf-value0": "#17becf",
+          "mbmf-model-only": "#bcbd22"}
+START_ARMS = ("model-free", "mbmf", "mbmf-value0", "mbmf-model-only")  # the hand-over's ablation (unit halfcheetah-5)
 # (metric, column title, how the final value is formed): diagnostics at the end of training
 DIAGNOSTICS = (
     ("model/openloop_mse_k", "open-loop MSE at k (own states)"),
@@ -74,10 +77,17 @@ START_COLUMNS = (  # the phase's handover checks: the policy PPO gets against an
     ("fresh/mean_action_reward_mean", "untrained, mean action"))
 
 
-def arm_key(arm: dict, hp: dict) -> str:
+def arm_key(arm: dict, hp: dict, phase: dict | None = None) -> str:
     """The experiment's name of an (arm, hyper-parameters) of a run.json: model-free, mbmf, cd-k5, cd-k20-paper (both
-    paths of l_cc at alpha), cd-k20 (cdjax's weights), cd-k20-paper-schedule (l_cc in every epoch), else arm/label."""
+    paths of l_cc at alpha), cd-k20 (cdjax's weights), cd-k20-paper-schedule (l_cc in every epoch), else arm/label;
+    an mbmf arm whose phase (run.json's "phase") hands PPO the untrained policy is mbmf-model-only, one whose phase
+    leaves the value unfitted mbmf-value0."""
     kind = arm.get("arm") or arm.get("config", {}).get("arm")
+    if kind == "mbmf" and phase:
+        if not phase.get("hand_policy", True):
+            return "mbmf-model-only"
+        if phase.get("value_epochs", 1) == 0:
+            return "mbmf-value0"
     if kind in ("model-free", "mbmf"):
         return kind
     config = arm.get("config", {})
@@ -157,7 +167,7 @@ def load_run(path: pathlib.Path) -> Run:
     keys, planned, phase_steps = {}, {}, {}
     for arm in info["arms"]:
         for label, hp in zip(arm.get("hp_labels", ["default"]), arm.get("hparams", [{}])):
-            key = arm_key(arm, hp)
+            key = arm_key(arm, hp, info.get("phase"))
             keys[(arm["name"], str(label))] = key
             planned[key] = arm.get("total_env_steps", info.get("total_env_steps"))
             phase_steps[key] = arm.get("phase_env_steps", 0)
@@ -251,7 +261,7 @@ def arm_rows(task: TaskData, reps: int) -> list[dict]:
             if count is not None else math.nan
         ev = task.evals.get(key)
         row["eval_return"] = stats.iqm_interval(ev["return"], reps)[:3] if ev else (math.nan,) * 3
-        for name, _ in DIAGNOSTICS:
+        for name in [n for n, _ in DIAGNOSTICS] + ["policy/std"]:
             row[name] = stats.iqm_interval(plots.per_seed_final(c, name), reps)[:3] if name in c.metrics \
                 else (math.nan,) * 3
         start = c.metrics.get("env/reward_mean")  # the first PPO rollout's reward per step (update 1)
@@ -651,6 +661,21 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
             lines.append(_table(("task", "final return", "P(paper's schedule > presets')"),
                                 ([t.name, verdict([r for r in rows if r["task"] == t.name], "cd-k20-paper-schedule",
                                                   "cd-k20"), schedule_improvement(t, reps)] for t in sched)))
+            lines.append("")
+        start = [t for t in tasks if any(a in t.curves for a in START_ARMS[2:])]
+        if start:
+            lines += ["## Why the Mb-Mf start learns slower: the hand-over ablated", "",
+                      "Mb-Mf hands PPO a distilled policy, a value fitted to the DAgger returns, the model and the "
+                      "observation normalisation. The ablations leave out the value fit, or both the value fit and the "
+                      "distilled policy (PPO then starts from an untrained policy, as model-free does, with the "
+                      "phase's model and normalisation); the phase runs and costs the same:", ""]
+            lines.append(_table(("task", "arm", "seeds", "first PPO rollout (reward per step)", "final return",
+                                 "AUC return", "eval return (mean action)", "policy std at the end"),
+                                ([t.name, LABELS[a], str(r["seeds"]), _cell(r["start_reward"], 3),
+                                  _cell(r["final_return"]), _cell(r["auc_return"]), _cell(r["eval_return"]),
+                                  _cell(r["policy/std"], 3)]
+                                 for t in start for a in START_ARMS
+                                 for r in rows if r["task"] == t.name and r["arm"] == a)))
             lines.append("")
         lines += ["## Units: commands, devices, wall-clock", "", units_table(tasks), ""]
     (out / "data").mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,8 @@ once; it also vmaps over seeds). In the phase's own `phase.num_envs` environment
    states it visits, the pairs are aggregated, the policy is retrained; `label_checks` then measures on the
    policy's states how noisy the labels are and how close the policy came to their mean;
 5. the value is fitted to TD(lambda) returns of the DAgger rollouts (`value_epochs`, optional), and the
-   TrainState goes back ready for `agent.update`, its PPO environments and their episode statistics as
+   TrainState goes back ready for `agent.update` (with the distilled policy, or with `hand_policy=False` the
+   initial one: an ablation that keeps only the phase's model, normalisation and value), its PPO environments and their episode statistics as
    they were (the phase acts in its own), PPO's optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every
    env step taken.
 
@@ -450,7 +451,8 @@ class MbMfProgram:
                                                  models.norms, hp, key_handover)
             info.update(checks)
             info["env_steps"] = info["env_steps"] + steps
-        params = dict(state.params, model=models.model.params, policy=policies.policy.params, value=value_params)
+        policy_params = policies.policy.params if self.phase.hand_policy else state.params["policy"]
+        params = dict(state.params, model=models.model.params, policy=policy_params, value=value_params)
         # The PPO environments are as init left them (the phase acted in its own): each keeps the reset target
         # it was created with, which a checkpoint therefore need not store.
         new_state = state.replace(params=params, norms=models.norms, env_state=state.env_state,

@@ -45,6 +45,7 @@ class MbMfPhase:
     relabel: bool = True  # re-plan the aggregation states with the final model before cloning (no env steps)
     relabel_chunk: int = 1024  # states planned for at once when relabelling (memory: chunk x candidates x width)
     value_epochs: int = 10  # epochs fitting the value to TD(lambda) returns of the DAgger rollouts; 0 = untouched
+    hand_policy: bool = True  # PPO starts from the distilled policy; False: the initial one (ablation: model, norms, value)
     handover_steps: int = 0  # steps per env of 4 checks of the policy PPO gets against an untrained one; 0 = none
 
     def envs(self, config: Config) -> int:
@@ -107,7 +108,7 @@ def validate_phase(config: Config, phase: MbMfPhase) -> None:
     if phase.onpolicy_fraction > 0 and phase.buffer_size:
         raise ConfigError("MbMfPhase.onpolicy_fraction > 0 needs buffer_size = 0 (every transition kept: the random "
                           "data stays at the front of the model's buffer).")
-    for name in ("relabel", "dagger_deterministic"):
+    for name in ("relabel", "dagger_deterministic", "hand_policy"):
         if not isinstance(getattr(phase, name), bool):
             raise ConfigError(f"MbMfPhase.{name} must be true or false, got {getattr(phase, name)!r}.")
     B = phase.envs(config)
