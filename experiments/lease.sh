@@ -30,3 +30,20 @@ unit_run() {
     sleep 5
   done
 }
+
+# ensure_wheels: the GPU image lacks brax and mujoco-mjx; install the wheels carried in .whl/ (run from the repository
+# root) into $SITE (default /tmp/site) once per machine and put it and the repository on PYTHONPATH. Every call of a
+# unit script runs it, so a poll that lands on a fresh machine (the last one gone) has the packages too. Does nothing
+# where they import already. Returns 1, saying why, when they neither import nor can be installed.
+ensure_wheels() {
+  local site=${SITE:-/tmp/site}
+  if [ ! -d "$site/brax" ]; then
+    if python3 -c "import brax, mujoco.mjx" 2>/dev/null; then return 0; fi
+    if ! ls .whl/*.whl > /dev/null 2>&1; then
+      echo "brax and mujoco-mjx do not import and there is no .whl/ to install them from (carry .whl)"; return 1
+    fi
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$site" .whl/*.whl \
+      || { echo "installing .whl/ into $site failed"; return 1; }
+  fi
+  export PYTHONPATH="$site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
+}

@@ -27,3 +27,29 @@ def test_a_unit_starts_once_outlives_the_call_and_a_later_call_finds_it_done(tmp
     assert third.endswith("status 0\n") and "RUNNING" not in third
     assert (work / "exit_code").read_text().strip() == "7" and (work / "unit.log").read_text() == "finished\n"
     assert marker.read_text() == "x\n" and (work / "command").read_text().strip() == cmd
+
+
+def test_ensure_wheels_installs_the_carried_wheels_once_and_puts_them_on_the_path(tmp_path):
+    """A fake python3 on PATH: its import of brax fails (the GPU image), its pip records the call and makes the
+    package directory. The first call installs from .whl/, a later one (the same machine) only sets PYTHONPATH;
+    without .whl/ it says so and fails."""
+    bin_dir, repo, site, calls = tmp_path / "bin", tmp_path / "repo", tmp_path / "site", tmp_path / "calls"
+    bin_dir.mkdir()
+    (repo / ".whl").mkdir(parents=True)
+    (repo / ".whl" / "brax-0-py3-none-any.whl").write_text("")
+    fake = bin_dir / "python3"
+    fake.write_text(f'#!/usr/bin/env bash\nif [ "$1" = -c ]; then exit 1; fi\necho "$@" >> {calls}\nmkdir -p {site}/brax\n')
+    fake.chmod(0o755)
+    script = f'export PATH={bin_dir}:$PATH SITE={site}; unset PYTHONPATH; . {LEASE}; ensure_wheels; echo "rc $? $PYTHONPATH"'
+
+    def call(cwd):
+        return subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=60, cwd=cwd).stdout
+
+    assert call(repo).strip().endswith(f"rc 0 {site}:{repo}")
+    assert "--target " + str(site) in calls.read_text() and ".whl/brax-0-py3-none-any.whl" in calls.read_text()
+    assert call(repo).strip().endswith(f"rc 0 {site}:{repo}") and len(calls.read_text().splitlines()) == 1
+    (site / "brax").rmdir()
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    out = call(bare)
+    assert "no .whl/" in out and out.strip().endswith("rc 1")

@@ -23,6 +23,7 @@ mkdir -p "$work" "$out"
 t0=$(date +%s)
 export PYTHONUNBUFFERED=1
 . "$(dirname "$0")/../lease.sh"
+ensure_wheels || exit 1
 unit_run "$work" "python -m experiments.paper_obs_space train --unit $unit --out $work ${UNIT_ARGS:-}" "$wait_s" "$t0" \
   "bash experiments/paper_obs_space/device.sh $unit" || exit 0
 thin=runs/units-thin

@@ -74,6 +74,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
 cmd=$(command_of "$unit") || exit 2
 mkdir -p "$work" "$out"
 . "$(dirname "$0")/../lease.sh"
+ensure_wheels || exit 1
 unit_run "$work" "$cmd" "$wait_s" "$t0" "bash experiments/pixel/units.sh $unit" || exit 0
 thin=runs/pixel-units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
