@@ -20,10 +20,10 @@ once; it also vmaps over seeds). In the phase's own `phase.num_envs` environment
    states it visits, the pairs are aggregated, the policy is retrained; `label_checks` then measures on the
    policy's states how noisy the labels are and how close the policy came to their mean;
 5. the value is fitted to TD(lambda) returns of the DAgger rollouts (`value_epochs`, optional), and the
-   TrainState goes back ready for `agent.update` (with the distilled policy, or with `hand_policy=False` the
-   initial one: an ablation that keeps only the phase's model, normalisation and value), its PPO environments and their episode statistics as
-   they were (the phase acts in its own), PPO's optimiser state untouched (fresh Adam moments) and `info["env_steps"]` counting every
-   env step taken.
+   TrainState goes back ready for `agent.update`: with the distilled policy (or, `hand_policy=False`, the initial
+   one: an ablation that keeps only the phase's model, normalisation and value), its PPO environments and their
+   episode statistics as they were (the phase acts in its own), PPO's optimiser state untouched (fresh Adam
+   moments) and `info["env_steps"]` counting every env step taken.
 
 Why MSE on tanh(mu) rather than the Gaussian likelihood of atanh(action): random-shooting actions are
 uniform samples, often near the box edge where atanh is ill-conditioned (a 0.999 label is 3.8 in
