@@ -82,10 +82,10 @@ TASK_BUDGETS = {
                 "1.59M/s (CD k=20, 20 runs), 1.39M/s (CD k=5, 10 runs)", phase_s=40),  # MPC horizon 5
     "halfcheetah": Task("halfcheetah", 10_000_000, 0.37e6, "units halfcheetah-1 and -3 on one H200: 0.37M/s "
                         "(model-free + Mb-Mf, 20 runs), 0.29M/s (CD k=5, 10 runs)", phase_s=88),  # horizon 20
-    "humanoid": Task("humanoid", 10_000_000, 0.4e6, "a guess: no humanoid rate measured at these settings",
-                     phase_s=55, provisional=True),  # MPC horizon 5, the slowest physics
-    "swimmer": Task("swimmer", 5_000_000, 0.2e6, "a guess: the first paper run's swimmer trained at 72k/s with "
-                    "256 envs per run", phase_s=60, provisional=True),  # MPC horizon 20
+    "humanoid": Task("humanoid", 10_000_000, 0.5e6, "units humanoid-1 and -3 on one H200: 0.65M/s (model-free + "
+                     "Mb-Mf, 20 runs), 0.43M/s (CD k=5, 10 runs)", phase_s=80),  # MPC horizon 5
+    "swimmer": Task("swimmer", 5_000_000, 0.24e6, "units swimmer-1 and -3 on one H200: 0.26M/s (model-free + Mb-Mf, "
+                    "20 runs), 0.21M/s (CD k=5, 10 runs)", phase_s=92),  # MPC horizon 20
 }
 
 
