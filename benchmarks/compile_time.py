@@ -9,13 +9,25 @@ With an empty --cache-dir (JAX's persistent compilation cache) the first is a co
 this process's own cache of trainers and compiled programs saves. The runner's own line ("setup .. s, compile .. s")
 is printed too, and each program's lowering (serial, in the calling thread) and compiling (in parallel threads) seconds.
 Results: DIR/compile_time.json.
+
+    python -m benchmarks.compile_time --lower-only --out DIR -- --env ant --arms model-free mbmf cd-k5 cd --num-envs 16
+
+traces and lowers every program of the sweep without compiling any (so it runs on a CPU in a minute, and the
+device does not matter) and prints, per program, its lowering seconds and the size of its StableHLO: operations
+in all and the most frequent ones. What a program holds is a proxy for its compile time on any backend; compare
+variants of a config (e.g. `--cc-epochs 0`) to see what a feature adds. Results: DIR/lowered.json.
+
+`CDJAX_COMPILE_WORKERS=N` (read by the runner) sets how many threads compile the programs at once (default: half
+the CPU cores); 1 compiles them one after the other, which shows each program's compile time alone.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import pathlib
+import re
 import sys
 import time
 
@@ -31,7 +43,11 @@ def main(argv=None) -> list[dict]:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True, help="directory of the two run directories and compile_time.json")
     p.add_argument("--cache-dir", help="JAX's persistent compilation cache (an empty directory: a cold start)")
+    p.add_argument("--lower-only", action="store_true",
+                   help="lower every program without compiling it and print what each holds (any device)")
     args = p.parse_args(own)
+    if args.lower_only:
+        return lower_only(sweep_args, pathlib.Path(args.out))
 
     from cdjax import runtime
     from cdjax.cli import build_parser, setting_of, sweep_spec
@@ -65,6 +81,55 @@ def main(argv=None) -> list[dict]:
             print(f"  {r['arm']:>12} {r['what']:<6} {r['step']:<8} {r['s']:7.2f} s", flush=True)
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     (pathlib.Path(args.out) / "compile_time.json").write_text(json.dumps(rows, indent=1))
+    return rows
+
+
+class _Lowered(Exception):
+    """Raised in place of compiling: the sweep stops once its programs are lowered."""
+
+
+_OP = re.compile(r"= (?:\"?)([a-z_]+\.[a-z_]+)")
+
+
+def program_size(text: str) -> dict:
+    """What a lowered program's StableHLO text holds: its characters, operations in all and the six most frequent."""
+    ops = collections.Counter(_OP.findall(text))
+    return {"chars": len(text), "ops": sum(ops.values()), "top": dict(ops.most_common(6))}
+
+
+def lower_only(sweep_args: list[str], out: pathlib.Path) -> list[dict]:
+    """Run the sweep up to compiling: every program is traced and lowered (the runner's own path), none compiled."""
+    import jax
+
+    from cdjax.cli import build_parser, setting_of, sweep_spec
+    from cdjax.runner import arms, run_sweep
+
+    sizes = []
+    compile_ = jax.stages.Lowered.compile
+
+    def record(lowered, *args, **kwargs):
+        sizes.append(program_size(lowered.as_text()))
+        raise _Lowered
+
+    sweep_argv = ["sweep", *sweep_args, "--out", str(out / "lowered-run"), "--no-progress", "--no-final-eval"]
+    setting = setting_of(sweep_argv)
+    spec = sweep_spec(build_parser(setting).parse_args(sweep_argv), setting, "cdjax " + " ".join(sweep_argv))
+    arms.COMPILE_TIMES.clear()
+    jax.stages.Lowered.compile = record
+    try:
+        run_sweep(spec)
+    except _Lowered:
+        pass
+    finally:
+        jax.stages.Lowered.compile = compile_
+    lowered = [r for r in arms.COMPILE_TIMES if r["step"] == "lower"]
+    rows = [{"arm": r["arm"], "what": r["what"], "lower_s": round(r["s"], 2), **size} for r, size in zip(lowered, sizes)]
+    for r in rows:
+        top = ", ".join(f"{k.split('.')[-1]} {v}" for k, v in r["top"].items())
+        print(f"{r['arm']:>12} {r['what']:<6} lowered in {r['lower_s']:5.1f} s: {r['ops']:7,d} ops ({top})", flush=True)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "lowered.json").write_text(json.dumps({"command": "cdjax " + " ".join(sweep_argv), "programs": rows},
+                                                 indent=1))
     return rows
 
 

@@ -4,6 +4,7 @@ from the raw numbers; the matched configuration is what Brax PPO's semantics say
 import inspect
 import json
 import math
+import os
 import pathlib
 import sys
 
@@ -338,3 +339,37 @@ def test_compile_time_names_each_program_and_the_second_sweep_compiles_nothing(t
     assert all(r["s"] >= 0 for r in first["programs"])
     assert second["programs"] == [] and second["seconds_to_training"] < first["seconds_to_training"]
     assert json.loads((tmp_path / "compile_time.json").read_text()) == rows
+
+
+def test_compile_time_lower_only_sizes_every_program_and_compiles_none(tmp_path, monkeypatch):
+    """benchmarks.compile_time --lower-only: every program the sweep would compile is lowered and sized (the chunk,
+    rollout and SGD, holds more than the init), none is compiled, and jax's compile is put back afterwards."""
+    import jax
+
+    from benchmarks import compile_time
+    from cdjax.runner import arms
+
+    monkeypatch.setattr(arms, "_BUILT", {})
+    monkeypatch.setattr(arms, "_COMPILED", {})
+    from test_run_dir import OBS, OBS_STEPS
+
+    compile_ = jax.stages.Lowered.compile
+    rows = compile_time.main(["--lower-only", "--out", str(tmp_path), "--", *OBS, "--steps", OBS_STEPS])
+    assert jax.stages.Lowered.compile is compile_
+    assert [(r["arm"], r["what"]) for r in rows] == [("cd", "init"), ("cd", "chunk")]
+    assert not [r for r in arms.COMPILE_TIMES if r["step"] == "compile"]
+    init, chunk = rows
+    assert chunk["ops"] > init["ops"] > 0 and sum(chunk["top"].values()) <= chunk["ops"]
+    assert json.loads((tmp_path / "lowered.json").read_text())["programs"] == rows
+
+
+def test_compile_workers_reads_its_variable(monkeypatch):
+    from cdjax.runner import arms
+
+    monkeypatch.setenv("CDJAX_COMPILE_WORKERS", "1")
+    assert arms.compile_workers() == 1
+    monkeypatch.setenv("CDJAX_COMPILE_WORKERS", "0")
+    with pytest.raises(ValueError, match="whole number >= 1"):
+        arms.compile_workers()
+    monkeypatch.delenv("CDJAX_COMPILE_WORKERS")
+    assert arms.compile_workers() == max(1, (os.cpu_count() or 1) // 2)

@@ -217,7 +217,12 @@ def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
 
 def compile_workers() -> int:
     """Threads compiling the arms' programs at once: half the CPU cores (XLA compiles in C++, without the
-    GIL; on a 2-core machine one, i.e. one after the other)."""
+    GIL; on a 2-core machine one, i.e. one after the other), or CDJAX_COMPILE_WORKERS when set (a count >= 1)."""
+    text = os.environ.get("CDJAX_COMPILE_WORKERS", "").strip()
+    if text:
+        if not text.isdigit() or int(text) < 1:
+            raise ValueError(f"CDJAX_COMPILE_WORKERS must be a whole number >= 1, got {text!r}.")
+        return int(text)
     return max(1, (os.cpu_count() or 1) // 2)
 
 

@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# Issue 21's compile measurements as one unit inside one lease of a one-GPU machine (started once as its own
+# process session, then polled: experiments/lease.sh), carrying .whl:
+#
+#   bash benchmarks/compile_units.sh UNIT [WAIT_S]
+#
+# UNIT is one of
+#   flags    the 4-arm ant sweep (`--env ant --arms model-free mbmf cd-k5 cd`, 3 seeds) compiled cold (an empty
+#            persistent cache each time) by benchmarks.compile_time: with XLA's defaults; with Triton's GEMM fusions
+#            off (XLA_FLAGS=--xla_gpu_enable_triton_gemm=false: cuBLAS alone, far fewer autotuning candidates);
+#            and one program after another (CDJAX_COMPILE_WORKERS=1: each program's compile alone, no sharing of
+#            CPU cores or the autotuner). Then what Triton's GEMMs off costs at run time: the CD arm alone, cold,
+#            3 seeds, 8M env steps per run, with and without the flag (the training line's env steps/s).
+#   lowered  the same sweep's programs lowered, not compiled (benchmarks.compile_time --lower-only): their sizes
+#            on this host, to set beside the compile times.
+# Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
+# after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
+# log) and UNIT.log. The runs' checkpoints are not kept.
+set -u
+unit=$1; wait_s=${2:-560}
+work=runs/compile-units/$unit
+out=${OUT:-runs/compile-units-out}
+t0=$(date +%s)
+export PYTHONUNBUFFERED=1
+sweep="--env ant --arms model-free mbmf cd-k5 cd --seeds 3"
+cd_run="--env ant --arms cd --seeds 3 --steps 8000000 --no-final-eval --no-progress"
+
+command_of() {  # UNIT -> the unit's commands (one bash line)
+  case "$1" in
+    flags)
+      echo "python -m benchmarks.compile_time --out $work/default --cache-dir $work/cache-default -- $sweep" \
+        "> $work/default.log 2>&1;" \
+        "XLA_FLAGS=--xla_gpu_enable_triton_gemm=false python -m benchmarks.compile_time --out $work/no-triton-gemm" \
+        "--cache-dir $work/cache-no-triton -- $sweep > $work/no-triton-gemm.log 2>&1;" \
+        "CDJAX_COMPILE_WORKERS=1 python -m benchmarks.compile_time --out $work/serial --cache-dir $work/cache-serial" \
+        "-- $sweep > $work/serial.log 2>&1;" \
+        "python -m cdjax.cli sweep $cd_run --out $work/run-default --cache-dir $work/cache-run-default" \
+        "> $work/run-default.log 2>&1;" \
+        "XLA_FLAGS=--xla_gpu_enable_triton_gemm=false python -m cdjax.cli sweep $cd_run --out $work/run-no-triton" \
+        "--cache-dir $work/cache-run-no-triton > $work/run-no-triton.log 2>&1;" \
+        "grep -h -E 'sweep [12]:|compile [0-9.]+ s|Trained in' $work/*.log" ;;
+    lowered)
+      echo "python -m benchmarks.compile_time --lower-only --out $work/lowered -- $sweep > $work/lowered.log 2>&1;" \
+        "tail -n 8 $work/lowered.log" ;;
+    *) echo "unknown unit $1: flags or lowered" >&2; return 1 ;;
+  esac
+}
+
+cmd=$(command_of "$unit") || exit 2
+mkdir -p "$work" "$out"
+. "$(dirname "$0")/../experiments/lease.sh"
+ensure_wheels || exit 1
+unit_run "$work" "$cmd" "$wait_s" "$t0" "bash benchmarks/compile_units.sh $unit" || exit 0
+echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
+archive=$(cd "$out" && pwd)/$unit.tar.gz
+(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name '*.log' | grep -v '/checkpoints/' \
+  | tar -czf "$archive" -T -)
+cp "$work/unit.log" "$out/$unit.log"
+ls -l "$out"
+tail -n 30 "$work/unit.log"
