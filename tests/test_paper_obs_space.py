@@ -177,6 +177,9 @@ def test_fake_units_give_every_table_and_the_across_task_statistics(fake, tmp_pa
     assert imp[("cd-k20-paper", "mbmf")]["p"] == pytest.approx(1.0) and imp[("cd-k20-paper", "mbmf")]["tasks"] == [
         "ant", "halfcheetah"]
     assert imp[("mbmf", "model-free")]["p"] == pytest.approx(1.0)
+    per_task = text[text.index("The same per task"):text.index("## Returns")]  # each task's seeds alone
+    for task in ("ant", "halfcheetah"):
+        assert re.search(rf"\| {task} \| 1 \[1, 1\] \|", per_task), per_task
     agg, profiles = report.aggregate(report.normalised(scores), reps=50)
     best = max(agg, key=lambda a: a["iqm"])
     assert best["arm"] == "cd-k20-paper" and 0.0 <= best["low"] <= best["iqm"] <= best["high"] <= 1.0

@@ -405,6 +405,16 @@ def improvement(scores: dict[str, dict[str, np.ndarray]], pairs=PAIRS, reps: int
     return out
 
 
+def per_task_improvement(scores: dict[str, dict[str, np.ndarray]], reps: int, pairs=PAIRS) -> str:
+    """A table: per task (rows), P(X > Y) of the final return over that task's seeds for every pair (columns) that
+    some task has, with its 95% interval; n/a where the task lacks an arm of the pair."""
+    per = {task: {(p["x"], p["y"]): p for p in improvement({task: arms}, pairs, reps)} for task, arms in scores.items()}
+    shown = [pair for pair in pairs if any(pair in cells for cells in per.values())]
+    return _table(("task",) + tuple(f"P({LABELS[x]} > {LABELS[y]})" for x, y in shown),
+                  ([task] + [_cell((c["p"], c["low"], c["high"]), 3) if (c := cells.get(pair)) else "n/a"
+                             for pair in shown] for task, cells in per.items()))
+
+
 def schedule_improvement(task: TaskData, reps: int) -> str:
     """P(paper's schedule > the presets') of one task's final returns over seeds, with its 95% interval."""
     scores = final_scores([task], ("cd-k20", "cd-k20-paper-schedule"))
@@ -618,6 +628,9 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
                   "tasks that have both arms), with 95% stratified-bootstrap intervals:", ""]
         lines.append(_table(("X", "Y", "tasks", "P(X > Y)"), ([LABELS[p["x"]], LABELS[p["y"]], ", ".join(p["tasks"]),
                                                                 _cell((p["p"], p["low"], p["high"]), 3)] for p in imp)))
+        if imp:
+            lines += ["", "The same per task (its seeds only):", ""]
+            lines.append(per_task_improvement(scores, reps))
         if agg:
             lines += ["", f"IQM of the normalised final return over {', '.join(agg[0]['tasks'])} (per task min-max over "
                       "every seed of every arm):", ""]
