@@ -50,6 +50,7 @@ def test_a_unit_runs_its_part_with_the_preset_and_the_phase_and_records_the_mach
     assert machine["exit_code"] == 0 and machine["device"].endswith("(cpu)")
     unit = json.loads((trained / "swimmer-1" / "unit.json").read_text())
     assert unit["unit"] == "swimmer-1" and unit["parts"][0]["exit_code"] == 0 and unit["limit_s"] > 0
+    assert unit["parts"][0]["command"] == run["command"]  # the whole command: --out and --yardstick too
 
 
 def test_report_of_the_unit_and_a_rebuild_from_the_kept_data(trained, tmp_path):

@@ -44,11 +44,16 @@ def yardstick_option(task: str, passthrough: list[str]) -> list[str]:
     return ["--yardstick", os.path.relpath(path)] if path.exists() else []
 
 
+def sweep_argv(task: str, out: pathlib.Path, args: list[str]) -> list[str]:
+    """The command line of `sweep`: `cdjax` plus these."""
+    return ["sweep", "--preset", f"paper-{task}", "--out", str(out), *yardstick_option(task, args), *args]
+
+
 def sweep(task: str, out: pathlib.Path, args: list[str]) -> int:
     """`cdjax sweep --preset paper-<task>` with `args`, into `out`, plus out/machine.json; the exit status."""
     from cdjax.cli import main as cdjax_main
 
-    argv = ["sweep", "--preset", f"paper-{task}", "--out", str(out), *yardstick_option(task, args), *args]
+    argv = sweep_argv(task, out, args)
     t0 = time.perf_counter()
     code = 0
     try:
@@ -85,8 +90,9 @@ def cmd_train(args, passthrough: list[str]) -> int:
                    "--time-limit", str(int(left)), *part.options, *passthrough]
         t0 = time.monotonic()
         status = sweep(unit.task, out / part.name, options)
-        record["parts"].append({"name": part.name, "command": "cdjax sweep --preset paper-" + unit.task + " "
-                                + " ".join(options), "exit_code": status, "wall_s": round(time.monotonic() - t0, 1)})
+        record["parts"].append({"name": part.name, "command": "cdjax " + " ".join(sweep_argv(unit.task, out / part.name,
+                                                                                          options)),
+                                "exit_code": status, "wall_s": round(time.monotonic() - t0, 1)})
         code = code or status
         (out / "unit.json").write_text(json.dumps(record, indent=1))
     record["wall_s"] = round(time.monotonic() - start, 1)

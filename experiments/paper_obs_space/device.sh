@@ -28,6 +28,7 @@ unit_run "$work" "python -m experiments.paper_obs_space train --unit $unit --out
   "bash experiments/paper_obs_space/device.sh $unit" || exit 0
 thin=runs/units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
+mkdir -p "$thin/$unit"  # a unit that died before writing a run directory still packs its unit.json
 cp "$work/unit.json" "$thin/$unit/" 2>/dev/null
 tar -czf "$out/$unit.tar.gz" -C "$thin" "$unit"
 cp "$work/unit.log" "$out/$unit.log"
