@@ -187,8 +187,10 @@ class ObsAgent:
         return losses.gae(mb.reward * hp.reward_scale, v, v_next, mb.valid & ~mb.terminated, mb.ended, hp.gamma,
                           hp.gae_lambda, mb.valid)
 
-    def loss_terms(self, params, norms, mb: "Batch", offsets, hp, with_consistency: bool = True):
-        """The named loss terms of one minibatch mb (leaves [L, Bs, ...]) -> ({name: scalar}, metrics)."""
+    def loss_terms(self, params, norms, mb: "Batch", offsets, hp, with_consistency: bool = True, fused: bool = True):
+        """The named loss terms of one minibatch mb (leaves [L, Bs, ...]) -> ({name: scalar}, metrics). fused=False
+        computes the consistency term's k-step chain as a scan instead of the fused, unrolled chain: the same
+        function, a program a fraction of the size, slower on a GPU (for what runs once per update)."""
         obs_n = nz.normalize(norms.obs, mb.obs)
         mean, std = self.policy.apply(params["policy"], obs_n)
         if self.config.gae_in_loss:  # one value pass over the sequences and the row each bootstraps on
@@ -218,7 +220,7 @@ class ObsAgent:
                 consistency.mlp_step, self.mlp_model(params["model"], norms), s0, window_actions, real_next, mask,
                 kind=self.config.encoder, normalize=norms.obs,
                 weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=self.encoder,
-                encoder_params=params.get("encoder"), unroll=self.config.cc_unroll)
+                encoder_params=params.get("encoder"), unroll=self.config.cc_unroll, fused=fused)
             terms.update(cc_terms)
             metrics.update(cc_metrics)
         return terms, metrics
@@ -234,11 +236,14 @@ class ObsAgent:
 
     def grad_norms(self, params, norms, mb, offsets, hp) -> dict:
         """The gradient norm of every weighted loss term on each parameter group it reaches (TERM_GROUPS), and of
-        their sum on every group: metrics "grad/<term>/<group>", so the balance of the terms is visible."""
+        their sum on every group: metrics "grad/<term>/<group>", so the balance of the terms is visible.
+
+        Once per update, on one minibatch: the consistency chain runs scanned (fused=False), not as the SGD's fused
+        and unrolled chain, which would be compiled a second time here (a third of the CD update's program)."""
         weights = term_weights(hp)
 
         def weighted(p):
-            terms, _ = self.loss_terms(p, norms, mb, offsets, hp)
+            terms, _ = self.loss_terms(p, norms, mb, offsets, hp, fused=False)
             return {name: weights[name] * term for name, term in terms.items()}
 
         out, pullback = jax.vjp(weighted, params)
