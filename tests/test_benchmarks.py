@@ -364,12 +364,13 @@ def test_compile_time_lower_only_sizes_every_program_and_compiles_none(tmp_path,
 
 
 def test_compile_workers_reads_its_variable(monkeypatch):
+    from cdjax.protocol import ConfigError
     from cdjax.runner import arms
 
     monkeypatch.setenv("CDJAX_COMPILE_WORKERS", "1")
     assert arms.compile_workers() == 1
     monkeypatch.setenv("CDJAX_COMPILE_WORKERS", "0")
-    with pytest.raises(ValueError, match="whole number >= 1"):
+    with pytest.raises(ConfigError, match="whole number >= 1"):  # the command line's one sentence
         arms.compile_workers()
     monkeypatch.delenv("CDJAX_COMPILE_WORKERS")
     assert arms.compile_workers() == max(1, (os.cpu_count() or 1) // 2)

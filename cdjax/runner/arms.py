@@ -17,7 +17,7 @@ import numpy as np
 
 from cdjax import io, multihost
 from cdjax.evaluate import eval_records, make_evaluator
-from cdjax.protocol import Setting, Trainer
+from cdjax.protocol import ConfigError, Setting, Trainer
 from cdjax.runner import budget
 from cdjax.runner.plan import ArmPlan, plan_arms, recorded
 from cdjax.runner.spec import SweepSpec
@@ -221,7 +221,7 @@ def compile_workers() -> int:
     text = os.environ.get("CDJAX_COMPILE_WORKERS", "").strip()
     if text:
         if not text.isdigit() or int(text) < 1:
-            raise ValueError(f"CDJAX_COMPILE_WORKERS must be a whole number >= 1, got {text!r}.")
+            raise ConfigError(f"CDJAX_COMPILE_WORKERS must be a whole number >= 1, got {text!r}.")
         return int(text)
     return max(1, (os.cpu_count() or 1) // 2)
 
