@@ -88,7 +88,7 @@ class _Lowered(Exception):
     """Raised in place of compiling: the sweep stops once its programs are lowered."""
 
 
-_OP = re.compile(r"= (?:\"?)([a-z_]+\.[a-z_]+)")
+_OP = re.compile(r"= \"?((?:stablehlo|chlo|mhlo|sdy|func|call)\.[a-z_]+)")  # an operation's name, not an attribute
 
 
 def program_size(text: str) -> dict:

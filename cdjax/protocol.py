@@ -21,7 +21,7 @@ model-based phase of the observation-space setting); its env steps are charged t
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Hashable, Mapping
 
 import jax
 
@@ -52,6 +52,13 @@ class Trainer:
     # key -> an untrained policy (what `act` takes) without building the rest of the state; None: not offered
     fresh_policy: Callable[[jax.Array], Any] | None = None
     inner: Any = None  # the setting's own learner object, opaque to the host (its phase may use it)
+    # Optional, so that the arms of a sweep that act in the same environments compile their reset (the physics)
+    # once: reset(key) -> the environments' part of init's state, init_from(key, hp, that) -> the state, with
+    # init(key, hp) == init_from(key, hp, reset(key)); env_key (hashable) is equal exactly for trainers whose reset
+    # is the same function. Without them each arm's init program holds its own reset.
+    reset: Callable[[jax.Array], Any] | None = None
+    init_from: Callable[[jax.Array, HP, Any], State] | None = None
+    env_key: Hashable | None = None
     # how a sweep splits its runs over devices (cdjax.sweep): "partition" (XLA's partitioner places the vmapped
     # programs) or "local" (each device runs its own runs in a shard_map of the update programs: no collective)
     runs_split: str = "partition"

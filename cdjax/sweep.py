@@ -62,6 +62,12 @@ class Sweep:
     _phase: Callable | None = None  # jitted (state, hps) -> (state, info [R]): the pre-update phase of every run
     _chunk: Callable | None = None  # jitted (state, hps, length, n) -> (state, metrics [R, length]): n <= length run
     split: str = "partition"  # how the update programs split the runs over the devices (make_sweep)
+    # With a trainer that offers reset/init_from (cdjax.protocol.Trainer), init(keys, hps) is
+    # init_from(keys, hps, reset(keys)): `reset` (keys [R]) -> the runs' environments, one jitted function shared
+    # by every sweep of an equal env_key on the same mesh (so its program is compiled once); `init_from` (keys,
+    # hps, environments) -> state, jitted. None: init is one program.
+    reset: Callable | None = None
+    init_from: Callable | None = None
 
     @property
     def sharding(self) -> NamedSharding:
@@ -148,9 +154,21 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
             lambda s, h, *r: per_device(s, h, *r, *static), mesh=mesh,
             in_specs=(runs, runs) + (replicated,) * len(rest), out_specs=runs, check_vma=False)(state, hps, *rest)
 
-    @jax.jit
-    def init(keys, hps):
-        return place(jax.vmap(trainer.init)(keys, hps))
+    reset = init_from = None
+    if getattr(trainer, "reset", None) is not None and getattr(trainer, "init_from", None) is not None:
+        reset = shared_reset(trainer, mesh)
+
+        @jax.jit
+        def init_from(keys, hps, env_state):
+            return place(jax.vmap(trainer.init_from)(keys, hps, env_state))
+
+        def init(keys, hps):
+            return init_from(keys, hps, reset(keys))
+    else:
+
+        @jax.jit
+        def init(keys, hps):
+            return place(jax.vmap(trainer.init)(keys, hps))
 
     def updates(state, hps, num_updates):
         def one_run(state, hp):
@@ -188,4 +206,27 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
             state, info = jax.vmap(phase)(state, hps)
             return place(state), place(info)
 
-    return Sweep(trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run, _chunk=chunk, split=split)
+    return Sweep(trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run, _chunk=chunk, split=split,
+                 reset=reset, init_from=init_from)
+
+
+# env_key, mesh -> the jitted reset of the runs' environments that every sweep of them shares (shared_reset)
+_RESETS: dict = {}
+
+
+def shared_reset(trainer, mesh: Mesh) -> Callable:
+    """jit(keys [R] -> the runs' environments, placed over the mesh), one function object per (trainer.env_key,
+    mesh): the sweeps of several arms in the same environments call (and so compile) one reset program. Built from
+    the first such trainer's reset; env_key says they are all the same function."""
+    cache_key = (trainer.env_key, tuple(d.id for d in mesh.devices.flat), mesh.axis_names)
+    if trainer.env_key is None or cache_key not in _RESETS:
+        sharded = NamedSharding(mesh, PartitionSpec(AXIS))
+
+        @jax.jit
+        def reset(keys):
+            return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, sharded), jax.vmap(trainer.reset)(keys))
+
+        if trainer.env_key is None:
+            return reset
+        _RESETS[cache_key] = reset
+    return _RESETS[cache_key]

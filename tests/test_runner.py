@@ -312,8 +312,29 @@ def test_programs_compiled_in_parallel_threads_give_the_same_run(phased, tmp_pat
     monkeypatch.setattr(arms, "_BUILT", {})  # nothing from this process's cache: every program compiled again
     monkeypatch.setattr(arms, "_COMPILED", {})
     out = tmp_path / "threads"
+    arms.COMPILE_TIMES.clear()
     run_sweep(dataclasses.replace(PHASE_SPEC, out=out))
     assert _rows(out) == _rows(phased)
+    # the three arms act in the same environments: one reset program compiled for all, an init per arm
+    compiled = [(r["what"], r["arm"]) for r in arms.COMPILE_TIMES if r["step"] == "compile"]
+    assert [what for what, _ in compiled].count("reset") == 1
+    assert sorted(arm for what, arm in compiled if what == "init") == sorted(PHASE_SPEC.arms)
+
+
+def test_sweep_init_is_the_trainers_init_and_arms_share_a_reset_only_in_the_same_environments():
+    """sweep.init (the shared reset, then init_from) gives init's state bit for bit; a trainer of other
+    environments (another num_envs) gets a reset of its own, one of the same environments the same one."""
+    from cdjax.agents.obs import make_trainer
+    from cdjax.sweep import make_sweep
+
+    trainer = make_trainer(POINT.replace(arm="cd"))
+    sweep = make_sweep(trainer)
+    keys, hps = sweep.grid(3, 2, [HParams(alpha=0.5)])
+    alone = jax.jit(jax.vmap(trainer.init))(keys, hps)
+    _assert_same_states({"cd": (0, sweep.init(keys, hps))}, {"cd": (0, alone)})
+    assert make_sweep(make_trainer(POINT.replace(arm="mbmf"))).reset is sweep.reset
+    other = make_trainer(POINT.replace(arm="cd", num_envs=2 * POINT.num_envs))
+    assert other.env_key != trainer.env_key and make_sweep(other).reset is not sweep.reset
 
 
 def test_encoder_collapse_warning():

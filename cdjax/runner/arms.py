@@ -168,28 +168,32 @@ def _avals(tree) -> tuple:
                           for x in leaves)
 
 
-def _lowered(arm: Arm, what: str, lower: Callable, *args):
-    """lower(*args) of arm's sweep, from this process's cache when it was lowered before for the same inputs."""
-    key = (id(arm.sweep), what, "lowered", _avals(args))
+def _lowered(arm: Arm, what: str, lower: Callable, *args, owner=None):
+    """lower(*args) of arm's sweep (or of `owner`, a function several sweeps share), from this process's cache when
+    it was lowered before for the same inputs."""
+    owner = arm.sweep if owner is None else owner
+    key = (id(owner), what, "lowered", _avals(args))
     if key not in _COMPILED:
         t0 = time.perf_counter()
-        _COMPILED[key] = (arm.sweep, lower(*args))  # the sweep held: its id stays its own while the entry lives
+        _COMPILED[key] = (owner, lower(*args))  # the owner held: its id stays its own while the entry lives
         COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "lower", "s": time.perf_counter() - t0})
     return _COMPILED[key][1]
 
 
-def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None):
-    """The compiled program `what` of arm's sweep for these inputs (static ints included): from this process's
-    cache, else lowered now and compiled (in `pool`, returning a future, when given)."""
-    key = (id(arm.sweep), what, _avals(args))
+def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None, owner=None):
+    """The compiled program `what` of arm's sweep (or of `owner`, as _lowered) for these inputs (static ints
+    included): from this process's cache, else lowered now and compiled (in `pool`, returning a future, when
+    given)."""
+    owner = arm.sweep if owner is None else owner
+    key = (id(owner), what, _avals(args))
     if key in _COMPILED:
         return _COMPILED[key][1]
-    lowered = _lowered(arm, what, lower, *args)
+    lowered = _lowered(arm, what, lower, *args, owner=owner)
 
     def compile_():
         t0 = time.perf_counter()
         program = lowered.compile()
-        _COMPILED[key] = (arm.sweep, program)
+        _COMPILED[key] = (owner, program)
         COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "compile", "s": time.perf_counter() - t0})
         return program
 
@@ -237,11 +241,25 @@ def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
     order = sorted(arms, key=lambda a: -getattr(a, "state_bytes", 0))
     with concurrent.futures.ThreadPoolExecutor(compile_workers()) as pool:
         jobs = []
+        resets = {}  # (shared reset, its inputs) -> its compile job: one per sweep, whichever arms share it
         for arm in order:
-            lowered_init = _lowered(arm, "init", arm.sweep.init.lower, arm.keys, arm.hps)
-            jobs.append((arm, "init", _compiled(arm, "init", arm.sweep.init.lower, arm.keys, arm.hps, pool=pool)))
-            arm.abstract = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=arm.sweep.sharding),
-                                        lowered_init.out_info)
+
+            def abstract(out, sharding=arm.sweep.sharding):  # a lowered program's outputs as ShapeDtypeStructs
+                return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), out)
+
+            if arm.sweep.reset is None:
+                lowered_init = _lowered(arm, "init", arm.sweep.init.lower, arm.keys, arm.hps)
+                jobs.append((arm, "init", _compiled(arm, "init", arm.sweep.init.lower, arm.keys, arm.hps, pool=pool)))
+            else:  # the environments' reset, shared by the arms in the same ones, then the rest of the init
+                reset = arm.sweep.reset
+                shared = (id(reset), _avals((arm.keys,)))
+                if shared not in resets:
+                    resets[shared] = _compiled(arm, "reset", reset.lower, arm.keys, pool=pool, owner=reset)
+                envs = abstract(_lowered(arm, "reset", reset.lower, arm.keys, owner=reset).out_info)
+                lowered_init = _lowered(arm, "init", arm.sweep.init_from.lower, arm.keys, arm.hps, envs)
+                jobs.append((arm, "init", (resets[shared], _compiled(arm, "init", arm.sweep.init_from.lower, arm.keys,
+                                                                     arm.hps, envs, pool=pool))))
+            arm.abstract = abstract(lowered_init.out_info)
             start = done.get(arm.name, -1)  # updates of the checkpoint a resume will restore (-1: none)
             if not arm.phase_done and start < 0:
                 jobs.append((arm, "phase", _compiled(arm, "phase", arm.sweep.lower_phase, arm.abstract, arm.hps,
@@ -250,8 +268,15 @@ def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
             if arm.num_updates - max(start, 0) > 0:
                 jobs.append((arm, "chunk", _compiled(arm, "chunk", arm.sweep.lower_chunk, arm.abstract, arm.hps,
                                                      arm.chunk, pool=pool)))
-        for arm, what, program in jobs:
-            arm.programs[what] = program.result() if isinstance(program, concurrent.futures.Future) else program
+        def done(job):
+            return job.result() if isinstance(job, concurrent.futures.Future) else job
+
+        for arm, what, job in jobs:
+            if isinstance(job, tuple):  # init as reset, then init_from
+                reset, init_from = done(job[0]), done(job[1])
+                arm.programs[what] = lambda keys, hps, reset=reset, init_from=init_from: init_from(keys, hps, reset(keys))
+            else:
+                arm.programs[what] = done(job)
 
 
 def restore(arm: Arm, set_aside: bool = True) -> bool:

@@ -112,8 +112,12 @@ def make_trainer(config: Config) -> Trainer:
         params = agent.policy.init(key, jnp.zeros((1, agent.O), jnp.float32))
         return {"params": {"policy": params}, "norms": nz.Norms.create(agent.O)}
 
+    # everything cdjax.envs.make_env builds the environments from: arms equal in these share one reset program
+    env_key = ("obs", config.env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode,
+               bool(getattr(config, "stagger_resets", False)))
     return Trainer(
-        config=config, init=agent.init, update=agent.update,
+        config=config, init=agent.init, update=agent.update, reset=agent.reset, init_from=agent.init_from,
+        env_key=env_key,
         policy=lambda state: {"params": {"policy": state.params["policy"]}, "norms": state.norms},
         act=lambda policy, obs, key: agent.act(policy["params"], policy["norms"], obs, key),
         eval_env=eval_env, saved_leaves=saved_leaves, fresh_policy=fresh_policy, inner=agent)

@@ -154,10 +154,19 @@ class ObsAgent:
         return networks.act_from_noise(mean, std, jax.random.normal(key, mean.shape))
 
     def init(self, key: jax.Array, hp: HParams) -> TrainState:
+        return self.init_from(key, hp, self.reset(key))
+
+    def reset(self, key: jax.Array) -> EnvState:
+        """The environments of init(key, hp)'s state (they do not depend on hp)."""
+        key_env, _, _ = jax.random.split(key, 3)
+        return self.env.reset(key_env)
+
+    def init_from(self, key: jax.Array, hp: HParams, env_state: EnvState) -> TrainState:
+        """init(key, hp) given its environments, reset(key): a sweep compiles the physics of a reset once for all
+        its arms that act in the same environments (`cdjax.protocol.Trainer.reset`)."""
         HP_RANGES.check(hp)  # concrete values (a call outside jit) get the command line's checks
         hp = hp.as_float32()
-        key_env, key_params, key_train = jax.random.split(key, 3)
-        env_state = self.env.reset(key_env)
+        _, key_params, key_train = jax.random.split(key, 3)
         params = networks.init_params(self.modules, key_params, self.O, self.A, hp.init_log_std)
         opt_state = make_optimizer(self.config, params, hp).init(params)
         nan = jnp.full((), jnp.nan, jnp.float32)
