@@ -218,15 +218,16 @@ def shared_reset(trainer, mesh: Mesh) -> Callable:
     """jit(keys [R] -> the runs' environments, placed over the mesh), one function object per (trainer.env_key,
     mesh): the sweeps of several arms in the same environments call (and so compile) one reset program. Built from
     the first such trainer's reset; env_key says they are all the same function."""
-    cache_key = (trainer.env_key, tuple(d.id for d in mesh.devices.flat), mesh.axis_names)
-    if trainer.env_key is None or cache_key not in _RESETS:
+    env_key = getattr(trainer, "env_key", None)  # None (e.g. an agent passed as it is): a reset of its own
+    cache_key = (env_key, tuple(d.id for d in mesh.devices.flat), mesh.axis_names)
+    if env_key is None or cache_key not in _RESETS:
         sharded = NamedSharding(mesh, PartitionSpec(AXIS))
 
         @jax.jit
         def reset(keys):
             return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, sharded), jax.vmap(trainer.reset)(keys))
 
-        if trainer.env_key is None:
+        if env_key is None:
             return reset
         _RESETS[cache_key] = reset
     return _RESETS[cache_key]

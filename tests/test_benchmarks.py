@@ -343,7 +343,7 @@ def test_compile_time_names_each_program_and_the_second_sweep_compiles_nothing(t
 
 def test_compile_time_lower_only_sizes_every_program_and_compiles_none(tmp_path, monkeypatch):
     """benchmarks.compile_time --lower-only: every program the sweep would compile is lowered and sized (the chunk,
-    rollout and SGD, holds more than the init), none is compiled, and jax's compile is put back afterwards."""
+    rollout and SGD, holds more than the environments' reset), none is compiled, and jax's compile is put back afterwards."""
     import jax
 
     from benchmarks import compile_time
@@ -356,10 +356,10 @@ def test_compile_time_lower_only_sizes_every_program_and_compiles_none(tmp_path,
     compile_ = jax.stages.Lowered.compile
     rows = compile_time.main(["--lower-only", "--out", str(tmp_path), "--", *OBS, "--steps", OBS_STEPS])
     assert jax.stages.Lowered.compile is compile_
-    assert [(r["arm"], r["what"]) for r in rows] == [("cd", "init"), ("cd", "chunk")]
+    assert [(r["arm"], r["what"]) for r in rows] == [("cd", "reset"), ("cd", "init"), ("cd", "chunk")]
     assert not [r for r in arms.COMPILE_TIMES if r["step"] == "compile"]
-    init, chunk = rows
-    assert chunk["ops"] > init["ops"] > 0 and sum(chunk["top"].values()) <= chunk["ops"]
+    reset, init, chunk = rows
+    assert chunk["ops"] > reset["ops"] > 0 and init["ops"] > 0 and sum(chunk["top"].values()) <= chunk["ops"]
     assert json.loads((tmp_path / "lowered.json").read_text())["programs"] == rows
 
 
