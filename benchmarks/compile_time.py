@@ -50,17 +50,13 @@ def main(argv=None) -> list[dict]:
         return lower_only(sweep_args, pathlib.Path(args.out))
 
     from cdjax import runtime
-    from cdjax.cli import build_parser, setting_of, sweep_spec
     from cdjax.runner import Interrupted, arms, run_sweep
 
     if args.cache_dir:
         runtime.configure(cache_dir=args.cache_dir)
     rows = []
     for i in (1, 2):
-        sweep_argv = ["sweep", *sweep_args, "--out", str(pathlib.Path(args.out) / str(i)), "--no-progress",
-                      "--no-final-eval"]
-        setting = setting_of(sweep_argv)
-        spec = sweep_spec(build_parser(setting).parse_args(sweep_argv), setting, "cdjax " + " ".join(sweep_argv))
+        spec, sweep_argv = _spec(sweep_args, pathlib.Path(args.out) / str(i))
         arms.COMPILE_TIMES.clear()
         t0 = time.perf_counter()
         started = {}
@@ -84,6 +80,15 @@ def main(argv=None) -> list[dict]:
     return rows
 
 
+def _spec(sweep_args: list[str], out: pathlib.Path):
+    """The SweepSpec of `cdjax sweep SWEEP_ARGS --out OUT` (no progress bar, no final evaluation), and that argv."""
+    from cdjax.cli import build_parser, setting_of, sweep_spec
+
+    sweep_argv = ["sweep", *sweep_args, "--out", str(out), "--no-progress", "--no-final-eval"]
+    setting = setting_of(sweep_argv)
+    return sweep_spec(build_parser(setting).parse_args(sweep_argv), setting, "cdjax " + " ".join(sweep_argv)), sweep_argv
+
+
 class _Lowered(Exception):
     """Raised in place of compiling: the sweep stops once its programs are lowered."""
 
@@ -101,7 +106,6 @@ def lower_only(sweep_args: list[str], out: pathlib.Path) -> list[dict]:
     """Run the sweep up to compiling: every program is traced and lowered (the runner's own path), none compiled."""
     import jax
 
-    from cdjax.cli import build_parser, setting_of, sweep_spec
     from cdjax.runner import arms, run_sweep
 
     sizes = []
@@ -111,9 +115,7 @@ def lower_only(sweep_args: list[str], out: pathlib.Path) -> list[dict]:
         sizes.append(program_size(lowered.as_text()))
         raise _Lowered
 
-    sweep_argv = ["sweep", *sweep_args, "--out", str(out / "lowered-run"), "--no-progress", "--no-final-eval"]
-    setting = setting_of(sweep_argv)
-    spec = sweep_spec(build_parser(setting).parse_args(sweep_argv), setting, "cdjax " + " ".join(sweep_argv))
+    spec, sweep_argv = _spec(sweep_args, out / "lowered-run")
     arms.COMPILE_TIMES.clear()
     jax.stages.Lowered.compile = record
     try:

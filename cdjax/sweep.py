@@ -156,7 +156,7 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
 
     reset = init_from = None
     if getattr(trainer, "reset", None) is not None and getattr(trainer, "init_from", None) is not None:
-        reset = shared_reset(trainer, mesh)
+        reset = shared_reset(trainer, mesh, place)
 
         @jax.jit
         def init_from(keys, hps, env_state):
@@ -214,18 +214,17 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
 _RESETS: dict = {}
 
 
-def shared_reset(trainer, mesh: Mesh) -> Callable:
-    """jit(keys [R] -> the runs' environments, placed over the mesh), one function object per (trainer.env_key,
-    mesh): the sweeps of several arms in the same environments call (and so compile) one reset program. Built from
-    the first such trainer's reset; env_key says they are all the same function."""
+def shared_reset(trainer, mesh: Mesh, place: Callable) -> Callable:
+    """jit(keys [R] -> the runs' environments, placed over the mesh by `place`), one function object per
+    (trainer.env_key, mesh): the sweeps of several arms in the same environments call (and so compile) one reset
+    program. Built from the first such trainer's reset; env_key says they are all the same function."""
     env_key = getattr(trainer, "env_key", None)  # None (e.g. an agent passed as it is): a reset of its own
     cache_key = (env_key, tuple(d.id for d in mesh.devices.flat), mesh.axis_names)
     if env_key is None or cache_key not in _RESETS:
-        sharded = NamedSharding(mesh, PartitionSpec(AXIS))
 
         @jax.jit
         def reset(keys):
-            return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, sharded), jax.vmap(trainer.reset)(keys))
+            return place(jax.vmap(trainer.reset)(keys))
 
         if env_key is None:
             return reset
