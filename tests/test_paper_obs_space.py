@@ -190,6 +190,7 @@ def test_fake_units_give_every_table_and_the_across_task_statistics(fake, tmp_pa
     schedule = text[text.index("Per task, the paper's schedule"):text.index("## Why the Mb-Mf start")]
     assert re.search(r"\| ant \| CD k=20 \(paper's schedule\) > CD k=20 \(cdjax's weights\) \([\d.]+ vs [\d.]+, "
                      r"disjoint\) \| 1 \[1, 1\] \|", schedule)
+    assert "| ant, halfcheetah (across) | | 1 [1, 1] |" in schedule  # both tasks' seeds, rliable's stratified bootstrap
     ablation = text[text.index("## Why the Mb-Mf start"):text.index("## Units")]
     assert "| halfcheetah | Mb-Mf, value not fitted | 5 |" in ablation and "| ant |" not in ablation
     assert ablation.index("| halfcheetah | model-free |") < ablation.index("| halfcheetah | Mb-Mf, model only")
