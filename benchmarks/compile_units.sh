@@ -13,6 +13,10 @@
 #            3 seeds, 8M env steps per run, with and without the flag (the training line's env steps/s).
 #   lowered  the same sweep's programs lowered, not compiled (benchmarks.compile_time --lower-only): their sizes
 #            on this host, to set beside the compile times.
+#   speed    what Triton's GEMMs off (`--compile-mode fast`) cost in steady state, case by case: the compare suite
+#            (Brax PPO, model-free, Mb-Mf, CD on the presets' and the paper's schedule; ant, 4096 envs, the matched
+#            Spec) in two processes, XLA's defaults and XLA_FLAGS=--xla_gpu_enable_triton_gemm=false (the suite
+#            jits its own programs, so the flag, not cdjax's per-program mode, reaches all of them, Brax's too).
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -38,11 +42,17 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "> $work/run-default.log 2>&1;" \
         "XLA_FLAGS=--xla_gpu_enable_triton_gemm=false python -m cdjax.cli sweep $cd_run --out $work/run-no-triton" \
         "--cache-dir $work/cache-run-no-triton > $work/run-no-triton.log 2>&1;" \
-        "grep -h -E 'sweep [12]:|compile [0-9.]+ s|Trained in' $work/*.log" ;;
+        "grep -h -E 'sweep [12]:|compile [0-9.]+ s|Trained in' --exclude=unit.log $work/*.log" ;;
     lowered)
       echo "python -m benchmarks.compile_time --lower-only --out $work/lowered -- $sweep > $work/lowered.log 2>&1;" \
         "tail -n 8 $work/lowered.log" ;;
-    *) echo "unknown unit $1: flags or lowered" >&2; return 1 ;;
+    speed)
+      cases="--suite compare --cases brax-ppo model-free mbmf cd-fast cd-paper --budget-s 300"
+      echo "python -m benchmarks.run $cases --out $work/default > $work/default.log 2>&1;" \
+        "XLA_FLAGS=--xla_gpu_enable_triton_gemm=false python -m benchmarks.run $cases --out $work/no-triton-gemm" \
+        "> $work/no-triton-gemm.log 2>&1;" \
+        "tail -n 12 $work/default/results.md $work/no-triton-gemm/results.md" ;;
+    *) echo "unknown unit $1: flags, lowered or speed" >&2; return 1 ;;
   esac
 }
 
@@ -53,7 +63,8 @@ ensure_wheels || exit 1
 unit_run "$work" "$cmd" "$wait_s" "$t0" "bash benchmarks/compile_units.sh $unit" || exit 0
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
 archive=$(cd "$out" && pwd)/$unit.tar.gz
-(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name '*.log' | grep -v '/checkpoints/' \
+(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name 'results.*' -o -name '*.log' \
+  | grep -v '/checkpoints/' \
   | tar -czf "$archive" -T -)
 cp "$work/unit.log" "$out/$unit.log"
 ls -l "$out"

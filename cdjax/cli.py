@@ -57,6 +57,10 @@ def _runtime_options() -> argparse.ArgumentParser:
     group = parent.add_argument_group("runtime (cdjax.runtime.configure)")
     group.add_argument("--cache-dir", metavar="DIR", help="JAX's persistent compilation cache (default "
                        f"${runtime.CACHE_ENV}, else ~/.cache/cdjax/jax)")
+    group.add_argument("--compile-mode", choices=list(runtime.COMPILE_MODES),
+                       help="what cdjax asks of XLA for its programs: default (XLA's settings) or fast (on a GPU, "
+                            "Triton's GEMM fusions off: about half the cold compile time, training about 4%% slower "
+                            f"as measured); default ${runtime.MODE_ENV}, else default")
     group.add_argument("--debug-nans", action="store_true", help="stop at the first operation that makes a NaN")
     group.add_argument("--disable-jit", action="store_true", help="run op by op (slow; for debugging)")
     return parent
@@ -362,13 +366,16 @@ def _cache_dir(args: argparse.Namespace) -> tuple[str | None, str]:
 
 def _configure(args: argparse.Namespace) -> None:
     cache, source = _cache_dir(args)
+    if args.compile_mode is None:
+        runtime.compile_mode()  # $CDJAX_COMPILE_MODE checked before anything runs
     try:
         runtime.configure(cache_dir=cache, debug_nans=args.debug_nans, disable_jit=args.disable_jit,
-                          cache_source=source)
+                          cache_source=source, compile_mode=args.compile_mode)
     except ConfigError:
         if source != "the default compilation cache":
             raise
-        runtime.configure(debug_nans=args.debug_nans, disable_jit=args.disable_jit)  # run without the cache
+        runtime.configure(debug_nans=args.debug_nans, disable_jit=args.disable_jit,  # run without the cache
+                          compile_mode=args.compile_mode)
         say(f"Note: {cache} cannot hold JAX's compilation cache; compiling without it (--cache-dir names another).")
 
 

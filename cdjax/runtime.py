@@ -1,8 +1,9 @@
-"""The one place for runtime switches: XLA workarounds, the compilation cache, NaN checks, disabling jit.
+"""The one place for runtime switches: XLA workarounds, the compilation cache, the compile mode, NaN checks,
+disabling jit.
 
 `cdjax` applies the CPU workaround when it is imported (before JAX starts its backends). Everything else
-goes through `configure`, which the CLI (--cache-dir, --debug-nans, --disable-jit), the tests, the
-benchmarks and the examples call:
+goes through `configure`, which the CLI (--cache-dir, --compile-mode, --debug-nans, --disable-jit), the tests,
+the benchmarks and the examples call:
 
     cdjax.runtime.configure(cache_dir=cdjax.runtime.default_cache_dir())
 """
@@ -18,6 +19,18 @@ import warnings
 # time, 2, 4 and 8 do not; with this flag, or pinned to one core, they run). It only affects the CPU backend.
 CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 CACHE_ENV = "CDJAX_JAX_CACHE"  # environment variable naming the persistent compilation cache
+MODE_ENV = "CDJAX_COMPILE_MODE"  # environment variable naming the compile mode (configure's compile_mode wins)
+
+# What cdjax asks of XLA with every program it compiles itself (a sweep's reset, init, phase and chunk programs):
+# per-program compiler options, so a notebook can change mode between cells, and part of the persistent cache's key.
+COMPILE_MODES: dict[str, dict] = {
+    "default": {},  # XLA's own settings
+    # Triton's GEMM fusions off (GPU): cuBLAS alone, far fewer kernels for the autotuner to try. One H200
+    # (2026-11-25, benchmarks/results/2026-11-25-h200-compile-flags/): the cold 4-arm ant sweep started training
+    # after 77.4 s instead of 145.7 s; the CD arm then trained at 0.96x (one 8M-step run). No effect on a CPU.
+    "fast": {"xla_gpu_enable_triton_gemm": False},
+}
+_mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "default"
 
 
 def apply_cpu_workaround() -> None:
@@ -54,12 +67,41 @@ def check_cache_dir(cache_dir: str | os.PathLike, source: str = "the compilation
                           "for JAX's compilation cache.") from None
 
 
+def check_compile_mode(mode: str, source: str = "compile_mode") -> str:
+    """`mode` when it names a COMPILE_MODES entry, else ConfigError (one sentence naming `source`)."""
+    from cdjax.protocol import ConfigError
+
+    if mode not in COMPILE_MODES:
+        raise ConfigError(f"{source} must be one of {', '.join(COMPILE_MODES)}, got {mode!r}.")
+    return mode
+
+
+def compile_mode() -> str:
+    """The compile mode in force: configure's, else $CDJAX_COMPILE_MODE's (ConfigError when it names none), else
+    "default"."""
+    if _mode is not None:
+        return _mode
+    text = os.environ.get(MODE_ENV, "").strip()
+    return check_compile_mode(text, f"${MODE_ENV}") if text else "default"
+
+
+def compiler_options() -> dict:
+    """The XLA options of the compile mode in force, for `jax.stages.Lowered.compile`."""
+    return dict(COMPILE_MODES[compile_mode()])
+
+
 def configure(*, cache_dir: str | os.PathLike | None = None, debug_nans: bool = False, disable_jit: bool = False,
-              min_compile_time_s: float = 0.5, cache_source: str = "the compilation cache") -> None:
+              min_compile_time_s: float = 0.5, cache_source: str = "the compilation cache",
+              compile_mode: str | None = None) -> None:
     """Persistent compilation cache (programs compiling longer than `min_compile_time_s` are kept; ConfigError when
-    `cache_dir` cannot be used, naming `cache_source`), NaN checks on every operation, jit off (for debugging); and
-    no Brax deprecation notice on every run."""
+    `cache_dir` cannot be used, naming `cache_source`), NaN checks on every operation, jit off (for debugging), the
+    compile mode of the programs compiled from now on (COMPILE_MODES; None leaves it as it is); and no Brax
+    deprecation notice on every run."""
     import jax
+
+    global _mode
+    if compile_mode is not None:
+        _mode = check_compile_mode(compile_mode)
 
     warnings.filterwarnings("ignore", message="Brax System", category=UserWarning)
     if cache_dir:

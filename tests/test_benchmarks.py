@@ -374,3 +374,40 @@ def test_compile_workers_reads_its_variable(monkeypatch):
         arms.compile_workers()
     monkeypatch.delenv("CDJAX_COMPILE_WORKERS")
     assert arms.compile_workers() == max(1, (os.cpu_count() or 1) // 2)
+
+
+def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypatch):
+    import types
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from cdjax import runtime
+    from cdjax.protocol import ConfigError
+    from cdjax.runner import arms
+
+    seen = []
+    original = jax.stages.Lowered.compile
+
+    def spy(self, compiler_options=None, **kwargs):
+        seen.append(compiler_options)
+        return original(self, compiler_options, **kwargs)
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", spy)
+    monkeypatch.setattr(runtime, "_mode", None)
+    monkeypatch.delenv(runtime.MODE_ENV, raising=False)
+    arm, owner, f, x = types.SimpleNamespace(name="x"), object(), jax.jit(lambda x: x @ x.T + 1.0), jnp.eye(3) * 2.0
+    default = arms._compiled(arm, "t", f.lower, x, owner=owner)
+    monkeypatch.setenv(runtime.MODE_ENV, "fast")
+    fast = arms._compiled(arm, "t", f.lower, x, owner=owner)  # another mode, another program: XLA takes its options
+    runtime.configure(compile_mode="default")  # configure's mode wins over the variable's
+    assert arms._compiled(arm, "t", f.lower, x, owner=owner) is default and fast is not default
+    assert seen == [{}, {"xla_gpu_enable_triton_gemm": False}]
+    np.testing.assert_array_equal(default(x), fast(x))  # on a CPU the GPU option changes nothing
+    with pytest.raises(ConfigError, match="compile_mode must be one of default, fast, got 'turbo'"):
+        runtime.configure(compile_mode="turbo")
+    monkeypatch.setattr(runtime, "_mode", None)
+    monkeypatch.setenv(runtime.MODE_ENV, "turbo")
+    with pytest.raises(ConfigError, match=r"\$CDJAX_COMPILE_MODE must be one of"):
+        runtime.compiler_options()

@@ -15,7 +15,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from cdjax import io, multihost
+from cdjax import io, multihost, runtime
 from cdjax.evaluate import eval_records, make_evaluator
 from cdjax.protocol import ConfigError, Setting, Trainer
 from cdjax.runner import budget
@@ -80,7 +80,8 @@ class Arm:
     def phase_program(self):
         """The compiled phase (compiled now if it was not in advance, e.g. every checkpoint was unreadable)."""
         if "phase" not in self.programs:
-            self.programs["phase"] = self.sweep.lower_phase(self.abstract, self.hps).compile()
+            lowered = self.sweep.lower_phase(self.abstract, self.hps)
+            self.programs["phase"] = lowered.compile(runtime.compiler_options())
         return self.programs.pop("phase")
 
     def chunk_program(self):
@@ -185,14 +186,16 @@ def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None, owner=None
     included): from this process's cache, else lowered now and compiled (in `pool`, returning a future, when
     given)."""
     owner = arm.sweep if owner is None else owner
-    key = (id(owner), what, _avals(args))
+    mode = runtime.compile_mode()  # read once per call: a notebook may change it between sweeps
+    key = (id(owner), what, _avals(args), mode)
     if key in _COMPILED:
         return _COMPILED[key][1]
     lowered = _lowered(arm, what, lower, *args, owner=owner)
+    options = dict(runtime.COMPILE_MODES[mode])
 
     def compile_():
         t0 = time.perf_counter()
-        program = lowered.compile()
+        program = lowered.compile(options)
         _COMPILED[key] = (owner, program)
         COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "compile", "s": time.perf_counter() - t0})
         return program

@@ -31,7 +31,7 @@ from typing import Callable, Sequence
 import jax
 import numpy as np
 
-from cdjax import io, multihost
+from cdjax import io, multihost, runtime
 from cdjax.protocol import ConfigError, Setting
 from cdjax.runner import budget
 from cdjax.runner.arms import (Arm, abstract_state, build, check_memory, compile_all, evaluate_arms, expectation,
@@ -322,7 +322,8 @@ class Loop:
                  + f" updates of {self.arms[0].steps_per_update:,} env steps per run in chunks of {self.chunk}"
                  + (f", after a {self.setting.phase.title} of {phased[0].plan.phase_steps:,} env steps "
                     f"({', '.join(a.name for a in phased)})" if phased else "")
-                 + f"; setup {time.perf_counter() - t0:.1f} s, compile {t_compile:.1f} s.")
+                 + f"; setup {time.perf_counter() - t0:.1f} s, compile {t_compile:.1f} s"
+                 + ("." if runtime.compile_mode() == "default" else f" (compile mode {runtime.compile_mode()})."))
         purge = {a.name: a.env_steps(a.updates + 1) for a in self.arms} if resume else None
         self.tb = io.TensorBoard(self.rd, purge_steps=purge)
         self.started = True
