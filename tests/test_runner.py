@@ -337,6 +337,45 @@ def test_sweep_init_is_the_trainers_init_and_arms_share_a_reset_only_in_the_same
     assert other.env_key != trainer.env_key and make_sweep(other).reset is not sweep.reset
 
 
+def test_memory_check_traces_a_shared_reset_once_and_counts_what_init_gives(monkeypatch):
+    """check_memory's state bytes are those of each trainer's whole init, while the physics reset of arms in the
+    same environments (and their evaluation environments' reset) is traced once for all of them."""
+    import cdjax.runner.arms as arms
+    from cdjax.agents.obs import SETTING
+    from cdjax.runner import budget
+
+    monkeypatch.setattr(arms, "_BUILT", {})
+    monkeypatch.setattr(arms, "_COMPILED", {})
+    spec = dataclasses.replace(SPEC, arms=("model-free", "mbmf", "cd-k3"), final_eval=True, eval_episodes=3)
+    built = [arms.build(plan, spec, SETTING) for plan in plan_arms(spec)]
+    traced = []
+    for arm in built:  # count the traces of each arm's reset and evaluation reset
+        trainer = arm.trainer
+
+        def reset(key, trainer=trainer):
+            traced.append("reset")
+            return trainer.reset(key)
+
+        arm.trainer = dataclasses.replace(trainer, reset=reset,
+                                          eval_env=lambda n, trainer=trainer: _Counted(trainer.eval_env(n), traced))
+    arms.check_memory(built, spec)
+    assert traced == ["reset", "eval"]
+    key, hp = jax.random.key(0), HParams()
+    for arm in built:
+        assert arm.state_bytes == budget.tree_bytes(jax.eval_shape(arm.trainer.init, key, hp)) > 0
+
+
+class _Counted:
+    """An environment whose reset says when it is traced."""
+
+    def __init__(self, env, traced):
+        self.env, self.traced = env, traced
+
+    def reset(self, key):
+        self.traced.append("eval")
+        return self.env.reset(key)
+
+
 def test_encoder_collapse_warning():
     """Said once the trainable GRU's spread stays below the threshold over the chunk's later updates in some run;
     not for a single low update among healthy ones (a noisy sample); never for other encoders."""

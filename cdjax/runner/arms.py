@@ -203,6 +203,31 @@ def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None, owner=None
     return compile_() if pool is None else pool.submit(compile_)
 
 
+def _shared_shape(trainer: Trainer, what: tuple, make: Callable):
+    """make()'s shapes, computed once for every trainer of the same environments (`Trainer.env_key`): tracing a
+    physics reset takes a second or more, and the arms of a sweep mostly act in the same environments."""
+    if trainer.env_key is None:
+        return make()
+    key = ("shape", trainer.env_key) + what
+    if key not in _COMPILED:
+        _COMPILED[key] = (None, make())
+    return _COMPILED[key][1]
+
+
+def _init_shape(trainer: Trainer, key: jax.Array, hp):
+    """ShapeDtypeStructs of init(key, hp): init_from over the shared reset's shapes where the trainer offers it."""
+    if trainer.reset is None or trainer.init_from is None:
+        return jax.eval_shape(trainer.init, key, hp)
+    envs = _shared_shape(trainer, ("reset",), lambda: jax.eval_shape(trainer.reset, key))
+    return jax.eval_shape(trainer.init_from, key, hp, envs)
+
+
+def _eval_reset_shape(trainer: Trainer, episodes: int, key: jax.Array):
+    """ShapeDtypeStructs of the evaluation environments' reset for `episodes` episodes (shared as _init_shape's)."""
+    return _shared_shape(trainer, ("eval", episodes),
+                         lambda: jax.eval_shape(trainer.eval_env(episodes).reset, key))
+
+
 def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
     """budget.check_states from the shapes of one run's state and evaluation; returns the states' bytes."""
     key = jax.random.key(0)
@@ -212,9 +237,8 @@ def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
         evaluated = spec.final_eval or spec.eval_every
         cache = (id(arm.sweep), "bytes", spec.eval_episodes if evaluated else 0, _avals(hp))
         if cache not in _COMPILED:
-            state = budget.tree_bytes(jax.eval_shape(arm.trainer.init, key, hp))
-            env = arm.trainer.eval_env(spec.eval_episodes)
-            evaluation = budget.tree_bytes(jax.eval_shape(env.reset, key)) if evaluated else 0
+            state = budget.tree_bytes(_init_shape(arm.trainer, key, hp))
+            evaluation = budget.tree_bytes(_eval_reset_shape(arm.trainer, spec.eval_episodes, key)) if evaluated else 0
             _COMPILED[cache] = (arm.sweep, (state, evaluation))
         state, evaluation = _COMPILED[cache][1]
         arm.state_bytes = state
