@@ -13,10 +13,11 @@
 #            3 seeds, 8M env steps per run, with and without the flag (the training line's env steps/s).
 #   lowered  the same sweep's programs lowered, not compiled (benchmarks.compile_time --lower-only): their sizes
 #            on this host, to set beside the compile times.
-#   speed    what Triton's GEMMs off (`--compile-mode fast`) cost in steady state, case by case: the compare suite
-#            (Brax PPO, model-free, Mb-Mf, CD on the presets' and the paper's schedule; ant, 4096 envs, the matched
-#            Spec) in two processes, XLA's defaults and XLA_FLAGS=--xla_gpu_enable_triton_gemm=false (the suite
-#            jits its own programs, so the flag, not cdjax's per-program mode, reaches all of them, Brax's too).
+#   speed    the 4-arm sweep cold in cdjax's own `fast` compile mode (CDJAX_COMPILE_MODE=fast: Triton's GEMMs off,
+#            per program), then what that costs in steady state, case by case: the compare suite (Brax PPO,
+#            model-free, Mb-Mf, CD on the paper's schedule; ant, 4096 envs, the matched Spec) in two
+#            processes, XLA's defaults and XLA_FLAGS=--xla_gpu_enable_triton_gemm=false (the suite jits its own
+#            programs, so the flag, not cdjax's per-program mode, reaches all of them, Brax's too).
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -47,10 +48,13 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "python -m benchmarks.compile_time --lower-only --out $work/lowered -- $sweep > $work/lowered.log 2>&1;" \
         "tail -n 8 $work/lowered.log" ;;
     speed)
-      cases="--suite compare --cases brax-ppo model-free mbmf cd-fast cd-paper --budget-s 300"
-      echo "python -m benchmarks.run $cases --out $work/default > $work/default.log 2>&1;" \
+      cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 360"
+      echo "CDJAX_COMPILE_MODE=fast python -m benchmarks.compile_time --out $work/fast --cache-dir $work/cache-fast" \
+        "-- $sweep > $work/fast.log 2>&1;" \
+        "python -m benchmarks.run $cases --out $work/default > $work/default.log 2>&1;" \
         "XLA_FLAGS=--xla_gpu_enable_triton_gemm=false python -m benchmarks.run $cases --out $work/no-triton-gemm" \
         "> $work/no-triton-gemm.log 2>&1;" \
+        "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/fast.log;" \
         "tail -n 12 $work/default/results.md $work/no-triton-gemm/results.md" ;;
     *) echo "unknown unit $1: flags, lowered or speed" >&2; return 1 ;;
   esac
