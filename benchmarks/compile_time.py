@@ -7,7 +7,8 @@ there, checkpointed, through its `after_chunk`), then the same sweep into DIR/2,
 from the call of `run_sweep` to that moment: planning, building, tracing, compiling, initialising and restoring.
 With an empty --cache-dir (JAX's persistent compilation cache) the first is a cold start; the second shows what
 this process's own cache of trainers and compiled programs saves. The runner's own line ("setup .. s, compile .. s")
-is printed too, and each program's lowering (serial, in the calling thread) and compiling (in parallel threads) seconds.
+is printed too, each program's lowering (serial, in the calling thread) and compiling (in parallel threads) seconds,
+and the host's steps around them (planning, building the trainers, the memory checks before and after compiling).
 Results: DIR/compile_time.json.
 
     python -m benchmarks.compile_time --lower-only --out DIR -- --env ant --arms model-free mbmf cd-k5 cd --num-envs 16
@@ -69,10 +70,12 @@ def main(argv=None) -> list[dict]:
             run_sweep(spec, after_chunk=stop)
         except Interrupted:
             pass
-        programs = [dict(r, s=round(r["s"], 2)) for r in arms.COMPILE_TIMES]
+        programs = [dict(r, s=round(r["s"], 2)) for r in arms.COMPILE_TIMES if r["step"] != "host"]
+        host = {r["what"]: round(r["s"], 2) for r in arms.COMPILE_TIMES if r["step"] == "host"}
         rows.append({"sweep": i, "seconds_to_training": round(started["s"], 2),
-                     "command": "cdjax " + " ".join(sweep_argv), "programs": programs})
-        print(f"sweep {i}: training would start {started['s']:.1f} s after run_sweep was called", flush=True)
+                     "command": "cdjax " + " ".join(sweep_argv), "host": host, "programs": programs})
+        print(f"sweep {i}: training would start {started['s']:.1f} s after run_sweep was called; on the host before "
+              "and after compiling: " + ", ".join(f"{k} {v:.1f} s" for k, v in host.items()), flush=True)
         for r in sorted(programs, key=lambda r: -r["s"]):
             print(f"  {r['arm']:>12} {r['what']:<6} {r['step']:<8} {r['s']:7.2f} s", flush=True)
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)

@@ -338,6 +338,8 @@ def test_compile_time_names_each_program_and_the_second_sweep_compiles_nothing(t
             assert {(arm, what, "lower"), (arm, what, "compile")} <= done, done
     assert all(r["s"] >= 0 for r in first["programs"])
     assert second["programs"] == [] and second["seconds_to_training"] < first["seconds_to_training"]
+    for sweep in rows:  # the host's steps around the compiling, each timed once per sweep
+        assert list(sweep["host"]) == ["plan", "build", "memory", "programs"] and min(sweep["host"].values()) >= 0
     assert json.loads((tmp_path / "compile_time.json").read_text()) == rows
 
 

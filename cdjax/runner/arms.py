@@ -4,6 +4,7 @@ compiling, restoring and evaluating arms."""
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import json
 import math
@@ -30,8 +31,19 @@ _BUILT: dict = {}
 _COMPILED: dict = {}
 # Where compile time goes: a row per program this process lowered or compiled ({"arm", "what", "step": "lower" or
 # "compile", "s"}; lowering runs in the calling thread, compiling in compile_all's threads, so the compile rows
-# overlap in time). Read by benchmarks.compile_time; cleared by whoever reads it.
+# overlap in time), and a row per host-side step before training ("step": "host", "arm": "all": planning, building
+# the trainers, the memory checks). Read by benchmarks.compile_time; cleared by whoever reads it.
 COMPILE_TIMES: list[dict] = []
+
+
+@contextlib.contextmanager
+def host_time(what: str):
+    """Time a host-side step of a sweep's start into COMPILE_TIMES."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        COMPILE_TIMES.append({"arm": "all", "what": what, "step": "host", "s": time.perf_counter() - t0})
 
 
 @dataclasses.dataclass

@@ -35,7 +35,7 @@ from cdjax import io, multihost, runtime
 from cdjax.protocol import ConfigError, Setting
 from cdjax.runner import budget
 from cdjax.runner.arms import (Arm, abstract_state, build, check_memory, compile_all, evaluate_arms, expectation,
-                               finished_evaluation, nanmean, restore, unreadable_text)
+                               finished_evaluation, host_time, nanmean, restore, unreadable_text)
 from cdjax.runner.console import Clock, Progress, StopFlag, Stopped, library_log, stopped
 from cdjax.runner.plan import plan_arms, run_record, same_run
 from cdjax.runner.spec import SweepSpec, out_dir, resolve
@@ -170,7 +170,8 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     writer = multihost.is_writer()
     try:
         with multihost.together():  # several processes: each refuses what one refuses (in one sentence)
-            spec, setting, plans, record = _prepare(spec, resume)
+            with host_time("plan"):
+                spec, setting, plans, record = _prepare(spec, resume)
             rd = io.RunDir(pathlib.Path(spec.out))
             restart = set(restart)
             if restart and not resume:
@@ -180,8 +181,10 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
                 raise ConfigError(f"--restart-arm {unknown[0]}: the run has no such arm; its arms are "
                                   f"{', '.join(p.name for p in plans)}.")
             progress = Progress(spec.progress, record["total_env_steps"], quiet=not writer)
-            arms = [build(plan, spec, setting) for plan in plans]
-            states = check_memory(arms, spec)
+            with host_time("build"):
+                arms = [build(plan, spec, setting) for plan in plans]
+            with host_time("memory"):
+                states = check_memory(arms, spec)
             for arm in arms:
                 arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
             done = survey(rd, arms, restart) if resume else {}
@@ -193,8 +196,9 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             compile_all(arms, record["chunk_updates"], done)
             t_compile = time.perf_counter() - t_compile
             # init's output is the state, already counted; the phase and chunk programs donate it and return it
-            budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms
-                                           for what, p in arm.programs.items() if what != "init"})
+            with host_time("programs"):
+                budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms
+                                               for what, p in arm.programs.items() if what != "init"})
     except KeyboardInterrupt as err:
         where = (f"{rd.path} is as it was; resume with `{_resume_hint(rd)}`" if resume
                  else f"nothing was written to {rd.path}")
