@@ -85,9 +85,9 @@ def compile_mode() -> str:
     return check_compile_mode(text, f"${MODE_ENV}") if text else "default"
 
 
-def compiler_options() -> dict:
-    """The XLA options of the compile mode in force, for `jax.stages.Lowered.compile`."""
-    return dict(COMPILE_MODES[compile_mode()])
+def compiler_options(mode: str | None = None) -> dict:
+    """The XLA options of `mode` (default: the compile mode in force), for `jax.stages.Lowered.compile`."""
+    return dict(COMPILE_MODES[compile_mode() if mode is None else check_compile_mode(mode)])
 
 
 def configure(*, cache_dir: str | os.PathLike | None = None, debug_nans: bool = False, disable_jit: bool = False,

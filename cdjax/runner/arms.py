@@ -203,7 +203,7 @@ def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None, owner=None
     if key in _COMPILED:
         return _COMPILED[key][1]
     lowered = _lowered(arm, what, lower, *args, owner=owner)
-    options = dict(runtime.COMPILE_MODES[mode])
+    options = runtime.compiler_options(mode)
 
     def compile_():
         t0 = time.perf_counter()

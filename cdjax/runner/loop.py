@@ -327,7 +327,7 @@ class Loop:
                  + (f", after a {self.setting.phase.title} of {phased[0].plan.phase_steps:,} env steps "
                     f"({', '.join(a.name for a in phased)})" if phased else "")
                  + f"; setup {time.perf_counter() - t0:.1f} s, compile {t_compile:.1f} s"
-                 + ("." if runtime.compile_mode() == "default" else f" (compile mode {runtime.compile_mode()})."))
+                 + ("." if (mode := runtime.compile_mode()) == "default" else f" (compile mode {mode})."))
         purge = {a.name: a.env_steps(a.updates + 1) for a in self.arms} if resume else None
         self.tb = io.TensorBoard(self.rd, purge_steps=purge)
         self.started = True
