@@ -203,8 +203,8 @@ def diagnose(results: dict) -> list[str]:
     out = []
 
     def split(r):
-        if not (r and col):
-            return ""
+        if not col:  # the rollout/SGD split needs the collect case (and the ceiling for the physics)
+            return f"{r['case']}: {r['update_s']:.3f} s/update; no split (add the `collect` and `ceiling` cases)"
         sgd = r["update_s"] - col["update_s"]
         return (f"{r['case']}: {r['update_s']:.3f} s/update = rollout+GAE {col['update_s']:.3f} s "
                 f"({col['update_s'] / r['update_s']:.0%}) + SGD {sgd:.3f} s ({sgd / r['update_s']:.0%})")

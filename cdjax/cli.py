@@ -59,8 +59,8 @@ def _runtime_options() -> argparse.ArgumentParser:
                        f"${runtime.CACHE_ENV}, else ~/.cache/cdjax/jax)")
     group.add_argument("--compile-mode", choices=list(runtime.COMPILE_MODES),
                        help="what cdjax asks of XLA for its programs: default (XLA's settings) or fast (on a GPU, "
-                            "Triton's GEMM fusions off: about half the cold compile time, training about 4%% slower "
-                            f"as measured); default ${runtime.MODE_ENV}, else default")
+                            "Triton's GEMM fusions off: a quarter to half less cold compile time, each update 5-19%% "
+                            f"slower as measured: for short runs); default ${runtime.MODE_ENV}, else default")
     group.add_argument("--debug-nans", action="store_true", help="stop at the first operation that makes a NaN")
     group.add_argument("--disable-jit", action="store_true", help="run op by op (slow; for debugging)")
     return parent

@@ -26,8 +26,10 @@ MODE_ENV = "CDJAX_COMPILE_MODE"  # environment variable naming the compile mode 
 COMPILE_MODES: dict[str, dict] = {
     "default": {},  # XLA's own settings
     # Triton's GEMM fusions off (GPU): cuBLAS alone, far fewer kernels for the autotuner to try. One H200
-    # (2026-11-25, benchmarks/results/2026-11-25-h200-compile-flags/): the cold 4-arm ant sweep started training
-    # after 77.4 s instead of 145.7 s; the CD arm then trained at 0.96x (one 8M-step run). No effect on a CPU.
+    # (2026-11-25, benchmarks/results/2026-11-25-h200-compile-{flags,speed}/): the cold 4-arm ant sweep started
+    # training after 77.4 s (process-wide flag) or 109.1 s (this per-program option) instead of 145.7 s, but every
+    # update then runs 1.05-1.19x longer (1.19x: the paper's CD schedule), so it is not the default: it is for
+    # notebook iteration and short checks. No effect on a CPU.
     "fast": {"xla_gpu_enable_triton_gemm": False},
 }
 _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "default"

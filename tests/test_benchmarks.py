@@ -273,6 +273,13 @@ def test_targets_and_scaling_on_hand_made_numbers():
     assert "**MISSED**" in md and "boom" in md and "first OOM at 128" in md and "largest count that ran: 32" in md
     _assert_tables_rectangular(md)
     assert "cd_wall_vs_mf missed" in md and "cd_compile_s missed" in md and "paper_wall_vs_mbmf missed" in md
+    # without the collect case a missed target still names its update time and says what the split needs
+    results["parts"]["compare"] = [r for r in results["parts"]["compare"] if r["case"] != "collect"]
+    results["parts"]["compare"][2] = _row("model-free", 300_000.0, steps / 300_000, kind="cdjax", arm="model-free",
+                                          steps_per_update=steps)  # 1.22x Brax: missed
+    report.add_ratios(results)
+    assert (f"- mf_vs_brax missed. model-free: {steps / 300_000:.3f} s/update; no split (add the `collect` and "
+            "`ceiling` cases).") in report.markdown(results)
     # linear fit through (1, 1000), (32, 32000): 1000 bytes per seed -> 64,000 bytes fit 64 seeds
     assert report.estimate_max_seeds(results["parts"]["seeds"], 64_000) == 64
     first = {"compare": [{"case": "x"}], "seeds": [{"case": "y", "seeds": 1}, {"case": "y", "seeds": 8, "v": 1}]}
