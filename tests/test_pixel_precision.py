@@ -48,3 +48,22 @@ def test_precision_compares_at_the_common_update_and_finds_a_shift_only_where_th
     assert result["frames_per_s"][0] == pytest.approx(6 * 10 * 20 / 20)
     text = precision.markdown(result, ("float32", "bfloat16/auto"))
     assert "4 of 5 match" in text and "**no**" in text
+
+
+def test_every_pixel_preset_builds_a_valid_config_and_grid():
+    """The task presets run the arrangement the precision check validated (bfloat16, per-run convolutions); each
+    preset's config must pass PixelConfig's own checks (e.g. the transposed upsampling runs only in float32) and
+    each grid value the hyper-parameters' ranges, or a sweep of it would stop at its first line."""
+    import itertools
+
+    from cdjax.agents.pixel import PRESETS, SETTING, PixelConfig
+
+    for name, preset in PRESETS.items():
+        config = PixelConfig(**preset.config)
+        for field, values in preset.hparams.items():
+            for value in values:
+                SETTING.check_hparam(field, value)
+        for combo in itertools.product(*preset.hparams.values()):
+            SETTING.hparams_type(**dict(zip(preset.hparams, combo)))
+        if name != "pixel-tiny":
+            assert (config.compute_dtype, config.conv_impl) == ("bfloat16", "per-run"), name
