@@ -423,6 +423,17 @@ def schedule_improvement(tasks: list[TaskData], reps: int) -> str:
     return _cell((imp[0]["p"], imp[0]["low"], imp[0]["high"]), 3) if imp else "n/a"
 
 
+def _improvement_cells(task: TaskData, arm: str, against: Sequence[str], reps: int) -> list[str]:
+    """P(arm > each of `against`) of the final return over one task's seeds, with its 95% interval; n/a for the arm
+    itself or a missing arm."""
+    scores = final_scores([task], (arm,) + tuple(against))
+    cells = []
+    for other in against:
+        imp = improvement(scores, ((arm, other),), reps=reps) if other != arm else []
+        cells.append(_cell((imp[0]["p"], imp[0]["low"], imp[0]["high"]), 3) if imp else "n/a")
+    return cells
+
+
 def aggregate(norm: dict[str, dict[str, np.ndarray]], arms: Sequence[str] = MAIN_ARMS, reps: int = 2000,
               seed: int = 0) -> tuple[list[dict], dict]:
     """IQM of normalised final returns across tasks (95% interval) per arm, and performance profiles
@@ -688,10 +699,11 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
                       "distilled policy (PPO then starts from an untrained policy, as model-free does, with the "
                       "phase's model and normalisation); the phase runs and costs the same:", ""]
             lines.append(_table(("task", "arm", "seeds", "first PPO rollout (reward per step)", "final return",
-                                 "AUC return", "eval return (mean action)", "policy std at the end"),
+                                 "AUC return", "eval return (mean action)", "policy std at the end",
+                                 "P(arm > Mb-Mf)", "P(arm > model-free)"),
                                 ([t.name, LABELS[a], str(r["seeds"]), _cell(r["start_reward"], 3),
                                   _cell(r["final_return"]), _cell(r["auc_return"]), _cell(r["eval_return"]),
-                                  _cell(r["policy/std"], 3)]
+                                  _cell(r["policy/std"], 3)] + _improvement_cells(t, a, ("mbmf", "model-free"), reps)
                                  for t in start for a in START_ARMS
                                  for r in rows if r["task"] == t.name and r["arm"] == a)))
             lines.append("")
