@@ -29,12 +29,19 @@ games=(); while [ $# -gt 0 ] && [ "$1" != "--" ]; do games+=("$1"); shift; done
 reserve=${EVAL_RESERVE:-240}
 train=$(( limit - reserve )); [ "$train" -lt 60 ] && train=60
 mkdir -p "$out/runs"
+. "$(dirname "$0")/../lease.sh"
+ensure_wheels || exit 1  # brax, mujoco-mjx, distrax, gymnax: from .whl/ or .whl-site/ (carry one)
+if ! python -c "import gymnasium" 2>/dev/null; then  # gymnax's and ale-py's; .whl-site holds gymnax, not it
+  python -m pip install --quiet --no-index --no-deps --find-links .whl-atari gymnasium==1.3.0 farama-notifications==0.0.6 \
+    || { echo "gymnasium is missing: carry .whl-atari"; exit 1; }
+fi
 if ! python -c "import gymnax" 2>/dev/null; then
-  pip install --quiet --no-index --no-deps --find-links .whl --find-links .whl-atari gymnax==1.0.1 gymnasium==1.3.0 \
-    farama-notifications==0.0.6 seaborn==0.13.2 cloudpickle==3.1.2 || { echo "gymnax is missing: carry .whl"; exit 1; }
+  python -m pip install --quiet --no-index --no-deps --find-links .whl --find-links .whl-atari gymnax==1.0.1 \
+    seaborn==0.13.2 cloudpickle==3.1.2 || { echo "gymnax is missing: carry .whl (or .whl-site)"; exit 1; }
 fi
 if printf '%s\n' "${games[@]}" | grep -q '^ale-' && ! python -c "import ale_py" 2>/dev/null; then
-  pip install --quiet --no-index --no-deps --find-links .whl --find-links .whl-atari --find-links .whl-ale ale-py==0.12.1 || { echo "ale-py is missing: carry .whl-ale (or .whl) holding its wheel"; exit 1; }
+  python -m pip install --quiet --no-index --no-deps --find-links .whl --find-links .whl-atari --find-links .whl-ale \
+    ale-py==0.12.1 || { echo "ale-py is missing: carry .whl-ale (or .whl) holding its wheel"; exit 1; }
 fi
 ngpu=$(nvidia-smi -L 2>/dev/null | wc -l); [ "$ngpu" -lt 1 ] && ngpu=1
 share=$(( (${#games[@]} + ngpu - 1) / ngpu ))
