@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Issue 21's compile measurements as one unit inside one lease of a one-GPU machine (started once as its own
-# process session, then polled: experiments/lease.sh), carrying .whl:
+# process session, then polled: experiments/lease.sh), carrying .whl-site (the packed wheels; or .whl where it fits):
 #
 #   bash benchmarks/compile_units.sh UNIT [WAIT_S]
 #
