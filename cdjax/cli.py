@@ -366,16 +366,16 @@ def _cache_dir(args: argparse.Namespace) -> tuple[str | None, str]:
 
 def _configure(args: argparse.Namespace) -> None:
     cache, source = _cache_dir(args)
-    if args.compile_mode is None:
-        runtime.compile_mode()  # $CDJAX_COMPILE_MODE checked before anything runs
+    # the flag, else $CDJAX_COMPILE_MODE (checked before anything runs), else default: never an earlier call's flag
+    mode = args.compile_mode or runtime.environment_compile_mode()
     try:
         runtime.configure(cache_dir=cache, debug_nans=args.debug_nans, disable_jit=args.disable_jit,
-                          cache_source=source, compile_mode=args.compile_mode)
+                          cache_source=source, compile_mode=mode)
     except ConfigError:
         if source != "the default compilation cache":
             raise
         runtime.configure(debug_nans=args.debug_nans, disable_jit=args.disable_jit,  # run without the cache
-                          compile_mode=args.compile_mode)
+                          compile_mode=mode)
         say(f"Note: {cache} cannot hold JAX's compilation cache; compiling without it (--cache-dir names another).")
 
 

@@ -78,13 +78,15 @@ def check_compile_mode(mode: str, source: str = "compile_mode") -> str:
     return mode
 
 
-def compile_mode() -> str:
-    """The compile mode in force: configure's, else $CDJAX_COMPILE_MODE's (ConfigError when it names none), else
-    "default"."""
-    if _mode is not None:
-        return _mode
+def environment_compile_mode() -> str:
+    """$CDJAX_COMPILE_MODE's mode (ConfigError when it names none), else "default"."""
     text = os.environ.get(MODE_ENV, "").strip()
     return check_compile_mode(text, f"${MODE_ENV}") if text else "default"
+
+
+def compile_mode() -> str:
+    """The compile mode in force: configure's, else environment_compile_mode()."""
+    return _mode if _mode is not None else environment_compile_mode()
 
 
 def compiler_options(mode: str | None = None) -> dict:

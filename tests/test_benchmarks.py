@@ -420,3 +420,21 @@ def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypa
     monkeypatch.setenv(runtime.MODE_ENV, "turbo")
     with pytest.raises(ConfigError, match=r"\$CDJAX_COMPILE_MODE must be one of"):
         runtime.compiler_options()
+    # the CLI: the flag, else the variable's mode, else default; a later call without the flag drops an earlier one's
+    import argparse
+
+    from cdjax import cli
+
+    def flags(mode):
+        return argparse.Namespace(compile_mode=mode, cache_dir=None, debug_nans=False, disable_jit=False)
+
+    monkeypatch.delenv(runtime.MODE_ENV)
+    cli._configure(flags("fast"))
+    assert runtime.compile_mode() == "fast"
+    cli._configure(flags(None))
+    assert runtime.compile_mode() == "default"
+    monkeypatch.setenv(runtime.MODE_ENV, "fast")
+    cli._configure(flags(None))
+    assert runtime.compile_mode() == "fast"
+    cli._configure(flags("default"))
+    assert runtime.compile_mode() == "default"
