@@ -28,10 +28,11 @@ OPTIMISED = {"xla_backend_optimization_level": 3}
 
 
 @functools.lru_cache(maxsize=None)
-def compiled(config: Config):
-    """(agent, jit(init), jit(update)) for a config, built once per test session."""
+def compiled(config: Config, optimised: bool = False):
+    """(agent, jit(init), jit(update)) for a config, built once per test session; `optimised`: the update compiled
+    at OPTIMISED's level (for a config whose update one test runs many times)."""
     agent = make_agent(config)
-    return agent, jax.jit(agent.init), jax.jit(agent.update)
+    return agent, jax.jit(agent.init), jax.jit(agent.update, compiler_options=OPTIMISED if optimised else None)
 
 
 @functools.lru_cache(maxsize=None)

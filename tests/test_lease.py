@@ -32,7 +32,7 @@ def test_a_unit_starts_once_outlives_the_call_and_a_later_call_finds_it_done(tmp
 def test_ensure_wheels_installs_the_carried_wheels_once_and_puts_them_on_the_path(tmp_path):
     """A fake python3 on PATH: its import of brax fails (the GPU image), its pip records the call and makes the
     package directory. The first call installs from .whl/, a later one (the same machine) only sets PYTHONPATH;
-    without .whl/ it says so and fails."""
+    without .whl/ or .whl-site/ it says so and fails; with .whl-site/ alone it unpacks the tarball."""
     bin_dir, repo, site, calls = tmp_path / "bin", tmp_path / "repo", tmp_path / "site", tmp_path / "calls"
     bin_dir.mkdir()
     (repo / ".whl").mkdir(parents=True)
@@ -52,4 +52,14 @@ def test_ensure_wheels_installs_the_carried_wheels_once_and_puts_them_on_the_pat
     bare = tmp_path / "bare"
     bare.mkdir()
     out = call(bare)
-    assert "no .whl/" in out and out.strip().endswith("rc 1")
+    assert "neither .whl/ nor .whl-site/" in out and out.strip().endswith("rc 1")
+    # the packed form (pack_site): a tarball of the unpacked wheels, unpacked into $SITE without pip
+    packed = tmp_path / "packed"
+    (packed / ".whl-site").mkdir(parents=True)
+    (tmp_path / "tree" / "brax").mkdir(parents=True)
+    (tmp_path / "tree" / "brax" / "__init__.py").write_text("# brax\n")
+    subprocess.run(["tar", "-cJf", str(packed / ".whl-site" / "site.tar.xz"), "-C", str(tmp_path / "tree"), "."],
+                   check=True)
+    before = calls.read_text()
+    assert call(packed).strip().endswith(f"rc 0 {site}:{packed}")
+    assert (site / "brax" / "__init__.py").read_text() == "# brax\n" and calls.read_text() == before  # no pip

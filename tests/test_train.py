@@ -7,7 +7,13 @@ import pytest
 
 from cdjax import Config, ConfigError, HParams, make_agent, make_train, stack_hparams
 
-from _shared import OPTIMISED, PENDULUM, PENDULUM_HP, POINT, compiled
+from _shared import PENDULUM, PENDULUM_HP, POINT, compiled
+
+
+def _programs(config):
+    """compiled(config), with PENDULUM's update at OPTIMISED's level: test_learning_on_mjx_pendulum runs it 100 times,
+    and the compile-once and NaN tests take that program too (one MJX compile for the three, not two)."""
+    return compiled(config, optimised=config is PENDULUM)
 
 
 def _finite(tree):
@@ -39,7 +45,7 @@ def test_vmap_over_seeds_and_an_alpha_grid_equals_each_run_alone():
 
 @pytest.mark.parametrize("config", [POINT, PENDULUM], ids=["point", "mjx-pendulum"])
 def test_update_compiles_once(config):
-    trainer, init, update = compiled(config)
+    trainer, init, update = _programs(config)
     hp = PENDULUM_HP if config is PENDULUM else HParams()
     state = init(jax.random.key(0), hp)  # (other tests may have called this shared `update` already)
     state, _ = update(state, hp)
@@ -77,7 +83,7 @@ def test_frozen_encoder_stays_put_trainable_one_moves():
 
 
 def test_nan_in_one_env_is_reset_and_masked():
-    trainer, init, update = compiled(PENDULUM)
+    trainer, init, update = _programs(PENDULUM)
     state = init(jax.random.key(1), PENDULUM_HP)
     state, _ = update(state, PENDULUM_HP)
     physics = state.env_state.core.pipeline_state
@@ -96,10 +102,9 @@ def test_nan_in_one_env_is_reset_and_masked():
 
 def test_learning_on_mjx_pendulum():
     """Mean return rises far above the untrained policy's, and the open-loop model error falls."""
-    agent, init, _ = compiled(PENDULUM)
     # 100 updates: execution costs more than compiling here, so the update is compiled at XLA's default optimisation
-    # level, not conftest's 0 (tests/conftest.py)
-    update = jax.jit(agent.update, compiler_options=OPTIMISED)
+    # level, not conftest's 0 (tests/conftest.py; _programs)
+    _, init, update = _programs(PENDULUM)
     state = init(jax.random.key(0), PENDULUM_HP)
     returns, errors = [], []
     for _ in range(100):
