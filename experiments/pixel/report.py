@@ -1,12 +1,19 @@
-"""The pixel experiment's table and figures from the directories of experiments/pixel/device.sh.
+"""The pixel experiment's table and figures from the directories of experiments/pixel/device.sh and units.sh.
 
     python -m experiments.pixel.report OUT                       # OUT/report.md, OUT/report.csv, OUT/figures/*.png
     python -m experiments.pixel.report --strips RUN_DIR STRIPS   # PNG strips of seed 0 of each arm of a pixel sweep
     python -m experiments.pixel.report --compact-strips STRIPS SMALL   # what results keep (1 sequence, 20 steps)
 
-Per task (OUT/TASK/pixel), arm and hyper-parameter label (the presets' ltq-cd runs alpha 100 with cc_policy 0
-and 1), each seed's score is its mean over the last WINDOW logged updates up to the last update every arm
-reached (the paper: "averaged over the last 50 batches of training"); the table gives the IQM over seeds with
+OUT holds one directory per sweep, each with its run directory in `pixel/`: either one per task holding every arm
+(device.sh: OUT/halfcheetah/pixel) or one per unit of experiments/pixel/units.sh, each its UNIT.tar.gz unpacked
+(OUT/halfcheetah-ltq/pixel, OUT/halfcheetah-ltq-cd0/pixel, ...). The sweeps are grouped by the task they trained
+(run.json's env) and their arms put side by side; a hyper-parameter that differs between sweeps of one arm joins
+the arm's label (two units of ltq-cd with cc_policy 0 and 1 read as the one sweep of both would), and two sweeps
+holding the same arm and label are refused.
+
+Per task, arm and hyper-parameter label (the presets' ltq-cd runs alpha 100 with cc_policy 0 and 1), each seed's
+score is its mean over the last WINDOW logged updates up to the last update every arm reached, in every sweep of
+the task (the paper: "averaged over the last 50 batches of training"); the table gives the IQM over seeds with
 a 95% bootstrap interval (cdjax.stats.iqm_interval) of
   heldout/loglik_k   open-loop log-likelihood of held-out expert frames over the first k predicted steps,
                      nats per frame (64x64x3 Gaussian densities of pixels in [0, 1]; higher is better)
@@ -14,8 +21,9 @@ a 95% bootstrap interval (cdjax.stats.iqm_interval) of
   heldout/imitation  mean squared error of the policy's actions on held-out sequences (lower is better)
   loss/imitation     the same on the training batches
   eval/return        the imitation policy's return acting from pixels (latest evaluation, deterministic)
-and, per task, the expert's evaluation return, the dataset size and generation time (cost.json) and the
-training throughput (frames/s over all runs of both arms).
+and, per task, the expert's evaluation return, the dataset size and generation time (cost.json, in the sweep's
+directory or beside the expert its run.json names) and the training throughput (frames/s over all runs of each
+sweep, its own wall clock; one figure per sweep where a task has several).
 """
 
 from __future__ import annotations
@@ -47,9 +55,11 @@ def seed_scores(rows: list[dict], metric: str, last: int, window: int = WINDOW) 
 
 
 def common_last_update(rows: list[dict]) -> int:
-    last: dict[str, int] = {}
+    """The last update every (arm, hyper-parameter label) reached: each one's last logged update, the least."""
+    last: dict[tuple, int] = {}
     for r in rows:
-        last[r["arm"]] = max(last.get(r["arm"], 0), r["update"])
+        key = (r["arm"], r.get("hp", "default"))
+        last[key] = max(last.get(key, 0), r["update"])
     return min(last.values()) if last else 0
 
 
@@ -75,16 +85,97 @@ def _fmt(est: float, low: float, high: float) -> str:
     return f"{est:.{digits}f}{interval}"
 
 
-def task_report(task_dir: pathlib.Path, reps: int = 2000) -> tuple[list[dict], dict]:
-    run_dir = task_dir / "pixel"
-    rows = io.read_jsonl(run_dir / "metrics.jsonl")
-    run = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").exists() else {}
+def _label_keys(label: str) -> list[str]:
+    return [] if label == "default" else [part.split("=")[0] for part in label.split(",")]
+
+
+def _task_of(unit_dir: pathlib.Path, run: dict) -> str:
+    """The task a sweep trained: run.json's env, else the directory's name up to its first '-'."""
+    return run.get("base_config", {}).get("env") or pathlib.Path(unit_dir).name.split("-")[0]
+
+
+def units_of(out: pathlib.Path) -> dict[str, list[pathlib.Path]]:
+    """{task: its sweeps' directories (each holding pixel/)}, tasks and directories sorted: every directory of
+    `out` with a pixel/metrics.jsonl, grouped by the env its run.json names (else its name up to the first '-')."""
+    tasks: dict[str, list[pathlib.Path]] = {}
+    for d in sorted(out.iterdir()):
+        if not io.jsonl_exists(d / "pixel" / "metrics.jsonl"):
+            continue
+        run = d / "pixel" / "run.json"
+        tasks.setdefault(_task_of(d, json.loads(run.read_text()) if run.exists() else {}), []).append(d)
+    return dict(sorted(tasks.items()))
+
+
+def merge_units(unit_dirs) -> tuple[list[dict], list[dict], list[dict]]:
+    """(metrics rows, evaluation rows, units) of one task's sweeps, their arms side by side.
+
+    A hyper-parameter whose value differs between the sweeps' sets of one arm (run.json's hparams) is added to the
+    rows' labels where a sweep left it out for having one value: ltq-cd "alpha=100.0" from a unit run with
+    --cc-policy 0 becomes "alpha=100.0,cc_policy=0.0", the label the sweep of both values gives it. `units`: per
+    sweep, its directory's name, its run.json and its last update per label. ValueError when two sweeps hold the
+    same arm and label."""
+    loaded = []
+    for d in unit_dirs:
+        run_dir = pathlib.Path(d) / "pixel"
+        run = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").exists() else {}
+        evals = io.read_jsonl(run_dir / "eval.jsonl") if (run_dir / "eval.jsonl").exists() else []
+        loaded.append((pathlib.Path(d), run, list(io.read_jsonl(run_dir / "metrics.jsonl")), list(evals)))
+    values: dict[str, dict[str, set]] = {}  # arm -> hyper-parameter -> the values its sets take, over all sweeps
+    for _, run, _, _ in loaded:
+        for arm in run.get("arms", []):
+            for hp in arm.get("hparams", []):
+                for k, v in hp.items():
+                    values.setdefault(arm["name"], {}).setdefault(k, set()).add(float(v))
+    rows, evals, units, owner = [], [], [], {}
+    for d, run, unit_rows, unit_evals in loaded:
+        relabel = {}
+        for arm in run.get("arms", []):
+            varying = [k for k, vs in values.get(arm["name"], {}).items() if len(vs) > 1]
+            for label, hp in zip(arm.get("hp_labels", []), arm.get("hparams", [])):
+                shown = _label_keys(label)
+                extra = [f"{k}={float(hp[k])!r}" for k in varying if k not in shown]
+                relabel[(arm["name"], label)] = ",".join(([] if label == "default" else [label]) + extra) or "default"
+        relabelled = [{**r, "hp": relabel.get((r["arm"], r.get("hp", "default")), r.get("hp", "default"))}
+                      for r in unit_rows]
+        last: dict[str, int] = {}
+        for r in relabelled:
+            name = r["arm"] if r["hp"] == "default" else f"{r['arm']} {r['hp']}"
+            last[name] = max(last.get(name, 0), r["update"])
+            if owner.setdefault((r["arm"], r["hp"]), d.name) != d.name:
+                raise ValueError(f"{owner[(r['arm'], r['hp'])]} and {d.name} both hold arm {name!r} of the same "
+                                 "task; report them from separate directories.")
+        rows += relabelled
+        evals += [{**e, "hp": relabel.get((e["arm"], e.get("hp", "default")), e.get("hp", "default"))}
+                  for e in unit_evals]
+        units.append({"name": d.name, "run": run, "last": last, "rows": relabelled})
+    return rows, evals, units
+
+
+def _task_files(unit_dirs, units: list[dict], name: str) -> pathlib.Path | None:
+    """`name` (expert.msgpack, cost.json) in a sweep's directory, else beside the expert its run.json names
+    (relative to the working directory, else to the repository: units.sh trains from the kept experts)."""
+    places = [pathlib.Path(d) for d in unit_dirs]
+    for unit in units:
+        expert = unit["run"].get("base_config", {}).get("expert")
+        if expert:
+            parent = pathlib.Path(expert).parent
+            places += [parent, pathlib.Path(__file__).resolve().parents[2] / parent]
+    return next((p / name for p in places if (p / name).exists()), None)
+
+
+def task_report(unit_dirs, reps: int = 2000, merged=None) -> tuple[list[dict], dict]:
+    """The table's rows and the task's information from one directory holding every arm (OUT/TASK) or the
+    directories of one task's units (OUT/TASK-ARM); `merged`: merge_units(unit_dirs) when already read."""
+    unit_dirs = [unit_dirs] if isinstance(unit_dirs, (str, pathlib.Path)) else list(unit_dirs)
+    rows, evals, units = merged or merge_units(unit_dirs)
+    run = units[0]["run"] if units else {}
+    config = next((a["config"] for u in units for a in u["run"].get("arms", [])), {})
+    task = _task_of(unit_dirs[0], run)
     last = common_last_update(rows)
     table = []
     groups = sorted({(r["arm"], r["hp"]) for r in rows})
-    evals = io.read_jsonl(run_dir / "eval.jsonl") if (run_dir / "eval.jsonl").exists() else []
     for arm, hp in groups:
-        line = {"task": task_dir.name, "arm": arm if hp == "default" else f"{arm} {hp}", "update": last}
+        line = {"task": task, "arm": arm if hp == "default" else f"{arm} {hp}", "update": last}
         for metric, _ in SCORES:
             scores = [v for (a, h, _), v in seed_scores(rows, metric, last).items() if (a, h) == (arm, hp)]
             line[metric] = iqm_interval(scores, reps=reps)
@@ -92,26 +183,33 @@ def task_report(task_dir: pathlib.Path, reps: int = 2000) -> tuple[list[dict], d
         newest = max((e["update"] for e in mine), default=None)
         line["eval/return"] = iqm_interval([e["eval/return"] for e in mine if e["update"] == newest], reps=reps)
         table.append(line)
-    info = {"task": task_dir.name, "last_update": last, "seeds": run.get("seeds")}
-    config = next((a["config"] for a in run.get("arms", [])), {})
+    info = {"task": task, "last_update": last, "seeds": run.get("seeds"),
+            "units": [{"name": u["name"], "last": u["last"]} for u in units]}
     if config:
-        info["frames_per_s"] = throughput(rows, config["batch_size"] * config["seq_len"])
+        frames = config["batch_size"] * config["seq_len"]
+        info["frames_per_s"] = {u["name"]: throughput(u["rows"], frames) for u in units}
         info["horizon"] = config["horizon"]
-    expert = task_dir / "expert.msgpack"
-    if expert.exists():
+    expert = _task_files(unit_dirs, units, "expert.msgpack")
+    if expert is not None:
         from cdjax.agents.pixel.expert import load_expert
 
         info["expert_return"] = load_expert(expert).eval_return
-    if (task_dir / "cost.json").exists():
-        info["cost"] = json.loads((task_dir / "cost.json").read_text())
+    cost = _task_files(unit_dirs, units, "cost.json")
+    if cost is not None:
+        info["cost"] = json.loads(cost.read_text())
     return table, info
 
 
 def markdown(tables: list[list[dict]], infos: list[dict]) -> str:
     head = "| task | arm | update | " + " | ".join(t for _, t in SCORES) + " | eval return (from pixels) |"
     lines = ["IQM over seeds [95% bootstrap interval]; each seed averaged over its last "
-             f"{WINDOW} updates up to the update both arms reached.", "", head,
-             "|" + "---|" * (len(SCORES) + 4)]
+             f"{WINDOW} updates up to the update every arm of its task reached."]
+    for info in infos:
+        if len(info.get("units", [])) > 1:
+            reached = ", ".join(f"{u['name']} {min(u['last'].values(), default=0)}" for u in info["units"])
+            lines.append(f"- {info['task']}: {len(info['units'])} separate sweeps, compared at update "
+                         f"{info['last_update']}, the last all of them reached (last updates: {reached}).")
+    lines += ["", head, "|" + "---|" * (len(SCORES) + 4)]
     for table in tables:
         for r in table:
             cells = [_fmt(*r[m][:3]) for m, _ in SCORES] + [_fmt(*r["eval/return"][:3])]
@@ -124,8 +222,11 @@ def markdown(tables: list[list[dict]], infos: list[dict]) -> str:
         data = f"{cost['data_bytes_all_runs'] / 2**20:.0f} MiB" if cost else "n/a"
         once = f"{cost['once_compile_and_run_s']:.1f} s" if cost else "n/a"
         fly = f"{cost['fly_per_update_s'] * 1e3:.1f} ms / {cost['update_s'] * 1e3:.1f} ms" if cost else "n/a"
+        rates = info.get("frames_per_s", {})
+        speed = (f"{next(iter(rates.values())):,.0f}" if len(rates) == 1 else
+                 "; ".join(f"{name} {v:,.0f}" for name, v in rates.items()) if rates else "n/a")
         lines.append(f"| {info['task']} | {info.get('horizon', '?')} | {info.get('expert_return', math.nan):.1f} | "
-                     f"{data} | {once} | {fly} | {info.get('frames_per_s', math.nan):,.0f} |")
+                     f"{data} | {once} | {fly} | {speed} |")
     return "\n".join(lines) + "\n"
 
 
@@ -249,12 +350,13 @@ def main(argv=None) -> None:
             print(f"wrote {path}")
         return
     out = pathlib.Path(args.out)
-    tasks = [d for d in sorted(out.iterdir()) if io.jsonl_exists(d / "pixel" / "metrics.jsonl")]
-    results = [task_report(d, args.bootstrap_reps) for d in tasks]
+    tasks = units_of(out)
+    merged = {task: merge_units(dirs) for task, dirs in tasks.items()}
+    results = [task_report(dirs, args.bootstrap_reps, merged[task]) for task, dirs in tasks.items()]
     tables, infos = [r[0] for r in results], [r[1] for r in results]
     text = markdown(tables, infos)
     (out / "report.md").write_text(text)
-    curves = {d.name: curve(io.read_jsonl(d / "pixel" / "metrics.jsonl"), (SCORES[0], SCORES[2])) for d in tasks}
+    curves = {task: curve(merged[task][0], (SCORES[0], SCORES[2])) for task in tasks}
     figures(out, tables, curves)
     print(text)
 
