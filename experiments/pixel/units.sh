@@ -3,6 +3,7 @@
 # most 10): started once as its own process session (setsid: it outlives the call, not the machine), then polled.
 #
 #   bash experiments/pixel/units.sh UNIT [WAIT_S]
+#   bash experiments/pixel/units.sh --print-command UNIT   # the unit's command line, nothing started or written
 #
 # UNIT is one of
 #   roofline       python -m experiments.pixel.roofline on halfcheetah's preset (30 runs, the real task's data):
@@ -18,21 +19,45 @@
 #                  the roofline found fastest; no evaluation (the held-out ELBO, imitation and likelihood decide)
 #   devices        (a multi-GPU machine, issue 25) the pixel sweep's frames/s on 1, 2 and 4 of its GPUs in one
 #                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah
-#   TASK-ARM       the experiment at the presets' length: TASK halfcheetah, reacher or pusher, ARM ltq or ltq-cd
-#                  (ltq-cd: alpha 100, cc_policy 0 and 1), 10 seeds, 10,000 updates or what fits before the time
-#                  limit (stated in the run's log), then evaluated from pixels, plotted and its strips drawn
+#   TASK-ARM       the experiment at the presets' length: TASK halfcheetah, reacher or pusher, ARM ltq, ltq-cd
+#                  (alpha 100, cc_policy 0 and 1: 20 runs), ltq-cd0 or ltq-cd1 (ltq-cd with cc_policy 0 or 1
+#                  alone: 10 runs, `--arms ltq-cd --cc-policy N`; not the CLI's arm ltq-cdN, which is ltq-cd with
+#                  horizon N), 10 seeds, 10,000 updates or what fits before the time limit (stated in the run's
+#                  log), then evaluated from pixels, plotted and its strips drawn. Each unit's tarball unpacks to
+#                  its own directory (TASK-ARM/pixel); `python -m experiments.pixel.report DIR` over a directory of
+#                  them puts a task's units side by side and compares them at the update all of them reached.
+#
+# The re-run's plan (issue 22): the nine units TASK-ltq, TASK-ltq-cd0 and TASK-ltq-cd1 for the three tasks, one per
+# lease (two per session: a one-GPU machine counts half its held time), halfcheetah first. Estimated training time
+# for 10,000 updates from halfcheetah's bfloat16/per-run rates on one H200, taken as linear in the runs (ltq 6.6 ms
+# per run and update: 40 runs at 0.265 s/update in the lr-check; ltq-cd 7.6 ms: 10 ltq + 20 ltq-cd runs at 0.218
+# s/update in the precision unit), then about 1-3 minutes of setup and compile before and 4-6 minutes of
+# evaluation, plot and strips after:
+#   halfcheetah-ltq                      10 runs   ~11 min
+#   halfcheetah-ltq-cd0, -ltq-cd1        10 runs   ~13 min each
+#   halfcheetah-ltq-cd (both)            20 runs   ~25 min: past LIMIT_S, stops near 7,800 updates
+#   reacher-*, pusher-* (ltq, cd0, cd1)  10 runs   ~13, ~15, ~15 min: not measured in bfloat16; in float32 their
+#                                                  update took ~1.15x halfcheetah's per run (20 runs at 36,695 and
+#                                                  38,251 frames/s against 30 at 41,810), assumed the same here
+# A unit whose runs are slower than this says in its log where --time-limit stopped it; the first unit's "Trained in"
+# line gives the real rate. Fewer runs may not be proportionally faster (the update is bound by kernel launches).
 # The experts are the kept ones (experiments/pixel/data/three-tasks-x2/TASK/expert.msgpack). The first call starts
 # the unit in runs/pixel-units/UNIT/ and waits; every call waits up to WAIT_S seconds (default 560) for it to end,
 # then says "RUNNING: call again" (at once: the machine goes back 30 s after a call) or "DONE" after packing what to
 # keep into $OUT (default runs/pixel-units-out): UNIT.tar.gz (run directories without checkpoints, metrics thinned
 # by experiments.thin_logs) and UNIT.log. Sweeps stop by --time-limit (LIMIT_S, default 1260 s from the unit's
-# start, compile included); evaluation, plots and strips take about 6 more minutes.
+# start, compile included); evaluation, plots and strips take about 6 more minutes (a TASK-ARM unit's evaluation
+# gets up to EVAL_S, default 300 s, less where the strips would then end past END_S, default 1680 s from the start).
 # The GPU image has no `cdjax` console script: everything runs as python -m.
 set -u
-unit=$1; wait_s=${2:-560}
+print_only=0
+if [ "${1:-}" = "--print-command" ]; then print_only=1; shift; fi
+unit=${1:?usage: units.sh [--print-command] UNIT [WAIT_S]}; wait_s=${2:-560}
 work=runs/pixel-units/$unit
 out=${OUT:-runs/pixel-units-out}
 limit=${LIMIT_S:-1260}
+end=${END_S:-1680}
+eval_max=${EVAL_S:-300}
 experts=experiments/pixel/data/three-tasks-x2
 t0=$(date +%s)
 export PYTHONUNBUFFERED=1
@@ -59,19 +84,33 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--preset pixel-halfcheetah --expert $experts/halfcheetah/expert.msgpack --arms ltq --seeds 5" \
         "--lr ${LRS:-3e-5 1e-4 3e-4 1e-3} --lr-policy ${LR_POLICIES:-0 1e-3} --steps $(( ${LR_UPDATES:-500} * 800 ))" \
         "${PIXEL_SET:-} --no-progress --no-final-eval --time-limit $limit --out $work/lr; python -m cdjax.cli plot $work/lr" ;;
-    halfcheetah-ltq|halfcheetah-ltq-cd|reacher-ltq|reacher-ltq-cd|pusher-ltq|pusher-ltq-cd)
-      local task=${1%%-*} arm=${1#*-}
+    halfcheetah-*|reacher-*|pusher-*)
+      local task=${1%%-*} arm=${1#*-} arms
+      case "$arm" in
+        ltq|ltq-cd) arms="--arms $arm" ;;
+        ltq-cd0|ltq-cd1) arms="--arms ltq-cd --cc-policy ${arm#ltq-cd}" ;;
+        *) echo "unknown arm $arm of unit $1: ltq, ltq-cd, ltq-cd0 or ltq-cd1" >&2; return 1 ;;
+      esac
+      # The evaluation gets up to EVAL_S (default 300) s, fewer where that would leave less than the strips' 160 s
+      # and 20 s for the plot before END_S (default 1680 s, 28 minutes, from the unit's start: the lease's 30 less
+      # the machine's start and the packing), but at least 120. 200 s was tight for pusher: its evaluation took over
+      # 120 s for 20 runs (second pass) and 105.9 s of evaluating alone for 30 (fourth pass; restoring the sweep,
+      # which renders its data and compiles init again, comes on top), and no bfloat16 evaluation has been timed.
+      local eval_s="\$(( $end - \$(date +%s) + \$(cat $work/started) - 180 ))"
       echo "timeout -s INT -k 60 $(( limit + 300 )) python -m cdjax.cli sweep --setting pixel --preset pixel-$task" \
-        "--expert $experts/$task/expert.msgpack --arms $arm ${PIXEL_SET:-} --no-progress --no-final-eval" \
-        "--time-limit $limit --out $work/pixel; timeout -k 30 200 python -m cdjax.cli eval $work/pixel --episodes 4;" \
-        "python -m cdjax.cli plot $work/pixel; timeout -k 10 150 python -m experiments.pixel.report --strips" \
-        "$work/pixel $work/strips" ;;
-    *) echo "unknown unit $1: roofline, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq, ltq-cd)" >&2
+        "--expert $experts/$task/expert.msgpack $arms ${PIXEL_SET:-} --no-progress --no-final-eval" \
+        "--time-limit $limit --out $work/pixel; s=$eval_s;" \
+        "timeout -k 30 \$(( s > $eval_max ? $eval_max : s < 120 ? 120 : s )) python -m cdjax.cli eval $work/pixel" \
+        "--episodes 4; python -m cdjax.cli plot $work/pixel; timeout -k 10 150 python -m experiments.pixel.report" \
+        "--strips $work/pixel $work/strips" ;;
+    *) echo "unknown unit $1: roofline, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
+         "ltq-cd, ltq-cd0, ltq-cd1)" >&2
        return 1 ;;
   esac
 }
 
 cmd=$(command_of "$unit") || exit 2
+if [ "$print_only" = 1 ]; then echo "$cmd"; exit 0; fi
 mkdir -p "$work" "$out"
 . "$(dirname "$0")/../lease.sh"
 ensure_wheels || exit 1
