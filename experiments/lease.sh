@@ -69,3 +69,49 @@ assert not any('.data/' in n for n in z.namelist()), sys.argv[1] + ' has a .data
   done
   mkdir -p .whl-site && tar -cJf .whl-site/site.tar.xz -C "$tmp" . && rm -rf "$tmp" && ls -l .whl-site/site.tar.xz
 }
+
+# pack_site_lean: pack_site without the wheels that no cdjax module imports: mujoco_studio (MuJoCo's GUI, 12.8 MB
+# of wheel, 34 MB unpacked; `import mujoco` and mujoco.viewer do not load it: checked with mujoco 4.0.0 on Python
+# 3.12). Built from today's .whl/ (2026-11-25: 43 MB, mujoco 4.0.0 split into mujoco, mujoco-core and
+# mujoco-studio), pack_site's tarball is 23.1 MB and this one 15.9 MB: the ALE units carry it beside .whl-ale/ and
+# .whl-atari/ (`carry_size .whl-site .whl-ale .whl-atari` says whether they fit).
+pack_site_lean() {
+  local tmp w
+  tmp=$(mktemp -d) || return 1
+  for w in .whl/*.whl; do
+    case "$(basename "$w")" in mujoco_studio-*) continue ;; esac
+    python3 -c "import sys, zipfile; z = zipfile.ZipFile(sys.argv[1]); \
+assert not any('.data/' in n for n in z.namelist()), sys.argv[1] + ' has a .data directory'; z.extractall(sys.argv[2])" \
+      "$w" "$tmp" || { rm -rf "$tmp"; return 1; }
+  done
+  mkdir -p .whl-site && tar -cJf .whl-site/site.tar.xz -C "$tmp" . && rm -rf "$tmp" && ls -l .whl-site/site.tar.xz
+}
+
+# ale_wheels: .whl-ale/ (ale-py 0.12.1, 3.1 MB; its wheel bundles the ROMs) and .whl-atari/ (gymnasium 1.3.0 and
+# farama-notifications 0.0.6, 0.96 MB: what ale_py.vector_env imports; the GPU image has their other needs, numpy,
+# cloudpickle and typing-extensions) for experiments/atari/device.sh, downloaded here (run from the repository root;
+# the GPU machine reaches no package index) and kept out of git through .git/info/exclude, as wheels.sh keeps .whl/.
+ale_wheels() {
+  local exclude d
+  exclude=$(git rev-parse --git-path info/exclude) || return 1
+  mkdir -p "$(dirname "$exclude")"
+  for d in .whl-ale .whl-atari; do grep -qx "/$d/" "$exclude" 2>/dev/null || echo "/$d/" >> "$exclude"; done
+  set -- --no-deps --only-binary=:all: --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64 \
+    --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 --platform any
+  python3 -m pip download -q "$@" -d .whl-ale ale-py==0.12.1 \
+    && python3 -m pip download -q "$@" -d .whl-atari gymnasium==1.3.0 farama-notifications==0.0.6 \
+    && ls -l .whl-ale .whl-atari
+}
+
+# carry_size [PATH ...]: the bytes a device call made from here (the repository root) would send, against its 64 MiB:
+# the tracked files, the untracked ones git does not ignore, and the carried PATHs (the `carry` list). Returns 1 when
+# they do not fit.
+carry_size() {
+  { git ls-files -z; git ls-files -z -o --exclude-standard; [ $# -gt 0 ] && find "$@" -type f -print0; } | python3 -c "
+import os, sys
+files = {f for f in sys.stdin.buffer.read().split(b'\0') if f and os.path.isfile(f)}
+n, limit = sum(os.path.getsize(f) for f in files), 64 * 2**20
+print(f'{n:,} bytes ({n / 2**20:.1f} MiB) would travel, {limit - n:,} bytes under 64 MiB' if n <= limit
+      else f'{n:,} bytes ({n / 2**20:.1f} MiB) would travel: {n - limit:,} bytes over 64 MiB')
+sys.exit(n > limit)"
+}
