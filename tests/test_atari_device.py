@@ -47,6 +47,9 @@ def test_a_units_sweep_has_its_preset_arms_seeds_budget_and_time_limit(game):
     # the hang guard is the time limit + 120 s; then every run is evaluated, plotted and reported
     assert line.startswith("timeout -s INT -k 60 1200 python -m cdjax.cli sweep")
     assert f"python -m cdjax.cli eval {run} --episodes 100;" in line
+    # the evaluation: up to 360 s, ending 120 s before 1380 s from the unit's start (plot and report: 50 s each)
+    assert f"s=$(( 1380 - $(date +%s) + $(cat runs/atari-units/ale-{game}/started) - 120 ));" in line
+    assert "timeout -k 10 $(( s > 360 ? 360 : s < 60 ? 60 : s )) python -m cdjax.cli eval" in line
     assert f"python -m experiments.atari.report {run} --out runs/atari-units/ale-{game}/report" in line
     args = vars(build_parser(agents.get("atari")).parse_args(argv))  # each option is the CLI's (the config: ale-py)
     assert (args["preset"], args["time_limit"], args["spec.seeds"]) == (game, 1080, 3)

@@ -23,7 +23,7 @@
 # need about 6k/s, the benchmark measured 7-10k at 16 to 64 emulators), checkpointed, before a chunk (250 updates,
 # about 8 s per arm) that would end later; its hang guard (timeout) is 120 s later. Then every run is evaluated at its
 # last checkpoint (`cdjax eval --episodes 100`, sampled actions) within EVAL_S (default 360 s), fewer where it would
-# end past END_S - 120 s (END_S default 1440 s, 24 minutes, from the unit's start: the lease's 30 less the machine's
+# end past END_S - 120 s (END_S default 1380 s, 23 minutes, from the unit's start: the lease's 30 less the machine's
 # start, the installs and the packing), at least 60 s; then `cdjax plot` (summary.md) and the report, 50 s each at
 # most. A unit that stops short of the budget is reported at the steps both arms reached. Typical: 11-15 minutes of
 # training, 2-4 of evaluation (not yet timed at this size: 300 emulators per arm play until the longest of their
@@ -93,7 +93,7 @@ if [ "${1:-}" = --print-command ] || { [[ ${1:-} == ale-* ]] && [ $# -le 2 ]; };
   run=$work/$game
   out=${OUT:-runs/atari-units-out}
   limit=${LIMIT_S:-1080}
-  end=${END_S:-1440}
+  end=${END_S:-1380}
   eval_max=${EVAL_S:-360}
   t0=$(date +%s)
   # the seconds left for the evaluation when it starts: END_S from the unit's start, less 120 for plot and report
