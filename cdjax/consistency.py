@@ -401,6 +401,16 @@ def grounding_loss(encoder, encoder_params, h_re: jax.Array, real: jax.Array, ma
     return reconstruction + floor, {"loss/encoder_reconstruction": reconstruction, "loss/encoder_spread_floor": floor}
 
 
+def grounding_term(encoder, encoder_params, real_next: jax.Array, mask: jax.Array, normalize: nz.RunningStats) -> tuple:
+    """The grounded-gru encoder's auxiliary term alone, without the k-step chain: the encoder over the real windows
+    real_next [k, W, O] (raw states, normalised with `normalize`) from zeros, then `grounding_loss`. The same
+    function as `consistency_loss`'s "encoder_aux" (whose imagined rows do not reach it) -> (loss, metrics)."""
+    x = nz.normalize(normalize, real_next)
+    h0 = jnp.zeros((x.shape[1], encoder.features), jnp.float32)
+    h_re, _ = jax.lax.scan(lambda h, x_t: (encoder.apply(encoder_params, h, x_t), None), h0, x)
+    return grounding_loss(encoder, encoder_params, h_re, x, mask)
+
+
 def _spread(x: jax.Array, mask: jax.Array) -> jax.Array:
     """Mean over features of the standard deviation across the unmasked rows of x [W, D]."""
     return _feature_std(x, mask).mean()

@@ -259,6 +259,27 @@ def test_fused_chain_equals_the_scanned_term_values_and_gradients(kind, hidden, 
     assert moved == (kind != "frozen-gru")
 
 
+def test_grounding_term_alone_is_the_terms_encoder_aux_with_its_gradient():
+    """The grounded encoder's auxiliary term without the k-step chain (what the gradient diagnostics differentiate
+    apart) equals the fused term's encoder_aux, in value and in its gradient on the encoder."""
+    s0, actions, real = _real_windows(seed=1)
+    model = _mlp_model(hidden=(16,))
+    enc = _encoder("grounded-gru")
+    mask = jnp.arange(W) % 4 != 1
+
+    def whole(params):
+        terms, _ = cc.consistency_loss(cc.mlp_step, model, s0, actions, real, mask, kind="grounded-gru",
+                                       normalize=model.obs, weights=ONE, encoder=enc["encoder"], encoder_params=params)
+        return terms["encoder_aux"]
+
+    alone = lambda params: cc.grounding_term(enc["encoder"], params, real, mask, model.obs)[0]  # noqa: E731
+    (v_w, g_w), (v_a, g_a) = (jax.jit(jax.value_and_grad(f))(enc["encoder_params"]) for f in (whole, alone))
+    np.testing.assert_allclose(v_a, v_w, rtol=1e-5)
+    assert float(v_a) > 0
+    for a, b in zip(jax.tree.leaves(g_a), jax.tree.leaves(g_w)):
+        np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-7)
+
+
 def test_mlp_step_is_the_agents_model_step():
     """The obs-space agent's model in the fused form (`ObsAgent.mlp_model`) steps exactly as its model_step."""
     from cdjax.agents.obs import networks

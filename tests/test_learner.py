@@ -7,7 +7,7 @@ import numpy as np
 import optax
 import pytest
 
-from cdjax import HParams, consistency
+from cdjax import HParams
 from cdjax.agents.obs.agent import TERM_GROUPS, make_agent, refresh_norms, term_weights, to_segments
 
 from _shared import POINT, compiled
@@ -77,6 +77,9 @@ def test_gradient_norm_metrics_match_per_term_gradients(point_batch):
     for name, value in expected.items():
         np.testing.assert_allclose(metrics[name], value, rtol=1e-4, err_msg=name)
     assert expected["grad/consistency/policy"] > 0 and expected["grad/encoder_aux/encoder"] > 0
+    # the terms besides l_cc are differentiated together, so each group must be reached by one of them at most
+    for group in state.params:
+        assert sum(group in groups for name, groups in TERM_GROUPS.items() if name != "consistency") <= 1, group
 
 
 def test_update_zero_normalises_with_the_first_rollout():
@@ -91,9 +94,9 @@ def test_update_zero_normalises_with_the_first_rollout():
     warm = refresh_norms(state.norms, traj.obs, traj.next_obs, traj.reward, traj.valid)
     assert float(new.norms.obs.count) == POINT.rollout_len * POINT.num_envs
     _assert_same(new.norms, warm)
-    key_diag, _ = jax.random.split(key_sgd)
-    first = jax.tree.map(lambda x: to_segments(x, POINT.segment)[:, : POINT.minibatch_seqs], batch)
-    offsets = consistency.window_offsets(key_diag, POINT.segment, POINT.horizon, POINT.num_windows)
+    _, key_epochs = jax.random.split(key_sgd)  # the SGD's first minibatch: the diagnostics are its step's
+    segments = jax.tree.map(lambda x: to_segments(x, POINT.segment), batch)
+    first, offsets = trainer.first_minibatch(segments, jax.random.split(key_epochs, POINT.num_epochs)[0])
     diag = jax.jit(trainer.grad_norms)
     with_warm, with_cold = diag(state.params, warm, first, offsets, HP), diag(state.params, state.norms, first, offsets, HP)
     for name in with_warm:

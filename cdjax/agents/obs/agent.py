@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+from jax.flatten_util import ravel_pytree
 
 from cdjax import consistency
 from cdjax import normalize as nz
@@ -83,9 +84,15 @@ def model_target(norms: nz.Norms, obs, next_obs, reward) -> jax.Array:
                            axis=-1)
 
 
-# The parameter groups each loss term can reach (the gradient-norm metrics report these pairs).
+# The parameter groups each loss term can reach (the gradient-norm metrics report these pairs). Each group is reached
+# by at most one term besides l_cc (`rest_gradient` relies on it).
 TERM_GROUPS = {"ppo": ("policy", "value"), "model_nll": ("model",), "consistency": ("model", "encoder", "policy"),
                "encoder_aux": ("encoder",)}
+
+
+def _norm(tree) -> jax.Array:
+    """The global norm of a tree, taken on its leaves raveled into one vector (as the optimiser holds them)."""
+    return optax.global_norm(ravel_pytree(tree)[0])
 
 
 def term_weights(hp: HParams) -> dict[str, jax.Array]:
@@ -196,10 +203,13 @@ class ObsAgent:
         return losses.gae(mb.reward * hp.reward_scale, v, v_next, mb.valid & ~mb.terminated, mb.ended, hp.gamma,
                           hp.gae_lambda, mb.valid)
 
-    def loss_terms(self, params, norms, mb: "Batch", offsets, hp, with_consistency: bool = True, fused: bool = True):
-        """The named loss terms of one minibatch mb (leaves [L, Bs, ...]) -> ({name: scalar}, metrics). fused=False
-        computes the consistency term's k-step chain as a scan instead of the fused, unrolled chain: the same
-        function, a program a fraction of the size, slower on a GPU (for what runs once per update)."""
+    def loss_terms(self, params, norms, mb: "Batch", offsets, hp, with_consistency: bool = True,
+                   taps: dict | None = None):
+        """The named loss terms of one minibatch mb (leaves [L, Bs, ...]) -> ({name: scalar}, metrics).
+
+        taps (`zero_taps`): zeros added to what the consistency term alone takes of the other terms' inputs, the
+        model's parameters and the policy's actions [L, Bs, A]: the same terms, whose gradient with respect to the
+        taps is l_cc's share of the model's and the actions' gradient (`tapped_gradient`)."""
         obs_n = nz.normalize(norms.obs, mb.obs)
         mean, std = self.policy.apply(params["policy"], obs_n)
         if self.config.gae_in_loss:  # one value pass over the sequences and the row each bootstraps on
@@ -223,51 +233,127 @@ class ObsAgent:
             metrics.update(model_metrics)
         if self.config.use_consistency and with_consistency:
             actions = networks.act_from_noise(mean, std, mb.noise)  # [L, Bs, A], carries d/dphi
+            model_params = params["model"]
+            if taps is not None:
+                actions = actions + taps["actions"]
+                model_params = jax.tree.map(jnp.add, model_params, taps["model"])
             s0, window_actions, real_next, mask = consistency.windows(mb.obs, mb.next_obs, actions, mb.ended,
                                                                       mb.valid, offsets, self.k)
             cc_terms, cc_metrics = consistency.consistency_loss(
-                consistency.mlp_step, self.mlp_model(params["model"], norms), s0, window_actions, real_next, mask,
+                consistency.mlp_step, self.mlp_model(model_params, norms), s0, window_actions, real_next, mask,
                 kind=self.config.encoder, normalize=norms.obs,
                 weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=self.encoder,
-                encoder_params=params.get("encoder"), unroll=self.config.cc_unroll, fused=fused)
+                encoder_params=params.get("encoder"), unroll=self.config.cc_unroll)
             terms.update(cc_terms)
             metrics.update(cc_metrics)
         return terms, metrics
 
-    def loss(self, params, norms, mb, offsets, hp, with_consistency: bool = True):
+    def loss(self, params, norms, mb, offsets, hp, with_consistency: bool = True, taps: dict | None = None):
         """Total loss of one minibatch mb (leaves [L, Bs, ...]) -> (loss, metrics): the named terms times
         `term_weights(hp)`."""
-        terms, metrics = self.loss_terms(params, norms, mb, offsets, hp, with_consistency)
+        terms, metrics = self.loss_terms(params, norms, mb, offsets, hp, with_consistency, taps)
         weights = term_weights(hp)
         total = sum(weights[name] * term for name, term in terms.items())
         metrics["loss/total"] = total
         return total, metrics
 
-    def grad_norms(self, params, norms, mb, offsets, hp) -> dict:
-        """The gradient norm of every weighted loss term on each parameter group it reaches (TERM_GROUPS), and of
-        their sum on every group: metrics "grad/<term>/<group>", so the balance of the terms is visible.
+    # The gradient diagnostics: metrics "grad/<term>/<group>", the norm of each weighted loss term's gradient on
+    # each parameter group it reaches (TERM_GROUPS), and "grad/total/<group>", of their sum. They are taken on the
+    # SGD's first minibatch of each update, at the update's starting parameters, from the SGD's own gradient
+    # (`sgd`; `grad_norms` is the same on any one minibatch). No second copy of the loss is differentiated: l_cc's
+    # share is tapped from the SGD's backward (`zero_taps`), and the other terms, which do not run the k-step
+    # chain, are differentiated once apart (`rest_gradient`).
 
-        Once per update, on one minibatch: the consistency chain runs scanned (fused=False), not as the SGD's fused
-        and unrolled chain, which would be compiled a second time here (a third of the CD update's program)."""
+    def zero_taps(self, params, mb: "Batch") -> dict | None:
+        """Zeros for `loss_terms`' taps (None without the consistency term): {"model": like params["model"],
+        "actions": [L, Bs, A]}."""
+        if not self.config.use_consistency:
+            return None
+        return {"model": jax.tree.map(jnp.zeros_like, params["model"]), "actions": jnp.zeros_like(mb.action)}
+
+    def tapped_gradient(self, params, norms, mb, offsets, hp, with_consistency: bool = True, taps=None):
+        """jax.grad of `loss` -> (gradient, the taps' gradient or None, metrics): with taps (`zero_taps`), the
+        same gradient and, on the taps, l_cc's share of the model's gradient and of the actions' cotangent."""
+        if taps is None:
+            grads, metrics = jax.grad(self.loss, has_aux=True)(params, norms, mb, offsets, hp, with_consistency)
+            return grads, None, metrics
+        loss = lambda p, t: self.loss(p, norms, mb, offsets, hp, with_consistency, t)  # noqa: E731
+        (grads, tapped), metrics = jax.grad(loss, argnums=(0, 1), has_aux=True)(params, taps)
+        return grads, tapped, metrics
+
+    def rest_terms(self, params, norms, mb: "Batch", offsets, hp) -> dict:
+        """The loss terms other than l_cc, without its k-step chain: PPO, the model's NLL and, for grounded-gru,
+        the encoder's auxiliary term alone (`consistency.grounding_term`)."""
+        terms, _ = self.loss_terms(params, norms, mb, offsets, hp, with_consistency=False)
+        if self.config.use_consistency and self.config.encoder == "grounded-gru":
+            _, _, real_next, mask = consistency.windows(mb.obs, mb.next_obs, mb.action, mb.ended, mb.valid, offsets,
+                                                        self.k)
+            terms["encoder_aux"], _ = consistency.grounding_term(self.encoder, params["encoder"], real_next, mask,
+                                                                 norms.obs)
+        return terms
+
+    def rest_gradient(self, params, norms, mb, offsets, hp) -> dict | None:
+        """The gradient of the weighted terms other than l_cc on one minibatch (None without l_cc, when the SGD's
+        gradient on each group is one term's). Each group is reached by at most one of them (TERM_GROUPS), so
+        its part of this gradient is that term's."""
+        if not self.config.use_consistency:
+            return None
         weights = term_weights(hp)
 
-        def weighted(p):
-            terms, _ = self.loss_terms(p, norms, mb, offsets, hp, fused=False)
-            return {name: weights[name] * term for name, term in terms.items()}
+        def rest(p):
+            return sum(weights[n] * t for n, t in self.rest_terms(p, norms, mb, offsets, hp).items())
 
-        out, pullback = jax.vjp(weighted, params)
-        names = list(out)
-        # one backward pass for all terms (the pullback vmapped over one-hot cotangents), not one per term
-        cotangents = {n: (jnp.arange(len(names)) == i).astype(out[n].dtype) for i, n in enumerate(names)}
-        (stacked,) = jax.vmap(pullback)(cotangents)  # leaves [terms, ...]
-        metrics = {}
-        for i, name in enumerate(names):
-            for group in TERM_GROUPS[name]:
-                if group in stacked:
-                    metrics[f"grad/{name}/{group}"] = optax.global_norm(jax.tree.map(lambda g: g[i], stacked[group]))
-        for group, g in stacked.items():
-            metrics[f"grad/total/{group}"] = optax.global_norm(jax.tree.map(lambda x: x.sum(0), g))
-        return metrics
+        return jax.grad(rest)(params)
+
+    def step_grad_norms(self, grads, tapped, rest) -> dict:
+        """The diagnostics that need a minibatch's own gradient (`tapped_gradient`; in the SGD, every step of its
+        first scan computes them and the first step's are kept): the total's norm on each group and, without
+        l_cc, each term's (the only one on its groups); with it, l_cc's on the model (its tap) and on the encoder.
+        The encoder's is the one taken as a difference (the total less `rest`'s encoder_aux, whose real-row pass
+        l_cc shares): its error is the rounding of the two gradients, about 1e-7 of encoder_aux's in float32 and
+        more where a GPU multiplies in TF32; the policy's and the model's shares are computed, not subtracted."""
+        out = {f"grad/total/{group}": _norm(g) for group, g in grads.items()}
+        if tapped is None:
+            for name in self.term_names():
+                out.update({f"grad/{name}/{group}": _norm(grads[group]) for group in TERM_GROUPS[name]
+                            if group in grads})
+            return out
+        out["grad/consistency/model"] = _norm(tapped["model"])
+        if "encoder" in grads:
+            out["grad/consistency/encoder"] = _norm(jax.tree.map(jnp.subtract, grads["encoder"], rest["encoder"]))
+        return out
+
+    def rest_grad_norms(self, params, norms, mb, rest, actions_cotangent) -> dict:
+        """The diagnostics of the other terms (their gradient `rest`) and l_cc's on the policy: the policy's
+        backward of its tapped cotangent on the actions of mb (empty without l_cc)."""
+        if rest is None:
+            return {}
+        out = {f"grad/{name}/{group}": _norm(rest[group]) for name in self.term_names() if name != "consistency"
+               for group in TERM_GROUPS[name] if group in rest}
+
+        def actions(policy_params):
+            mean, std = self.policy.apply(policy_params, nz.normalize(norms.obs, mb.obs))
+            return networks.act_from_noise(mean, std, mb.noise)
+
+        _, pullback = jax.vjp(actions, params["policy"])
+        out["grad/consistency/policy"] = _norm(pullback(actions_cotangent)[0])
+        return out
+
+    def term_names(self) -> tuple[str, ...]:
+        """The names of the terms `loss_terms` returns."""
+        names = ("ppo",) + (("model_nll",) if self.model is not None else ())
+        if self.config.use_consistency:
+            names += ("consistency",) + (("encoder_aux",) if self.config.encoder == "grounded-gru" else ())
+        return names
+
+    def grad_norms(self, params, norms, mb, offsets, hp) -> dict:
+        """The gradient diagnostics on one minibatch mb at params (see above): what `sgd` reports of its first
+        minibatch, from the same pieces."""
+        grads, tapped, _ = self.tapped_gradient(params, norms, mb, offsets, hp, taps=self.zero_taps(params, mb))
+        rest = self.rest_gradient(params, norms, mb, offsets, hp)
+        out = self.step_grad_norms(grads, tapped, rest)
+        out.update(self.rest_grad_norms(params, norms, mb, rest, None if tapped is None else tapped["actions"]))
+        return out
 
     def openloop_metrics(self, model_params, norms, history: History) -> dict:
         """Open-loop MSE (normalised space) of the model at k and at eval_horizon steps on real data."""
@@ -309,49 +395,75 @@ class ObsAgent:
         return env_state, episodes, traj, batch
 
     def sgd(self, params, opt_state, norms, data: "Batch", hp: HParams, key: jax.Array):
-        """Epochs x minibatches of Adam steps on the loss; minibatches are shuffled sequences of L steps."""
+        """Epochs x minibatches of Adam steps on the loss; minibatches are shuffled sequences of L steps. The
+        gradient diagnostics (`grad_norms`) are those of the first step: its minibatch, at params."""
         tx = make_optimizer(self.config, params, hp)
         segments = jax.tree.map(lambda x: to_segments(x, self.L), data)  # [L, N, ...]
-        N = self.config.num_segments
         Bs = self.config.minibatch_seqs
+        cc = self.config.use_consistency
 
         names = {}  # with_consistency -> the metric names, in the order of the stacked vector (set when traced)
+        _, key_epochs = jax.random.split(key)  # (the first key is unused: the epochs' keys stay those of before)
+        epoch_keys = jax.random.split(key_epochs, self.config.num_epochs)
+        first, rest = None, None
+        if cc:
+            first, first_offsets = self.first_minibatch(segments, epoch_keys[0])
+            rest = self.rest_gradient(params, norms, first, first_offsets, hp)
 
         def minibatch(carry, inp, with_consistency):
-            params, opt_state = carry
+            params, opt_state, tap = carry
             mb, key = inp
             offsets = consistency.window_offsets(key, self.L, self.k, self.config.num_windows)
-            grads, metrics = jax.grad(self.loss, has_aux=True)(params, norms, mb, offsets, hp, with_consistency)
+            taps = self.zero_taps(params, mb) if with_consistency else None
+            grads, tapped, metrics = self.tapped_gradient(params, norms, mb, offsets, hp, with_consistency, taps)
             updates, opt_state = tx.update(grads, opt_state, params)
+            values = list(metrics.values())
+            if with_consistency:  # the diagnostics of every step; the first one's are kept (and its actions' tap)
+                diagnostics = self.step_grad_norms(grads, tapped, rest)
+                values += list(diagnostics.values())
+                names["diagnostics"] = list(diagnostics)
+                if cc:
+                    is_first, kept = tap
+                    tap = (jnp.zeros((), bool), jnp.where(is_first, tapped["actions"], kept))
             # one stacked vector per minibatch, not one output per metric: on a GPU each scan output is a
             # small write of its own in every one of the epochs x minibatches steps
             names[with_consistency] = list(metrics)
-            return (optax.apply_updates(params, updates), opt_state), jnp.stack(list(metrics.values()))
+            return (optax.apply_updates(params, updates), opt_state, tap), jnp.stack(values)
 
         def epoch(carry, key, with_consistency):
-            key_perm, key_mb = jax.random.split(key)
-            perm = jax.random.permutation(key_perm, N)
+            perm, mb_keys = self.shuffle(key)
             split = lambda x: jnp.swapaxes(x[:, perm].reshape((self.L, self.M, Bs) + x.shape[2:]), 0, 1)  # noqa: E731
             step = functools.partial(minibatch, with_consistency=with_consistency)
-            return jax.lax.scan(step, carry, (jax.tree.map(split, segments), jax.random.split(key_mb, self.M)))
+            return jax.lax.scan(step, carry, (jax.tree.map(split, segments), mb_keys))
 
         # Epochs with the consistency term first, then (cc_epochs > 0) the rest without it.
-        key_diag, key_epochs = jax.random.split(key)
-        first = jax.tree.map(lambda x: x[:, :Bs], segments)
-        offsets = consistency.window_offsets(key_diag, self.L, self.k, self.config.num_windows)
-        diagnostics = self.grad_norms(params, norms, first, offsets, hp)
-        epoch_keys = jax.random.split(key_epochs, self.config.num_epochs)
         n_cc = self.config.num_epochs if self.config.cc_epochs == 0 else self.config.cc_epochs
-        carry, stacked = jax.lax.scan(functools.partial(epoch, with_consistency=True), (params, opt_state),
-                                      epoch_keys[:n_cc])
-        metrics = dict(zip(names[True], stacked.mean((0, 1))))
+        tap = (jnp.ones((), bool), jnp.zeros_like(first.action)) if cc else ()
+        (params_new, opt_state, tap), stacked = jax.lax.scan(
+            functools.partial(epoch, with_consistency=True), (params, opt_state, tap), epoch_keys[:n_cc])
+        n = len(names[True])
+        metrics = dict(zip(names[True], stacked[..., :n].mean((0, 1))))
+        metrics.update(zip(names["diagnostics"], stacked[0, 0, n:]))
+        metrics.update(self.rest_grad_norms(params, norms, first, rest, tap[1] if cc else None))
+        carry = (params_new, opt_state, tap)
         if n_cc < self.config.num_epochs:  # a metric of both parts: the mean over all epochs
             carry, stacked = jax.lax.scan(functools.partial(epoch, with_consistency=False), carry, epoch_keys[n_cc:])
             n_rest = self.config.num_epochs - n_cc
             for name, value in zip(names[False], stacked.mean((0, 1))):
                 metrics[name] = (n_cc * metrics[name] + n_rest * value) / self.config.num_epochs
-        metrics.update(diagnostics)
-        return carry, metrics
+        return carry[:2], metrics
+
+    def shuffle(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """One epoch's order: (the permutation of the N sequences [N], the keys of its M minibatches [M])."""
+        key_perm, key_mb = jax.random.split(key)
+        return jax.random.permutation(key_perm, self.config.num_segments), jax.random.split(key_mb, self.M)
+
+    def first_minibatch(self, segments: "Batch", key: jax.Array) -> tuple["Batch", jax.Array]:
+        """The first minibatch [L, Bs, ...] of the epoch with key `key` (`sgd`'s epochs; segments: leaves
+        [L, N, ...]) and its windows' offsets: what the SGD's first step takes."""
+        perm, mb_keys = self.shuffle(key)
+        mb = jax.tree.map(lambda x: x[:, perm[:self.config.minibatch_seqs]], segments)
+        return mb, consistency.window_offsets(mb_keys[0], self.L, self.k, self.config.num_windows)
 
     def update(self, state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
         hp = hp.as_float32()
