@@ -58,24 +58,13 @@ ensure_wheels() {
 
 # pack_site: .whl-site/site.tar.xz from .whl/*.whl (run here, from the repository root, after
 # ../shared/device/wheels.sh): each wheel unzipped into one directory, as `pip install --no-deps --target` lays it out
-# (none of these wheels has a .data directory), then packed with xz (a minute or two on 2 cores).
+# (none of these wheels has a .data directory), then packed with xz (a minute or two on 2 cores). Left out: the wheels
+# no cdjax module imports, mujoco_studio (MuJoCo's GUI, 12.8 MB of wheel, 34 MB unpacked; `import mujoco` and
+# mujoco.viewer do not load it: checked with mujoco 4.0.0 on Python 3.12). From the .whl/ of 2026-11-25 (43 MB,
+# mujoco 4.0.0 split into mujoco, mujoco-core and mujoco-studio) the tarball is 15.9 MB (23.1 MB with the GUI): the
+# ALE units carry it beside .whl-ale/ and .whl-atari/ (`carry_size .whl-site .whl-ale .whl-atari` says whether
+# they fit).
 pack_site() {
-  local tmp
-  tmp=$(mktemp -d) || return 1
-  for w in .whl/*.whl; do
-    python3 -c "import sys, zipfile; z = zipfile.ZipFile(sys.argv[1]); \
-assert not any('.data/' in n for n in z.namelist()), sys.argv[1] + ' has a .data directory'; z.extractall(sys.argv[2])" \
-      "$w" "$tmp" || { rm -rf "$tmp"; return 1; }
-  done
-  mkdir -p .whl-site && tar -cJf .whl-site/site.tar.xz -C "$tmp" . && rm -rf "$tmp" && ls -l .whl-site/site.tar.xz
-}
-
-# pack_site_lean: pack_site without the wheels that no cdjax module imports: mujoco_studio (MuJoCo's GUI, 12.8 MB
-# of wheel, 34 MB unpacked; `import mujoco` and mujoco.viewer do not load it: checked with mujoco 4.0.0 on Python
-# 3.12). Built from today's .whl/ (2026-11-25: 43 MB, mujoco 4.0.0 split into mujoco, mujoco-core and
-# mujoco-studio), pack_site's tarball is 23.1 MB and this one 15.9 MB: the ALE units carry it beside .whl-ale/ and
-# .whl-atari/ (`carry_size .whl-site .whl-ale .whl-atari` says whether they fit).
-pack_site_lean() {
   local tmp w
   tmp=$(mktemp -d) || return 1
   for w in .whl/*.whl; do

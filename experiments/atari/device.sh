@@ -31,8 +31,8 @@
 # report and packing.
 # Each call first installs what the machine lacks: ensure_wheels (.whl-site/ or .whl/), then gymnasium from
 # .whl-atari/ and ale-py from .whl-ale/. Carry [".whl-site", ".whl-ale", ".whl-atari"], built here by
-# ../shared/device/wheels.sh, then `. experiments/lease.sh; pack_site_lean; ale_wheels` (pack_site's .whl-site, 23.1 MB
-# on 2026-11-25, does not fit beside the ALE wheels: `carry_size .whl-site .whl-ale .whl-atari` says).
+# ../shared/device/wheels.sh, then `. experiments/lease.sh; pack_site; ale_wheels` (`carry_size .whl-site .whl-ale
+# .whl-atari` says whether they fit: 58.2 MiB on 2026-11-25).
 # SWEEP_ARGS holds more `cdjax sweep` options (e.g. "--steps 20000 --chunk-updates 25" for a try).
 #
 # Within one call (MinAtar, and the old ALE path): A2C vs A2C + consistency on MinAtar games (10 seeds vmapped per
