@@ -1,6 +1,6 @@
 """The pixel experiment's table and figures from the directories of experiments/pixel/device.sh and units.sh.
 
-    python -m experiments.pixel.report OUT                       # OUT/report.md, OUT/report.csv, OUT/figures/*.png
+    python -m experiments.pixel.report OUT                       # OUT/report.md, OUT/figures/*.png
     python -m experiments.pixel.report --strips RUN_DIR STRIPS   # PNG strips of seed 0 of each arm of a pixel sweep
     python -m experiments.pixel.report --compact-strips STRIPS SMALL   # what results keep (1 sequence, 20 steps)
 
