@@ -18,6 +18,13 @@
 #            model-free, Mb-Mf, CD on the paper's schedule; ant, 4096 envs, the matched Spec) in two
 #            processes, XLA's defaults and XLA_FLAGS=--xla_gpu_enable_triton_gemm=false (the suite jits its own
 #            programs, so the flag, not cdjax's per-program mode, reaches all of them, Brax's too).
+#   accept   issue 21's acceptance figures in one lease (about 12 minutes on an H200 as measured in parts before;
+#            ask for nvidia-h100-x1 to set them beside 2026-11-24-h100-compare): the compare suite (Brax PPO,
+#            model-free, Mb-Mf, CD on the paper's schedule; ant, 4096 envs, the matched Spec) in one process with a
+#            profile of one update per cdjax case (--trace: what remains); then, in a process of its own so that
+#            the compare suite's budget cannot skip it, the seeds suite at 10 vmapped seeds of 256 envs for Mb-Mf and
+#            the paper's CD (the 10-seed ratio); then the 4-arm ant sweep compiled cold with XLA's defaults (the
+#            README's compile figure). Each part is stopped by `timeout` so the unit ends inside 840 s.
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -56,7 +63,16 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "> $work/no-triton-gemm.log 2>&1;" \
         "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/fast.log;" \
         "tail -n 12 $work/default/results.md $work/no-triton-gemm/results.md" ;;
-    *) echo "unknown unit $1: flags, lowered or speed" >&2; return 1 ;;
+    accept)
+      echo "timeout -k 20 360 python -m benchmarks.run --suite compare --cases brax-ppo model-free mbmf cd-paper" \
+        "--budget-s 330 --trace $work/trace --out $work/compare > $work/compare.log 2>&1;" \
+        "timeout -k 20 240 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
+        "--seed-envs 256 --budget-s 210 --out $work/seeds > $work/seeds.log 2>&1;" \
+        "timeout -k 20 240 python -m benchmarks.compile_time --out $work/cold --cache-dir $work/cache-cold -- $sweep" \
+        "> $work/cold.log 2>&1;" \
+        "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold.log;" \
+        "tail -n 14 $work/compare/results.md $work/seeds/results.md" ;;
+    *) echo "unknown unit $1: flags, lowered, speed or accept" >&2; return 1 ;;
   esac
 }
 
