@@ -129,13 +129,23 @@ def iqm_interval(values: Sequence[float], reps: int = 2000, seed: int = 0) -> tu
     return float(est[0]), float(interval[0, 0]), float(interval[1, 0]), int(x.size)
 
 
-def final_values(values: np.ndarray, present: np.ndarray, fraction: float = FINAL_FRACTION) -> np.ndarray:
-    """[S]: per seed, the nan-mean of values [S, U] over the last `fraction` of its logged points (present)."""
+def final_values(values: np.ndarray, present: np.ndarray, fraction: float = FINAL_FRACTION,
+                 steps: np.ndarray | None = None) -> np.ndarray:
+    """[S]: per seed, the nan-mean of values [S, U] over the last `fraction` of its logged points (present).
+
+    With steps [U] (the env steps of the points), over the points in the last `fraction` of the seed's steps
+    instead (those past (1 - fraction) x its last logged step; at least the last point): the same window for a
+    log kept at every update, and still the same window after a log is thinned unevenly (every n-th point early,
+    every point late), where counting points would shrink it."""
     out = np.full(values.shape[0], np.nan)
     for s in range(values.shape[0]):
         idx = np.flatnonzero(present[s])
         if idx.size:
-            last = idx[-max(1, math.ceil(fraction * idx.size)):]
+            if steps is None:
+                last = idx[-max(1, math.ceil(fraction * idx.size)):]
+            else:
+                at = np.asarray(steps, float)[idx]
+                last = idx[(at > (1.0 - fraction) * at[-1]) | (np.arange(idx.size) == idx.size - 1)]
             out[s] = nan_reduce(np.nanmean, values[s, last], axis=None)
     return out
 

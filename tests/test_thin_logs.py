@@ -70,3 +70,25 @@ def test_learning_curves_take_the_updates_every_seed_logged():
     (label, (updates, values)), = curve(rows, (("m", "metric"),), every=10, reps=50).items()
     assert label == "ltq" and updates == [1, 11, 31]  # 21 lacks seed 2
     assert [round(v[0], 6) for v in values["m"]] == [2.0, 22.0, 62.0]  # the IQM of 1x, 2x, 3x: the middle seed
+
+
+def test_the_final_window_is_the_same_on_a_thinned_log_as_on_the_whole_one():
+    """stats.final_values with steps averages the last 10% of the env steps: a log thinned unevenly (sparse early,
+    whole at the end, as thin_rows keeps it) gives the figure of the whole log; counting points would not."""
+    import numpy as np
+
+    from cdjax import stats
+
+    rows = _rows(1000, [("a", 0)])
+    for r in rows:
+        r["x"] = float(r["update"])  # a rising curve: the window's extent decides the mean
+    kept = thin_rows(rows, points=100, tail=150)
+    steps_all = np.array([r["update"] for r in rows], float)
+    steps_kept = np.array([r["update"] for r in kept], float)
+    full, thinned = np.array([[r["x"] for r in rows]]), np.array([[r["x"] for r in kept]])
+    whole = stats.final_values(full, np.ones_like(full, bool), steps=steps_all)[0]
+    assert whole == np.mean(np.arange(901, 1001))  # updates 901..1000: the last 10% of the steps
+    assert stats.final_values(thinned, np.ones_like(thinned, bool), steps=steps_kept)[0] == whole
+    by_points = stats.final_values(thinned, np.ones_like(thinned, bool))[0]
+    assert by_points > whole + 20  # the last 10% of ~240 kept points: only the last ~24 updates
+    assert stats.final_values(full, np.ones_like(full, bool))[0] == whole  # a whole log: both windows agree

@@ -207,8 +207,8 @@ def markdown(sets: dict, per_game: dict, randoms: dict, pub: list[dict]) -> str:
                      f"{r['a2c_eval_mean']:.1f} | {100 * r['eval_cut_fraction']:.0f}% |")
     lines += ["", "Paper: average return over the final 100 training episodes of 5M frames, 30 runs, at the best step "
               "size, read from its figure (approximate). a2c at 5M: each seed's training return over the updates in "
-              "(4.5M, 5M] env steps of the 10M-step runs, mean over 10 seeds (IQM [95% interval]). Final: the last 10% "
-              "of the logged training returns; eval: the final 100 sampled-action episodes."]
+              "(4.5M, 5M] env steps of the 10M-step runs, mean over 10 seeds (IQM [95% interval]). Final: the training "
+              "returns logged over the last 10% of the env steps; eval: the final 100 sampled-action episodes."]
     return "\n".join(lines) + "\n"
 
 

@@ -5,7 +5,8 @@
 One run directory per game (`cdjax sweep --setting atari`). Arms are compared at the same budget: a game whose
 runs were stopped by a time limit is cut at the largest env-step count that all of its arms reached, and the
 table says so. Statistics are cdjax.stats': IQM over seeds with a 95% stratified-bootstrap interval (rliable);
-final = mean of the last 10% of each seed's logged training returns up to the budget; AUC = env-step weighted
+final = mean of each seed's logged training returns in the last 10% of its env steps up to the budget (a window
+of steps, not of points, so that unevenly thinned logs give the same figure as whole ones); AUC = env-step weighted
 mean of each seed's training-return curve up to the budget (sample efficiency); eval = the mean return of each
 seed's latest evaluation (100 episodes, sampled actions since 2026-11-22, greedy before; sticky actions). Throughput: env steps per second
 of wall time of each arm over all of its runs (the arms of a game alternate chunks in one process).
@@ -78,7 +79,7 @@ def seed_scores(data: dict, label: str) -> dict[str, np.ndarray]:
     present = np.ones(returns.shape, bool)  # every update logged a point (NaN before a first episode end)
     ev = data["evals"].get(label, {})
     evals = np.array([np.nan if ev.get(s, (0, None))[1] is None else ev[s][1] for s in range(returns.shape[0])])
-    return {"final": stats.final_values(returns, present), "auc": stats.area_under_curve(returns, present, steps),
+    return {"final": stats.final_values(returns, present, steps=steps), "auc": stats.area_under_curve(returns, present, steps),
             "eval": evals}
 
 
@@ -120,8 +121,8 @@ def markdown(rows: list[dict]) -> str:
                      f"{'/'.join(r['eval_modes'])}) | "
                      f"{', '.join(f'{s:.3g}' for s in r['eval_steps'])} | {r['steps_per_s']:,.0f} |")
     lines.append("")
-    lines.append("IQM over seeds [95% stratified-bootstrap interval]. final: last 10% of the logged training returns "
-                 "up to the budget; AUC: env-step weighted mean of the training-return curve up to the budget; eval: "
+    lines.append("IQM over seeds [95% stratified-bootstrap interval]. final: the logged training returns of the last 10% "
+                 "of the env steps up to the budget; AUC: env-step weighted mean of the training-return curve up to the budget; eval: "
                  "latest evaluation of each seed (greedy: the most probable action; sampled: the policy's own; sticky actions as "
                  "in training).")
     return "\n".join(lines) + "\n"
