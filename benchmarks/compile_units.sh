@@ -25,6 +25,12 @@
 #            the compare suite's budget cannot skip it, the seeds suite at 10 vmapped seeds of 256 envs for Mb-Mf and
 #            the paper's CD (the 10-seed ratio); then the 4-arm ant sweep compiled cold with XLA's defaults (the
 #            README's compile figure). Each part is stopped by `timeout` so the unit ends inside 840 s.
+#   hlo      what the largest kernels of the model arms compute (about 6 minutes): the compare suite's Mb-Mf and
+#            paper-CD cases with XLA's optimised HLO of their updates dumped (XLA_FLAGS --xla_dump_to, modules
+#            jit_update) and profiled (--trace), then benchmarks.hlo_fusions on the kernels the 2026-11-25 H100 profile
+#            named (input_multiply_negate_reduce_select_fusion, 67 ms of Mb-Mf's 462 ms of kernels per update; the
+#            chain's concatenate and pad fusions): their fused computations and the JAX source lines
+#            (fusions.log; hlo.tar.gz holds the optimised HLO text).
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -72,7 +78,15 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "> $work/cold.log 2>&1;" \
         "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold.log;" \
         "tail -n 14 $work/compare/results.md $work/seeds/results.md" ;;
-    *) echo "unknown unit $1: flags, lowered, speed or accept" >&2; return 1 ;;
+    hlo)
+      dump="--xla_dump_to=$work/dump --xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update"
+      echo "XLA_FLAGS='$dump' timeout -k 20 300 python -m benchmarks.run --suite compare --cases mbmf cd-paper" \
+        "--budget-s 270 --trace $work/trace --out $work/compare > $work/compare.log 2>&1;" \
+        "python -m benchmarks.hlo_fusions $work/dump input_multiply_negate_reduce_select loop_concatenate_fusion" \
+        "loop_pad_fusion > $work/fusions.log 2>&1;" \
+        "find $work/dump -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz;" \
+        "grep -h -E '^== |^     (jit|[^ ]*/)' $work/fusions.log | head -n 60" ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept or hlo" >&2; return 1 ;;
   esac
 }
 
@@ -83,7 +97,7 @@ ensure_wheels || exit 1
 unit_run "$work" "$cmd" "$wait_s" "$t0" "bash benchmarks/compile_units.sh $unit" || exit 0
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
 archive=$(cd "$out" && pwd)/$unit.tar.gz
-(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name 'results.*' -o -name '*.log' \
+(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name 'results.*' -o -name '*.log' -o -name hlo.tar.gz \
   | grep -v '/checkpoints/' \
   | tar -czf "$archive" -T -)
 cp "$work/unit.log" "$out/$unit.log"

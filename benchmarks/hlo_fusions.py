@@ -1,0 +1,157 @@
+"""What a profiled kernel computes: the fused computations of XLA's optimised HLO whose instruction names start with
+a given prefix (the names a GPU profile shows, e.g. `input_multiply_negate_reduce_select_fusion`), with the JAX
+operations and source lines their metadata names.
+
+    XLA_FLAGS="--xla_dump_to=DUMP --xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" python -m benchmarks.run ...
+    python -m benchmarks.hlo_fusions DUMP PREFIX [PREFIX ...] [--max-lines 80]
+
+DUMP is an XLA dump directory (its `*after_optimizations.txt` files are read) or one HLO text file (e.g. what
+`jax.jit(f).lower(...).compile().as_text()` returns, written to a file). For each instruction whose name starts with
+a prefix: the file, the instruction (its shape, operands and kind), the computation it calls, and the distinct
+`op_name`s and source lines inside that computation (source_file/source_line, or the stack-frame tables newer XLA
+writes), the JAX code the kernel came from.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import pathlib
+import re
+
+_COMPUTATION = re.compile(r"^(?:ENTRY\s+)?%([\w.\-]+)\s.*\{\s*$")
+_INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*)$")
+_CALLS = re.compile(r"calls=%?([\w.\-]+)")
+_OP_NAME = re.compile(r'op_name="([^"]*)"')
+_SOURCE = re.compile(r'source_file="([^"]*)"\s+source_line=(\d+)')
+_FRAME = re.compile(r"stack_frame_id=(\d+)")
+_TABLE_ROW = re.compile(r"^(\d+)\s+(.*)$")
+
+
+def hlo_files(path: pathlib.Path) -> list[pathlib.Path]:
+    """The optimised-HLO text files of a dump directory, or the one file given."""
+    if path.is_file():
+        return [path]
+    return sorted(path.rglob("*after_optimizations.txt"))
+
+
+def computations(text: str) -> dict[str, list[str]]:
+    """{computation name: its lines} of one HLO module's text (ENTRY included)."""
+    out: dict[str, list[str]] = {}
+    name = None
+    for line in text.splitlines():
+        if name is None:
+            m = _COMPUTATION.match(line.strip())
+            if m:
+                name = m.group(1)
+                out[name] = []
+            continue
+        if line.strip() == "}":
+            name = None
+            continue
+        out[name].append(line)
+    return out
+
+
+def frames(text: str) -> dict[str, str]:
+    """{stack_frame_id: "file:line (function)"} from a module's FileNames / FunctionNames / FileLocations /
+    StackFrames tables (newer XLA's form of source metadata), the innermost frame first with up to two callers."""
+    tables: dict[str, dict[str, str]] = collections.defaultdict(dict)
+    table = None
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
+            table = stripped
+            continue
+        if table is None:
+            continue
+        m = _TABLE_ROW.match(stripped)
+        if not m:
+            table = None if not stripped else table
+            if stripped.startswith("%") or stripped.startswith("ENTRY"):
+                break
+            continue
+        tables[table][m.group(1)] = m.group(2)
+    field = lambda row, key: re.search(key + r"=(\d+)", row).group(1)  # noqa: E731
+
+    def location(frame_id: str) -> tuple[str, str | None]:
+        row = tables["StackFrames"][frame_id]
+        loc = tables["FileLocations"].get(field(row, "file_location_id"), "")
+        file_name = tables["FileNames"].get(field(loc, "file_name_id"), '""').strip('"') if loc else "?"
+        function = tables["FunctionNames"].get(field(loc, "function_name_id"), '""').strip('"') if loc else "?"
+        line_no = field(loc, "line") if loc else "?"
+        parent = field(row, "parent_frame_id")
+        return f"{file_name}:{line_no} ({function})", (parent if parent != frame_id and parent != "0" else None)
+
+    out = {}
+    for frame_id in tables.get("StackFrames", {}):
+        chain, current = [], frame_id
+        while current is not None and len(chain) < 3 and current in tables["StackFrames"]:
+            where, current = location(current)
+            if not chain or chain[-1] != where:
+                chain.append(where)
+        out[frame_id] = " <- ".join(chain)
+    return out
+
+
+def sources(lines: list[str], stack: dict[str, str] | None = None) -> list[tuple[str, str]]:
+    """Distinct (op_name, source) of the instructions in lines, in order of appearance."""
+    seen: dict[tuple[str, str], None] = {}
+    for line in lines:
+        op, src, frame = _OP_NAME.search(line), _SOURCE.search(line), _FRAME.search(line)
+        where = f"{src.group(1)}:{src.group(2)}" if src else (stack or {}).get(frame.group(1), "") if frame else ""
+        if op or where:
+            seen.setdefault((op.group(1) if op else "", where), None)
+    return list(seen)
+
+
+def find(path: pathlib.Path, prefixes: list[str]) -> list[dict]:
+    """Every instruction whose name starts with one of prefixes, with the computation it calls."""
+    found = []
+    for f in hlo_files(path):
+        text = f.read_text()
+        comps, stack = computations(text), frames(text)
+        for comp, lines in comps.items():
+            for line in lines:
+                m = _INSTRUCTION.match(line)
+                if not m or not any(m.group(1).startswith(p) for p in prefixes):
+                    continue
+                called = _CALLS.search(m.group(2))
+                body = comps.get(called.group(1), []) if called else []
+                found.append({"file": str(f), "in": comp, "name": m.group(1), "instruction": line.strip(),
+                              "calls": called.group(1) if called else None, "body": body,
+                              "sources": sources(body + [line], stack)})
+    return found
+
+
+def report(found: list[dict], max_lines: int = 80) -> str:
+    if not found:
+        return "no instruction with that name"
+    out = []
+    counts = collections.Counter(f["name"] for f in found)
+    for f in found:
+        out += [f"== {f['name']} ({f['file']}, in {f['in']}; {counts[f['name']]} such in the dump)",
+                f"   {f['instruction'][:600]}"]
+        if f["calls"]:
+            out.append(f"   calls {f['calls']} ({len(f['body'])} instructions):")
+            out += [f"     {line.strip()[:300]}" for line in f["body"][:max_lines]]
+            if len(f["body"]) > max_lines:
+                out.append(f"     ... {len(f['body']) - max_lines} more")
+        out.append("   from:")
+        out += [f"     {op}  {src}".rstrip() for op, src in f["sources"]] or ["     (no metadata)"]
+    return "\n".join(out)
+
+
+def main(argv=None) -> str:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("dump", type=pathlib.Path, help="XLA dump directory or one optimised-HLO text file")
+    p.add_argument("prefixes", nargs="+", help="instruction-name prefixes (as a GPU profile names the kernels)")
+    p.add_argument("--max-lines", type=int, default=80, help="lines of each fused computation to print")
+    args = p.parse_args(argv)
+    text = report(find(args.dump, args.prefixes), args.max_lines)
+    print(text)
+    return text
+
+
+if __name__ == "__main__":
+    main()
