@@ -43,3 +43,16 @@ def test_probability_of_improvement_by_hand():
     assert result["eval"]["poi"][0] == pytest.approx(((2.5 / 9) + 0.5 * (len(GAMES) - 1)) / len(GAMES))
     curve, _ = result["eval"]["profiles"]["a2c"]
     assert curve[0] == 1.0 and curve[-1] == 0.0  # every run above tau 0, none above tau 2
+
+
+def test_the_table_says_not_evaluated_instead_of_an_empty_episode_count():
+    from experiments.atari import report
+
+    row = dict(game="ale-breakout", arm="a2c", seeds=3, budget=1e6, final=(2.0, 1.9, 2.1, 3), auc=(1.8, 1.7, 1.9, 3),
+               steps_per_s=2973.0)
+    unevaluated = report.markdown([dict(row, eval=(float("nan"), float("nan"), float("nan"), 0), eval_episodes=[],
+                                        eval_modes=[], eval_steps=[])]).splitlines()[2]
+    assert "| n/a (not evaluated) | n/a |" in unevaluated and "( episodes" not in unevaluated
+    evaluated = report.markdown([dict(row, eval=(2.07, 2.03, 2.15, 3), eval_episodes=[100], eval_modes=["sampled"],
+                                      eval_steps=[1e6])]).splitlines()[2]
+    assert "| 2.07 [2.03, 2.15] (100 episodes, sampled) | 1e+06 |" in evaluated

@@ -116,10 +116,11 @@ def markdown(rows: list[dict]) -> str:
     lines = ["| game | arm | seeds | env steps (budget) | final return | AUC return | eval return | eval at env steps "
              "| env steps/s (the arm's runs) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        evaluated = (f"{_cell(r['eval'])} ({'/'.join(map(str, r['eval_episodes']))} episodes, "
+                     f"{'/'.join(r['eval_modes'])})" if r["eval_episodes"] else "n/a (not evaluated)")
         lines.append(f"| {r['game']} | {r['arm']} | {r['seeds']} | {r['budget']:.3g} | {_cell(r['final'])} | "
-                     f"{_cell(r['auc'])} | {_cell(r['eval'])} ({'/'.join(map(str, r['eval_episodes']))} episodes, "
-                     f"{'/'.join(r['eval_modes'])}) | "
-                     f"{', '.join(f'{s:.3g}' for s in r['eval_steps'])} | {r['steps_per_s']:,.0f} |")
+                     f"{_cell(r['auc'])} | {evaluated} | "
+                     f"{', '.join(f'{s:.3g}' for s in r['eval_steps']) or 'n/a'} | {r['steps_per_s']:,.0f} |")
     lines.append("")
     lines.append("IQM over seeds [95% stratified-bootstrap interval]. final: the logged training returns of the last 10% "
                  "of the env steps up to the budget; AUC: env-step weighted mean of the training-return curve up to the budget; eval: "
