@@ -79,12 +79,8 @@ assert not any('.data/' in n for n in z.namelist()), sys.argv[1] + ' has a .data
 # ale_wheels: .whl-ale/ (ale-py 0.12.1, 3.1 MB; its wheel bundles the ROMs) and .whl-atari/ (gymnasium 1.3.0 and
 # farama-notifications 0.0.6, 0.96 MB: what ale_py.vector_env imports; the GPU image has their other needs, numpy,
 # cloudpickle and typing-extensions) for experiments/atari/device.sh, downloaded here (run from the repository root;
-# the GPU machine reaches no package index) and kept out of git through .git/info/exclude, as wheels.sh keeps .whl/.
+# the GPU machine reaches no package index); .gitignore keeps both out of git.
 ale_wheels() {
-  local exclude d
-  exclude=$(git rev-parse --git-path info/exclude) || return 1
-  mkdir -p "$(dirname "$exclude")"
-  for d in .whl-ale .whl-atari; do grep -qx "/$d/" "$exclude" 2>/dev/null || echo "/$d/" >> "$exclude"; done
   set -- --no-deps --only-binary=:all: --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64 \
     --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 --platform any
   python3 -m pip download -q "$@" -d .whl-ale ale-py==0.12.1 \
