@@ -25,12 +25,15 @@
 #            the compare suite's budget cannot skip it, the seeds suite at 10 vmapped seeds of 256 envs for Mb-Mf and
 #            the paper's CD (the 10-seed ratio); then the 4-arm ant sweep compiled cold with XLA's defaults (the
 #            README's compile figure). Each part is stopped by `timeout` so the unit ends inside 840 s.
-#   hlo      what the largest kernels of the model arms compute (about 6 minutes): the compare suite's Mb-Mf and
-#            paper-CD cases with XLA's optimised HLO of their updates dumped (XLA_FLAGS --xla_dump_to, modules
-#            jit_update) and profiled (--trace), then benchmarks.hlo_fusions on the kernels the 2026-11-25 H100 profile
-#            named (input_multiply_negate_reduce_select_fusion, 67 ms of Mb-Mf's 462 ms of kernels per update; the
-#            chain's concatenate and pad fusions): their fused computations and the JAX source lines
-#            (fusions.log; hlo.tar.gz holds the optimised HLO text).
+#   hlo      what the largest kernels of the model arms compute and cost (about 7 minutes): the compare suite's Mb-Mf,
+#            Mb-Mf with `benchmarks.variants no-loss-metrics` (the losses' diagnostic reductions dropped, gradients
+#            unchanged) and paper-CD cases, each in a process of its own with XLA's optimised HLO of its update dumped
+#            (XLA_FLAGS --xla_dump_to, modules jit_update) and one update profiled (--trace); then
+#            `benchmarks.hlo_fusions --profile` on each: every case's 8 costliest fusion kernels with their time, launch
+#            shape (blocks x threads), fused computation and JAX source lines (fusions-CASE.log; hlo.tar.gz holds the
+#            optimised HLO text). On 2026-11-25 (H100) one fusion of the model losses took 67 ms of Mb-Mf's 462 ms of
+#            kernels per update; a fusion barrier on the diagnostics' inputs changed nothing (XLA's GPU pipeline
+#            removes optimisation barriers before fusing), hence the variant.
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -79,13 +82,17 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold.log;" \
         "tail -n 14 $work/compare/results.md $work/seeds/results.md" ;;
     hlo)
-      dump="--xla_dump_to=$work/dump --xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update"
-      echo "XLA_FLAGS='$dump' timeout -k 20 300 python -m benchmarks.run --suite compare --cases mbmf cd-paper" \
-        "--budget-s 270 --trace $work/trace --out $work/compare > $work/compare.log 2>&1;" \
-        "python -m benchmarks.hlo_fusions $work/dump input_multiply_negate_reduce_select loop_concatenate_fusion" \
-        "loop_pad_fusion > $work/fusions.log 2>&1;" \
-        "find $work/dump -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz;" \
-        "grep -h -E '^== |^     (jit|[^ ]*/)' $work/fusions.log | head -n 60" ;;
+      local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" line="" case run
+      for case in mbmf mbmf-nometrics cd-paper; do
+        run="benchmarks.run"; [ "$case" = mbmf-nometrics ] && run="benchmarks.variants no-loss-metrics --"
+        line+="XLA_FLAGS='--xla_dump_to=$work/dump-$case $dump' timeout -k 20 150 python -m $run --suite compare"
+        line+=" --cases ${case%-nometrics} --budget-s 130 --trace $work/trace-$case --out $work/compare-$case"
+        line+=" > $work/compare-$case.log 2>&1;"
+        line+=" python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top 8"
+        line+=" > $work/fusions-$case.log 2>&1; head -n 9 $work/fusions-$case.log;"
+        line+=" grep -h ' s/update' $work/compare-$case.log;"
+      done
+      echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
     *) echo "unknown unit $1: flags, lowered, speed, accept or hlo" >&2; return 1 ;;
   esac
 }

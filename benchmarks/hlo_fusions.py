@@ -4,12 +4,16 @@ operations and source lines their metadata names.
 
     XLA_FLAGS="--xla_dump_to=DUMP --xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" python -m benchmarks.run ...
     python -m benchmarks.hlo_fusions DUMP PREFIX [PREFIX ...] [--max-lines 80]
+    python -m benchmarks.hlo_fusions DUMP --profile TRACE [--top 8]   # the top fusion kernels of a profile
 
 DUMP is an XLA dump directory (its `*after_optimizations.txt` files are read) or one HLO text file (e.g. what
 `jax.jit(f).lower(...).compile().as_text()` returns, written to a file). For each instruction whose name starts with
-a prefix: the file, the instruction (its shape, operands and kind), the computation it calls, and the distinct
-`op_name`s and source lines inside that computation (source_file/source_line, or the stack-frame tables newer XLA
-writes), the JAX code the kernel came from.
+a prefix, or whose kernel name (the instruction's name with `_` for `.`) is the name given (a profile's
+`loop_pad_fusion_2` is the instruction `loop_pad_fusion.2`, not `loop_pad_fusion.1`): the file, the instruction (its
+shape, operands and kind), the computation it calls, and the distinct `op_name`s and source lines inside that
+computation (source_file/source_line, or the stack-frame tables newer XLA writes), the JAX code the kernel came from.
+With `--profile` (a `benchmarks.profile_summary` trace directory of the same program) the names are the profile's
+top fusion kernels, each shown with its time and launch shape.
 """
 
 from __future__ import annotations
@@ -105,8 +109,14 @@ def sources(lines: list[str], stack: dict[str, str] | None = None) -> list[tuple
     return list(seen)
 
 
+def matches(name: str, pattern: str) -> bool:
+    """An HLO instruction name against a prefix or a profile's kernel name (XLA names a fusion's kernel after the
+    instruction, `.` written `_`)."""
+    return name.startswith(pattern) or name.replace(".", "_") == pattern
+
+
 def find(path: pathlib.Path, prefixes: list[str]) -> list[dict]:
-    """Every instruction whose name starts with one of prefixes, with the computation it calls."""
+    """Every instruction that `matches` one of prefixes, with the computation it calls."""
     found = []
     for f in hlo_files(path):
         text = f.read_text()
@@ -114,7 +124,7 @@ def find(path: pathlib.Path, prefixes: list[str]) -> list[dict]:
         for comp, lines in comps.items():
             for line in lines:
                 m = _INSTRUCTION.match(line)
-                if not m or not any(m.group(1).startswith(p) for p in prefixes):
+                if not m or not any(matches(m.group(1), p) for p in prefixes):
                     continue
                 called = _CALLS.search(m.group(2))
                 body = comps.get(called.group(1), []) if called else []
@@ -142,13 +152,33 @@ def report(found: list[dict], max_lines: int = 80) -> str:
     return "\n".join(out)
 
 
+def profile_kernels(trace: pathlib.Path, top: int) -> list[dict]:
+    """The profile's `top` costliest kernels that are XLA fusions (not library GEMMs, memcpys or memsets), with
+    their time and launch shape, from `benchmarks.profile_summary`."""
+    from benchmarks import profile_summary
+
+    ops = profile_summary.summarize(trace, top=10 * top)["ops"]
+    kernels = [o for o in ops if re.search(r"fusion", o["kernel"]) and not o["kernel"].startswith(("gemm_", "void "))]
+    return kernels[:top]
+
+
 def main(argv=None) -> str:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dump", type=pathlib.Path, help="XLA dump directory or one optimised-HLO text file")
-    p.add_argument("prefixes", nargs="+", help="instruction-name prefixes (as a GPU profile names the kernels)")
+    p.add_argument("prefixes", nargs="*", help="instruction-name prefixes or kernel names (as a GPU profile has them)")
+    p.add_argument("--profile", type=pathlib.Path, help="a trace of the same program: its top fusion kernels' names")
+    p.add_argument("--top", type=int, default=8, help="with --profile: how many kernels (default 8)")
     p.add_argument("--max-lines", type=int, default=80, help="lines of each fused computation to print")
     args = p.parse_args(argv)
-    text = report(find(args.dump, args.prefixes), args.max_lines)
+    names, head = list(args.prefixes), []
+    if args.profile:
+        for k in profile_kernels(args.profile, args.top):
+            names.append(k["kernel"])
+            head.append(f"{k['kernel']}: {k['total_ms']:.3f} ms in {k['count']:,} calls ({k['pct']:.1f}%), launch "
+                        f"{k['launch'] or 'not in the trace'}")
+    if not names:
+        p.error("name prefixes or --profile")
+    text = "\n".join(head + ([""] if head else []) + [report(find(args.dump, names), args.max_lines)])
     print(text)
     return text
 

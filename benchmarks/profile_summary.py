@@ -15,6 +15,10 @@ Which events count as device ops:
 Times are self times (a CPU `while` op encloses its body's ops; only its own share counts), so the
 percentages of all ops add up to 100 % of the traced device time (the sum of the self times).
 
+A GPU kernel's launch shape (blocks x threads per block, and the occupancy the profiler computed) is read from the
+`grid:X,Y,Z block:X,Y,Z ... occ_pct:P` text the profiler attaches to each kernel event (its kernel details): a
+kernel far slower than its bytes need on few blocks is a fusion XLA gave too little parallelism.
+
 Ops are grouped coarsely into gemm (dot, convolution, cuBLAS/cutlass/Triton gemm), scatter/gather,
 sort, copy/transpose (copies, transposes, slices, concatenation, memcpy), memset, fusion (the other
 XLA fusions: elementwise and reductions) and other. When the compiled program's HLO text lies beside
@@ -243,6 +247,21 @@ def _source(op_name: str, width: int = 48) -> str:
     return tail if len(tail) <= width else "..." + tail[-(width - 3):]
 
 
+_LAUNCH = re.compile(r"grid:(\d+),(\d+),(\d+)\s+block:(\d+),(\d+),(\d+)(?:.*?occ_pct:([\d.]+))?")
+
+
+def launch(args: dict) -> str:
+    """'blocks x threads/block (occupancy %)' of a GPU kernel event from its kernel-details text, '' if none."""
+    for value in args.values():
+        m = _LAUNCH.search(value) if isinstance(value, str) else None
+        if m:
+            grid = int(m.group(1)) * int(m.group(2)) * int(m.group(3))
+            block = int(m.group(4)) * int(m.group(5)) * int(m.group(6))
+            occupancy = f" ({float(m.group(7)):.0f}%)" if m.group(7) else ""
+            return f"{grid:,} x {block:,}{occupancy}"
+    return ""
+
+
 def summarize(path: str | pathlib.Path, top: int = 25) -> dict:
     """The op-level summary of the (newest) trace at `path`: a JSON-able dict, see `markdown`."""
     files = find_traces(path)
@@ -264,7 +283,8 @@ def summarize(path: str | pathlib.Path, top: int = 25) -> dict:
                 label = f"{hlo_op}: {shorten(kernel)}"  # a library kernel (cuBLAS, cutlass) under its HLO op
             group = info["group"] if info else name_group(f"{kernel} {hlo_op}")
             op_name = (info or {}).get("op_name") or args.get("tf_op") or args.get("long_name") or ""
-            ops[key] = {"name": shorten(label), "group": group, "source": _source(op_name), "count": 0, "us": 0.0}
+            ops[key] = {"name": shorten(label), "group": group, "source": _source(op_name), "launch": launch(args),
+                        "kernel": kernel, "count": 0, "us": 0.0}
         ops[key]["count"] += 1
         ops[key]["us"] += t
     total_us = sum(o["us"] for o in ops.values())
@@ -277,8 +297,9 @@ def summarize(path: str | pathlib.Path, top: int = 25) -> dict:
     return {
         "trace": str(trace_file), "source": source, "hlo_grouping": bool(hlo), "events": len(events),
         "distinct_ops": len(rows), "device_ms": total_us / 1e3,
-        "ops": [{"name": o["name"], "group": o["group"], "source": o["source"], "count": o["count"],
-                 "total_ms": o["us"] / 1e3, "pct": pct(o["us"])} for o in rows[:top]],
+        "ops": [{"name": o["name"], "group": o["group"], "source": o["source"], "launch": o["launch"],
+                 "kernel": o["kernel"], "count": o["count"], "total_ms": o["us"] / 1e3, "pct": pct(o["us"])}
+                for o in rows[:top]],
         "groups": [{"group": g, "count": groups[g]["count"], "total_ms": groups[g]["us"] / 1e3,
                     "pct": pct(groups[g]["us"])} for g in sorted(groups, key=lambda g: -groups[g]["us"])],
     }
@@ -294,10 +315,11 @@ def markdown(summary: dict) -> str:
     lines = [f"{summary['source']}: {summary['device_ms']:.3f} ms of device time in {summary['events']:,} events, "
              f"{summary['distinct_ops']} distinct ops; the top {len(summary['ops'])} hold {shown:.1f} % "
              f"(grouped by {'HLO' if summary['hlo_grouping'] else 'name'}).", "",
-             "| # | op | group | JAX op | count | total ms | % |", "| ---: | --- | --- | --- | ---: | ---: | ---: |"]
+             "| # | op | group | JAX op | launch (blocks x threads) | count | total ms | % |",
+             "| ---: | --- | --- | --- | --- | ---: | ---: | ---: |"]
     for i, o in enumerate(summary["ops"], 1):
-        lines.append(f"| {i} | `{_cell(o['name'])}` | {o['group']} | {_cell(o['source'])} | {o['count']:,} | "
-                     f"{o['total_ms']:.3f} | {o['pct']:.1f} |")
+        lines.append(f"| {i} | `{_cell(o['name'])}` | {o['group']} | {_cell(o['source'])} | {o.get('launch') or '–'} | "
+                     f"{o['count']:,} | {o['total_ms']:.3f} | {o['pct']:.1f} |")
     lines += ["", "| group | count | total ms | % |", "| --- | ---: | ---: | ---: |"]
     for g in summary["groups"]:
         lines.append(f"| {g['group']} | {g['count']:,} | {g['total_ms']:.3f} | {g['pct']:.1f} |")

@@ -162,7 +162,8 @@ def test_profile_summary_of_a_gpu_trace_reads_stream_kernels(tmp_path):
         {"ph": "X", "pid": 1, "tid": 7, "ts": 0.0, "dur": 60.0, "args": {"hlo_op": "custom-call.3"},
          "name": "void cutlass::Kernel<cutlass_80_tensorop_s1688gemm_128x128>(Params)"},
         {"ph": "X", "pid": 1, "tid": 7, "ts": 70.0, "dur": 30.0, "name": "loop_add_fusion",
-         "args": {"hlo_op": "loop_add_fusion"}},
+         "args": {"hlo_op": "loop_add_fusion",
+                  "kernel_details": "regs:40 static_shared:0 dynamic_shared:0 grid:3,2,1 block:128,2,1 occ_pct:50.0"}},
         {"ph": "X", "pid": 1, "tid": 7, "ts": 100.0, "dur": 10.0, "name": "Memset", "args": {}},
         {"ph": "X", "pid": 1, "tid": 9, "ts": 0.0, "dur": 100.0, "name": "custom-call.3", "args": {}},
         {"ph": "X", "pid": 2, "tid": 3, "ts": 0.0, "dur": 500.0, "name": "host work", "args": {"hlo_op": "x"}},
@@ -175,6 +176,9 @@ def test_profile_summary_of_a_gpu_trace_reads_stream_kernels(tmp_path):
     assert summary["source"] == "GPU kernels" and summary["device_ms"] == pytest.approx(0.1)
     assert [(o["group"], round(o["pct"])) for o in summary["ops"]] == [("gemm", 60), ("fusion", 30), ("memset", 10)]
     assert summary["ops"][0]["name"].startswith("custom-call.3: cutlass::Kernel<")
+    # the launch shape of a kernel, from the profiler's kernel details: 3 x 2 blocks of 128 x 2 threads
+    assert [o["launch"] for o in summary["ops"]] == ["", "6 x 256 (50%)", ""]
+    assert "| 6 x 256 (50%) |" in profile_summary.markdown(summary)
 
 
 def test_ratios_follow_from_raw_numbers(tiny):

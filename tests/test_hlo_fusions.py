@@ -34,3 +34,43 @@ def test_a_fusion_is_found_with_its_body_and_the_source_line_it_came_from(tmp_pa
     assert f"{__file__}:{line_no}" in text_report and "select(" in text_report
     assert hlo_fusions.find(dump, ["no_such_kernel"]) == []
     assert hlo_fusions.report([]) == "no instruction with that name"
+
+
+def test_a_profile_kernel_name_finds_its_own_instruction_and_the_profile_names_the_top_fusions(tmp_path):
+    """A GPU profile writes `loop_pad_fusion.2` as `loop_pad_fusion_2`: that name finds instruction .2, not .1 (which a
+    plain prefix would also take); --profile takes the fusion kernels of a trace, costliest first, with their launch."""
+    import gzip
+    import json
+
+    hlo = "\n".join([
+        "HloModule jit_update", "",
+        "%fused_pad.1 (p.1: f32[4]) -> f32[8] {", "  %p.1 = f32[4]{0} parameter(0)",
+        '  ROOT %pad.1 = f32[8]{0} pad(%p.1, %c), padding=0_4, metadata={op_name="jit(f)/one"}', "}", "",
+        "%fused_pad.2 (p.2: f32[4]) -> f32[8] {", "  %p.2 = f32[4]{0} parameter(0)",
+        '  ROOT %pad.2 = f32[8]{0} pad(%p.2, %c), padding=4_0, metadata={op_name="jit(f)/two"}', "}", "",
+        "ENTRY %main (x: f32[4]) -> (f32[8], f32[8]) {", "  %x = f32[4]{0} parameter(0)",
+        "  %loop_pad_fusion.1 = f32[8]{0} fusion(%x), kind=kLoop, calls=%fused_pad.1",
+        "  %loop_pad_fusion.2 = f32[8]{0} fusion(%x), kind=kLoop, calls=%fused_pad.2",
+        "  ROOT %t = (f32[8]{0}, f32[8]{0}) tuple(%loop_pad_fusion.1, %loop_pad_fusion.2)", "}", ""])
+    path = tmp_path / "module.after_optimizations.txt"
+    path.write_text(hlo)
+    (found,) = hlo_fusions.find(path, ["loop_pad_fusion_2"])
+    assert found["name"] == "loop_pad_fusion.2" and [op for op, _ in found["sources"]] == ["jit(f)/two"]
+    assert [f["name"] for f in hlo_fusions.find(path, ["loop_pad_fusion"])] == ["loop_pad_fusion.1", "loop_pad_fusion.2"]
+
+    details = "regs:32 static_shared:0 dynamic_shared:0 grid:1,1,1 block:1024,1,1 occ_pct:3.1"
+    events = [
+        {"ph": "M", "pid": 1, "name": "process_name", "args": {"name": "/device:GPU:0"}},
+        {"ph": "M", "pid": 1, "tid": 7, "name": "thread_name", "args": {"name": "Stream #7(Compute)"}},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 0.0, "dur": 50.0, "name": "gemm_fusion_dot_3", "args": {}},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 60.0, "dur": 30.0, "name": "loop_pad_fusion_2",
+         "args": {"kernel_details": details}},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 100.0, "dur": 5.0, "name": "loop_pad_fusion_1", "args": {}},
+    ]
+    run = tmp_path / "trace" / "plugins" / "profile" / "run1"
+    run.mkdir(parents=True)
+    with gzip.open(run / "perfetto_trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    text = hlo_fusions.main([str(path), "--profile", str(tmp_path / "trace"), "--top", "1"])
+    assert text.splitlines()[0] == "loop_pad_fusion_2: 0.030 ms in 1 calls (35.3%), launch 1 x 1,024 (3%)"
+    assert "== loop_pad_fusion.2 " in text and "== loop_pad_fusion.1 " not in text and "gemm_fusion" not in text

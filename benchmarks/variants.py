@@ -1,0 +1,79 @@
+"""What-if variants of the observation-space agent, for finding what one part of a compiled update costs on a GPU.
+
+    python -m benchmarks.variants VARIANT -- BENCHMARK-ARGS
+    python -m benchmarks.variants no-loss-metrics -- --suite compare --cases mbmf --trace DIR --out DIR
+
+A variant is a named change to the agent's loss functions, applied in this process only, before `benchmarks.run`
+builds its programs with BENCHMARK-ARGS; set it beside the same benchmark without the variant (`none`, or a plain
+`python -m benchmarks.run`) on the same machine. Training never uses a variant.
+
+Variants:
+  none             the agent unchanged.
+  no-loss-metrics  the losses' logged diagnostics that are not loss terms (PPO's approx_kl and clip_fraction, the
+                   model's one-step and reward MSE) are zeros, so XLA drops their computations; the gradients are
+                   unchanged. What the reductions behind those diagnostics cost: a GPU profile put a fusion holding the
+                   reward MSE's sum at 14.5% of an Mb-Mf update's kernel time (2026-11-25, H100).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+from typing import Callable, Iterator
+
+import jax.numpy as jnp
+
+from cdjax.agents.obs import losses
+
+# the diagnostics (not loss terms) each loss function returns, by function name
+LOSS_METRICS = {"policy_terms": ("ppo/approx_kl", "ppo/clip_fraction"),
+                "model_loss": ("model/onestep_mse", "model/reward_mse")}
+
+
+def _zeroing(fn: Callable, names: tuple[str, ...]) -> Callable:
+    """fn with the metrics `names` of its (loss, metrics) result replaced by zeros of their shapes."""
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        loss, metrics = fn(*args, **kwargs)
+        return loss, {k: jnp.zeros_like(v) if k in names else v for k, v in metrics.items()}
+
+    return wrapped
+
+
+VARIANTS = ("none", "no-loss-metrics")
+
+
+@contextlib.contextmanager
+def applied(variant: str) -> Iterator[None]:
+    """The agent with `variant` while the block runs (programs traced inside it keep it); restored after."""
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
+    saved = {name: getattr(losses, name) for name in LOSS_METRICS}
+    if variant == "no-loss-metrics":
+        for name, metrics in LOSS_METRICS.items():
+            setattr(losses, name, _zeroing(saved[name], metrics))
+    try:
+        yield
+    finally:
+        for name, fn in saved.items():
+            setattr(losses, name, fn)
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.variants", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("variant", choices=VARIANTS)
+    p.add_argument("benchmark_args", nargs=argparse.REMAINDER, help="after --: the arguments of benchmarks.run")
+    args = p.parse_args(argv)
+    rest = args.benchmark_args[1:] if args.benchmark_args[:1] == ["--"] else args.benchmark_args
+    from benchmarks import run
+
+    print(f"variant: {args.variant}", flush=True)
+    with applied(args.variant):
+        return run.main(rest)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,50 @@
+"""benchmarks.variants: a profiling variant changes what it names and nothing else, and is undone after."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from benchmarks import variants
+from cdjax.agents.obs import losses
+
+
+def _losses(pred_mean, pred_log_std, policy_mean, value, data):
+    """The two loss functions as the agent calls them (through the module), summed."""
+    model, model_metrics = losses.model_loss(pred_mean, pred_log_std, data["target"], data["mask"])
+    hp = type("HP", (), {"clip_eps": 0.2, "vf_coef": 0.5, "ent_coef": 0.01})()
+    ppo, ppo_metrics = losses.ppo_loss(policy_mean[..., None], jnp.ones_like(policy_mean)[..., None], value,
+                                       data["raw_action"], data["log_prob_old"], data["adv"], data["returns"],
+                                       data["mask"], hp)
+    return model + ppo, {**model_metrics, **ppo_metrics}
+
+
+def test_no_loss_metrics_zeroes_the_diagnostics_only_and_keeps_the_gradients():
+    keys = iter(jax.random.split(jax.random.PRNGKey(3), 10))
+    T, B, O = 5, 4, 3
+    data = {"target": jax.random.normal(next(keys), (T, B, O + 1)),
+            "mask": jax.random.bernoulli(next(keys), 0.8, (T, B)),
+            "raw_action": jax.random.normal(next(keys), (T, B, 1)),
+            "log_prob_old": jax.random.normal(next(keys), (T, B)),
+            "adv": jax.random.normal(next(keys), (T, B)), "returns": jax.random.normal(next(keys), (T, B))}
+    params = (jax.random.normal(next(keys), (T, B, O + 1)), 0.1 * jax.random.normal(next(keys), (T, B, O + 1)),
+              jax.random.normal(next(keys), (T, B)), jax.random.normal(next(keys), (T, B)))
+    grad = lambda: jax.jit(jax.value_and_grad(lambda p: _losses(*p, data), has_aux=True))(params)  # noqa: E731
+    (loss, metrics), g = grad()
+    with variants.applied("no-loss-metrics"):
+        (loss_v, metrics_v), g_v = grad()
+    zeroed = {m for names in variants.LOSS_METRICS.values() for m in names}
+    assert zeroed <= set(metrics) and all(float(metrics[m]) != 0.0 for m in zeroed)
+    assert all(float(metrics_v[m]) == 0.0 for m in zeroed)
+    assert {k: float(v) for k, v in metrics_v.items() if k not in zeroed} == {
+        k: float(v) for k, v in metrics.items() if k not in zeroed}
+    assert float(loss_v) == float(loss)
+    for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(g_v)):
+        assert jnp.array_equal(a, b)
+    # undone after the block, and refused when unknown
+    (_, metrics_after), _ = grad()
+    assert all(float(metrics_after[m]) == float(metrics[m]) for m in zeroed)
+    with pytest.raises(ValueError, match="unknown variant"):
+        with variants.applied("no-such"):
+            pass
