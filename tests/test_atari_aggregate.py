@@ -56,3 +56,16 @@ def test_the_table_says_not_evaluated_instead_of_an_empty_episode_count():
     evaluated = report.markdown([dict(row, eval=(2.07, 2.03, 2.15, 3), eval_episodes=[100], eval_modes=["sampled"],
                                       eval_steps=[1e6])]).splitlines()[2]
     assert "| 2.07 [2.03, 2.15] (100 episodes, sampled) | 1e+06 |" in evaluated
+
+
+def test_published_a2c_points_are_those_of_the_game_within_the_budget_shown():
+    from experiments.atari import published
+
+    # baselines' 1.01M point counts as 1M
+    assert published.points("ale-seaquest", 1e6)["baselines"] == ((505_000, 467.8), (1_010_000, 594.6))
+    # a shorter budget keeps only the earlier points, and drops a source with none left
+    assert published.points("ale-breakout", 6e5) == {s: pts[:1] for s, pts in published.A2C_EARLY["breakout"].items()}
+    assert published.points("ale-mspacman", 1e5) == {}
+    # MinAtar's games (env "seaquest", not "ale-seaquest") and games without published early points have none
+    assert published.points("seaquest", 1e7) == {} and published.points("ale-frostbite", 1e7) == {}
+    assert set(published.MARKERS) >= {s for game in published.A2C_EARLY.values() for s in game}

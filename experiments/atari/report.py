@@ -9,7 +9,9 @@ final = mean of each seed's logged training returns in the last 10% of its env s
 of steps, not of points, so that unevenly thinned logs give the same figure as whole ones); AUC = env-step weighted
 mean of each seed's training-return curve up to the budget (sample efficiency); eval = the mean return of each
 seed's latest evaluation (100 episodes, sampled actions since 2026-11-22, greedy before; sticky actions). Throughput: env steps per second
-of wall time of each arm over all of its runs (the arms of a game alternate chunks in one process).
+of wall time of each arm over all of its runs (the arms of a game alternate chunks in one process). An ALE game's
+figure also marks the published A2C returns at equal agent steps (`experiments.atari.published`: learning-curve
+data without sticky actions; black markers).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import pathlib
 import numpy as np
 
 from cdjax import io, stats
+from experiments.atari import published
 
 RETURN = "episode/return"
 COLORS = {"a2c": "#1f77b4", "a2c-model": "#7f7f7f", "a2c-cd": "#d62728"}
@@ -156,6 +159,9 @@ def figure(datas: list[dict], path: pathlib.Path, reps: int) -> pathlib.Path:
             color = COLORS.get(arm) if arm in COLORS else None
             (line,) = ax.plot(x, point, color=color, label=arm)
             ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
+        for source, pts in published.points(data["game"], cut).items():
+            ax.plot(*zip(*pts), linestyle="none", marker=published.MARKERS.get(source, "o"), color="black",
+                    markerfacecolor="none", label=f"A2C, {source}")
         name = data["game"] if data["game"].startswith("ale-") else f"MinAtar {data['game']}"
         ax.set_title(f"{name} ({data['seeds']} seeds)")
         ax.set_xlabel("env steps per run")
