@@ -25,9 +25,10 @@
 #            the compare suite's budget cannot skip it, the seeds suite at 10 vmapped seeds of 256 envs for Mb-Mf and
 #            the paper's CD (the 10-seed ratio); then the 4-arm ant sweep compiled cold with XLA's defaults (the
 #            README's compile figure). Each part is stopped by `timeout` so the unit ends inside 840 s.
-#   hlo      what the largest kernels of the model arms compute and cost (about 7 minutes): the compare suite's Mb-Mf,
+#   hlo      what the largest kernels of the model arms compute and cost (about 8 minutes): the compare suite's Mb-Mf,
 #            Mb-Mf with `benchmarks.variants no-loss-metrics` (the losses' diagnostic reductions dropped, gradients
-#            unchanged) and paper-CD cases, each in a process of its own with XLA's optimised HLO of its update dumped
+#            unchanged), paper-CD and paper-CD with `benchmarks.variants ones-column` (the chain's weight gradients
+#            as before the bias-sum change) cases, each in a process of its own with XLA's optimised HLO of its update dumped
 #            (XLA_FLAGS --xla_dump_to, modules jit_update) and one update profiled (--trace); then
 #            `benchmarks.hlo_fusions --profile` on each: every case's 8 costliest fusion kernels with their time, launch
 #            shape (blocks x threads), fused computation and JAX source lines (fusions-CASE.log; hlo.tar.gz holds the
@@ -82,11 +83,16 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold.log;" \
         "tail -n 14 $work/compare/results.md $work/seeds/results.md" ;;
     hlo)
-      local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" line="" case run
-      for case in mbmf mbmf-nometrics cd-paper; do
-        run="benchmarks.run"; [ "$case" = mbmf-nometrics ] && run="benchmarks.variants no-loss-metrics --"
+      local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" line="" case run base
+      for case in mbmf mbmf-nometrics cd-paper cd-paper-ones; do
+        case $case in
+          *-nometrics) run="benchmarks.variants no-loss-metrics --" ;;
+          *-ones) run="benchmarks.variants ones-column --" ;;
+          *) run="benchmarks.run" ;;
+        esac
         line+="XLA_FLAGS='--xla_dump_to=$work/dump-$case $dump' timeout -k 20 150 python -m $run --suite compare"
-        line+=" --cases ${case%-nometrics} --budget-s 130 --trace $work/trace-$case --out $work/compare-$case"
+        base=${case%-nometrics}; base=${base%-ones}
+        line+=" --cases $base --budget-s 130 --trace $work/trace-$case --out $work/compare-$case"
         line+=" > $work/compare-$case.log 2>&1;"
         line+=" python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top 8"
         line+=" > $work/fusions-$case.log 2>&1; head -n 9 $work/fusions-$case.log;"

@@ -3,9 +3,9 @@
     python -m benchmarks.variants VARIANT -- BENCHMARK-ARGS
     python -m benchmarks.variants no-loss-metrics -- --suite compare --cases mbmf --trace DIR --out DIR
 
-A variant is a named change to the agent's loss functions, applied in this process only, before `benchmarks.run`
-builds its programs with BENCHMARK-ARGS; set it beside the same benchmark without the variant (`none`, or a plain
-`python -m benchmarks.run`) on the same machine. Training never uses a variant.
+A variant is a named change to the agent's loss functions or consistency chain, applied in this process only, before
+`benchmarks.run` builds its programs with BENCHMARK-ARGS; set it beside the same benchmark without the variant
+(`none`, or a plain `python -m benchmarks.run`) on the same machine. Training never uses a variant.
 
 Variants:
   none             the agent unchanged.
@@ -13,6 +13,10 @@ Variants:
                    model's one-step and reward MSE) are zeros, so XLA drops their computations; the gradients are
                    unchanged. What the reductions behind those diagnostics cost: a GPU profile put a fusion holding the
                    reward MSE's sum at 14.5% of an Mb-Mf update's kernel time (2026-11-25, H100).
+  ones-column      the fused consistency chain's weight gradients as before 2026-11-25's change: one matrix product
+                   of [inputs, 1] with the cotangents for kernel and bias at once (the ones column appended to the
+                   stacked inputs) instead of the kernel's product and the bias's sum. The same gradients up to
+                   rounding; what the change saved.
 """
 
 from __future__ import annotations
@@ -22,8 +26,10 @@ import contextlib
 import functools
 from typing import Callable, Iterator
 
+import jax
 import jax.numpy as jnp
 
+from cdjax import consistency
 from cdjax.agents.obs import losses
 
 # the diagnostics (not loss terms) each loss function returns, by function name
@@ -42,7 +48,14 @@ def _zeroing(fn: Callable, names: tuple[str, ...]) -> Callable:
     return wrapped
 
 
-VARIANTS = ("none", "no-loss-metrics")
+def _outer_ones_column(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """consistency._outer as it was: one product of [a, 1] and b, the bias's gradient its last row."""
+    a = jnp.concatenate([a, jnp.ones(a.shape[:-1] + (1,), a.dtype)], axis=-1)
+    g = a.reshape(-1, a.shape[-1]).T @ b.reshape(-1, b.shape[-1])
+    return g[:-1], g[-1]
+
+
+VARIANTS = ("none", "no-loss-metrics", "ones-column")
 
 
 @contextlib.contextmanager
@@ -51,14 +64,18 @@ def applied(variant: str) -> Iterator[None]:
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
+    outer = consistency._outer
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
+    if variant == "ones-column":
+        consistency._outer = _outer_ones_column
     try:
         yield
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
+        consistency._outer = outer
 
 
 def main(argv=None) -> dict:

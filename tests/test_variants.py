@@ -48,3 +48,22 @@ def test_no_loss_metrics_zeroes_the_diagnostics_only_and_keeps_the_gradients():
     with pytest.raises(ValueError, match="unknown variant"):
         with variants.applied("no-such"):
             pass
+
+
+def test_ones_column_restores_the_old_weight_gradient_form_with_the_same_numbers():
+    """`_outer` (kernel product and bias sum) against the variant's [a, 1] product: equal up to rounding, the variant
+    in place only inside its block."""
+    from cdjax import consistency
+
+    a = jax.random.normal(jax.random.PRNGKey(0), (6, 2, 5, 7))
+    b = jax.random.normal(jax.random.PRNGKey(1), (6, 2, 5, 3))
+    kernel, bias = consistency._outer(a, b)
+    assert kernel.shape == (7, 3) and bias.shape == (3,)
+    assert jnp.allclose(kernel, jnp.einsum("...i,...j->ij", a, b), atol=1e-5)
+    assert jnp.allclose(bias, b.sum((0, 1, 2)), atol=1e-5)
+    new = consistency._outer
+    with variants.applied("ones-column"):
+        assert consistency._outer is not new
+        old_kernel, old_bias = consistency._outer(a, b)
+    assert consistency._outer is new
+    assert jnp.allclose(old_kernel, kernel, atol=1e-5) and jnp.allclose(old_bias, bias, atol=1e-5)
