@@ -69,3 +69,23 @@ def test_published_a2c_points_are_those_of_the_game_within_the_budget_shown():
     # MinAtar's games (env "seaquest", not "ale-seaquest") and games without published early points have none
     assert published.points("seaquest", 1e7) == {} and published.points("ale-frostbite", 1e7) == {}
     assert set(published.MARKERS) >= {s for game in published.A2C_EARLY.values() for s in game}
+
+
+def test_the_ale_tier_aggregate_reads_the_kept_games_and_compares_their_runs_by_rank(tmp_path):
+    """Over the ALE games kept in data/ale-1m: each game's P(a2c-cd > a2c) is the share of (cd run, a2c run) pairs
+    where the cd run scores higher, from the runs' own scores; random play is the published reference."""
+    dirs = {g: d for g, d in aggregate.ALE_DIRS.items() if (d / "run.json").exists()}
+    if len(dirs) < 2:
+        pytest.skip("fewer than two ALE games kept")
+    text = aggregate.main(["--tier", "ale", "--out", str(tmp_path), "--bootstrap-reps", "20"])
+    import json
+
+    saved = json.loads((tmp_path / "aggregate.json").read_text())
+    assert saved["random"] == {g: aggregate.ALE_RANDOM[g] for g in dirs}
+    games = aggregate.load_scores(dirs)
+    for game in dirs:
+        cd, base = games[game]["a2c-cd"]["eval"], games[game]["a2c"]["eval"]
+        pairs = [(c > b) + 0.5 * (c == b) for c in cd for b in base]
+        assert saved["aggregate"]["eval"]["poi_per_game"][game] == pytest.approx(np.mean(pairs))
+        assert f"| {game} | {aggregate.ALE_RANDOM[game]:g} |" in text
+    assert (tmp_path / "profiles.png").exists()

@@ -2,6 +2,12 @@
 profiles) and the a2c arm against the MinAtar paper's actor-critic, from the kept run directories.
 
     python -m experiments.atari.aggregate --out experiments/atari/results/minatar-aggregate
+    python -m experiments.atari.aggregate --tier ale --out experiments/atari/results/ale-1m-aggregate
+
+`--tier ale`: the same statistics over the ALE tier's games (`data/ale-1m/GAME`: the paper's four games, a2c vs a2c-cd,
+3 seeds, 1M agent steps; the games present), normalised with uniform random play's published scores (`ALE_RANDOM`),
+without the MinAtar paper's comparison (`experiments.atari.published` holds ALE's published A2C points). Writes
+OUT/aggregate.md, OUT/aggregate.json and OUT/profiles.png.
 
 Runs: each game's kept run directory at its checked learning rate (`CHECKED`: RMSprop 2e-2, Space Invaders 1e-2), and
 again with every game at 2e-2 (`SHARED`, Space Invaders' 2e-2 run instead). Scores per run (seed), from
@@ -53,6 +59,13 @@ AC_LAMBDA = {"asterix": 19.7, "breakout": 17.3, "freeway": 47.0, "seaquest": 15.
 AC_ZERO = {"asterix": 19.9, "breakout": 15.4, "freeway": 46.5, "seaquest": 7.3, "space_invaders": 146.0}
 PAPER_FRAMES = 5_000_000
 
+ALE_GAMES = ("breakout", "seaquest", "mspacman", "frostbite")
+ALE_DIRS = {g: DATA / "ale-1m" / g for g in ALE_GAMES}
+# Uniform random play on the ALE as the DQN paper lists it (Mnih et al. 2015, Nature, Extended Data Table 2: no-op
+# starts, no sticky actions), the usual reference of normalised Atari scores. The tier's runs use sticky actions
+# (0.25), which change little for a policy that is random anyway; random play was not measured in their environment.
+ALE_RANDOM = {"breakout": 1.7, "seaquest": 68.4, "mspacman": 307.3, "frostbite": 65.2}
+
 
 def random_play(run_dir: pathlib.Path, episodes: int = RANDOM_EPISODES, seed: int = 0) -> float:
     """Mean return of uniform random actions over `episodes` fresh episodes of the run's MinAtar game, with its sticky
@@ -98,9 +111,9 @@ def load_scores(dirs: dict[str, pathlib.Path]) -> dict:
 
 
 def normalised(games: dict, randoms: dict[str, float], score: str) -> dict[str, np.ndarray]:
-    """{arm: [runs, games]} of (score - random) / (pooled IQM - random), games in GAMES order."""
+    """{arm: [runs, games]} of (score - random) / (pooled IQM - random), games in the order of `games`."""
     columns = {arm: [] for arm in ARMS}
-    for game in GAMES:
+    for game in games:
         g = games[game]
         pooled = np.concatenate([g[arm][score] for arm in ARMS])
         scale = stats.iqm_columns(pooled[np.isfinite(pooled)][:, None, None])[0] - randoms[game]
@@ -132,7 +145,7 @@ def aggregate(games: dict, randoms: dict[str, float], reps: int) -> dict:
         poi_point, poi_ci = _estimates({"poi": [norm["a2c-cd"], norm["a2c"]]}, metrics.probability_of_improvement,
                                        reps)
         per_game = {game: float(metrics.probability_of_improvement(norm["a2c-cd"][:, [i]], norm["a2c"][:, [i]]))
-                    for i, game in enumerate(GAMES)}
+                    for i, game in enumerate(games)}
         profiles, profile_ci = rly.create_performance_profile(norm, TAUS, reps=reps)
         out[score] = {
             "iqm": {arm: (float(point[arm][0]), float(ci[arm][0, 0]), float(ci[arm][1, 0])) for arm in ARMS},
@@ -236,12 +249,59 @@ def figure(sets: dict, path: pathlib.Path) -> None:
     plt.close(fig)
 
 
+def ale_markdown(agg: dict, games: dict) -> str:
+    """The ALE tier's tables: across its games, then game by game."""
+    names = list(games)
+    lines = [f"## The ALE tier across {len(names)} games ({', '.join(names)}): a2c-cd against a2c", "",
+             "| score | IQM a2c | IQM a2c-cd | P(a2c-cd > a2c) |", "|---|---|---|---|"]
+    for score in SCORES:
+        a = agg[score]
+        lines.append(f"| {score} | {_ci(a['iqm']['a2c'])} | {_ci(a['iqm']['a2c-cd'])} | {_ci(a['poi'])} |")
+    seeds = sorted({len(games[g][arm]["eval"]) for g in names for arm in ARMS})
+    lines += ["", "IQM over runs x games of normalised scores ((score - random) / (pooled IQM - random), per game: "
+              "random play 0 (`ALE_RANDOM`: the DQN paper's published scores), the game's IQM over both arms' runs 1), "
+              "and the probability that a run of a2c-cd scores above a run of a2c on the same game, averaged over "
+              "games; [95% stratified-bootstrap interval]. eval: return of the final 100 sampled-action episodes; AUC: "
+              f"training return averaged over env steps. {'/'.join(map(str, seeds))} seeds per arm and game.", "",
+              "| game | random play (published) | eval a2c | eval a2c-cd | P(cd > a2c) eval | P(cd > a2c) AUC |",
+              "|---|---:|---|---|---:|---:|"]
+    for game in names:
+        g = games[game]
+        cells = [_ci(stats.iqm_interval(g[arm]["eval"], 2000)[:3]) for arm in ARMS]
+        lines.append(f"| {game} | {ALE_RANDOM[game]:g} | {cells[0]} | {cells[1]} | "
+                     f"{agg['eval']['poi_per_game'][game]:.2f} | {agg['auc']['poi_per_game'][game]:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def ale_main(out: pathlib.Path, reps: int) -> str:
+    """The ALE tier's aggregate over the games whose run directory is kept."""
+    dirs = {g: d for g, d in ALE_DIRS.items() if (d / "run.json").exists()}
+    if len(dirs) < 2:
+        raise SystemExit(f"the ALE tier's aggregate needs at least two games' runs under {DATA / 'ale-1m'}")
+    games = load_scores(dirs)
+    agg = aggregate(games, {g: ALE_RANDOM[g] for g in dirs}, reps)
+    text = ale_markdown(agg, games)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "aggregate.md").write_text(text)
+    (out / "aggregate.json").write_text(json.dumps(
+        {"random": {g: ALE_RANDOM[g] for g in dirs}, "runs": {g: str(d.relative_to(DATA.parents[2]))
+                                                             for g, d in dirs.items()}, "aggregate": agg}, indent=1))
+    figure({"ALE tier": agg}, out / "profiles.png")
+    print(text)
+    print(f"Wrote {out / 'aggregate.md'}, {out / 'aggregate.json'} and {out / 'profiles.png'}")
+    return text
+
+
 def main(argv=None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=pathlib.Path, required=True)
+    parser.add_argument("--tier", choices=("minatar", "ale"), default="minatar")
     parser.add_argument("--bootstrap-reps", type=int, default=2000)
     args = parser.parse_args(argv)
     import cdjax  # noqa: F401 - its XLA:CPU flag before JAX starts
+
+    if args.tier == "ale":
+        return ale_main(args.out, args.bootstrap_reps)
 
     checked, shared = load_scores(CHECKED), load_scores(SHARED)
     randoms = {game: random_play(CHECKED[game]) for game in GAMES}  # the same env (game, sticky, time-out) in both
