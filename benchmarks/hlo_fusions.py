@@ -8,10 +8,11 @@ operations and source lines their metadata names.
 
 DUMP is an XLA dump directory (its `*after_optimizations.txt` files are read) or one HLO text file (e.g. what
 `jax.jit(f).lower(...).compile().as_text()` returns, written to a file). For each instruction whose name starts with
-a prefix, or whose kernel name (the instruction's name with `_` for `.`) is the name given (a profile's
-`loop_pad_fusion_2` is the instruction `loop_pad_fusion.2`, not `loop_pad_fusion.1`): the file, the instruction (its
-shape, operands and kind), the computation it calls, and the distinct `op_name`s and source lines inside that
-computation (source_file/source_line, or the stack-frame tables newer XLA writes), the JAX code the kernel came from.
+a prefix, or whose kernel name (the instruction's name, with `_` for `.` on a GPU) is a profile's kernel name
+(`loop_pad_fusion_2` is the instruction `loop_pad_fusion.2`, not `loop_pad_fusion.1`; `loop_fusion` is `loop_fusion`
+alone): the file, the instruction (its shape, operands and kind), the computation it calls, and the distinct
+`op_name`s and source lines inside that computation (source_file/source_line, or the stack-frame tables newer XLA
+writes), the JAX code the kernel came from.
 With `--profile` (a `benchmarks.profile_summary` trace directory of the same program) the names are the profile's
 top fusion kernels, each shown with its time and launch shape.
 """
@@ -109,14 +110,15 @@ def sources(lines: list[str], stack: dict[str, str] | None = None) -> list[tuple
     return list(seen)
 
 
-def matches(name: str, pattern: str) -> bool:
-    """An HLO instruction name against a prefix or a profile's kernel name (XLA names a fusion's kernel after the
-    instruction, `.` written `_`)."""
-    return name.startswith(pattern) or name.replace(".", "_") == pattern
+def matches(name: str, prefixes: list[str], kernels: list[str]) -> bool:
+    """An HLO instruction name against prefixes, or against kernel names as a profile has them (XLA names a fusion's
+    kernel after the instruction, `.` written `_` on a GPU): a kernel name is one instruction, `loop_fusion` not
+    `loop_fusion.1`."""
+    return any(name.startswith(p) for p in prefixes) or name in kernels or name.replace(".", "_") in kernels
 
 
-def find(path: pathlib.Path, prefixes: list[str]) -> list[dict]:
-    """Every instruction that `matches` one of prefixes, with the computation it calls."""
+def find(path: pathlib.Path, prefixes: list[str], kernels: list[str] = ()) -> list[dict]:
+    """Every instruction that `matches` a prefix or a kernel name, with the computation it calls."""
     found = []
     for f in hlo_files(path):
         text = f.read_text()
@@ -124,7 +126,7 @@ def find(path: pathlib.Path, prefixes: list[str]) -> list[dict]:
         for comp, lines in comps.items():
             for line in lines:
                 m = _INSTRUCTION.match(line)
-                if not m or not any(matches(m.group(1), p) for p in prefixes):
+                if not m or not matches(m.group(1), prefixes, list(kernels)):
                     continue
                 called = _CALLS.search(m.group(2))
                 body = comps.get(called.group(1), []) if called else []
@@ -165,20 +167,20 @@ def profile_kernels(trace: pathlib.Path, top: int) -> list[dict]:
 def main(argv=None) -> str:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dump", type=pathlib.Path, help="XLA dump directory or one optimised-HLO text file")
-    p.add_argument("prefixes", nargs="*", help="instruction-name prefixes or kernel names (as a GPU profile has them)")
+    p.add_argument("prefixes", nargs="*", help="instruction-name prefixes (as a GPU profile begins the kernels' names)")
     p.add_argument("--profile", type=pathlib.Path, help="a trace of the same program: its top fusion kernels' names")
     p.add_argument("--top", type=int, default=8, help="with --profile: how many kernels (default 8)")
     p.add_argument("--max-lines", type=int, default=80, help="lines of each fused computation to print")
     args = p.parse_args(argv)
-    names, head = list(args.prefixes), []
+    kernels, head = [], []
     if args.profile:
         for k in profile_kernels(args.profile, args.top):
-            names.append(k["kernel"])
+            kernels.append(k["kernel"])
             head.append(f"{k['kernel']}: {k['total_ms']:.3f} ms in {k['count']:,} calls ({k['pct']:.1f}%), launch "
                         f"{k['launch'] or 'not in the trace'}")
-    if not names:
+    if not args.prefixes and not kernels:
         p.error("name prefixes or --profile")
-    text = "\n".join(head + ([""] if head else []) + [report(find(args.dump, names), args.max_lines)])
+    text = "\n".join(head + ([""] if head else []) + [report(find(args.dump, args.prefixes, kernels), args.max_lines)])
     print(text)
     return text
 

@@ -54,9 +54,10 @@ def test_a_profile_kernel_name_finds_its_own_instruction_and_the_profile_names_t
         "  ROOT %t = (f32[8]{0}, f32[8]{0}) tuple(%loop_pad_fusion.1, %loop_pad_fusion.2)", "}", ""])
     path = tmp_path / "module.after_optimizations.txt"
     path.write_text(hlo)
-    (found,) = hlo_fusions.find(path, ["loop_pad_fusion_2"])
+    (found,) = hlo_fusions.find(path, [], ["loop_pad_fusion_2"])
     assert found["name"] == "loop_pad_fusion.2" and [op for op, _ in found["sources"]] == ["jit(f)/two"]
     assert [f["name"] for f in hlo_fusions.find(path, ["loop_pad_fusion"])] == ["loop_pad_fusion.1", "loop_pad_fusion.2"]
+    assert hlo_fusions.find(path, [], ["loop_pad_fusion"]) == []  # a kernel name is one instruction, not a prefix
 
     details = "regs:32 static_shared:0 dynamic_shared:0 grid:1,1,1 block:1024,1,1 occ_pct:3.1"
     events = [
