@@ -26,15 +26,15 @@
 #            the paper's CD (the 10-seed ratio); then the 4-arm ant sweep compiled cold with XLA's defaults (the
 #            README's compile figure). Each part is stopped by `timeout` so the unit ends inside 840 s.
 #   hlo      what the largest kernels of the model arms compute and cost (about 8 minutes): the compare suite's Mb-Mf,
-#            Mb-Mf with `benchmarks.variants no-loss-metrics` (the losses' diagnostic reductions dropped, gradients
-#            unchanged), paper-CD and paper-CD with `benchmarks.variants ones-column` (the chain's weight gradients
-#            as before the bias-sum change) cases, each in a process of its own with XLA's optimised HLO of its update dumped
-#            (XLA_FLAGS --xla_dump_to, modules jit_update) and one update profiled (--trace); then
-#            `benchmarks.hlo_fusions --profile` on each: every case's 8 costliest fusion kernels with their time, launch
-#            shape (blocks x threads), fused computation and JAX source lines (fusions-CASE.log; hlo.tar.gz holds the
-#            optimised HLO text). On 2026-11-25 (H100) one fusion of the model losses took 67 ms of Mb-Mf's 462 ms of
-#            kernels per update; a fusion barrier on the diagnostics' inputs changed nothing (XLA's GPU pipeline
-#            removes optimisation barriers before fusing), hence the variant.
+#            Mb-Mf with `benchmarks.variants no-loss-metrics` (the losses' diagnostics dropped, gradients unchanged),
+#            paper-CD and paper-CD with `benchmarks.variants bias-sum` (the chain's bias gradients as separate sums)
+#            cases, each in a process of its own with XLA's optimised HLO of its update dumped (XLA_FLAGS
+#            --xla_dump_to, modules jit_update) and one update profiled (--trace); then `benchmarks.hlo_fusions
+#            --profile` on each: every case's 8 costliest fusion kernels with their time, launch shape (blocks x
+#            threads), fused computation and JAX source lines (fusions-CASE.log; hlo.tar.gz holds the optimised HLO
+#            text). On 2026-11-25 (H100) it found a one-block fusion of the losses' backward with the reward MSE's sum
+#            (67 ms of Mb-Mf's 0.528 s per update; the SGD now reduces its diagnostics once per update) and kept the
+#            chain's one-product weight gradients (bias-sum: paper-CD 0.839 s against 0.805 s).
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -84,14 +84,14 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "tail -n 14 $work/compare/results.md $work/seeds/results.md" ;;
     hlo)
       local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" line="" case run base
-      for case in mbmf mbmf-nometrics cd-paper cd-paper-ones; do
+      for case in mbmf mbmf-nometrics cd-paper cd-paper-biassum; do
         case $case in
           *-nometrics) run="benchmarks.variants no-loss-metrics --" ;;
-          *-ones) run="benchmarks.variants ones-column --" ;;
+          *-biassum) run="benchmarks.variants bias-sum --" ;;
           *) run="benchmarks.run" ;;
         esac
         line+="XLA_FLAGS='--xla_dump_to=$work/dump-$case $dump' timeout -k 20 150 python -m $run --suite compare"
-        base=${case%-nometrics}; base=${base%-ones}
+        base=${case%-nometrics}; base=${base%-biassum}
         line+=" --cases $base --budget-s 130 --trace $work/trace-$case --out $work/compare-$case"
         line+=" > $work/compare-$case.log 2>&1;"
         line+=" python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top 8"

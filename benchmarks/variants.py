@@ -11,12 +11,14 @@ Variants:
   none             the agent unchanged.
   no-loss-metrics  the losses' logged diagnostics that are not loss terms (PPO's approx_kl and clip_fraction, the
                    model's one-step and reward MSE) are zeros, so XLA drops their computations; the gradients are
-                   unchanged. What the reductions behind those diagnostics cost: a GPU profile put a fusion holding the
-                   reward MSE's sum at 14.5% of an Mb-Mf update's kernel time (2026-11-25, H100).
-  ones-column      the fused consistency chain's weight gradients as before 2026-11-25's change: one matrix product
-                   of [inputs, 1] with the cotangents for kernel and bias at once (the ones column appended to the
-                   stacked inputs) instead of the kernel's product and the bias's sum. The same gradients up to
-                   rounding; what the change saved.
+                   unchanged. What those diagnostics still cost. Before the SGD took them as per-sample shares
+                   reduced once per update (`numerics.masked_share`), XLA fused the reward MSE's per-minibatch sum
+                   with the losses' backward into a one-block kernel: 67 ms of an Mb-Mf update's 0.528 s, 0.461 s
+                   with this variant (2026-11-25, H100); with the shares Mb-Mf ran 0.460 s.
+  bias-sum         the fused consistency chain's weight gradients as the kernel's matrix product and the bias's
+                   separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
+                   The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
+                   it against 0.805 s without.
 """
 
 from __future__ import annotations
@@ -48,14 +50,13 @@ def _zeroing(fn: Callable, names: tuple[str, ...]) -> Callable:
     return wrapped
 
 
-def _outer_ones_column(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """consistency._outer as it was: one product of [a, 1] and b, the bias's gradient its last row."""
-    a = jnp.concatenate([a, jnp.ones(a.shape[:-1] + (1,), a.dtype)], axis=-1)
-    g = a.reshape(-1, a.shape[-1]).T @ b.reshape(-1, b.shape[-1])
-    return g[:-1], g[-1]
+def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """consistency._outer's (kernel, bias) gradient as the kernel's product a^T b and the bias's sum of b."""
+    b = b.reshape(-1, b.shape[-1])
+    return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
-VARIANTS = ("none", "no-loss-metrics", "ones-column")
+VARIANTS = ("none", "no-loss-metrics", "bias-sum")
 
 
 @contextlib.contextmanager
@@ -68,8 +69,8 @@ def applied(variant: str) -> Iterator[None]:
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
-    if variant == "ones-column":
-        consistency._outer = _outer_ones_column
+    if variant == "bias-sum":
+        consistency._outer = _outer_bias_sum
     try:
         yield
     finally:

@@ -238,14 +238,14 @@ def gru_gates(gi: jax.Array, gh: jax.Array, h: jax.Array) -> jax.Array:
 
 def _outer(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     """A layer's (kernel, bias) gradient summed over every leading axis (every step and row at once) from its
-    inputs a [..., I] and its outputs' cotangents b [..., J]: the kernel's one matrix product, the bias's b's sum.
+    inputs a [..., I] and its outputs' cotangents b [..., J]: one matrix product of [a, 1] and b.
 
-    (Not one product of [a, 1] with b: the ones column gave the stacked inputs and the product an odd size, the
-    hidden layer's [20, 512, 501] for 500 units on the 2026-11-25 H100 profile; `benchmarks.variants ones-column`
-    measures the old form beside this one.)
+    (One product, not the kernel's product and the bias's sum apart: on an H100 the separate sum's per-step reduce
+    kernels made paper-CD's update 0.839 s against 0.805 s, 2026-11-25, `benchmarks.variants bias-sum`.)
     """
-    b = b.reshape(-1, b.shape[-1])
-    return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
+    a = jnp.concatenate([a, jnp.ones(a.shape[:-1] + (1,), a.dtype)], axis=-1)
+    g = a.reshape(-1, a.shape[-1]).T @ b.reshape(-1, b.shape[-1])
+    return g[:-1], g[-1]
 
 
 def _chain_inputs(c: dict, shared: bool, s: jax.Array) -> jax.Array:

@@ -50,9 +50,9 @@ def test_no_loss_metrics_zeroes_the_diagnostics_only_and_keeps_the_gradients():
             pass
 
 
-def test_ones_column_restores_the_old_weight_gradient_form_with_the_same_numbers():
-    """`_outer` (kernel product and bias sum) against the variant's [a, 1] product: equal up to rounding, the variant
-    in place only inside its block."""
+def test_bias_sum_gives_the_same_weight_gradients_as_the_one_product():
+    """`_outer` (one product of [a, 1] and b) against the variant's kernel product and bias sum: both the sums over
+    every leading axis, equal up to rounding; the variant in place only inside its block."""
     from cdjax import consistency
 
     a = jax.random.normal(jax.random.PRNGKey(0), (6, 2, 5, 7))
@@ -61,9 +61,9 @@ def test_ones_column_restores_the_old_weight_gradient_form_with_the_same_numbers
     assert kernel.shape == (7, 3) and bias.shape == (3,)
     assert jnp.allclose(kernel, jnp.einsum("...i,...j->ij", a, b), atol=1e-5)
     assert jnp.allclose(bias, b.sum((0, 1, 2)), atol=1e-5)
-    new = consistency._outer
-    with variants.applied("ones-column"):
-        assert consistency._outer is not new
-        old_kernel, old_bias = consistency._outer(a, b)
-    assert consistency._outer is new
-    assert jnp.allclose(old_kernel, kernel, atol=1e-5) and jnp.allclose(old_bias, bias, atol=1e-5)
+    one_product = consistency._outer
+    with variants.applied("bias-sum"):
+        assert consistency._outer is not one_product
+        split_kernel, split_bias = consistency._outer(a, b)
+    assert consistency._outer is one_product
+    assert jnp.allclose(split_kernel, kernel, atol=1e-5) and jnp.allclose(split_bias, bias, atol=1e-5)
