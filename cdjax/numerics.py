@@ -13,6 +13,18 @@ def masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
     return (x * mask).sum() / jnp.maximum(mask.sum(), 1.0)
 
 
+def masked_share(x: jax.Array, mask: jax.Array) -> jax.Array:
+    """Each entry's share of `masked_mean(x, mask)`, an array of x's shape whose sum is that mean.
+
+    For a diagnostic averaged over many minibatches in a loop: adding the shares up elementwise and reducing once
+    after the loop gives the mean of the minibatches' means without a full reduction in every step. (On a GPU,
+    XLA fused one such scalar reduction with the loss's backward into a kernel of a single thread block: 67 ms of
+    an Mb-Mf update's 0.53 s on an H100, 2026-11-25.)
+    """
+    mask = mask.astype(x.dtype)
+    return x * mask / jnp.maximum(mask.sum(), 1.0)
+
+
 # Up to this many steps the recurrence is solved as one [T, T] weighting (`_dense_backward`), beyond it by an
 # associative scan: T^3 x batch products against about 2 T log T x batch, in 2 kernels against about 20.
 DENSE_MAX_STEPS = 32

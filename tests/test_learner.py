@@ -197,3 +197,56 @@ def test_per_group_vectors_gives_the_tree_optimizers_steps():
         params = optax.apply_updates(params, u_tree)
     assert int(s_vec.total_notfinite) == 1 == int(s_tree.total_notfinite)
     assert s_vec.inner_state.inner_states["value"].inner_state[1][0].mu["value"].shape == (4,)  # one vector per group
+
+
+def test_diagnostic_shares_sum_to_the_scalar_diagnostics_with_the_same_gradient(point_batch):
+    """loss(shares=True): the diagnostics of share_metrics() per sample [L, Bs], summing to the scalar masked means
+    of shares=False; every other metric and the gradient unchanged."""
+    trainer, state, _, _, mb = point_batch
+    offsets = jnp.arange(POINT.num_windows)
+    grad = jax.jit(jax.grad(trainer.loss, has_aux=True), static_argnums=(5, 7))
+    g, scalar = grad(state.params, state.norms, mb, offsets, HP, True, None, False)
+    g_shares, shared = grad(state.params, state.norms, mb, offsets, HP, True, None, True)
+    assert set(shared) == set(scalar)
+    for name in trainer.share_metrics():
+        assert shared[name].shape == mb.valid.shape, name
+        np.testing.assert_allclose(shared[name].sum(), scalar[name], rtol=1e-5, atol=1e-8, err_msg=name)
+    assert float(scalar["model/reward_mse"]) > 0 and float(scalar["ppo/clip_fraction"]) >= 0
+    for name in set(scalar) - set(trainer.share_metrics()):
+        assert shared[name].shape == () and float(shared[name]) == float(scalar[name]), name
+    for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(g_shares)):
+        assert jnp.array_equal(a, b)
+
+
+def test_sgd_diagnostics_are_the_mean_of_every_steps_masked_means():
+    """sgd's metrics (its shares summed once after the loop, the others stacked per step) equal the mean over its
+    epochs x minibatches of each step's scalar metrics, stepped here by hand in the same order."""
+    config = POINT.replace(arm="mbmf")
+    trainer, init, update = compiled(config)
+    state = init(jax.random.key(3), HP)
+    state, _ = update(state, HP)  # statistics and networks off their init
+    hp = HP.replace(alpha=0.0).as_float32()
+    _, _, _, batch = jax.jit(trainer.collect)(state, hp, jax.random.key(8))
+    key = jax.random.key(9)
+    (params, _), metrics = jax.jit(trainer.sgd)(state.params, state.opt_state, state.norms, batch, hp, key)
+
+    from cdjax.agents.obs.optim import make_optimizer
+    tx = make_optimizer(config, state.params, hp)
+    segments = jax.tree.map(lambda x: to_segments(x, trainer.L), batch)
+    step = jax.jit(lambda p, o, mb: (lambda g, m: (*tx.update(g, o, p), m))(
+        *jax.grad(trainer.loss, has_aux=True)(p, state.norms, mb, jnp.zeros(0, jnp.int32), hp, False)))
+    p, o, seen = state.params, state.opt_state, []
+    for epoch_key in jax.random.split(jax.random.split(key)[1], config.num_epochs):
+        perm, _ = trainer.shuffle(epoch_key)
+        for i in range(trainer.M):
+            rows = perm[i * config.minibatch_seqs:(i + 1) * config.minibatch_seqs]
+            updates, o, m = step(p, o, jax.tree.map(lambda x, rows=rows: x[:, rows], segments))
+            p = optax.apply_updates(p, updates)
+            seen.append(m)
+    assert len(seen) == config.num_epochs * trainer.M > 1
+    for name in trainer.share_metrics() + ("loss/model_nll", "loss/policy"):
+        expected = np.mean([float(m[name]) for m in seen])
+        np.testing.assert_allclose(metrics[name], expected, rtol=1e-4, atol=1e-7, err_msg=name)
+    assert np.std([float(m["model/reward_mse"]) for m in seen]) > 0  # a mean of different steps, not one step's
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(p)):  # the same steps
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)

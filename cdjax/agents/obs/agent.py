@@ -36,7 +36,7 @@ from cdjax.agents.obs.optim import make_optimizer
 from cdjax.agents.obs.rollout import Transition, closed_loop, open_loop
 from cdjax.checks import check_type
 from cdjax.envs import EnvState, EpisodeStats, make_env, strong_types
-from cdjax.numerics import masked_mean
+from cdjax.numerics import masked_mean, masked_share
 
 
 @struct.dataclass
@@ -204,12 +204,14 @@ class ObsAgent:
                           hp.gae_lambda, mb.valid)
 
     def loss_terms(self, params, norms, mb: "Batch", offsets, hp, with_consistency: bool = True,
-                   taps: dict | None = None):
+                   taps: dict | None = None, shares: bool = False):
         """The named loss terms of one minibatch mb (leaves [L, Bs, ...]) -> ({name: scalar}, metrics).
 
         taps (`zero_taps`): zeros added to what the consistency term alone takes of the other terms' inputs, the
         model's parameters and the policy's actions [L, Bs, A]: the same terms, whose gradient with respect to the
-        taps is l_cc's share of the model's and the actions' gradient (`tapped_gradient`)."""
+        taps is l_cc's share of the model's and the actions' gradient (`tapped_gradient`).
+        shares: the diagnostics named in `share_metrics()` as per-sample shares [L, Bs] of their masked means
+        (`numerics.masked_share`), which `sgd` adds up over its steps and reduces once; otherwise scalars."""
         obs_n = nz.normalize(norms.obs, mb.obs)
         mean, std = self.policy.apply(params["policy"], obs_n)
         if self.config.gae_in_loss:  # one value pass over the sequences and the row each bootstraps on
@@ -222,14 +224,14 @@ class ObsAgent:
             adv, returns = mb.advantages, mb.returns
         entropy_noise = mb.noise if self.config.entropy == "squashed" else None
         ppo, metrics = losses.ppo_loss(mean, std, values, mb.raw_action, mb.log_prob, adv, returns, mb.valid,
-                                       hp, entropy_noise)
+                                       hp, entropy_noise, shares)
         metrics["loss/ppo"] = ppo
-        metrics["policy/std"] = masked_mean(std.mean(-1), mb.valid)
+        metrics["policy/std"] = (masked_share if shares else masked_mean)(std.mean(-1), mb.valid)
         terms = {"ppo": ppo}
         if self.model is not None:
             pred_mean, pred_log_std = self.model.apply(params["model"], obs_n, mb.action)
             target = model_target(norms, mb.obs, mb.next_obs, mb.reward)
-            terms["model_nll"], model_metrics = losses.model_loss(pred_mean, pred_log_std, target, mb.valid)
+            terms["model_nll"], model_metrics = losses.model_loss(pred_mean, pred_log_std, target, mb.valid, shares)
             metrics.update(model_metrics)
         if self.config.use_consistency and with_consistency:
             actions = networks.act_from_noise(mean, std, mb.noise)  # [L, Bs, A], carries d/dphi
@@ -248,10 +250,11 @@ class ObsAgent:
             metrics.update(cc_metrics)
         return terms, metrics
 
-    def loss(self, params, norms, mb, offsets, hp, with_consistency: bool = True, taps: dict | None = None):
+    def loss(self, params, norms, mb, offsets, hp, with_consistency: bool = True, taps: dict | None = None,
+             shares: bool = False):
         """Total loss of one minibatch mb (leaves [L, Bs, ...]) -> (loss, metrics): the named terms times
-        `term_weights(hp)`."""
-        terms, metrics = self.loss_terms(params, norms, mb, offsets, hp, with_consistency, taps)
+        `term_weights(hp)`; `shares` as in `loss_terms`."""
+        terms, metrics = self.loss_terms(params, norms, mb, offsets, hp, with_consistency, taps, shares)
         weights = term_weights(hp)
         total = sum(weights[name] * term for name, term in terms.items())
         metrics["loss/total"] = total
@@ -271,13 +274,16 @@ class ObsAgent:
             return None
         return {"model": jax.tree.map(jnp.zeros_like, params["model"]), "actions": jnp.zeros_like(mb.action)}
 
-    def tapped_gradient(self, params, norms, mb, offsets, hp, with_consistency: bool = True, taps=None):
+    def tapped_gradient(self, params, norms, mb, offsets, hp, with_consistency: bool = True, taps=None,
+                        shares: bool = False):
         """jax.grad of `loss` -> (gradient, the taps' gradient or None, metrics): with taps (`zero_taps`), the
-        same gradient and, on the taps, l_cc's share of the model's gradient and of the actions' cotangent."""
+        same gradient and, on the taps, l_cc's share of the model's gradient and of the actions' cotangent.
+        `shares` as in `loss_terms`."""
         if taps is None:
-            grads, metrics = jax.grad(self.loss, has_aux=True)(params, norms, mb, offsets, hp, with_consistency)
+            grads, metrics = jax.grad(self.loss, has_aux=True)(params, norms, mb, offsets, hp, with_consistency,
+                                                               None, shares)
             return grads, None, metrics
-        loss = lambda p, t: self.loss(p, norms, mb, offsets, hp, with_consistency, t)  # noqa: E731
+        loss = lambda p, t: self.loss(p, norms, mb, offsets, hp, with_consistency, t, shares)  # noqa: E731
         (grads, tapped), metrics = jax.grad(loss, argnums=(0, 1), has_aux=True)(params, taps)
         return grads, tapped, metrics
 
@@ -396,7 +402,9 @@ class ObsAgent:
 
     def sgd(self, params, opt_state, norms, data: "Batch", hp: HParams, key: jax.Array):
         """Epochs x minibatches of Adam steps on the loss; minibatches are shuffled sequences of L steps. The
-        gradient diagnostics (`grad_norms`) are those of the first step: its minibatch, at params."""
+        gradient diagnostics (`grad_norms`) are those of the first step: its minibatch, at params. The other
+        metrics are means over the steps; those of `share_metrics()` are added up per sample over the steps and
+        reduced once (`loss_terms`' shares), not reduced in every step."""
         tx = make_optimizer(self.config, params, hp)
         segments = jax.tree.map(lambda x: to_segments(x, self.L), data)  # [L, N, ...]
         Bs = self.config.minibatch_seqs
@@ -411,12 +419,16 @@ class ObsAgent:
             rest = self.rest_gradient(params, norms, first, first_offsets, hp)
 
         def minibatch(carry, inp, with_consistency):
-            params, opt_state, tap = carry
+            params, opt_state, tap, summed = carry
             mb, key = inp
             offsets = consistency.window_offsets(key, self.L, self.k, self.config.num_windows)
             taps = self.zero_taps(params, mb) if with_consistency else None
-            grads, tapped, metrics = self.tapped_gradient(params, norms, mb, offsets, hp, with_consistency, taps)
+            grads, tapped, metrics = self.tapped_gradient(params, norms, mb, offsets, hp, with_consistency, taps,
+                                                          shares=True)
             updates, opt_state = tx.update(grads, opt_state, params)
+            summed = {name: total + metrics.pop(name) for name, total in summed.items()}
+            unreduced = [name for name, value in metrics.items() if jnp.ndim(value)]
+            assert not unreduced, f"per-sample metrics not in share_metrics(): {unreduced}"
             values = list(metrics.values())
             if with_consistency:  # the diagnostics of every step; the first one's are kept (and its actions' tap)
                 diagnostics = self.step_grad_norms(grads, tapped, rest)
@@ -428,7 +440,7 @@ class ObsAgent:
             # one stacked vector per minibatch, not one output per metric: on a GPU each scan output is a
             # small write of its own in every one of the epochs x minibatches steps
             names[with_consistency] = list(metrics)
-            return (optax.apply_updates(params, updates), opt_state, tap), jnp.stack(values)
+            return (optax.apply_updates(params, updates), opt_state, tap, summed), jnp.stack(values)
 
         def epoch(carry, key, with_consistency):
             perm, mb_keys = self.shuffle(key)
@@ -439,19 +451,27 @@ class ObsAgent:
         # Epochs with the consistency term first, then (cc_epochs > 0) the rest without it.
         n_cc = self.config.num_epochs if self.config.cc_epochs == 0 else self.config.cc_epochs
         tap = (jnp.ones((), bool), jnp.zeros_like(first.action)) if cc else ()
-        (params_new, opt_state, tap), stacked = jax.lax.scan(
-            functools.partial(epoch, with_consistency=True), (params, opt_state, tap), epoch_keys[:n_cc])
+        summed = {name: jnp.zeros((self.L, Bs)) for name in self.share_metrics()}
+        (params_new, opt_state, tap, summed), stacked = jax.lax.scan(
+            functools.partial(epoch, with_consistency=True), (params, opt_state, tap, summed), epoch_keys[:n_cc])
         n = len(names[True])
         metrics = dict(zip(names[True], stacked[..., :n].mean((0, 1))))
         metrics.update(zip(names["diagnostics"], stacked[0, 0, n:]))
         metrics.update(self.rest_grad_norms(params, norms, first, rest, tap[1] if cc else None))
-        carry = (params_new, opt_state, tap)
+        carry = (params_new, opt_state, tap, summed)
         if n_cc < self.config.num_epochs:  # a metric of both parts: the mean over all epochs
             carry, stacked = jax.lax.scan(functools.partial(epoch, with_consistency=False), carry, epoch_keys[n_cc:])
             n_rest = self.config.num_epochs - n_cc
             for name, value in zip(names[False], stacked.mean((0, 1))):
                 metrics[name] = (n_cc * metrics[name] + n_rest * value) / self.config.num_epochs
+        steps = self.config.num_epochs * self.M
+        metrics.update({name: total.sum() / steps for name, total in carry[3].items()})
         return carry[:2], metrics
+
+    def share_metrics(self) -> tuple[str, ...]:
+        """The minibatch diagnostics that `loss_terms` gives as per-sample shares when asked (`sgd` asks)."""
+        names = ("ppo/approx_kl", "ppo/clip_fraction", "policy/std")
+        return names + (("model/onestep_mse", "model/reward_mse") if self.model is not None else ())
 
     def shuffle(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """One epoch's order: (the permutation of the N sequences [N], the keys of its M minibatches [M])."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from cdjax.agents.obs.networks import action_distribution, squashed_entropy
-from cdjax.numerics import backward_linear_recurrence, masked_mean
+from cdjax.numerics import backward_linear_recurrence, masked_mean, masked_share
 
 
 def gae(reward, value, next_value, bootstrap, ended, gamma, lam, valid=None):
@@ -30,7 +30,8 @@ def gae(reward, value, next_value, bootstrap, ended, gamma, lam, valid=None):
     return adv, adv + value
 
 
-def ppo_loss(mean, std, value, raw_action, log_prob_old, advantages, returns, mask, hp, entropy_noise=None):
+def ppo_loss(mean, std, value, raw_action, log_prob_old, advantages, returns, mask, hp, entropy_noise=None,
+             shares: bool = False):
     """Clipped-surrogate PPO with value loss and entropy bonus, from current network outputs.
 
     mean, std [T, B, A] are the current policy's outputs on the rollout's observations, value [T, B]
@@ -38,15 +39,21 @@ def ppo_loss(mean, std, value, raw_action, log_prob_old, advantages, returns, ma
     log-probability is re-evaluated under the current policy (the tanh Jacobian cancels in the
     ratio). The entropy is the Gaussian's, or with `entropy_noise` [T, B, A] the one-sample estimate of
     the squashed action's (`networks.squashed_entropy`). Advantages are normalised over the unmasked
-    samples. Returns (loss, metrics).
+    samples. Returns (loss, metrics); `shares` as in `policy_terms`.
     """
     dist = action_distribution(mean, std)
     entropy = dist.entropy() if entropy_noise is None else squashed_entropy(mean, std, entropy_noise)
-    return policy_terms(dist.log_prob(raw_action), entropy, value, log_prob_old, advantages, returns, mask, hp)
+    return policy_terms(dist.log_prob(raw_action), entropy, value, log_prob_old, advantages, returns, mask, hp,
+                        shares)
 
 
-def policy_terms(log_prob, entropy, value, log_prob_old, advantages, returns, mask, hp):
-    """PPO terms given new log-probabilities/entropy/values of the executed actions. All [T, B]."""
+def policy_terms(log_prob, entropy, value, log_prob_old, advantages, returns, mask, hp, shares: bool = False):
+    """PPO terms given new log-probabilities/entropy/values of the executed actions. All [T, B].
+
+    The diagnostics that are not loss terms (ppo/approx_kl, ppo/clip_fraction) are masked means, or with `shares`
+    their per-sample shares [T, B] (`numerics.masked_share`: summed, the same means), for a caller that averages
+    them over minibatches and reduces once."""
+    diagnostic = masked_share if shares else masked_mean
     mask = mask.astype(jnp.float32)
     adv_mean = masked_mean(advantages, mask)
     adv_std = jnp.sqrt(masked_mean((advantages - adv_mean) ** 2, mask) + 1e-8)
@@ -62,24 +69,27 @@ def policy_terms(log_prob, entropy, value, log_prob_old, advantages, returns, ma
         "loss/policy": policy_loss,
         "loss/value": value_loss,
         "loss/entropy": ent,
-        "ppo/approx_kl": masked_mean((ratio - 1.0) - log_ratio, mask),
-        "ppo/clip_fraction": masked_mean((jnp.abs(ratio - 1.0) > hp.clip_eps).astype(jnp.float32), mask),
+        "ppo/approx_kl": diagnostic((ratio - 1.0) - log_ratio, mask),
+        "ppo/clip_fraction": diagnostic((jnp.abs(ratio - 1.0) > hp.clip_eps).astype(jnp.float32), mask),
     }
     return loss, metrics
 
 
-def model_loss(pred_mean, pred_log_std, target, mask):
+def model_loss(pred_mean, pred_log_std, target, mask, shares: bool = False):
     """Gaussian negative log-likelihood of the normalised (delta-s, reward) targets.
 
-    pred_mean, pred_log_std, target: [..., O+1]; mask [...]. Returns (loss, metrics).
+    pred_mean, pred_log_std, target: [..., O+1]; mask [...]. Returns (loss, metrics). The diagnostics
+    model/onestep_mse and model/reward_mse are masked means, or with `shares` per-sample shares [...] as in
+    `policy_terms`.
     """
+    diagnostic = masked_share if shares else masked_mean
     z = (target - pred_mean) * jnp.exp(-pred_log_std)
     nll = (0.5 * z**2 + pred_log_std + 0.5 * jnp.log(2.0 * jnp.pi)).sum(-1)
     loss = masked_mean(nll, mask)
     sq = (target - pred_mean) ** 2
     metrics = {
         "loss/model_nll": loss,
-        "model/onestep_mse": masked_mean(sq[..., :-1].mean(-1), mask),
-        "model/reward_mse": masked_mean(sq[..., -1], mask),
+        "model/onestep_mse": diagnostic(sq[..., :-1].mean(-1), mask),
+        "model/reward_mse": diagnostic(sq[..., -1], mask),
     }
     return loss, metrics
