@@ -1,6 +1,8 @@
 """The learner inside the update: path weights against Mb-Mf, gradient-norm metrics, warm statistics,
 sequence minibatches, GAE with the current value net, time-outs in physics steps."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -218,30 +220,40 @@ def test_diagnostic_shares_sum_to_the_scalar_diagnostics_with_the_same_gradient(
         assert jnp.array_equal(a, b)
 
 
-def test_sgd_diagnostics_are_the_mean_of_every_steps_masked_means():
+@pytest.mark.parametrize("arm, cc_epochs", [("mbmf", 0), ("cd", 1)])
+def test_sgd_diagnostics_are_the_mean_of_every_steps_masked_means(arm, cc_epochs):
     """sgd's metrics (its shares summed once after the loop, the others stacked per step) equal the mean over its
-    epochs x minibatches of each step's scalar metrics, stepped here by hand in the same order."""
-    config = POINT.replace(arm="mbmf")
-    trainer, init, update = compiled(config)
-    state = init(jax.random.key(3), HP)
-    state, _ = update(state, HP)  # statistics and networks off their init
-    hp = HP.replace(alpha=0.0).as_float32()
+    epochs x minibatches of each step's scalar metrics, stepped here by hand in the same order; for cd with the
+    consistency term in the first epoch only, across both of sgd's loops."""
+    from cdjax import consistency
+    from cdjax.agents.obs.optim import make_optimizer
+
+    config = POINT.replace(arm=arm, cc_epochs=cc_epochs)
+    trainer = make_agent(config)
+    hp = HP.replace(alpha=0.0 if arm == "mbmf" else 1.0).as_float32()
+    state = jax.jit(trainer.init)(jax.random.key(3), hp)
     _, _, _, batch = jax.jit(trainer.collect)(state, hp, jax.random.key(8))
     key = jax.random.key(9)
     (params, _), metrics = jax.jit(trainer.sgd)(state.params, state.opt_state, state.norms, batch, hp, key)
 
-    from cdjax.agents.obs.optim import make_optimizer
     tx = make_optimizer(config, state.params, hp)
     segments = jax.tree.map(lambda x: to_segments(x, trainer.L), batch)
-    step = jax.jit(lambda p, o, mb: (lambda g, m: (*tx.update(g, o, p), m))(
-        *jax.grad(trainer.loss, has_aux=True)(p, state.norms, mb, jnp.zeros(0, jnp.int32), hp, False)))
+
+    @functools.partial(jax.jit, static_argnums=4)
+    def step(p, o, mb, offsets, with_consistency):
+        g, m = jax.grad(trainer.loss, has_aux=True)(p, state.norms, mb, offsets, hp, with_consistency)
+        updates, o = tx.update(g, o, p)
+        return optax.apply_updates(p, updates), o, m
+
     p, o, seen = state.params, state.opt_state, []
-    for epoch_key in jax.random.split(jax.random.split(key)[1], config.num_epochs):
-        perm, _ = trainer.shuffle(epoch_key)
+    n_cc = cc_epochs or config.num_epochs
+    for epoch, epoch_key in enumerate(jax.random.split(jax.random.split(key)[1], config.num_epochs)):
+        perm, mb_keys = trainer.shuffle(epoch_key)
         for i in range(trainer.M):
             rows = perm[i * config.minibatch_seqs:(i + 1) * config.minibatch_seqs]
-            updates, o, m = step(p, o, jax.tree.map(lambda x, rows=rows: x[:, rows], segments))
-            p = optax.apply_updates(p, updates)
+            offsets = consistency.window_offsets(mb_keys[i], trainer.L, trainer.k, config.num_windows)
+            mb = jax.tree.map(lambda x, rows=rows: x[:, rows], segments)
+            p, o, m = step(p, o, mb, offsets, arm == "cd" and epoch < n_cc)
             seen.append(m)
     assert len(seen) == config.num_epochs * trainer.M > 1
     for name in trainer.share_metrics() + ("loss/model_nll", "loss/policy"):
