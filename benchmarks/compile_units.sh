@@ -32,7 +32,8 @@
 #            --xla_dump_to, modules jit_update) and one update profiled (--trace); then `benchmarks.hlo_fusions
 #            --profile` on each: every case's 8 costliest fusion kernels with their time, launch shape (blocks x
 #            threads), fused computation and JAX source lines (fusions-CASE.log; hlo.tar.gz holds the optimised HLO
-#            text). On 2026-11-25 (H100) it found a one-block fusion of the losses' backward with the reward MSE's sum
+#            text), and `--loops`: the kernels each loop body launches per pass, by group (loops-CASE.log).
+#            On 2026-11-25 (H100) it found a one-block fusion of the losses' backward with the reward MSE's sum
 #            (67 ms of Mb-Mf's 0.528 s per update; the SGD now reduces its diagnostics once per update) and kept the
 #            chain's one-product weight gradients (bias-sum: paper-CD 0.839 s against 0.805 s).
 #   kernels  A/Bs for the chain's per-step kernels (about 10 minutes; run it on the machine that ran `accept`,
@@ -115,6 +116,8 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" > $work/compare-$case.log 2>&1;"
         line+=" python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top 8"
         line+=" > $work/fusions-$case.log 2>&1; head -n 9 $work/fusions-$case.log;"
+        line+=" python -m benchmarks.hlo_fusions $work/dump-$case --loops --top 12 > $work/loops-$case.log 2>&1;"
+        line+=" head -n 3 $work/loops-$case.log;"
         line+=" grep -h ' s/update' $work/compare-$case.log;"
       done
       echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;

@@ -75,3 +75,35 @@ def test_a_profile_kernel_name_finds_its_own_instruction_and_the_profile_names_t
     text = hlo_fusions.main([str(path), "--profile", str(tmp_path / "trace"), "--top", "1"])
     assert text.splitlines()[0] == "loop_pad_fusion_2: 0.030 ms in 1 calls (35.3%), launch 1 x 1,024 (3%)"
     assert "== loop_pad_fusion.2 " in text and "== loop_pad_fusion.1 " not in text and "gemm_fusion" not in text
+
+
+def test_loops_count_each_bodys_launches_by_group_and_not_the_fused_insides(tmp_path):
+    """--loops: per while body and the entry, the instructions that launch work (fusions by name without numbers,
+    library calls and unfused operations by opcode), not parameters, tuples, bitcasts or the fused computations'
+    own instructions; the largest body first."""
+    hlo = "\n".join([
+        "HloModule jit_update", "",
+        "%fused_add.1 (p: f32[4]) -> f32[4] {", "  %p = f32[4]{0} parameter(0)",
+        "  %e = f32[4]{0} exponential(%p)", "  ROOT %a = f32[4]{0} add(%e, %e)", "}", "",
+        "%body.7 (c: (s32[], f32[4])) -> (s32[], f32[4]) {", "  %c = (s32[], f32[4]{0}) parameter(0)",
+        "  %i = s32[] get-tuple-element(%c), index=0", "  %v = f32[4]{0} get-tuple-element(%c), index=1",
+        "  %loop_add_fusion.3 = f32[4]{0} fusion(%v), kind=kLoop, calls=%fused_add.1",
+        "  %loop_add_fusion.12 = f32[4]{0} fusion(%loop_add_fusion.3), kind=kLoop, calls=%fused_add.1",
+        '  %gemm = (f32[4]{0}, s8[8]{0}) custom-call(%v), custom_call_target="__cublas$gemm"',
+        "  %copy.2 = f32[4]{0} copy(%loop_add_fusion.12)", "  %b = f32[2,2]{1,0} bitcast(%copy.2)",
+        "  ROOT %t = (s32[], f32[4]{0}) tuple(%i, %copy.2)", "}", "",
+        "%cond.7 (c: (s32[], f32[4])) -> pred[] {", "  %c = (s32[], f32[4]{0}) parameter(0)",
+        "  %i = s32[] get-tuple-element(%c), index=0", "  %n = s32[] constant(3)",
+        "  ROOT %lt = pred[] compare(%i, %n), direction=LT", "}", "",
+        "ENTRY %main (x: f32[4]) -> (s32[], f32[4]) {", "  %x = f32[4]{0} parameter(0)", "  %z = s32[] constant(0)",
+        "  %init = (s32[], f32[4]{0}) tuple(%z, %x)",
+        "  ROOT %w = (s32[], f32[4]{0}) while(%init), condition=%cond.7, body=%body.7", "}", ""])
+    path = tmp_path / "module.after_optimizations.txt"
+    path.write_text(hlo)
+    body, entry = hlo_fusions.loop_kernels(path)
+    assert body["computation"] == "body.7" and not body["entry"]
+    assert body["kernels"] == 4 and dict(body["groups"]) == {"loop_add_fusion": 2, "custom-call": 1, "copy": 1}
+    assert entry["computation"] == "main" and entry["entry"] and entry["kernels"] == 0
+    text = hlo_fusions.main([str(path), "--loops", "--top", "1"])
+    assert text.splitlines()[:3] == ["body.7 (loop body, module.after_optimizations.txt): 4 kernels per pass",
+                                     "      2  loop_add_fusion", "      2  (2 other groups)"]
