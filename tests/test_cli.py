@@ -4,14 +4,17 @@ exit status 2, an end-to-end sweep / resume / eval / plot, and Ctrl-C in a real 
 import dataclasses
 import json
 import os
+import pathlib
 import re
 import signal
 import subprocess
 import sys
 import time
 
+import jax
 import pytest
 
+import cdjax
 from cdjax import Config, HParams, agents, io
 from cdjax.cli import build_parser, main, sweep_spec
 from cdjax.runner import SweepSpec, prepare
@@ -150,6 +153,12 @@ def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):
     assert [a["name"] for a in run["arms"]] == ["mbmf", "cd"]
     assert run["arms"][1]["hp_labels"] == ["alpha=0.0", "alpha=1.0"]
     assert run["command"].startswith("cdjax sweep --env point")
+    (code,) = run["code"]  # the code it was trained with: this checkout's commit when cdjax is imported from one
+    head = subprocess.run(["git", "-C", str(pathlib.Path(cdjax.__file__).parent), "rev-parse", "HEAD"],
+                          capture_output=True, text=True)
+    assert code["cdjax"] == cdjax.__version__ and code["jax"] == jax.__version__
+    assert code["commit"] == (head.stdout.strip() if head.returncode == 0 else None)
+    assert isinstance(code["modified"], bool) if code["commit"] else code["modified"] is None
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == (1 + 2) * 2 * 4 and max(r["update"] for r in rows) == 4
     assert sorted(p.name for p in (out / "checkpoints" / "cd").iterdir() if p.name.isdigit()) == ["2", "4"]
@@ -167,7 +176,9 @@ def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == (1 + 2) * 2 * 6
     assert len({(r["arm"], r["hp"], r["seed"], r["update"]) for r in rows}) == len(rows)  # no update twice
-    assert json.loads((out / "run.json").read_text())["num_updates"] == 6
+    resumed = json.loads((out / "run.json").read_text())
+    assert resumed["num_updates"] == 6
+    assert len(resumed["code"]) >= 2 and all(c == code for c in resumed["code"])  # each start's code, the first kept
     assert sorted(p.name for p in (out / "checkpoints" / "mbmf").iterdir() if p.name.isdigit()) == ["4", "6"]
 
     pytest.importorskip("cdjax.evaluate")

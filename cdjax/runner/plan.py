@@ -4,9 +4,11 @@ resume may and may not change. Nothing here compiles, allocates or writes."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 import pathlib
+import subprocess
 from typing import Any, Mapping, Sequence
 
 from cdjax import agents, io
@@ -103,6 +105,29 @@ def chunk_size(spec: SweepSpec, num_updates: int) -> int:
     return spec.chunk_updates or max(1, math.ceil(num_updates / 20))
 
 
+@functools.lru_cache(maxsize=1)
+def code_record() -> dict:
+    """The code a run is trained with: cdjax's and JAX's versions and, when cdjax is imported from a git checkout,
+    its commit and whether tracked files differ from it (None where git cannot tell)."""
+    import jax
+
+    import cdjax
+
+    here = pathlib.Path(cdjax.__file__).resolve().parent
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(here), *args], capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    status = git("status", "--porcelain", "--untracked-files=no") if commit else None
+    return {"cdjax": cdjax.__version__, "jax": jax.__version__, "commit": commit,
+            "modified": None if status is None else bool(status)}
+
+
 def run_record(spec: SweepSpec, plans: list[ArmPlan], setting: Setting) -> dict:
     """run.json of a resolved spec of `setting`: the whole spec, each arm's plan, the metric names, the command."""
     num_updates = max(p.config.num_updates for p in plans)
@@ -132,12 +157,13 @@ def run_record(spec: SweepSpec, plans: list[ArmPlan], setting: Setting) -> dict:
         "metrics": {"return": m.ret, "discounted_return": m.discounted_ret, "panels": [list(p) for p in m.panels],
                     **({"skipped": m.skipped} if m.skipped is not None else {})},
         "command": spec.command,
+        "code": [code_record()],  # a resume adds the code it continues with (runner.loop)
     }
 
 
 # What may differ between the run.json of a directory and the spec that resumes it: the length of the run (and the
-# setting's metric names, rewritten from the setting as it is now).
-MAY_CHANGE = ("command", "total_env_steps", "requested_env_steps", "num_updates", "metrics")
+# setting's metric names, rewritten from the setting as it is now), and the code that runs it.
+MAY_CHANGE = ("command", "total_env_steps", "requested_env_steps", "num_updates", "metrics", "code")
 ARM_MAY_CHANGE = ("num_updates", "total_env_steps")
 
 
