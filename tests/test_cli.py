@@ -17,7 +17,7 @@ import pytest
 import cdjax
 from cdjax import Config, HParams, agents, io
 from cdjax.cli import build_parser, main, sweep_spec
-from cdjax.runner import SweepSpec, prepare
+from cdjax.runner import SweepSpec, plan, prepare
 
 from _shared import POINT, TINY_ARGS, fail_in_one_sentence
 from conftest import CACHE
@@ -144,7 +144,7 @@ def test_phase_options():
     assert spec.phase == MbMfPhase(mpc_candidates=64, relabel=False) and spec.arms == ("model-free", "mbmf", "cd-k2")
 
 
-def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):
+def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys, monkeypatch):
     out = tmp_path / "run"
     main(["sweep", *TINY, "--alpha", "0", "1", "--steps", str(4 * 192), "--bootstrap-reps", "50", "--out", str(out)])
     captured = capsys.readouterr()
@@ -178,7 +178,7 @@ def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):
     assert len({(r["arm"], r["hp"], r["seed"], r["update"]) for r in rows}) == len(rows)  # no update twice
     resumed = json.loads((out / "run.json").read_text())
     assert resumed["num_updates"] == 6
-    assert len(resumed["code"]) >= 2 and all(c == code for c in resumed["code"])  # each start's code, the first kept
+    assert resumed["code"] == [code]  # resumed with the same code: nothing added
     assert sorted(p.name for p in (out / "checkpoints" / "mbmf").iterdir() if p.name.isdigit()) == ["4", "6"]
 
     pytest.importorskip("cdjax.evaluate")
@@ -199,6 +199,12 @@ def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys):
     for name in ("summary.md", "summary.csv", "plots/return.png"):
         assert (out / name).stat().st_size > 0, name
     assert "cd" in (out / "summary.md").read_text()
+
+    # resumed with other code: its record is added after the first
+    other = dict(code, commit="0" * 40, modified=True)
+    monkeypatch.setattr(plan, "code_record", lambda: other)
+    main(["sweep", "--out", str(out), "--resume", "--steps", str(8 * 192), "--no-progress"])
+    assert json.loads((out / "run.json").read_text())["code"] == [code, other]
 
 
 def test_ctrl_c_saves_a_checkpoint_and_says_how_to_resume(tmp_path):

@@ -108,8 +108,9 @@ def _prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, Setting, list, d
             raise io.RunDirError(f"{rd.path} holds a different run than the one asked to resume; "
                                  "resume it without changing its settings (only --steps may change).")
         record["command"] = old.get("command", "")
-        before = old.get("code")  # the code of each start, the first one first
-        record["code"] = (before if isinstance(before, list) else []) + record["code"]
+        before = old.get("code")  # the code the run was started and resumed with, the first first; a resume
+        before = before if isinstance(before, list) else []  # with the same code as the last adds nothing
+        record["code"] = before if before[-1:] == record["code"] else before + record["code"]
     elif rd.exists():
         raise io.RunDirError(f"{rd.path} already holds a run; continue it with --resume, or choose another --out.")
     elif rd.path.is_dir() and any(p.name not in io.LEFT_BEFORE_A_RUN for p in rd.path.iterdir()):

@@ -157,7 +157,7 @@ def run_record(spec: SweepSpec, plans: list[ArmPlan], setting: Setting) -> dict:
         "metrics": {"return": m.ret, "discounted_return": m.discounted_ret, "panels": [list(p) for p in m.panels],
                     **({"skipped": m.skipped} if m.skipped is not None else {})},
         "command": spec.command,
-        "code": [code_record()],  # a resume adds the code it continues with (runner.loop)
+        "code": [code_record()],  # a resume with other code adds it (runner.loop)
     }
 
 
