@@ -122,7 +122,8 @@ def code_record() -> dict:
             return None
         return done.stdout.strip() if done.returncode == 0 else None
 
-    commit = git("rev-parse", "HEAD")
+    # a checkout that tracks cdjax itself (not a project whose repository holds a virtual environment cdjax is in)
+    commit = git("rev-parse", "HEAD") if git("ls-files", "--error-unmatch", "__init__.py") is not None else None
     status = git("status", "--porcelain", "--untracked-files=no") if commit else None
     return {"cdjax": cdjax.__version__, "jax": jax.__version__, "commit": commit,
             "modified": None if status is None else bool(status)}
