@@ -36,13 +36,13 @@
 #            On 2026-11-25 (H100) it found a one-block fusion of the losses' backward with the reward MSE's sum
 #            (67 ms of Mb-Mf's 0.528 s per update; the SGD now reduces its diagnostics once per update) and kept the
 #            chain's one-product weight gradients (bias-sum: paper-CD 0.839 s against 0.805 s).
-#   kernels  A/Bs for the chain's per-step kernels (about 10 minutes; run it on the machine that ran `accept`,
-#            whose cold sweep is then its baseline): the compare suite's model-free, Mb-Mf and paper-CD cases with
-#            XLA's defaults, then with split-K off (XLA_FLAGS=--xla_gpu_enable_split_k_autotuning=false: the
-#            2026-11-25 H100 HLO of paper-CD's SGD step held 475 kernels against Mb-Mf's 137, among them 39 pads of
-#            split-K products' contracting size and their partial sums), profiled; paper-CD with `benchmarks.variants
-#            pad-hidden` (the chain's hidden widths padded to 128 once per minibatch instead); and the 4-arm sweep
-#            compiled cold with split-K off (fewer GEMM configurations for the autotuner to time).
+#   kernels  A/Bs for the chain's per-step kernels (about 6 minutes): the XLA GPU flags this image's jaxlib knows
+#            (xla-gpu-flags.txt: jax 0.11.2 refused --xla_gpu_enable_split_k_autotuning, 2026-11-25); the compare
+#            suite's Mb-Mf and paper-CD cases with XLA's defaults, then with split-K's rewrite off
+#            (--xla_gpu_experimental_enable_split_k_rewrite=false, where the image knows it; the 2026-11-25 H100 HLO of
+#            paper-CD's SGD step held 475 kernels against Mb-Mf's 140, among them pads of split-K products'
+#            contracting size) and with Triton for every GEMM (--xla_gpu_triton_gemm_any=true: epilogues fused
+#            into more products), profiled. Each flag is skipped, saying so, where the image lacks it.
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -91,17 +91,15 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold.log;" \
         "tail -n 14 $work/compare/results.md $work/seeds/results.md" ;;
     kernels)
-      local cases="--suite compare --cases model-free mbmf cd-paper --budget-s 240" nosplit
-      nosplit="XLA_FLAGS=--xla_gpu_enable_split_k_autotuning=false"
-      echo "timeout -k 20 270 python -m benchmarks.run $cases --out $work/default > $work/default.log 2>&1;" \
-        "$nosplit timeout -k 20 290 python -m benchmarks.run $cases --trace $work/trace-no-split-k" \
-        "--out $work/no-split-k > $work/no-split-k.log 2>&1;" \
-        "timeout -k 20 130 python -m benchmarks.variants pad-hidden -- --suite compare --cases cd-paper --budget-s 100" \
-        "--out $work/pad-hidden > $work/pad-hidden.log 2>&1;" \
-        "$nosplit timeout -k 20 240 python -m benchmarks.compile_time --out $work/cold-no-split-k" \
-        "--cache-dir $work/cache-cold-no-split-k -- $sweep > $work/cold-no-split-k.log 2>&1;" \
-        "grep -h ' s/update' $work/default.log $work/no-split-k.log $work/pad-hidden.log;" \
-        "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold-no-split-k.log" ;;
+      local cases="--suite compare --cases mbmf cd-paper --budget-s 120" flag line
+      line="python -m benchmarks.xla_flags > $work/xla-gpu-flags.txt; wc -l < $work/xla-gpu-flags.txt;"
+      line+=" timeout -k 20 150 python -m benchmarks.run $cases --out $work/default > $work/default.log 2>&1;"
+      for flag in xla_gpu_experimental_enable_split_k_rewrite=false xla_gpu_triton_gemm_any=true; do
+        line+=" if grep -qx '${flag%%=*}' $work/xla-gpu-flags.txt; then XLA_FLAGS=--$flag timeout -k 20 170"
+        line+=" python -m benchmarks.run $cases --trace $work/trace-${flag%%=*} --out $work/${flag%%=*}"
+        line+=" > $work/${flag%%=*}.log 2>&1; else echo 'this jaxlib has no ${flag%%=*}: skipped'; fi;"
+      done
+      echo "$line grep -H ' s/update' $work/*.log" ;;
     hlo)
       local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" line="" case run base
       for case in mbmf mbmf-nometrics cd-paper cd-paper-biassum; do

@@ -19,9 +19,9 @@ Variants:
                    separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
                    The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
                    it against 0.805 s without.
-  pad-hidden       the fused consistency chain's hidden widths zero-padded to a multiple of 128 once per minibatch
-                   (`consistency.HIDDEN_MULTIPLE`; the same function and gradients up to rounding): whether it saves
-                   the pads XLA puts on split-K products in every step of the chain.
+  (pad-hidden, the fused chain's hidden widths zero-padded to a multiple of 128 once per minibatch, was removed
+  after its A/B: paper-CD 0.7306 s/update with it against 0.7304 s without, one H100, 2026-11-25,
+  benchmarks/results/2026-11-25-h100-probes/.)
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
-VARIANTS = ("none", "no-loss-metrics", "bias-sum", "pad-hidden")
+VARIANTS = ("none", "no-loss-metrics", "bias-sum")
 
 
 @contextlib.contextmanager
@@ -68,20 +68,18 @@ def applied(variant: str) -> Iterator[None]:
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
-    outer, multiple = consistency._outer, consistency.HIDDEN_MULTIPLE
+    outer = consistency._outer
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
     if variant == "bias-sum":
         consistency._outer = _outer_bias_sum
-    if variant == "pad-hidden":
-        consistency.HIDDEN_MULTIPLE = 128
     try:
         yield
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
-        consistency._outer, consistency.HIDDEN_MULTIPLE = outer, multiple
+        consistency._outer = outer
 
 
 def main(argv=None) -> dict:

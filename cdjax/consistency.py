@@ -362,25 +362,6 @@ def _chain_bwd(shared: bool, residuals, cotangents):
 _chain.defvjp(_chain_fwd, _chain_bwd)
 
 
-# The fused chain's hidden widths zero-padded up to a multiple of this (1: as they are). A what-if for GPUs
-# (`benchmarks.variants pad-hidden`): XLA pads a split-K product's contracting size in every step (500 -> 512 and
-# 884 -> 896 for the ant preset's 500 units: 39 pad kernels per SGD minibatch, 2026-11-25 H100 HLO), padding the
-# weights once per minibatch instead might save them.
-HIDDEN_MULTIPLE = 1
-
-
-def _pad_hidden(layers: tuple, multiple: int) -> tuple:
-    """An MLP's ((kernel, bias), ...) with every hidden width zero-padded up to a multiple of `multiple`: the padded
-    units are relu(0) = 0 and their outgoing rows zero, so the MLP computes the same function; differentiated
-    through the pads, the padded entries' gradients are dropped."""
-    padded, extra_in = [], 0
-    for i, (kernel, bias) in enumerate(layers):
-        extra_out = (-kernel.shape[1]) % multiple if i < len(layers) - 1 else 0
-        padded.append((jnp.pad(kernel, ((0, extra_in), (0, extra_out))), jnp.pad(bias, (0, extra_out))))
-        extra_in = extra_out
-    return tuple(padded)
-
-
 def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.RunningStats, scales: tuple,
                 shared: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The k imagined steps of an MLPModel from s0 [W, O] under actions [k, W, A] and the GRU encodings of the real
@@ -395,8 +376,6 @@ def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.Runn
     """
     w_i, b_i, w_h, b_hn = gru
     layers = tuple(tuple(layer) for layer in model.layers)
-    if HIDDEN_MULTIPLE > 1:
-        layers = _pad_hidden(layers, HIDDEN_MULTIPLE)
     p = dict(layers=layers, w_i=w_i, b_i=b_i, w_h=w_h, b_hn=b_hn, s0=s0, actions=actions, x_re=x_re)
     c = jax.lax.stop_gradient(dict(model_obs=model.obs, delta=model.delta, enc_obs=enc_obs,
                                    scales=tuple(jnp.asarray(x, jnp.float32) for x in scales)))
