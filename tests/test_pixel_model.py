@@ -319,6 +319,49 @@ def test_float32_is_the_default_and_bfloat16_agrees_within_its_rounding(learner,
         assert relative(grads[1][group], grads[0][group]) < 1e-2, group
 
 
+def _products_per_step(fn, *args) -> list[int]:
+    """The matrix products in the body of each scan of fn(*args)'s jaxpr (calls inside the body entered)."""
+    def products(jaxpr) -> int:
+        n = 0
+        for eqn in jaxpr.eqns:
+            n += eqn.primitive.name == "dot_general"
+            for sub in (v for v in eqn.params.values() if hasattr(v, "jaxpr") or hasattr(v, "eqns")):
+                n += products(getattr(sub, "jaxpr", sub))
+        return n
+
+    return [products(e.params["jaxpr"].jaxpr) for e in jax.make_jaxpr(fn)(*args).jaxpr.eqns
+            if e.primitive.name == "scan"]
+
+
+def test_the_fused_core_computes_the_flax_cores_function_with_half_the_products_per_step(learner, state, update):
+    """core_impl fused (the presets') against flax (the default, the model of before): the filter's scan does 3
+    matrix products per step instead of 6 and the prior's 4 as before, and 3 updates' metrics and one batch's
+    gradients agree to float32 rounding (1e-5 relative), with the update's held-out scores and l_cc included."""
+    assert TINY.core_impl == "flax"
+    fused = learner_for(TINY.replace(core_impl="fused"))
+    B, T, E = 2, 5, TINY.embed_dim
+    embeds = jax.random.normal(jax.random.key(1), (T, B, E))
+    actions = jax.random.normal(jax.random.key(2), (T, B, A))
+    eps = jax.random.normal(jax.random.key(3), (T, B, TINY.latent))
+    steps = [_products_per_step(lrn.model.filter, state.params, embeds, actions, eps) for lrn in (learner, fused)]
+    assert steps == [[6], [3]], steps
+    steps = [_products_per_step(lrn.model.imagine, state.params, embeds[0, :, :TINY.hidden] * 0, embeds[0, :, :TINY.hidden] * 0,
+                                actions, eps) for lrn in (learner, fused)]
+    assert steps == [[4], [4]], steps
+    filtered = [lrn.model.filter(state.params, embeds, actions, eps) for lrn in (learner, fused)]
+    for name, a, b in zip(filtered[0]._fields, *filtered):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6, err_msg=name)
+    _, metrics = three_updates(update, state)
+    _, metrics_fused = three_updates(jax.jit(fused.update), state)
+    for name, value in metrics.items():
+        np.testing.assert_allclose(metrics_fused[name], value, rtol=1e-5, err_msg=name)
+    frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
+    grads = [jax.jit(jax.grad(lambda p, lrn=lrn: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]))(state.params)
+             for lrn in (learner, fused)]
+    for group in state.params:
+        assert relative(grads[1][group], grads[0][group]) < 1e-5, group
+
+
 def test_float32_layers_are_flax_layers_as_before_bit_for_bit():
     """The encoder and decoder at compute_dtype float32 and conv_impl grouped: the parameters, outputs and gradients
     of the flax layers the model was written with before (reference modules here), bit for bit."""

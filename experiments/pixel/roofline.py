@@ -164,7 +164,8 @@ def learner_of(config, synthetic: bool):
 def measure(config, runs: int, variants, peak_n: int, profile: str = "", synthetic: bool = False) -> dict:
     setting = agents.get("pixel")
     device = jax.devices()[0]
-    out = {"env": "synthetic" if synthetic else config.env, "arm": config.arm, "image_size": config.image_size, "runs": runs,
+    out = {"env": "synthetic" if synthetic else config.env, "arm": config.arm, "core_impl": config.core_impl,
+           "image_size": config.image_size, "runs": runs,
            "device": device.device_kind, "platform": device.platform, "jax": jax.__version__,
            "frames_per_update": runs * config.batch_size * config.seq_len, "variants": {}}
     peaks = {}
@@ -202,7 +203,8 @@ def profiled(update, states, hps, where: pathlib.Path) -> dict:
 def table(result: dict) -> str:
     """A markdown table of the variants."""
     lines = [(f"{result['device']} ({result['platform']}, jax {result['jax']}): {result['env']} {result['arm']}, "
-              f"{result['runs']} runs, {result['frames_per_update']:,} frames per update"), "",
+              f"{result['runs']} runs, {result['frames_per_update']:,} frames per update, core_impl "
+              f"{result.get('core_impl', 'flax')}"), "",
              ("| variant | GFLOP/frame | XLA GFLOP/frame (loops once) | ms/update | frames/s | TFLOP/s | measured peak "
               "| of peak | spec peak |"), "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for name, r in result["variants"].items():

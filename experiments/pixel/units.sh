@@ -17,6 +17,10 @@
 #                  (--lr) x the policy's (--lr-policy; 0 = the model's), LR_UPDATES updates (default 500) or the
 #                  time limit; PIXEL_SET (e.g. "--compute-dtype bfloat16 --conv-impl per-run") picks the arrangement
 #                  the roofline found fastest; no evaluation (the held-out ELBO, imitation and likelihood decide)
+#   core           the update's speed with core_impl flax (the model of before) and fused (the filter's and prior's
+#                  steps with fewer products: PixelConfig.core_impl), halfcheetah's ltq-cd at the preset's sizes
+#                  (bfloat16/per-run), 10 runs as a TASK-ARM unit runs them, SyntheticWorld's frames, one roofline
+#                  process each (flax.json/.md, fused.json/.md; about 3 minutes): whether the presets should run fused
 #   devices        (a multi-GPU machine, issue 25) the pixel sweep's frames/s on 1, 2 and 4 of its GPUs in one
 #                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah
 #   TASK-ARM       the experiment at the presets' length: TASK halfcheetah, reacher or pusher, ARM ltq, ltq-cd
@@ -67,6 +71,10 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
     roofline)
       echo "python -m experiments.pixel.roofline --env halfcheetah --runs 30 --profile $work/profile" \
         "--out $work/roofline.json" ;;
+    core)
+      local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 10 --variants bfloat16/per-run --synthetic"
+      echo "$rf --out $work/flax.json > $work/flax.log 2>&1; $rf --set core_impl=fused --out $work/fused.json" \
+        "> $work/fused.log 2>&1; cat $work/flax.md $work/fused.md" ;;
     devices)
       echo "python -m experiments.pixel.speed --env halfcheetah --runs 32 --devices ${DEVICE_COUNTS:-1 2 4}" \
         "--out $work/devices.json" ;;
@@ -103,7 +111,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 30 \$(( s > $eval_max ? $eval_max : s < 120 ? 120 : s )) python -m cdjax.cli eval $work/pixel" \
         "--episodes 4; python -m cdjax.cli plot $work/pixel; timeout -k 10 150 python -m experiments.pixel.report" \
         "--strips $work/pixel $work/strips" ;;
-    *) echo "unknown unit $1: roofline, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
+    *) echo "unknown unit $1: roofline, core, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
          "ltq-cd, ltq-cd0, ltq-cd1)" >&2
        return 1 ;;
   esac
@@ -118,7 +126,7 @@ unit_run "$work" "$cmd" "$wait_s" "$t0" "bash experiments/pixel/units.sh $unit" 
 thin=runs/pixel-units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
 mkdir -p "$thin/$unit"
-for f in command roofline.json roofline.md profile devices.json strips precision.md precision.json; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
+for f in command roofline.json roofline.md profile devices.json strips precision.md precision.json flax.json flax.md fused.json fused.md; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
 tar -czf "$out/$unit.tar.gz" -C "$thin" "$unit"
 cp "$work/unit.log" "$out/$unit.log"
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"

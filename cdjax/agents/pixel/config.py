@@ -16,6 +16,7 @@ ImagineActions = Literal["policy", "expert"]
 Upsample = Literal["transpose", "subpixel"]
 ComputeDtype = Literal["float32", "bfloat16"]
 ConvImpl = Literal["grouped", "per-run", "auto", "matmul"]
+CoreImpl = Literal["flax", "fused"]
 PIXEL_ENVS = ("halfcheetah", "reacher", "pusher")
 
 
@@ -39,6 +40,9 @@ class PixelConfig:
     conv_impl: ConvImpl = "grouped"  # how a sweep's vmapped runs meet the convolutions: grouped (XLA's grouped
     # convolution), per-run (one ungrouped convolution per run), auto (per layer: per-run for the narrow first and
     # last layers, grouped for the rest; convs.py) or matmul (patches x kernel, a batched product)
+    core_impl: CoreImpl = "flax"  # how the filter's and the prior's steps compute: flax (the modules' calls: the
+    # model of before, bit for bit) or fused (the same function, each step's products on h merged into one and the
+    # inputs' shares taken out of the loop: fewer kernels per step on a GPU; model.py, equal within float32 rounding)
     embed_dim: int = 256  # e(o): the encoder's output size
     hidden: int = 256  # LSTM state size (h and c each)
     latent: int = 100  # z: per-step latent size

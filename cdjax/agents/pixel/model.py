@@ -152,6 +152,76 @@ class Core(nn.Module):
         return self.transition(h, c, mean, a)
 
 
+LSTM_GATES = "ifgo"  # flax's LSTM cells' gate order (kernels "ii".."io" on the input, "hi".."ho" on h)
+
+
+def _dense(layer: dict) -> tuple[jax.Array, jax.Array]:
+    return layer["kernel"], layer["bias"]
+
+
+def _lstm_cell(gates: jax.Array, c: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """flax's LSTM update from the summed pre-activations [..., 4H] (gates i, f, g, o) and c -> (h', c')."""
+    i, f, g, o = jnp.split(gates, 4, axis=-1)
+    c = nn.sigmoid(f) * c + nn.sigmoid(i) * jnp.tanh(g)
+    return nn.sigmoid(o) * jnp.tanh(c), c
+
+
+def core_weights(core_params, hidden: int, latent: int) -> dict:
+    """Core's parameters as the fused steps use them: the LSTM's four input and four recurrent kernels side by side
+    (w_x [Z + A, 4H], w_h [H, 4H], b [4H]), the prior's and the posterior's layers as they are."""
+    p = core_params["params"]
+    cell = p["cell"]
+    return dict(prior_hidden=_dense(p["prior_hidden"]), prior_out=_dense(p["prior_out"]),
+                post_hidden=_dense(p["post_hidden"]), post_out=_dense(p["post_out"]),
+                w_x=jnp.concatenate([cell[f"i{g}"]["kernel"] for g in LSTM_GATES], axis=1),
+                w_h=jnp.concatenate([cell[f"h{g}"]["kernel"] for g in LSTM_GATES], axis=1),
+                b=jnp.concatenate([cell[f"h{g}"]["bias"] for g in LSTM_GATES]), H=hidden, Z=latent)
+
+
+def fused_prior_step(w: dict, min_std: float, h, c, a, eps):
+    """Core's prior and transition (`LtqModel.prior_step` with core_impl flax) with h's two products in one and
+    a's in one: z = prior mean + std * eps -> (h', c', z)."""
+    H, Z = w["H"], w["Z"]
+    (wp, bp), (wo, bo) = w["prior_hidden"], w["prior_out"]
+    g = (h @ jnp.concatenate([wp[:H], w["w_h"]], axis=1) + a @ jnp.concatenate([wp[H:], w["w_x"][Z:]], axis=1)
+         + jnp.concatenate([bp, w["b"]]))
+    M = wp.shape[1]
+    mean, raw = jnp.split(nn.relu(g[..., :M]) @ wo + bo, 2, axis=-1)
+    z = mean + (nn.softplus(raw) + min_std) * eps
+    h, c = _lstm_cell(g[..., M:] + z @ w["w_x"][:Z], c)
+    return h, c, z
+
+
+def fused_filter(w: dict, min_std: float, embeds, prev_actions, eps, h0, c0):
+    """`LtqModel.filter` with core_impl fused: the frames' and actions' shares of every layer for all T steps in one
+    product each before the scan; per step one product of h with [prior | posterior | LSTM] (their hidden layers'
+    h rows and the recurrent kernels), one of both hidden layers with the block-diagonal [prior_out, post_out] and
+    one of z with the LSTM's z rows. -> (h, c, z, q mean, q std, p mean, p std), each [T, B, ...]."""
+    H, Z = w["H"], w["Z"]
+    E = embeds.shape[-1]
+    (wp, bp), (wpo, bpo) = w["prior_hidden"], w["prior_out"]
+    (wq, bq), (wqo, bqo) = w["post_hidden"], w["post_out"]
+    M = wp.shape[1]
+    w_h = jnp.concatenate([wp[:H], wq[E:E + H], w["w_h"]], axis=1)  # [H, 2M + 4H]
+    inputs = jnp.concatenate([prev_actions @ wp[H:] + bp, embeds @ wq[:E] + prev_actions @ wq[E + H:] + bq,
+                              prev_actions @ w["w_x"][Z:] + w["b"]], axis=-1)  # [T, B, 2M + 4H]
+    w_out = jnp.zeros((2 * M, 4 * Z), wpo.dtype).at[:M, :2 * Z].set(wpo).at[M:, 2 * Z:].set(wqo)
+    b_out = jnp.concatenate([bpo, bqo])
+    w_z = w["w_x"][:Z]
+
+    def step(carry, inp):
+        h, c = carry
+        pre, noise = inp
+        g = h @ w_h + pre
+        p_mean, p_raw, q_mean, q_raw = jnp.split(nn.relu(g[..., :2 * M]) @ w_out + b_out, 4, axis=-1)
+        q_std = nn.softplus(q_raw) + min_std
+        z = q_mean + q_std * noise
+        h, c = _lstm_cell(g[..., 2 * M:] + z @ w_z, c)
+        return (h, c), (h, c, z, q_mean, q_std, p_mean, nn.softplus(p_raw) + min_std)
+
+    return jax.lax.scan(step, (h0, c0), (inputs, eps))[1]
+
+
 class Policy(nn.Module):
     hidden: tuple[int, ...]
     actions: int
@@ -223,6 +293,9 @@ class LtqModel:
 
     def prior_step(self, core_params, h, c, a, eps):
         """One open-loop step: z = prior mean + std * eps, then the transition -> (h', c', z)."""
+        cfg = self.config
+        if cfg.core_impl == "fused":
+            return fused_prior_step(core_weights(core_params, cfg.hidden, cfg.latent), cfg.min_std, h, c, a, eps)
         mean, std = self.core.apply(core_params, h, a, method="prior")
         z = mean + std * eps
         h, c = self.core.apply(core_params, h, c, z, a, method="transition")
@@ -236,6 +309,10 @@ class LtqModel:
         h0 = zeros if h0 is None else h0
         c0 = zeros if c0 is None else c0
         core = params["core"]
+        cfg = self.config
+        if cfg.core_impl == "fused":
+            w = core_weights(core, cfg.hidden, cfg.latent)
+            return Filtered(*fused_filter(w, cfg.min_std, embeds, prev_actions, eps, h0, c0))
 
         def step(carry, inp):
             h, c = carry
@@ -254,11 +331,17 @@ class LtqModel:
         a_{t-1} of each step, or None with `policy(h) -> a` acting on the imagined states.
         Returns (h, c, z) [K, B, ...]. Reads no frame."""
 
+        cfg = self.config
+        fused = core_weights(params["core"], cfg.hidden, cfg.latent) if cfg.core_impl == "fused" else None
+
         def step(carry, inp):
             h, c = carry
             a, noise = inp
             a = policy(h) if policy is not None else a
-            h, c, z = self.prior_step(params["core"], h, c, a, noise)
+            if fused is not None:
+                h, c, z = fused_prior_step(fused, cfg.min_std, h, c, a, noise)
+            else:
+                h, c, z = self.prior_step(params["core"], h, c, a, noise)
             return (h, c), (h, c, z)
 
         if actions is None:
