@@ -9,6 +9,7 @@ compiled `update`."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 
@@ -319,18 +320,30 @@ def test_float32_is_the_default_and_bfloat16_agrees_within_its_rounding(learner,
         assert relative(grads[1][group], grads[0][group]) < 1e-2, group
 
 
-def _products_per_step(fn, *args) -> list[int]:
-    """The matrix products in the body of each scan of fn(*args)'s jaxpr (calls inside the body entered)."""
-    def products(jaxpr) -> int:
-        n = 0
-        for eqn in jaxpr.eqns:
-            n += eqn.primitive.name == "dot_general"
-            for sub in (v for v in eqn.params.values() if hasattr(v, "jaxpr") or hasattr(v, "eqns")):
-                n += products(getattr(sub, "jaxpr", sub))
-        return n
+def _subjaxprs(eqn):
+    for value in eqn.params.values():
+        for v in value if isinstance(value, (tuple, list)) else (value,):
+            if hasattr(v, "eqns") or hasattr(v, "jaxpr"):
+                yield getattr(v, "jaxpr", v)
 
-    return [products(e.params["jaxpr"].jaxpr) for e in jax.make_jaxpr(fn)(*args).jaxpr.eqns
-            if e.primitive.name == "scan"]
+
+def _products_per_step(fn, *args) -> list[int]:
+    """The matrix products in the body of each scan of fn(*args)'s jaxpr (scans inside calls and custom rules
+    found too; calls inside a body entered), in the order they appear."""
+    def products(jaxpr) -> int:
+        return sum((e.primitive.name == "dot_general") + sum(products(j) for j in _subjaxprs(e)) for e in jaxpr.eqns)
+
+    def scans(jaxpr) -> list[int]:
+        found = []
+        for e in jaxpr.eqns:
+            if e.primitive.name == "scan":
+                found.append(products(e.params["jaxpr"].jaxpr))
+            else:
+                for j in _subjaxprs(e):
+                    found += scans(j)
+        return found
+
+    return scans(jax.make_jaxpr(fn)(*args).jaxpr)
 
 
 def test_the_fused_core_computes_the_flax_cores_function_with_half_the_products_per_step(learner, state, update):
@@ -351,6 +364,22 @@ def test_the_fused_core_computes_the_flax_cores_function_with_half_the_products_
     filtered = [lrn.model.filter(state.params, embeds, actions, eps) for lrn in (learner, fused)]
     for name, a, b in zip(filtered[0]._fields, *filtered):
         np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6, err_msg=name)
+    # the fused filter's own backward: every output's cotangent (random) to every input, against flax's autodiff;
+    # its loop does 3 products per step too (the cotangents of z, of the output layer's input and of h)
+    h0 = jax.random.normal(jax.random.key(5), (B, TINY.hidden))
+    c0 = jax.random.normal(jax.random.key(6), (B, TINY.hidden))
+    weights = jax.tree.map(lambda x: jax.random.normal(jax.random.key(7), x.shape), filtered[0])
+
+    def scalar(lrn, *args):
+        out = lrn.model.filter(args[0], *args[1:])
+        return sum((x * wx).sum() for x, wx in zip(out, weights))
+
+    args = (state.params, embeds, actions, eps, h0, c0)
+    grads = [jax.jit(jax.grad(functools.partial(scalar, lrn), argnums=tuple(range(6))))(*args) for lrn in (learner, fused)]
+    assert relative(grads[1][0]["core"], grads[0][0]["core"]) < 1e-5
+    for i, name in enumerate(("embeds", "actions", "eps", "h0", "c0"), start=1):
+        np.testing.assert_allclose(grads[1][i], grads[0][i], rtol=1e-4, atol=1e-5, err_msg=name)
+    assert _products_per_step(jax.grad(functools.partial(scalar, fused), argnums=(0, 1)), *args) == [3, 3]
     _, metrics = three_updates(update, state)
     _, metrics_fused = three_updates(jax.jit(fused.update), state)
     for name, value in metrics.items():

@@ -21,6 +21,7 @@ Every standard deviation is softplus(raw) + min_std, from its own output (not fr
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Callable, NamedTuple
 
@@ -208,18 +209,81 @@ def fused_filter(w: dict, min_std: float, embeds, prev_actions, eps, h0, c0):
     w_out = jnp.zeros((2 * M, 4 * Z), wpo.dtype).at[:M, :2 * Z].set(wpo).at[M:, 2 * Z:].set(wqo)
     b_out = jnp.concatenate([bpo, bqo])
     w_z = w["w_x"][:Z]
+    return _filter_scan(min_std, w_h, w_out, b_out, w_z, inputs, eps, h0, c0)
+
+
+def _filter_outputs(min_std: float, packed: jax.Array, H: int, Z: int) -> tuple:
+    """The filter's outputs (h, c, z, q mean, q std, p mean, p std) from its packed per-step rows [..., H + H + Z +
+    4Z + ...] (h', c', z, the output layer's [p mean, p raw, q mean, q raw], then anything else)."""
+    h, c, z = packed[..., :H], packed[..., H:2 * H], packed[..., 2 * H:2 * H + Z]
+    p_mean, p_raw, q_mean, q_raw = jnp.split(packed[..., 2 * H + Z:2 * H + 5 * Z], 4, axis=-1)
+    return h, c, z, q_mean, nn.softplus(q_raw) + min_std, p_mean, nn.softplus(p_raw) + min_std
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _filter_scan(min_std, w_h, w_out, b_out, w_z, inputs, eps, h0, c0):
+    return _filter_scan_fwd(min_std, w_h, w_out, b_out, w_z, inputs, eps, h0, c0)[0]
+
+
+def _filter_scan_fwd(min_std, w_h, w_out, b_out, w_z, inputs, eps, h0, c0):
+    """The filter's loop: per step g = h W_h + inputs_t, the output layer on relu(g's hidden part), z, the LSTM;
+    one packed row [h', c', z, output layer, g] written per step (one store, not one per output)."""
+    M2 = w_out.shape[0]
 
     def step(carry, inp):
         h, c = carry
         pre, noise = inp
         g = h @ w_h + pre
-        p_mean, p_raw, q_mean, q_raw = jnp.split(nn.relu(g[..., :2 * M]) @ w_out + b_out, 4, axis=-1)
-        q_std = nn.softplus(q_raw) + min_std
-        z = q_mean + q_std * noise
-        h, c = _lstm_cell(g[..., 2 * M:] + z @ w_z, c)
-        return (h, c), (h, c, z, q_mean, q_std, p_mean, nn.softplus(p_raw) + min_std)
+        out = nn.relu(g[..., :M2]) @ w_out + b_out
+        _, _, q_mean, q_raw = jnp.split(out, 4, axis=-1)
+        z = q_mean + (nn.softplus(q_raw) + min_std) * noise
+        h, c = _lstm_cell(g[..., M2:] + z @ w_z, c)
+        return (h, c), jnp.concatenate([h, c, z, out, g], axis=-1)
 
-    return jax.lax.scan(step, (h0, c0), (inputs, eps))[1]
+    packed = jax.lax.scan(step, (h0, c0), (inputs, eps))[1]
+    H, Z = h0.shape[-1], w_z.shape[0]
+    return _filter_outputs(min_std, packed, H, Z), (w_h, w_out, w_z, eps, h0, c0, packed)
+
+
+def _filter_scan_bwd(min_std, residuals, cotangents):
+    """The filter's backward: per step the LSTM's, the output layer's and h's cotangents (three products: with
+    W_z, W_out and W_h transposed), one packed row of g's and the output layer's cotangents stored; every weight's
+    gradient afterwards, one product over all steps and rows each."""
+    w_h, w_out, w_z, eps, h0, c0, packed = residuals
+    dh_out, dc_out, dz_out, dq_mean_out, dq_std_out, dp_mean, dp_std = cotangents
+    H, Z, M2 = h0.shape[-1], w_z.shape[0], w_out.shape[0]
+    h, c, z = packed[..., :H], packed[..., H:2 * H], packed[..., 2 * H:2 * H + Z]
+    out, g = packed[..., 2 * H + Z:2 * H + 5 * Z], packed[..., 2 * H + 5 * Z:]
+    _, p_raw, _, q_raw = jnp.split(out, 4, axis=-1)
+    gates = g[..., M2:] + z @ w_z  # the LSTM's pre-activations, every step in one product
+    c_prev = jnp.concatenate([c0[None], c[:-1]])
+    dp_raw = dp_std * nn.sigmoid(p_raw)
+
+    def step(carry, inp):
+        dh, dc = carry  # from step t + 1
+        dh_t, dc_t, dz_t, dq_mean_t, dq_std_t, dp_mean_t, dp_raw_t, q_raw_t, eps_t, g_t, gates_t, c_prev_t = inp
+        _, lstm_vjp = jax.vjp(_lstm_cell, gates_t, c_prev_t)
+        dgates, dc_prev = lstm_vjp((dh + dh_t, dc + dc_t))
+        dz = dz_t + dgates @ w_z.T
+        dq_raw = (dq_std_t + dz * eps_t) * nn.sigmoid(q_raw_t)
+        dout = jnp.concatenate([dp_mean_t, dp_raw_t, dq_mean_t + dz, dq_raw], axis=-1)
+        dg = jnp.concatenate([jnp.where(g_t[..., :M2] > 0, dout @ w_out.T, 0.0), dgates], axis=-1)
+        return (dg @ w_h.T, dc_prev), jnp.concatenate([dg, dout], axis=-1)
+
+    zeros = jnp.zeros_like(h0)
+    (dh0, dc0), grads = jax.lax.scan(step, (zeros, zeros), (dh_out, dc_out, dz_out, dq_mean_out, dq_std_out, dp_mean,
+                                                            dp_raw, q_raw, eps, g, gates, c_prev), reverse=True)
+    dg, dout = grads[..., :-4 * Z], grads[..., -4 * Z:]
+    dgates = dg[..., M2:]
+    flat = lambda x: x.reshape(-1, x.shape[-1])  # noqa: E731 - [T * B, ...]: one product over every step and row
+    h_prev = jnp.concatenate([h0[None], h[:-1]])
+    dz = dz_out + dgates @ w_z.T
+    q_std = nn.softplus(q_raw) + min_std
+    return (flat(h_prev).T @ flat(dg), flat(nn.relu(g[..., :M2])).T @ flat(dout), flat(dout).sum(0),
+            flat(z).T @ flat(dgates), dg, dz * q_std, dh0, dc0)
+
+
+_filter_scan.defvjp(_filter_scan_fwd, _filter_scan_bwd)
 
 
 class Policy(nn.Module):
