@@ -347,9 +347,10 @@ def _products_per_step(fn, *args) -> list[int]:
 
 
 def test_the_fused_core_computes_the_flax_cores_function_with_half_the_products_per_step(learner, state, update):
-    """core_impl fused (the presets') against flax (the default, the model of before): the filter's scan does 3
-    matrix products per step instead of 6 and the prior's 4 as before, and 3 updates' metrics and one batch's
-    gradients agree to float32 rounding (1e-5 relative), with the update's held-out scores and l_cc included."""
+    """core_impl fused against flax (the default, the model of before): the filter's scan does 3 matrix products
+    per step instead of 6 (forward and backward) and the prior's 4 as before, the consistency term's k steps are
+    unrolled, and the filter's outputs and gradients (random cotangents on all outputs), 3 updates' metrics and one
+    batch's gradients agree to float32 rounding (1e-5 relative), the update's held-out scores and l_cc included."""
     assert TINY.core_impl == "flax"
     fused = learner_for(TINY.replace(core_impl="fused"))
     B, T, E = 2, 5, TINY.embed_dim
@@ -380,11 +381,15 @@ def test_the_fused_core_computes_the_flax_cores_function_with_half_the_products_
     for i, name in enumerate(("embeds", "actions", "eps", "h0", "c0"), start=1):
         np.testing.assert_allclose(grads[1][i], grads[0][i], rtol=1e-4, atol=1e-5, err_msg=name)
     assert _products_per_step(jax.grad(functools.partial(scalar, fused), argnums=(0, 1)), *args) == [3, 3]
+    frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
+    cc_scans = [[e.params["unroll"] for e in jax.make_jaxpr(lrn.loss)(state.params, frames, actions, HP,
+                                                                         jax.random.key(4)).jaxpr.eqns
+                 if e.primitive.name == "scan" and e.params["length"] == TINY.horizon] for lrn in (learner, fused)]
+    assert cc_scans == [[1], [TINY.horizon]], cc_scans  # the consistency term's k steps: unrolled when fused
     _, metrics = three_updates(update, state)
     _, metrics_fused = three_updates(jax.jit(fused.update), state)
     for name, value in metrics.items():
         np.testing.assert_allclose(metrics_fused[name], value, rtol=1e-5, err_msg=name)
-    frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
     grads = [jax.jit(jax.grad(lambda p, lrn=lrn: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]))(state.params)
              for lrn in (learner, fused)]
     for group in state.params:

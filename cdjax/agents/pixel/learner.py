@@ -145,7 +145,7 @@ class PixelLearner:
         return consistency.consistency_loss(
             model_step, params["core"], s0, steps, real, mask, kind=c.encoder, normalize=lambda s: s[..., :H],
             weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=self.model.cc_encoder,
-            encoder_params=params.get("cc_encoder"))
+            encoder_params=params.get("cc_encoder"), unroll=c.horizon if c.core_impl == "fused" else 1)
 
     def loss(self, params, frames, actions, hp, key) -> tuple[jax.Array, dict]:
         """frames [L+F-1, B, S, S, 3] uint8, actions [L, B, A] (time-major) -> (total, metrics)."""
