@@ -45,7 +45,8 @@
 #                                                  38,251 frames/s against 30 at 41,810), assumed the same here
 # Measured: halfcheetah-ltq on one H100 (2026-11-25, core_impl flax) trained 10,000 updates in 809 s (8.1 ms per run
 # and update), 1,008 s from start to end with evaluation and strips. A unit whose runs are slower than an estimate
-# says in its log where --time-limit stopped it; each unit's "Trained in" line gives its real rate. Fewer runs may not be proportionally faster (the update is bound by kernel launches).
+# says in its log where --time-limit stopped it; each unit's "Trained in" line gives its real rate. Fewer runs may not
+# be proportionally faster (the update is bound by kernel launches).
 # The experts are the kept ones (experiments/pixel/data/three-tasks-x2/TASK/expert.msgpack). The first call starts
 # the unit in runs/pixel-units/UNIT/ and waits; every call waits up to WAIT_S seconds (default 560) for it to end,
 # then says "RUNNING: call again" (at once: the machine goes back 30 s after a call) or "DONE" after packing what to
