@@ -34,8 +34,9 @@
 # The re-run's plan (issue 22): the nine units TASK-ltq, TASK-ltq-cd0 and TASK-ltq-cd1 for the three tasks, one per
 # lease (two per session where they fit: a one-GPU machine counted 67% of its held time in session 19, ~45 min held;
 # all of it in session 20, 30 min held), halfcheetah first. Estimated training time for 10,000 updates from
-# halfcheetah's bfloat16/per-run rates on one H200, taken as linear in the runs (ltq 6.6 ms per run and update: 40 runs at 0.265 s/update in the lr-check; ltq-cd 7.6 ms: 10 ltq + 20 ltq-cd runs at 0.218
-# s/update in the precision unit), then about 1-3 minutes of setup and compile before and 4-6 minutes of
+# halfcheetah's bfloat16/per-run rates on one H200, taken as linear in the runs (ltq 6.6 ms per run and update: 40
+# runs at 0.265 s/update in the lr-check; ltq-cd 7.6 ms: 10 ltq + 20 ltq-cd runs at 0.218 s/update in the precision
+# unit), then about 1-3 minutes of setup and compile before and 4-6 minutes of
 # evaluation, plot and strips after:
 #   halfcheetah-ltq                      10 runs   ~11 min
 #   halfcheetah-ltq-cd0, -ltq-cd1        10 runs   ~13 min each
