@@ -166,6 +166,7 @@ _NO_KERNEL = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast", 
               "after-all", "add-dependency", "opt-barrier", "partition-id", "replica-id", "domain"}
 _OPCODE = re.compile(r"^(?:\([^=]*?\)|\S+)\s+([a-z][\w\-]*)\(")
 _BODY = re.compile(r"\bbody=%?([\w.\-]+)")
+_TRIPS = re.compile(r'known_trip_count"?\s*:\s*\{\s*"n"\s*:\s*"(\d+)"')
 
 
 def _group(name: str) -> str:
@@ -182,7 +183,17 @@ def loop_kernels(path: pathlib.Path) -> list[dict]:
         comps = computations(text)
         entry = next((m.group(1) for line in text.splitlines()
                       if (m := _COMPUTATION.match(line.strip())) and line.lstrip().startswith("ENTRY")), None)
-        bodies = [m.group(1) for lines in comps.values() for line in lines if (m := _BODY.search(line))]
+        bodies, parent, trips = [], {}, {}
+        for name, lines in comps.items():
+            for line in lines:
+                if m := _BODY.search(line):
+                    bodies.append(m.group(1))
+                    parent[m.group(1)] = name
+                    trips[m.group(1)] = int(t.group(1)) if (t := _TRIPS.search(line)) else None
+
+        def passes(comp):  # a body's known trip count times its enclosing loops' (unknown counts: once)
+            return 1 if comp not in parent else (trips[comp] or 1) * passes(parent[comp])
+
         for comp in ([entry] if entry else []) + bodies:
             groups: collections.Counter = collections.Counter()
             for line in comps.get(comp, []):
@@ -190,8 +201,8 @@ def loop_kernels(path: pathlib.Path) -> list[dict]:
                 op = _OPCODE.match(m.group(2)) if m else None
                 if op and op.group(1) not in _NO_KERNEL:
                     groups[_group(m.group(1)) if op.group(1) == "fusion" else op.group(1)] += 1
-            out.append({"file": str(f), "computation": comp, "entry": comp == entry,
-                        "kernels": sum(groups.values()), "groups": groups.most_common()})
+            out.append({"file": str(f), "computation": comp, "entry": comp == entry, "kernels": sum(groups.values()),
+                        "trips": trips.get(comp), "passes": passes(comp), "groups": groups.most_common()})
     return sorted(out, key=lambda c: -c["kernels"])
 
 
@@ -201,10 +212,16 @@ def loops_report(loops: list[dict], top: int) -> str:
     out = []
     for c in loops:
         where = "entry" if c["entry"] else "loop body"
-        out.append(f"{c['computation']} ({where}, {pathlib.Path(c['file']).name}): {c['kernels']} kernels per pass")
+        times = "" if c["entry"] else (f", {c['passes']:,} passes" if c["trips"] else ", trip count unknown")
+        out.append(f"{c['computation']} ({where}, {pathlib.Path(c['file']).name}): {c['kernels']} kernels per pass"
+                   + times)
         out += [f"  {n:5d}  {group}" for group, n in c["groups"][:top]]
         if len(c["groups"]) > top:
             out.append(f"  {sum(n for _, n in c['groups'][top:]):5d}  ({len(c['groups']) - top} other groups)")
+    for name in dict.fromkeys(pathlib.Path(c["file"]).name for c in loops):
+        total = sum(c["kernels"] * c["passes"] for c in loops if pathlib.Path(c["file"]).name == name)
+        out.append(f"{name}: {total:,} kernels per run (the entry once, each loop body times its known trip count "
+                   "and its enclosing loops'; a body of unknown count once)")
     return "\n".join(out)
 
 

@@ -97,7 +97,8 @@ def test_loops_count_each_bodys_launches_by_group_and_not_the_fused_insides(tmp_
         "  ROOT %lt = pred[] compare(%i, %n), direction=LT", "}", "",
         "ENTRY %main (x: f32[4]) -> (s32[], f32[4]) {", "  %x = f32[4]{0} parameter(0)", "  %z = s32[] constant(0)",
         "  %init = (s32[], f32[4]{0}) tuple(%z, %x)",
-        "  ROOT %w = (s32[], f32[4]{0}) while(%init), condition=%cond.7, body=%body.7", "}", ""])
+        "  ROOT %w = (s32[], f32[4]{0}) while(%init), condition=%cond.7, body=%body.7, "
+        'backend_config={"known_trip_count":{"n":"3"}}', "}", ""])
     path = tmp_path / "module.after_optimizations.txt"
     path.write_text(hlo)
     body, entry = hlo_fusions.loop_kernels(path)
@@ -105,5 +106,10 @@ def test_loops_count_each_bodys_launches_by_group_and_not_the_fused_insides(tmp_
     assert body["kernels"] == 4 and dict(body["groups"]) == {"loop_add_fusion": 2, "custom-call": 1, "copy": 1}
     assert entry["computation"] == "main" and entry["entry"] and entry["kernels"] == 0
     text = hlo_fusions.main([str(path), "--loops", "--top", "1"])
-    assert text.splitlines()[:3] == ["body.7 (loop body, module.after_optimizations.txt): 4 kernels per pass",
+    assert text.splitlines()[:3] == ["body.7 (loop body, module.after_optimizations.txt): 4 kernels per pass, 3 passes",
                                      "      2  loop_add_fusion", "      2  (2 other groups)"]
+    assert body["trips"] == 3 and body["passes"] == 3
+    assert text.splitlines()[-1].startswith("module.after_optimizations.txt: 12 kernels per run")  # 0 + 4 x 3
+    path.write_text(hlo.replace(', backend_config={"known_trip_count":{"n":"3"}}', ""))
+    body, _ = hlo_fusions.loop_kernels(path)
+    assert body["trips"] is None and body["passes"] == 1

@@ -193,6 +193,31 @@ def fused_prior_step(w: dict, min_std: float, h, c, a, eps):
     return h, c, z
 
 
+def fused_imagine(w: dict, min_std: float, h0, c0, actions, eps):
+    """`LtqModel.imagine` under given actions [K, B, A] with core_impl fused: the actions' shares of the prior's
+    hidden layer and of the LSTM for all K steps in one product before the loop; per step one product of h with
+    both (their h rows side by side), the prior's output layer and z's product, one packed row stored.
+    -> (h, c, z), each [K, B, ...]."""
+    H, Z = w["H"], w["Z"]
+    (wp, bp), (wo, bo) = w["prior_hidden"], w["prior_out"]
+    M = wp.shape[1]
+    w_h = jnp.concatenate([wp[:H], w["w_h"]], axis=1)  # [H, M + 4H]
+    inputs = actions @ jnp.concatenate([wp[H:], w["w_x"][Z:]], axis=1) + jnp.concatenate([bp, w["b"]])
+    w_z = w["w_x"][:Z]
+
+    def step(carry, inp):
+        h, c = carry
+        pre, noise = inp
+        g = h @ w_h + pre
+        mean, raw = jnp.split(nn.relu(g[..., :M]) @ wo + bo, 2, axis=-1)
+        z = mean + (nn.softplus(raw) + min_std) * noise
+        h, c = _lstm_cell(g[..., M:] + z @ w_z, c)
+        return (h, c), jnp.concatenate([h, c, z], axis=-1)
+
+    packed = jax.lax.scan(step, (h0, c0), (inputs, eps))[1]
+    return packed[..., :H], packed[..., H:2 * H], packed[..., 2 * H:]
+
+
 def fused_filter(w: dict, min_std: float, embeds, prev_actions, eps, h0, c0):
     """`LtqModel.filter` with core_impl fused: the frames' and actions' shares of every layer for all T steps in one
     product each before the scan; per step one product of h with [prior | posterior | LSTM] (their hidden layers'
@@ -397,6 +422,8 @@ class LtqModel:
 
         cfg = self.config
         fused = core_weights(params["core"], cfg.hidden, cfg.latent) if cfg.core_impl == "fused" else None
+        if fused is not None and policy is None and actions is not None:
+            return fused_imagine(fused, cfg.min_std, h0, c0, actions, eps)
 
         def step(carry, inp):
             h, c = carry
