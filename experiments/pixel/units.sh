@@ -20,7 +20,9 @@
 #   core           the update's speed with core_impl flax (the model of before) and fused (the filter's and prior's
 #                  steps with fewer products: PixelConfig.core_impl), halfcheetah's ltq-cd at the preset's sizes
 #                  (bfloat16/per-run), 10 runs as a TASK-ARM unit runs them, SyntheticWorld's frames, one roofline
-#                  process each (flax.json/.md, fused.json/.md; about 3 minutes): whether the presets should run fused
+#                  process each (flax.json/.md, fused.json/.md) with its update's kernels per pass and per run from
+#                  its optimised HLO (loops-flax.log, loops-fused.log); about 3 minutes: whether the presets should
+#                  run fused
 #   devices        (a multi-GPU machine, issue 25) the pixel sweep's frames/s on 1, 2 and 4 of its GPUs in one
 #                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah
 #   TASK-ARM       the experiment at the presets' length: TASK halfcheetah, reacher or pusher, ARM ltq, ltq-cd
@@ -76,8 +78,13 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--out $work/roofline.json" ;;
     core)
       local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 10 --variants bfloat16/per-run --synthetic"
-      echo "$rf --out $work/flax.json > $work/flax.log 2>&1; $rf --set core_impl=fused --out $work/fused.json" \
-        "> $work/fused.log 2>&1; cat $work/flax.md $work/fused.md" ;;
+      local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" line="" impl
+      for impl in flax fused; do
+        line+="XLA_FLAGS='--xla_dump_to=$work/dump-$impl $dump' $rf --set core_impl=$impl --out $work/$impl.json"
+        line+=" > $work/$impl.log 2>&1; python -m benchmarks.hlo_fusions $work/dump-$impl --loops --top 4"
+        line+=" > $work/loops-$impl.log 2>&1; grep 'jit_update.*kernels per run' $work/loops-$impl.log;"
+      done
+      echo "$line cat $work/flax.md $work/fused.md" ;;
     devices)
       echo "python -m experiments.pixel.speed --env halfcheetah --runs 32 --devices ${DEVICE_COUNTS:-1 2 4}" \
         "--out $work/devices.json" ;;
@@ -129,7 +136,7 @@ unit_run "$work" "$cmd" "$wait_s" "$t0" "bash experiments/pixel/units.sh $unit" 
 thin=runs/pixel-units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
 mkdir -p "$thin/$unit"
-for f in command roofline.json roofline.md profile devices.json strips precision.md precision.json flax.json flax.md fused.json fused.md; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
+for f in command roofline.json roofline.md profile devices.json strips precision.md precision.json flax.json flax.md fused.json fused.md loops-flax.log loops-fused.log; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
 tar -czf "$out/$unit.tar.gz" -C "$thin" "$unit"
 cp "$work/unit.log" "$out/$unit.log"
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
