@@ -492,6 +492,16 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim, acc)
 
 
+def encoded_terms(kind: str, h_re, h_im, s_im, real_next, mask, normalize, weights: PathWeights, encoder,
+                  encoder_params) -> tuple[dict, dict]:
+    """`consistency_loss`'s terms and metrics from a GRU kind's final encodings h_re, h_im [W, H] and final imagined
+    state s_im, for a caller that ran the k steps its own way (e.g. `cdjax.agents.pixel.chain`); the other
+    arguments as `consistency_loss`'s (normalize a function)."""
+    assert kind in KINDS and kind != "l2", kind
+    return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params,
+                  real_next.shape[0], h_re.shape[-1])
+
+
 def _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim, acc=None):
     """The terms and metrics of `consistency_loss` from the final encodings (or, for l2, acc) and state."""
     use_gru, recon = kind != "l2", kind == "grounded-gru"

@@ -153,6 +153,59 @@ def test_consistency_is_zero_when_the_two_pathways_coincide(encoder, imagine):
     assert float(moved["consistency"]) > 1e-3
 
 
+@pytest.mark.parametrize("encoder,imagine", [("grounded-gru", "policy"), ("gru", "expert"), ("frozen-gru", "policy")])
+def test_the_fused_chain_is_the_scanned_terms_with_their_gradients_on_each_path(encoder, imagine):
+    """core_impl fused runs the consistency term's k steps and both encodings by `chain.pixel_chain` (its backward
+    written out): its terms, metrics and the gradients of a random mix of them (every parameter, the closed loop's
+    states and the actions) equal the scanned path's (core_impl flax) to float32 rounding, with the model's and the
+    policy's paths scaled (cc_model 0.7, cc_policy 0.3) and the real rows' encoder unscaled for grounded-gru."""
+    from cdjax.agents.pixel import chain
+
+    config = TINY.replace(encoder=encoder, imagine_actions=imagine, horizon=3)
+    learners = [learner_for(config), learner_for(config.replace(core_impl="fused"))]
+    params = learners[0].model.init(jax.random.key(7))
+    L, B, H = 7, 3, config.hidden
+    actions = jax.random.uniform(jax.random.key(8), (L, B, A), minval=-1, maxval=1)
+    eps = jax.random.normal(jax.random.key(9), (L - 1, B, config.latent))
+    states = jax.random.normal(jax.random.key(10), (L, B, 2 * H))
+    offsets = jnp.array([0, 2, 3])
+    hp = HP.replace(cc_model=0.7, cc_policy=0.3)
+    mix = {"consistency": 1.3, "encoder_aux": -0.6}
+
+    def scalar(lrn, params, states, actions):
+        terms, _ = lrn.consistency_terms(params, states, actions, eps, offsets, hp)
+        return sum(mix[name] * value for name, value in terms.items())
+
+    calls = []
+    original = chain._chain_fwd
+    try:
+        chain._chain_fwd = lambda *a: calls.append(1) or original(*a)  # noqa: E731 - count the chain's traces
+        results = [lrn.consistency_terms(params, states, actions, eps, offsets, hp) for lrn in learners]
+        grads = [jax.grad(functools.partial(scalar, lrn), argnums=(0, 1, 2))(params, states, actions)
+                 for lrn in learners]
+    finally:
+        chain._chain_fwd = original
+    assert calls, "the fused learner did not run the chain"
+    (terms, metrics), (terms_f, metrics_f) = results
+    assert set(terms) == set(terms_f) and set(metrics) == set(metrics_f)
+    for name in terms:
+        np.testing.assert_allclose(terms_f[name], terms[name], rtol=1e-5, err_msg=name)
+    for name in metrics:
+        np.testing.assert_allclose(metrics_f[name], metrics[name], rtol=1e-5, atol=1e-7, err_msg=name)
+    assert float(terms["consistency"]) > 1e-3
+    reached = {"core", "policy", "cc_encoder"} - ({"cc_encoder"} if encoder == "frozen-gru" else set()) - (
+        {"policy"} if imagine == "expert" else set())
+    for group in params:  # the term reaches the core, the policy (when it acts) and the encoder (unless frozen)
+        largest = [max(float(jnp.abs(x).max()) for x in jax.tree.leaves(g[0][group])) for g in grads]
+        assert (largest[0] > 0) == (group in reached), (group, largest)
+        if group in reached:
+            assert relative(grads[1][0][group], grads[0][0][group]) < 1e-5, group
+        else:
+            assert largest[1] == 0, group
+    for i, name in ((1, "states"), (2, "actions")):
+        np.testing.assert_allclose(grads[1][i], grads[0][i], rtol=1e-4, atol=1e-6, err_msg=name)
+
+
 def test_the_update_compiles_once_and_imitation_loss_falls(state, update, traced):
     losses = []
     for _ in range(240):

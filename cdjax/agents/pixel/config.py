@@ -44,7 +44,7 @@ class PixelConfig:
     # model of before, bit for bit) or fused (the same function to float32 rounding, in fewer kernels per step on a
     # GPU: the filter's products on h merged and the inputs' shares taken out of its loop, its backward written out,
     # the prior's step without concatenating its inputs (under given actions their share taken out of the loop), and
-    # the consistency term's k-step loop unrolled; model.py)
+    # the consistency term's k steps with both encodings unrolled, its backward written out; model.py, chain.py)
     embed_dim: int = 256  # e(o): the encoder's output size
     hidden: int = 256  # LSTM state size (h and c each)
     latent: int = 100  # z: per-step latent size

@@ -34,7 +34,8 @@ from cdjax import consistency
 from cdjax.agents.pixel.config import HP_RANGES, PixelConfig
 from cdjax.agents.pixel.data import Dataset, PixelWorld
 from cdjax.agents.pixel.expert import actor, expert_for
-from cdjax.agents.pixel.model import LtqModel, stack_frames
+from cdjax.agents.pixel.chain import pixel_chain
+from cdjax.agents.pixel.model import LtqModel, core_weights, stack_frames
 from cdjax.checks import check_type
 
 HELDOUT_BATCH = 4  # held-out sequences scored per update
@@ -133,6 +134,9 @@ class PixelLearner:
         s0, steps, real, mask = consistency.windows(states[:-1], states[1:], extended, ended, ~ended, offsets,
                                                     c.horizon)
         policy_params = consistency.scale_gradient(params["policy"], hp.cc_policy)
+        use_policy = c.imagine_actions == "policy"
+        if c.core_impl == "fused" and c.encoder != "l2" and (not use_policy or len(c.policy_hidden) == 1):
+            return self._chained_terms(params, policy_params, s0, steps, real, mask, hp, use_policy)
 
         def model_step(core_params, s, a_ext):
             h, cell = s[:, :H], s[:, H:]
@@ -146,6 +150,25 @@ class PixelLearner:
             model_step, params["core"], s0, steps, real, mask, kind=c.encoder, normalize=lambda s: s[..., :H],
             weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=self.model.cc_encoder,
             encoder_params=params.get("cc_encoder"), unroll=c.horizon if c.core_impl == "fused" else 1)
+
+    def _chained_terms(self, params, policy_params, s0, steps, real, mask, hp, use_policy: bool) -> tuple[dict, dict]:
+        """`consistency_terms` with core_impl fused: the same terms, the k steps and both GRU encodings by
+        `chain.pixel_chain` (unrolled, its backward written out) instead of `consistency_loss`'s scan."""
+        c = self.config
+        H, A = c.hidden, self.A
+        weights = consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy)
+        core = consistency.scale_gradient(params["core"], weights.model)
+        acts = consistency.scale_gradient(steps[..., :A], weights.policy)
+        encoder_params = params["cc_encoder"]
+        if c.encoder == "frozen-gru":
+            encoder_params = jax.lax.stop_gradient(encoder_params)
+        recon = c.encoder == "grounded-gru"
+        h_re, h_im, s_k = pixel_chain(
+            core_weights(core, H, c.latent), policy_params, consistency.gru_weights(encoder_params), s0[:, :H],
+            s0[:, H:], acts, steps[..., A:], real[..., :H], jnp.stack([1.0 if recon else weights.model, weights.model]),
+            c.min_std, use_policy)
+        return consistency.encoded_terms(c.encoder, h_re, h_im, s_k, real, mask, lambda s: s[..., :H], weights,
+                                         self.model.cc_encoder, encoder_params)
 
     def loss(self, params, frames, actions, hp, key) -> tuple[jax.Array, dict]:
         """frames [L+F-1, B, S, S, 3] uint8, actions [L, B, A] (time-major) -> (total, metrics)."""
