@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import functools
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import flax.linen as nn
 
+from cdjax.agents.pixel.model import lstm_cell
 from cdjax.consistency import gru_gates
-from cdjax.agents.pixel.model import _lstm_cell
 
 
 def _flat(x: jax.Array) -> jax.Array:
@@ -40,8 +40,7 @@ def _chain(use_policy: bool, min_std: float, p: dict, scales: jax.Array):
 
 
 def _chain_fwd(use_policy: bool, min_std: float, p: dict, scales: jax.Array):
-    H, G = p["w_hl"].shape[0], p["w_gh"].shape[0]
-    M, Z = p["wp_h"].shape[1], p["w_z"].shape[0]
+    G, M = p["w_gh"].shape[0], p["wp_h"].shape[1]
     Np = p["pw1"].shape[1] if use_policy else 0
     k = p["eps"].shape[0]
     w_hall = jnp.concatenate(([p["pw1"]] if use_policy else []) + [p["wp_h"], p["w_hl"], p["w_i"]], axis=1)
@@ -65,7 +64,7 @@ def _chain_fwd(use_policy: bool, min_std: float, p: dict, scales: jax.Array):
         std = nn.softplus(raw) + min_std
         z = mean + std * p["eps"][t]
         gates = P[:, Np + M:] + Q[:, M:] + p["b_l"] + z @ p["w_z"]
-        h, c = _lstm_cell(gates, c)
+        h, c = lstm_cell(gates, c)
         both = h @ w_hall  # the next step's policy, prior and LSTM parts | this step's imagined GRU input
         P = both[:, :-3 * G]
         gi = jnp.stack([gi_re[t], both[:, -3 * G:] + p["b_i"]])
@@ -95,7 +94,7 @@ def _chain_bwd(use_policy: bool, min_std: float, residuals, cotangents):
         d["gi"][t], d["gh"][t] = dgi, dgh
         dboth = dgi[1] if dP is None else jnp.concatenate([dP, dgi[1]], axis=-1)
         dh = dh + dboth @ (w_hall[:, -3 * G:] if dP is None else w_hall).T
-        _, lstm_vjp = jax.vjp(_lstm_cell, r["gates"][t], r["c"][t])
+        _, lstm_vjp = jax.vjp(lstm_cell, r["gates"][t], r["c"][t])
         dgates, dc = lstm_vjp((dh, dc))
         dz = dgates @ p["w_z"].T
         d["eps"][t] = dz * r["std"][t]

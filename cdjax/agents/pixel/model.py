@@ -160,7 +160,7 @@ def _dense(layer: dict) -> tuple[jax.Array, jax.Array]:
     return layer["kernel"], layer["bias"]
 
 
-def _lstm_cell(gates: jax.Array, c: jax.Array) -> tuple[jax.Array, jax.Array]:
+def lstm_cell(gates: jax.Array, c: jax.Array) -> tuple[jax.Array, jax.Array]:
     """flax's LSTM update from the summed pre-activations [..., 4H] (gates i, f, g, o) and c -> (h', c')."""
     i, f, g, o = jnp.split(gates, 4, axis=-1)
     c = nn.sigmoid(f) * c + nn.sigmoid(i) * jnp.tanh(g)
@@ -189,7 +189,7 @@ def fused_prior_step(w: dict, min_std: float, h, c, a, eps):
     M = wp.shape[1]
     mean, raw = jnp.split(nn.relu(g[..., :M]) @ wo + bo, 2, axis=-1)
     z = mean + (nn.softplus(raw) + min_std) * eps
-    h, c = _lstm_cell(g[..., M:] + z @ w["w_x"][:Z], c)
+    h, c = lstm_cell(g[..., M:] + z @ w["w_x"][:Z], c)
     return h, c, z
 
 
@@ -211,7 +211,7 @@ def fused_imagine(w: dict, min_std: float, h0, c0, actions, eps):
         g = h @ w_h + pre
         mean, raw = jnp.split(nn.relu(g[..., :M]) @ wo + bo, 2, axis=-1)
         z = mean + (nn.softplus(raw) + min_std) * noise
-        h, c = _lstm_cell(g[..., M:] + z @ w_z, c)
+        h, c = lstm_cell(g[..., M:] + z @ w_z, c)
         return (h, c), jnp.concatenate([h, c, z], axis=-1)
 
     packed = jax.lax.scan(step, (h0, c0), (inputs, eps))[1]
@@ -262,7 +262,7 @@ def _filter_scan_fwd(min_std, w_h, w_out, b_out, w_z, inputs, eps, h0, c0):
         out = nn.relu(g[..., :M2]) @ w_out + b_out
         _, _, q_mean, q_raw = jnp.split(out, 4, axis=-1)
         z = q_mean + (nn.softplus(q_raw) + min_std) * noise
-        h, c = _lstm_cell(g[..., M2:] + z @ w_z, c)
+        h, c = lstm_cell(g[..., M2:] + z @ w_z, c)
         return (h, c), jnp.concatenate([h, c, z, out, g], axis=-1)
 
     packed = jax.lax.scan(step, (h0, c0), (inputs, eps))[1]
@@ -287,7 +287,7 @@ def _filter_scan_bwd(min_std, residuals, cotangents):
     def step(carry, inp):
         dh, dc = carry  # from step t + 1
         dh_t, dc_t, dz_t, dq_mean_t, dq_std_t, dp_mean_t, dp_raw_t, q_raw_t, eps_t, g_t, gates_t, c_prev_t = inp
-        _, lstm_vjp = jax.vjp(_lstm_cell, gates_t, c_prev_t)
+        _, lstm_vjp = jax.vjp(lstm_cell, gates_t, c_prev_t)
         dgates, dc_prev = lstm_vjp((dh + dh_t, dc + dc_t))
         dz = dz_t + dgates @ w_z.T
         dq_raw = (dq_std_t + dz * eps_t) * nn.sigmoid(q_raw_t)
