@@ -45,7 +45,7 @@ def _chain_fwd(use_policy: bool, min_std: float, p: dict, scales: jax.Array):
     k = p["eps"].shape[0]
     w_hall = jnp.concatenate(([p["pw1"]] if use_policy else []) + [p["wp_h"], p["w_hl"], p["w_i"]], axis=1)
     w_a = jnp.concatenate([p["wp_a"], p["w_xa"]], axis=1)  # [A, M + 4H]
-    gi_re = p["x_re"] @ p["w_i"] + p["b_i"]  # [k, W, 3G]: the real rows' GRU inputs, outside the chain
+    gi_re = p["x_re"] @ p["w_i"] + p["b_i"]  # [k, W, 3G]: the real rows' GRU inputs, all steps before the loop
     gh_bias = jnp.concatenate([jnp.zeros((2 * G,), p["b_hn"].dtype), p["b_hn"]])
     h, c = p["h0"], p["c0"]
     P = h @ w_hall[:, :-3 * G]
