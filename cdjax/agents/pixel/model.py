@@ -179,18 +179,31 @@ def core_weights(core_params, hidden: int, latent: int) -> dict:
                 b=jnp.concatenate([cell[f"h{g}"]["bias"] for g in LSTM_GATES]), H=hidden, Z=latent)
 
 
-def fused_prior_step(w: dict, min_std: float, h, c, a, eps):
-    """Core's prior and transition (`LtqModel.prior_step` with core_impl flax) with h's two products in one and
-    a's in one: z = prior mean + std * eps -> (h', c', z)."""
+def _prior_kernels(w: dict) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The prior's hidden layer and the LSTM side by side: h's kernel [H, M + 4H], the action's [A, M + 4H] and the
+    biases [M + 4H] (the hidden layer's first, then the LSTM's gates)."""
     H, Z = w["H"], w["Z"]
-    (wp, bp), (wo, bo) = w["prior_hidden"], w["prior_out"]
-    g = (h @ jnp.concatenate([wp[:H], w["w_h"]], axis=1) + a @ jnp.concatenate([wp[H:], w["w_x"][Z:]], axis=1)
-         + jnp.concatenate([bp, w["b"]]))
+    wp, bp = w["prior_hidden"]
+    return (jnp.concatenate([wp[:H], w["w_h"]], axis=1), jnp.concatenate([wp[H:], w["w_x"][Z:]], axis=1),
+            jnp.concatenate([bp, w["b"]]))
+
+
+def _prior_rest(w: dict, min_std: float, g, c, eps):
+    """From g = [the prior's hidden pre-activation | the LSTM's h and action shares]: z = prior mean + std * eps and
+    the transition -> (h', c', z)."""
+    (wp, _), (wo, bo) = w["prior_hidden"], w["prior_out"]
     M = wp.shape[1]
     mean, raw = jnp.split(nn.relu(g[..., :M]) @ wo + bo, 2, axis=-1)
     z = mean + (nn.softplus(raw) + min_std) * eps
-    h, c = lstm_cell(g[..., M:] + z @ w["w_x"][:Z], c)
+    h, c = lstm_cell(g[..., M:] + z @ w["w_x"][:w["Z"]], c)
     return h, c, z
+
+
+def fused_prior_step(w: dict, min_std: float, h, c, a, eps):
+    """Core's prior and transition (`LtqModel.prior_step` with core_impl flax) with h's two products in one and
+    a's in one: z = prior mean + std * eps -> (h', c', z)."""
+    w_h, w_a, b = _prior_kernels(w)
+    return _prior_rest(w, min_std, h @ w_h + a @ w_a + b, c, eps)
 
 
 def fused_imagine(w: dict, min_std: float, h0, c0, actions, eps):
@@ -198,23 +211,15 @@ def fused_imagine(w: dict, min_std: float, h0, c0, actions, eps):
     hidden layer and of the LSTM for all K steps in one product before the loop; per step one product of h with
     both (their h rows side by side), the prior's output layer and z's product, one packed row stored.
     -> (h, c, z), each [K, B, ...]."""
-    H, Z = w["H"], w["Z"]
-    (wp, bp), (wo, bo) = w["prior_hidden"], w["prior_out"]
-    M = wp.shape[1]
-    w_h = jnp.concatenate([wp[:H], w["w_h"]], axis=1)  # [H, M + 4H]
-    inputs = actions @ jnp.concatenate([wp[H:], w["w_x"][Z:]], axis=1) + jnp.concatenate([bp, w["b"]])
-    w_z = w["w_x"][:Z]
+    w_h, w_a, b = _prior_kernels(w)
 
     def step(carry, inp):
-        h, c = carry
         pre, noise = inp
-        g = h @ w_h + pre
-        mean, raw = jnp.split(nn.relu(g[..., :M]) @ wo + bo, 2, axis=-1)
-        z = mean + (nn.softplus(raw) + min_std) * noise
-        h, c = lstm_cell(g[..., M:] + z @ w_z, c)
+        h, c, z = _prior_rest(w, min_std, carry[0] @ w_h + pre, carry[1], noise)
         return (h, c), jnp.concatenate([h, c, z], axis=-1)
 
-    packed = jax.lax.scan(step, (h0, c0), (inputs, eps))[1]
+    packed = jax.lax.scan(step, (h0, c0), (actions @ w_a + b, eps))[1]
+    H = w["H"]
     return packed[..., :H], packed[..., H:2 * H], packed[..., 2 * H:]
 
 
