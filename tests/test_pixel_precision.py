@@ -51,7 +51,8 @@ def test_precision_compares_at_the_common_update_and_finds_a_shift_only_where_th
 
 
 def test_every_pixel_preset_builds_a_valid_config_and_grid():
-    """The task presets run the arrangement the precision check validated (bfloat16, per-run convolutions); each
+    """The task presets run the arrangement the precision check validated (bfloat16, per-run convolutions) with the
+    fused core (the same function as flax, faster on a GPU: experiments/pixel/data/core-h200/); each
     preset's config must pass PixelConfig's own checks (e.g. the transposed upsampling runs only in float32) and
     each grid value the hyper-parameters' ranges, or a sweep of it would stop at its first line."""
     import itertools
@@ -66,4 +67,4 @@ def test_every_pixel_preset_builds_a_valid_config_and_grid():
         for combo in itertools.product(*preset.hparams.values()):
             SETTING.hparams_type(**dict(zip(preset.hparams, combo)))
         if name != "pixel-tiny":
-            assert (config.compute_dtype, config.conv_impl) == ("bfloat16", "per-run"), name
+            assert (config.compute_dtype, config.conv_impl, config.core_impl) == ("bfloat16", "per-run", "fused"), name
