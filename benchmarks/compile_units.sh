@@ -36,13 +36,16 @@
 #            On 2026-11-25 (H100) it found a one-block fusion of the losses' backward with the reward MSE's sum
 #            (67 ms of Mb-Mf's 0.528 s per update; the SGD now reduces its diagnostics once per update) and kept the
 #            chain's one-product weight gradients (bias-sum: paper-CD 0.839 s against 0.805 s).
-#   kernels  A/Bs for the chain's per-step kernels (about 6 minutes): the XLA GPU flags this image's jaxlib knows
-#            (xla-gpu-flags.txt: jax 0.11.2 refused --xla_gpu_enable_split_k_autotuning, 2026-11-25); the compare
+#   kernels  A/Bs for the chain's per-step kernels (about 4-6 minutes): the names of XLA GPU flags in this image's
+#            jaxlib (xla-gpu-flags.txt: candidates; jax 0.11.2 refused --xla_gpu_enable_split_k_autotuning, 2026-11-25,
+#            and --xla_gpu_experimental_enable_split_k_rewrite, listed there, 2026-11-26); the compare
 #            suite's Mb-Mf and paper-CD cases with XLA's defaults, then with split-K's rewrite off
 #            (--xla_gpu_experimental_enable_split_k_rewrite=false, where the image knows it; the 2026-11-25 H100 HLO of
 #            paper-CD's SGD step held 475 kernels against Mb-Mf's 140, among them pads of split-K products'
 #            contracting size) and with Triton for every GEMM (--xla_gpu_triton_gemm_any=true: epilogues fused
-#            into more products), profiled. Each flag is skipped, saying so, where the image lacks it.
+#            into more products), profiled. Each flag is skipped, saying so, where the image's XLA refuses it
+#            (`python -m benchmarks.xla_flags --accepts`). On 2026-11-26 (H200): Mb-Mf 0.4320, paper-CD 0.7072 s/update
+#            (1.64x) with the defaults; triton_gemm_any 0.4354 and 0.7147 (benchmarks/results/2026-11-26-h200-kernels/).
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -95,11 +98,11 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       line="python -m benchmarks.xla_flags > $work/xla-gpu-flags.txt; wc -l < $work/xla-gpu-flags.txt;"
       line+=" timeout -k 20 150 python -m benchmarks.run $cases --out $work/default > $work/default.log 2>&1;"
       for flag in xla_gpu_experimental_enable_split_k_rewrite=false xla_gpu_triton_gemm_any=true; do
-        line+=" if grep -qx '${flag%%=*}' $work/xla-gpu-flags.txt; then XLA_FLAGS=--$flag timeout -k 20 170"
+        line+=" if python -m benchmarks.xla_flags --accepts $flag > /dev/null; then XLA_FLAGS=--$flag timeout -k 20 170"
         line+=" python -m benchmarks.run $cases --trace $work/trace-${flag%%=*} --out $work/${flag%%=*}"
-        line+=" > $work/${flag%%=*}.log 2>&1; else echo 'this jaxlib has no ${flag%%=*}: skipped'; fi;"
+        line+=" > $work/${flag%%=*}.log 2>&1; else echo 'this XLA refuses ${flag%%=*}: skipped'; fi;"
       done
-      echo "$line grep -H ' s/update' $work/*.log" ;;
+      echo "$line grep -H ' s/update' $work/default.log $work/xla_gpu_*.log" ;;
     hlo)
       local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" line="" case run base
       for case in mbmf mbmf-nometrics cd-paper cd-paper-biassum; do

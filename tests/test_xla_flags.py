@@ -22,3 +22,16 @@ def test_this_jaxlib_knows_its_own_flags():
     names = xla_flags.known_flags()
     assert "xla_gpu_autotune_level" in names and "xla_gpu_enable_triton_gemm" in names
     assert names == sorted(set(names))
+
+
+def test_accepts_starts_xla_with_the_flag_and_tells_a_listed_name_xla_refuses():
+    """A name in the libraries need not be a flag: XLA aborts at start-up on one it does not know, which `accepts`
+    sees in a child process (CPU: the xla_gpu_ flags are parsed on every backend)."""
+    import pytest
+
+    assert xla_flags.accepts("xla_gpu_autotune_level=0")
+    assert not xla_flags.accepts("xla_gpu_no_such_flag_here=1")
+    assert xla_flags.main(["--accepts", "xla_gpu_autotune_level=0"]) == ["xla_gpu_autotune_level=0"]
+    with pytest.raises(SystemExit) as stop:
+        xla_flags.main(["--accepts", "xla_gpu_autotune_level=0", "xla_gpu_no_such_flag_here=1"])
+    assert stop.value.code == 1
