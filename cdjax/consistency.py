@@ -533,9 +533,9 @@ def _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder,
 # Watching a sweep
 
 
-def collapse_warning(arm_name: str, config: Any, metrics: Mapping) -> str | None:
-    """A sentence when the trained encoder of some runs has collapsed, else None: when a run's median spread over
-    the second half of the chunk is below COLLAPSE_SPREAD.
+def collapse_warning(arm_name: str, config: Any, metrics: Mapping) -> tuple[int, str] | None:
+    """(how many runs, a sentence) when the trained encoder of some runs has collapsed, else None: when a run's
+    median spread over the second half of the chunk is below COLLAPSE_SPREAD.
 
     metrics: {name: [R, n]} on the host (one chunk). One update's spread is a noisy sample: it is measured on the
     windows of one rollout, and when they look alike (e.g. many Atari games restarting on the same screen) it dips
@@ -553,7 +553,8 @@ def collapse_warning(arm_name: str, config: Any, metrics: Mapping) -> str | None
     low = np.isfinite(typical) & (typical < COLLAPSE_SPREAD)
     if not low.any():
         return None
-    return (f"Arm {arm_name}: the {config.encoder} encoder's output spread stayed below {COLLAPSE_SPREAD:g} over the "
-            f"last {later.shape[1]} updates in {int(low.sum())} of {typical.size} runs (median {np.median(typical[low]):.1e}); "
-            "the encoder may have collapsed, which makes l_cc vanish without making the model consistent. The "
-            "frozen-gru and l2 encoders (--encoder) cannot collapse.")
+    n = int(low.sum())
+    return n, (f"Arm {arm_name}: the {config.encoder} encoder's output spread stayed below {COLLAPSE_SPREAD:g} over "
+               f"the last {later.shape[1]} updates in {n} of {typical.size} runs (median {np.median(typical[low]):.1e}); "
+               "the encoder may have collapsed, which makes l_cc vanish without making the model consistent. The "
+               "frozen-gru and l2 encoders (--encoder) cannot collapse.")

@@ -124,7 +124,9 @@ class Setting:
     presets: Mapping[str, Preset]  # name -> Preset (about, config, hparams, sweep, phase)
     default_preset: Callable[[Mapping[str, Any]], str | None]  # given Config values -> the preset used without --preset
     phase: Phase | None = None
-    watch: Callable[[str, ConfigT, Mapping], str | None] | None = None  # (arm, config, chunk metrics [R, n]) -> warning
+    # (arm, config, chunk metrics [R, n]) -> None, or (how many runs it concerns, a warning): said when that number
+    # grows, so a fault that spreads over a sweep's runs after its first warning is said again
+    watch: Callable[[str, ConfigT, Mapping], tuple[int, str] | None] | None = None
     # the sweep's evaluations (and `cdjax eval` by default) sample the policy's actions; False: its deterministic
     # action. A greedy discrete policy can stall for a whole episode (Atari: not pressing FIRE under sticky actions),
     # and A2C's literature reports the sampling policy.

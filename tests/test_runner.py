@@ -378,8 +378,13 @@ class _Counted:
 
 def test_encoder_collapse_warning():
     """Said once the trainable GRU's spread stays below the threshold over the chunk's later updates in some run;
-    not for a single low update among healthy ones (a noisy sample); never for other encoders."""
+    not for a single low update among healthy ones (a noisy sample); never for other encoders. The sweep says it
+    again when later chunks find it in more runs (on the GPU a collapse said for 2 of 10 runs at the first chunk
+    reached all 10 by the end), and not again for the same or fewer."""
+    import types
+
     from cdjax.consistency import COLLAPSE_SPREAD, collapse_warning
+    from cdjax.runner.loop import Loop
 
     config = POINT.replace(arm="cd")
     low = COLLAPSE_SPREAD / 10
@@ -388,7 +393,17 @@ def test_encoder_collapse_warning():
     collapsed = {"encoder/spread_real": np.array([[0.3, 0.2, 0.25, 0.2], [0.01, low, low, low]])}
     assert collapse_warning("cd", config, healthy) is None
     assert collapse_warning("cd", config, dips) is None
-    text = collapse_warning("cd", config, collapsed)
-    assert "in 1 of 2 runs" in text and "1.0e-04" in text and "last 2 updates" in text and "frozen-gru" in text
+    n, text = collapse_warning("cd", config, collapsed)
+    assert n == 1 and "in 1 of 2 runs" in text and "1.0e-04" in text and "last 2 updates" in text
+    assert "frozen-gru" in text
     assert collapse_warning("cd", config.replace(encoder="frozen-gru"), collapsed) is None
     assert collapse_warning("mbmf", POINT.replace(arm="mbmf"), {}) is None
+
+    both = {"encoder/spread_real": np.array([[0.01, low, low, low], [0.01, low, low, low]])}
+    said = []
+    loop = types.SimpleNamespace(setting=types.SimpleNamespace(watch=collapse_warning), say=said.append)
+    arm = types.SimpleNamespace(name="cd", plan=types.SimpleNamespace(config=config), warned=0)
+    for chunk in (healthy, collapsed, collapsed, both, collapsed, both):
+        Loop._say_watch(loop, arm, chunk)
+    assert [("in 1 of 2" in t, "in 2 of 2" in t) for t in said] == [(True, False), (False, True)]
+    assert arm.warned == 2

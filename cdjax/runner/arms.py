@@ -68,7 +68,7 @@ class Arm:
     state_bytes: int = 0  # one run's state (check_memory)
     last_return: float = float("nan")
     phase_done: bool = True  # False until this arm's phase has run (or been restored)
-    warned: bool = False  # the setting's watch has spoken (once per arm and process)
+    warned: int = 0  # how many runs the setting's watch last spoke of (it speaks again when more are concerned)
     identity: dict = dataclasses.field(default_factory=dict)  # the runs as run.json records them (in checkpoints)
     skipped: Any = None  # [R] optimiser steps each run skipped for a non-finite loss or gradient, so far
     skipped_said: int = 0  # how many runs the last sentence about skipped steps named

@@ -26,7 +26,7 @@ import math
 import pathlib
 import shlex
 import time
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import jax
 import numpy as np
@@ -424,11 +424,17 @@ class Loop:
         if skipped in metrics:
             arm.skipped = arm.skipped + np.nan_to_num(np.asarray(metrics[skipped], float)).sum(axis=1)
             self._say_skipped(arm)
-        if self.setting.watch is not None and not arm.warned:
-            warning = self.setting.watch(arm.name, arm.plan.config, metrics)
-            if warning is not None:
-                self.say(warning)
-                arm.warned = True
+        self._say_watch(arm, metrics)
+
+    def _say_watch(self, arm: Arm, metrics: Mapping) -> None:
+        """The setting's watch on a chunk's metrics: said when it concerns more runs than it last said (a collapse
+        that reaches 2 of 10 runs in the first chunk and all 10 later is said twice, not once)."""
+        if self.setting.watch is None:
+            return
+        found = self.setting.watch(arm.name, arm.plan.config, metrics)
+        if found is not None and found[0] > arm.warned:
+            arm.warned = found[0]
+            self.say(found[1])
 
     def _say_skipped(self, arm: Arm) -> None:
         """Say (once per new count of runs) which runs skipped optimiser steps for a non-finite loss or gradient."""
