@@ -47,7 +47,10 @@
 #                                                  update took ~1.15x halfcheetah's per run (20 runs at 36,695 and
 #                                                  38,251 frames/s against 30 at 41,810), assumed the same here
 # Measured: halfcheetah-ltq on one H100 (2026-11-25, core_impl flax) trained 10,000 updates in 809 s (8.1 ms per run
-# and update), 1,008 s from start to end with evaluation and strips. A unit whose runs are slower than an estimate
+# and update), 1,008 s from start to end with evaluation and strips. On one H200 with core_impl fused (the presets
+# since 2026-11-26): halfcheetah-ltq-cd0 and -cd1 623 and 607 s (6.1-6.2 ms), 821 and 802 s from start to end;
+# reacher-ltq 562 s (5.6 ms), 732 s. One unit per machine (held 30 minutes at most); at 50% counting (session 21)
+# a session's device time bought four machines' units. A unit whose runs are slower than an estimate
 # says in its log where --time-limit stopped it; each unit's "Trained in" line gives its real rate. Fewer runs may not
 # be proportionally faster (the update is bound by kernel launches).
 # The experts are the kept ones (experiments/pixel/data/three-tasks-x2/TASK/expert.msgpack). The first call starts
