@@ -59,10 +59,33 @@ TRAINED_ENCODERS = ("gru", "grounded-gru")
 
 @struct.dataclass
 class PathWeights:
-    """Multipliers of the consistency gradient on each of its two paths (traced floats)."""
+    """Multipliers of the consistency gradient on each of its two paths (traced floats), and of the model path's
+    share that trains the encoder."""
 
     model: Any  # into the model's and the encoder's parameters
     policy: Any  # into the actions, hence the policy's parameters
+    encoder: Any = 1.0  # times `model` on the encoder's parameters alone (`path_weights`: 1 / alpha)
+
+    @property
+    def to_encoder(self) -> Any:
+        """The multiplier of l_cc's gradient into the encoder's parameters (before the caller's alpha)."""
+        return self.model * self.encoder
+
+
+def path_weights(hp) -> PathWeights:
+    """The path weights of hyper-parameters with alpha, cc_model and cc_policy: l_cc's gradient reaches the model at
+    alpha x cc_model and the policy at alpha x cc_policy, the encoder at cc_model alone (alpha = 0: not at all).
+
+    alpha weighs the term against the model's and the policy's other losses; the grounded encoder's balance is
+    between l_cc and its own loss (`enc_aux_coef`), which alpha must not tip. With alpha on the encoder's share, at
+    the pixel presets' alpha 100 every encoder of 20 halfcheetah runs shrank its output ~10,000x by 10,000 updates
+    (spread 0.12 to 5e-5, the spread floor's hinge at its maximum, experiments/pixel/RESULTS.md), so l_cc vanished:
+    l_cc and the active hinge are both linear in the encodings' scale, and shrinking wins whenever alpha x cc_model
+    x l_cc / spread exceeds enc_aux_coef. At alpha 1 (the observation and Atari presets) this is the weighting of
+    before."""
+    alpha = jnp.asarray(hp.alpha, jnp.float32)
+    return PathWeights(model=hp.cc_model, policy=hp.cc_policy,
+                       encoder=jnp.where(alpha > 0, 1.0 / jnp.where(alpha > 0, alpha, 1.0), 0.0))
 
 
 @jax.custom_vjp
@@ -458,19 +481,19 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     if fused and model_step is mlp_step and isinstance(model_params, MLPModel) and gru is not None and enc_obs is not None:
         # real rows: the encoder's own parameters for grounded-gru (l_cc's share is scaled on h_re below), scaled
         # ones otherwise; imagined rows: scaled (as the two encode() below)
-        scales = (1.0 if recon else weights.model, weights.model)
+        scales = (1.0 if recon else weights.to_encoder, weights.to_encoder)
         h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared)
         return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim)
 
     if recon:
         # Real rows with the encoder's own parameters (the reconstruction trains them at full weight, and
         # l_cc's share is scaled on h_re below); imagined rows with the model-path-scaled parameters.
-        scaled_params = scale_gradient(encoder_params, weights.model)
+        scaled_params = scale_gradient(encoder_params, weights.to_encoder)
 
         def encode(h_re, h_im, x_re, x_im):
             return encoder.apply(encoder_params, h_re, x_re), encoder.apply(scaled_params, h_im, x_im)
     elif use_gru:
-        scaled_params = scale_gradient(encoder_params, weights.model)
+        scaled_params = scale_gradient(encoder_params, weights.to_encoder)
 
         def encode(h_re, h_im, x_re, x_im):  # one call on real and imagined rows together
             h = encoder.apply(scaled_params, jnp.concatenate([h_re, h_im]), jnp.concatenate([x_re, x_im]))
@@ -507,7 +530,7 @@ def _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder,
     use_gru, recon = kind != "l2", kind == "grounded-gru"
     terms = {}
     if recon:
-        per_window = safe_norm(scale_gradient(h_re, weights.model) - h_im) / jnp.sqrt(float(dim))
+        per_window = safe_norm(scale_gradient(h_re, weights.to_encoder) - h_im) / jnp.sqrt(float(dim))
     elif use_gru:
         per_window = safe_norm(h_re - h_im)
     else:

@@ -1,6 +1,7 @@
 """The consistency module alone, on hand-made batches: windows, l_cc, encoders, the two gradient paths."""
 
 import functools
+import types
 
 import jax
 import jax.numpy as jnp
@@ -140,11 +141,11 @@ def test_path_weights_scale_each_path_alone(kind):
     enc = _encoder(kind)
     mask = jnp.ones((W,), bool)
 
-    def grads(w_model, w_policy, term="consistency"):
+    def grads(w_model, w_policy, term="consistency", w_encoder=1.0):
         def f(mp, acts, ep):
             e = dict(enc, encoder_params=ep) if enc else {}
             terms, _ = cc.consistency_loss(step, mp, s0, acts, real, mask, kind=kind, normalize=norm,
-                                           weights=cc.PathWeights(w_model, w_policy), **e)
+                                           weights=cc.PathWeights(w_model, w_policy, w_encoder), **e)
             return terms[term]
         return jax.value_and_grad(f, argnums=(0, 1, 2))(model_params, actions, enc.get("encoder_params", {}))
 
@@ -158,6 +159,13 @@ def test_path_weights_scale_each_path_alone(kind):
         np.testing.assert_allclose(a, 0.25 * b, rtol=1e-5, atol=1e-9)
     _, (gm0, ga0, _) = grads(0.0, 0.0)
     assert float(gm0["scale"]) == 0.0 and float(jnp.abs(ga0).max()) == 0.0
+    # weights.encoder scales the encoder's share alone: the model's and the actions' gradients stay
+    v3, (gm3, ga3, ge3) = grads(0.25, 3.0, w_encoder=0.1)
+    assert float(v3) == float(v1)
+    np.testing.assert_allclose(gm3["scale"], gm2["scale"], rtol=1e-6)
+    np.testing.assert_allclose(ga3, ga2, rtol=1e-6, atol=1e-9)
+    for a, b in zip(jax.tree.leaves(ge3), jax.tree.leaves(ge1)):
+        np.testing.assert_allclose(a, 0.025 * b, rtol=1e-5, atol=1e-9)
     if kind == "grounded-gru":
         r1, (_, _, gr1) = grads(1.0, 1.0, "encoder_aux")
         r0, (_, _, gr0) = grads(0.0, 0.0, "encoder_aux")
@@ -166,9 +174,10 @@ def test_path_weights_scale_each_path_alone(kind):
             np.testing.assert_array_equal(a, b)
 
 
-def _train_encoder_and_model(kind, steps=1000):
+def _train_encoder_and_model(kind, steps=1000, alpha=1.0, weights=ONE):
     """Train a small model (the point mass with an error, plus a learnable linear correction) and the encoder
-    on l_cc (plus the auxiliary loss for grounded-gru): -> (l_cc, spread) at the start and at the end."""
+    on alpha x l_cc (plus the auxiliary loss at weight 1 for grounded-gru) with these path weights: -> (l_cc,
+    spread) at the start and at the end."""
     s0, actions, real = _real_windows(seed=3, w=64)
     stats = nz.update(nz.RunningStats.create(4), real.reshape(-1, 4))
     norm = lambda x: nz.normalize(stats, x)  # noqa: E731
@@ -184,8 +193,9 @@ def _train_encoder_and_model(kind, steps=1000):
 
     def loss(p):
         terms, m = cc.consistency_loss(step, p["model"], s0, actions, real, mask, kind=kind, normalize=norm,
-                                       weights=ONE, encoder=enc["encoder"], encoder_params=p["encoder"])
-        return sum(terms.values()), (terms["consistency"], m["encoder/spread_real"])
+                                       weights=weights, encoder=enc["encoder"], encoder_params=p["encoder"])
+        total = alpha * terms["consistency"] + terms.get("encoder_aux", 0.0)
+        return total, (terms["consistency"], m["encoder/spread_real"])
 
     tx = optax.adam(3e-3)
 
@@ -213,6 +223,42 @@ def test_default_encoder_keeps_its_spread_while_l_cc_is_trained_down():
     assert g_s1 < 0.5 * g_s0, (g_s0, g_s1)  # the same training collapses the ungrounded encoder
 
 
+def test_alpha_weighs_the_model_not_the_encoders_balance():
+    """`path_weights`: l_cc reaches the encoder at cc_model whatever alpha is. The gradient of alpha x l_cc +
+    encoder_aux on the encoder's parameters is the same at alpha 1 and 100, on the model's it is 100 times larger;
+    with alpha on the encoder's share too (the weighting before) it was not, and at the pixel presets' alpha 100
+    every encoder of 20 halfcheetah runs shrank its output ~10,000x (experiments/pixel/RESULTS.md; on pixel-tiny
+    the same within 500 updates, and enc_aux_coef = alpha held it). Trained at alpha 100, the encodings keep their
+    spread."""
+    hp = lambda alpha: types.SimpleNamespace(alpha=alpha, cc_model=0.5, cc_policy=2.0)  # noqa: E731
+    w = cc.path_weights(hp(100.0))
+    assert (float(w.model), float(w.policy), float(w.to_encoder)) == (0.5, 2.0, pytest.approx(0.005))
+    assert float(cc.path_weights(hp(0.0)).to_encoder) == 0.0
+    assert float(cc.path_weights(hp(1.0)).encoder) == 1.0  # the observation and Atari presets: as before
+
+    s0, actions, real = _real_windows()
+    step, model_params = _model(1.05)
+    enc = _encoder("grounded-gru")
+    mask = jnp.ones((W,), bool)
+
+    def grads(alpha, weights):
+        def total(mp, ep):
+            terms, _ = cc.consistency_loss(step, mp, s0, actions, real, mask, kind="grounded-gru", normalize=_stats(),
+                                           weights=weights, encoder=enc["encoder"], encoder_params=ep)
+            return alpha * terms["consistency"] + terms["encoder_aux"]
+        return jax.grad(total, argnums=(0, 1))(model_params, enc["encoder_params"])
+
+    (m1, e1), (m100, e100) = grads(1.0, cc.path_weights(hp(1.0))), grads(100.0, cc.path_weights(hp(100.0)))
+    np.testing.assert_allclose(m100["scale"], 100.0 * m1["scale"], rtol=1e-5)
+    for a, b in zip(jax.tree.leaves(e100), jax.tree.leaves(e1)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-8)
+    _, e_before = grads(100.0, cc.PathWeights(0.5, 2.0))
+    assert max(float(jnp.abs(a - b).max()) for a, b in zip(jax.tree.leaves(e_before), jax.tree.leaves(e1))) > 1e-3
+
+    _, l1, sp0, sp1 = _train_encoder_and_model("grounded-gru", alpha=100.0, weights=cc.path_weights(hp(100.0)))
+    assert sp1 > 0.5 * sp0 and sp1 > 0.9 * cc.SPREAD_FLOOR, (sp0, sp1)
+
+
 def _mlp_model(obs=4, act=2, hidden=(16,), seed=5):
     """An MLPModel with random weights and statistics (the obs-space agent's dynamics model in the fused form)."""
     keys = iter(jax.random.split(jax.random.key(seed), 16))
@@ -234,7 +280,7 @@ def test_fused_chain_equals_the_scanned_term_values_and_gradients(kind, hidden, 
     enc = _encoder(kind)
     stats = model.obs if shared else _stats()
     mask = jnp.arange(W) % 4 != 1
-    weights = cc.PathWeights(model=0.7, policy=0.3)
+    weights = cc.PathWeights(model=0.7, policy=0.3, encoder=0.4)
 
     def loss(fused, model, params, acts, s0):
         terms, metrics = cc.consistency_loss(cc.mlp_step, model, s0, acts, real, mask, kind=kind, normalize=stats,

@@ -183,7 +183,7 @@ class A2C:
             cc_terms, cc_metrics = consistency.consistency_loss(
                 lambda p, s, a: self.model.apply(p, s, a)[0], params["model"], s0, window_actions, real_next, mask,
                 kind=self.config.encoder, normalize=lambda x: x,
-                weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=self.encoder,
+                weights=consistency.path_weights(hp), encoder=self.encoder,
                 encoder_params=params.get("encoder"), unroll=self.config.cc_unroll)
             terms.update(cc_terms)
             metrics.update(cc_metrics)

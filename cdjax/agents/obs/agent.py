@@ -244,7 +244,7 @@ class ObsAgent:
             cc_terms, cc_metrics = consistency.consistency_loss(
                 consistency.mlp_step, self.mlp_model(model_params, norms), s0, window_actions, real_next, mask,
                 kind=self.config.encoder, normalize=norms.obs,
-                weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=self.encoder,
+                weights=consistency.path_weights(hp), encoder=self.encoder,
                 encoder_params=params.get("encoder"), unroll=self.config.cc_unroll)
             terms.update(cc_terms)
             metrics.update(cc_metrics)

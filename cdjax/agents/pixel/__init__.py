@@ -62,6 +62,14 @@ def trainer_of(learner: PixelLearner) -> Trainer:
 # experiments/pixel/RESULTS.md). One program, vmapped with the seeds; the paper gives no alpha for this setting.
 ALPHAS = (100.0,)
 CC_POLICY = (0.0, 1.0)
+# The grounded encoder's own loss at 10 (enc_aux_coef; the observation and Atari presets keep 1): l_cc's gradient
+# reaches the encoder at cc_model whatever alpha is (`consistency.path_weights`), and the encodings shrink while
+# cc_model x l_cc / spread exceeds enc_aux_coef, which at the start of training is 1.8-2.5 here (pixel-tiny and
+# halfcheetah's update 1: 1.5). On pixel-tiny (CPU, 3 seeds, alpha 100, 3,000 updates) the spread fell from 0.06 to
+# 0.01 and recovered after ~1,500 updates at 1, and never fell below 0.04 at 10 (0.57 at the end). Before
+# path_weights, alpha 100 also weighed the encoder's share and every encoder of halfcheetah's 20 cd runs shrank
+# ~10,000x by 10,000 updates (experiments/pixel/RESULTS.md, "Fifth pass").
+ENC_AUX = (10.0,)
 # What the task presets run (issue 22, one H200, 2026-11-25, experiments/pixel/RESULTS.md):
 # - bfloat16 operands with each run's convolutions as its own (per-run): 2.86x float32/grouped's frames/s in a
 #   sweep (115,759 against 40,530; 133k in the roofline), and held-out ELBO, log-likelihoods and imitation error
@@ -81,7 +89,7 @@ LR_POLICY = (1e-3,)
 def _preset(env: str, *, horizon: int, frames: int, about: str, **config) -> Preset:
     config = {**FAST, **config}
     return Preset(about=about, config=dict(env=env, horizon=horizon, **config),
-                  hparams={"alpha": ALPHAS, "cc_policy": CC_POLICY, "lr_policy": LR_POLICY}, sweep=dict(arms=ARMS, seeds=10, total_env_steps=frames, chunk_updates=200, eval_episodes=4))
+                  hparams={"alpha": ALPHAS, "cc_policy": CC_POLICY, "enc_aux_coef": ENC_AUX, "lr_policy": LR_POLICY}, sweep=dict(arms=ARMS, seeds=10, total_env_steps=frames, chunk_updates=200, eval_episodes=4))
 
 
 PRESETS = {

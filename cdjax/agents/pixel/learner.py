@@ -148,7 +148,7 @@ class PixelLearner:
 
         return consistency.consistency_loss(
             model_step, params["core"], s0, steps, real, mask, kind=c.encoder, normalize=lambda s: s[..., :H],
-            weights=consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy), encoder=self.model.cc_encoder,
+            weights=consistency.path_weights(hp), encoder=self.model.cc_encoder,
             encoder_params=params.get("cc_encoder"), unroll=c.horizon if c.core_impl == "fused" else 1)
 
     def _chained_terms(self, params, policy_params, s0, steps, real, mask, hp, use_policy: bool) -> tuple[dict, dict]:
@@ -156,7 +156,7 @@ class PixelLearner:
         `chain.pixel_chain` (unrolled, its backward written out) instead of `consistency_loss`'s scan."""
         c = self.config
         H, A = c.hidden, self.A
-        weights = consistency.PathWeights(model=hp.cc_model, policy=hp.cc_policy)
+        weights = consistency.path_weights(hp)
         core = consistency.scale_gradient(params["core"], weights.model)
         acts = consistency.scale_gradient(steps[..., :A], weights.policy)
         encoder_params = params["cc_encoder"]
@@ -165,7 +165,7 @@ class PixelLearner:
         recon = c.encoder == "grounded-gru"
         h_re, h_im, s_k = pixel_chain(
             core_weights(core, H, c.latent), policy_params, consistency.gru_weights(encoder_params), s0[:, :H],
-            s0[:, H:], acts, steps[..., A:], real[..., :H], jnp.stack([1.0 if recon else weights.model, weights.model]),
+            s0[:, H:], acts, steps[..., A:], real[..., :H], jnp.stack([1.0 if recon else weights.to_encoder, weights.to_encoder]),
             c.min_std, use_policy)
         return consistency.encoded_terms(c.encoder, h_re, h_im, s_k, real, mask, lambda s: s[..., :H], weights,
                                          self.model.cc_encoder, encoder_params)
