@@ -50,7 +50,10 @@
 # and update), 1,008 s from start to end with evaluation and strips. On one H200 with core_impl fused (the presets
 # since 2026-11-26): halfcheetah-ltq-cd0 and -cd1 623 and 607 s (6.1-6.2 ms), 821 and 802 s from start to end;
 # reacher-ltq 562 s (5.6 ms), 732 s. One unit per machine (held 30 minutes at most); at 50% counting (session 21)
-# a session's device time bought four machines' units. A unit whose runs are slower than an estimate
+# a session's device time bought four machines' units. Run so far: halfcheetah-ltq, reacher-ltq; halfcheetah-ltq-cd0
+# and -cd1 ran before 4cf108f (alpha 100 also weighed the encoder's share of l_cc, and every encoder shrank ~10,000x:
+# experiments/pixel/RESULTS.md "Fifth pass"), so they run again. Left: those two, reacher-ltq-cd0, -ltq-cd1 and
+# pusher's three. A unit whose runs are slower than an estimate
 # says in its log where --time-limit stopped it; each unit's "Trained in" line gives its real rate. Fewer runs may not
 # be proportionally faster (the update is bound by kernel launches).
 # The experts are the kept ones (experiments/pixel/data/three-tasks-x2/TASK/expert.msgpack). The first call starts
