@@ -54,13 +54,41 @@ def test_a_units_sweep_has_its_arms_preset_and_time_limit_and_plans_its_runs(uni
     setting = agents.get("pixel")
     (plan,) = plan_arms(sweep_spec(build_parser(setting).parse_args(argv), setting))
     assert plan.name == arms[0] and plan.config.num_updates == 10_000
-    assert (plan.config.compute_dtype, plan.config.conv_impl) == ("bfloat16", "per-run")
+    assert (plan.config.compute_dtype, plan.config.conv_impl, plan.config.core_impl) == ("bfloat16", "per-run", "fused")
     assert len(plan.hparams) * 10 == runs  # 10 seeds per hyper-parameter set
+    if arms == ["ltq-cd"]:  # the grounded encoder's own loss (4cf108f); unused by ltq
+        assert {h.enc_aux_coef for h in plan.hparams} == {10.0}
     if cc_policy is not None:
         assert [h.cc_policy for h in plan.hparams] == [float(cc_policy[0])]
         # one value is not shown in the label: experiments.pixel.report adds it back where units of an arm differ
         # (tests/test_pixel_report.py builds its units with these labels)
         assert plan.labels == ("alpha=100.0",)
+
+
+def test_the_sweep_speed_unit_times_the_model_of_before_and_the_presets_on_the_same_30_runs():
+    """Issue 22's before and after in one command: two sweeps of halfcheetah's preset, 30 runs each, the same
+    updates; the first with every speed switch back (float32, grouped, flax, the policy at the model's rate)."""
+    from cdjax import agents
+    from cdjax.cli import build_parser, sweep_spec
+    from cdjax.runner.plan import plan_arms
+
+    done = _command("sweep-speed", SPEED_UPDATES="150")
+    assert done.returncode == 0, done.stderr
+    commands = [c for c in done.stdout.split(";") if "cdjax.cli sweep" in c]
+    assert len(commands) == 2 and "Trained in" in done.stdout
+    setting = agents.get("pixel")
+    plans = []
+    for line in commands:
+        first = shlex.split(line)
+        argv = first[first.index("cdjax.cli") + 1:first.index(">")]
+        plans.append(plan_arms(sweep_spec(build_parser(setting).parse_args(argv), setting)))
+    before, after = plans
+    for arms in plans:
+        assert sum(len(p.hparams) * 10 for p in arms) == 30 and {p.config.num_updates for p in arms} == {150}
+    config = lambda arms: {(p.config.compute_dtype, p.config.conv_impl, p.config.core_impl) for p in arms}  # noqa: E731
+    assert config(before) == {("float32", "grouped", "flax")} and config(after) == {("bfloat16", "per-run", "fused")}
+    assert {h.lr_policy for p in before for h in p.hparams} == {0.0}
+    assert {h.lr_policy for p in after for h in p.hparams} == {1e-3}
 
 
 def test_the_evaluation_gets_what_is_left_before_the_units_end_and_unknown_units_are_refused():

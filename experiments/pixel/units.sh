@@ -23,6 +23,10 @@
 #                  process each (flax.json/.md, fused.json/.md) with its update's kernels per pass and per run from
 #                  its optimised HLO (loops-flax.log, loops-fused.log); about 3 minutes: whether the presets should
 #                  run fused
+#   sweep-speed    issue 22's before and after in one command: halfcheetah's preset sweep (30 runs: ltq and ltq-cd
+#                  with cc_policy 0 and 1, 10 seeds) for SPEED_UPDATES updates (default 200), once as the model
+#                  of before (--compute-dtype float32 --conv-impl grouped --core-impl flax --lr-policy 0) and once
+#                  as the presets run it; each sweep's "Trained in" line gives its frames/s (about 8 minutes)
 #   devices        (a multi-GPU machine, issue 25) the pixel sweep's frames/s on 1, 2 and 4 of its GPUs in one
 #                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah
 #   TASK-ARM       the experiment at the presets' length: TASK halfcheetah, reacher or pusher, ARM ltq, ltq-cd
@@ -91,6 +95,13 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" > $work/loops-$impl.log 2>&1; grep 'jit_update.*kernels per run' $work/loops-$impl.log;"
       done
       echo "$line cat $work/flax.md $work/fused.md" ;;
+    sweep-speed)
+      local sweep="python -m cdjax.cli sweep --setting pixel --preset pixel-halfcheetah"
+      sweep="$sweep --expert $experts/halfcheetah/expert.msgpack --steps $(( ${SPEED_UPDATES:-200} * 800 ))"
+      sweep="$sweep --chunk-updates 100 --no-progress --no-final-eval --time-limit 300"
+      echo "timeout -s INT -k 60 420 $sweep --compute-dtype float32 --conv-impl grouped --core-impl flax --lr-policy 0" \
+        "--out $work/before > $work/before.log 2>&1; timeout -s INT -k 60 420 $sweep --out $work/presets" \
+        "> $work/presets.log 2>&1; grep -H -E 'Arms|Trained in' $work/before.log $work/presets.log" ;;
     devices)
       echo "python -m experiments.pixel.speed --env halfcheetah --runs 32 --devices ${DEVICE_COUNTS:-1 2 4}" \
         "--out $work/devices.json" ;;
@@ -127,7 +138,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 30 \$(( s > $eval_max ? $eval_max : s < 120 ? 120 : s )) python -m cdjax.cli eval $work/pixel" \
         "--episodes 4; python -m cdjax.cli plot $work/pixel; timeout -k 10 150 python -m experiments.pixel.report" \
         "--strips $work/pixel $work/strips" ;;
-    *) echo "unknown unit $1: roofline, core, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
+    *) echo "unknown unit $1: roofline, core, sweep-speed, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
          "ltq-cd, ltq-cd0, ltq-cd1)" >&2
        return 1 ;;
   esac
@@ -142,7 +153,7 @@ unit_run "$work" "$cmd" "$wait_s" "$t0" "bash experiments/pixel/units.sh $unit" 
 thin=runs/pixel-units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
 mkdir -p "$thin/$unit"
-for f in command roofline.json roofline.md profile devices.json strips precision.md precision.json flax.json flax.md fused.json fused.md loops-flax.log loops-fused.log; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
+for f in command before.log presets.log roofline.json roofline.md profile devices.json strips precision.md precision.json flax.json flax.md fused.json fused.md loops-flax.log loops-fused.log; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
 tar -czf "$out/$unit.tar.gz" -C "$thin" "$unit"
 cp "$work/unit.log" "$out/$unit.log"
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
