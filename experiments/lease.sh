@@ -60,8 +60,10 @@ ensure_wheels() {
 # ../shared/device/wheels.sh): each wheel unzipped into one directory, as `pip install --no-deps --target` lays it out
 # (none of these wheels has a .data directory), then packed with xz (a minute or two on 2 cores). Left out: the wheels
 # no cdjax module imports, mujoco_studio (MuJoCo's GUI, 12.8 MB of wheel, 34 MB unpacked; `import mujoco` and
-# mujoco.viewer do not load it: checked with mujoco 4.0.0 on Python 3.12). From the .whl/ of 2026-11-25 (43 MB,
-# mujoco 4.0.0 split into mujoco, mujoco-core and mujoco-studio) the tarball is 15.9 MB (23.1 MB with the GUI): the
+# mujoco.viewer do not load it: checked with mujoco 4.0.0 on Python 3.12), and the packages' own test data and tests
+# (mujoco/mjx/test_data is 16 MB unpacked: robot meshes for MJX's tests; nothing in cdjax reads them). From the .whl/ of
+# 2026-11-25 (43 MB, mujoco 4.0.0 split into mujoco, mujoco-core and mujoco-studio) the tarball is 10.8 MB (15.9 MB
+# with MJX's test data, 23.1 MB with the GUI as well; the working tree grew to 51 MB on 2026-11-26, so only 10.8 fits): the
 # ALE units carry it beside .whl-ale/ and .whl-atari/ (`carry_size .whl-site .whl-ale .whl-atari` says whether
 # they fit).
 pack_site() {
@@ -73,6 +75,7 @@ pack_site() {
 assert not any('.data/' in n for n in z.namelist()), sys.argv[1] + ' has a .data directory'; z.extractall(sys.argv[2])" \
       "$w" "$tmp" || { rm -rf "$tmp"; return 1; }
   done
+  rm -rf "$tmp/mujoco/mjx/test_data" "$tmp/mujoco/sysid/tests" "$tmp/ml_collections/config_flags/tests"
   mkdir -p .whl-site && tar -cJf .whl-site/site.tar.xz -C "$tmp" . && rm -rf "$tmp" && ls -l .whl-site/site.tar.xz
 }
 

@@ -136,6 +136,19 @@ def test_time_limit_stops_before_the_round_that_would_end_past_it():
         TimeLimit(0)
 
 
+def test_a_time_limit_reached_in_the_last_round_leaves_the_sweep_complete(uninterrupted, tmp_path, capsys):
+    """The after_chunk of the last round says stop (a time limit past by then): every update is done, so the sweep
+    finishes as complete (its "Trained in" line, no Interrupted asking for a --resume) and equals the whole run."""
+    out = tmp_path / "last"
+    asked = []
+    capsys.readouterr()
+    run_sweep(dataclasses.replace(SPEC, out=out),
+              after_chunk=lambda chunks, updates: asked.append(chunks) or chunks >= UPDATES // CHUNK)
+    assert asked == list(range(UPDATES // CHUNK))  # consulted before each round, not after the last
+    assert "Trained in" in capsys.readouterr().err
+    _assert_same_states(_states(uninterrupted), _states(out))
+
+
 def test_killed_run_with_corrupt_latest_checkpoint_falls_back_and_still_reproduces(uninterrupted, tmp_path, capsys):
     out = tmp_path / "killed"
     with pytest.raises(Interrupted):

@@ -538,7 +538,9 @@ class Loop:
                     if self.spec.eval_every and self.rounds % self.spec.eval_every == 0 and not last:
                         evaluate_arms(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes,
                                       not self.setting.eval_sampled, self.say)
-                    if self.stop_asked():
+                    # After the last round the time limit has nothing left to stop: a sweep that finished is
+                    # complete, not "stopped before the time limit" (only Ctrl-C or SIGTERM still stop it here).
+                    if self.stop_requested() if last else self.stop_asked():
                         self.stop()
             except KeyboardInterrupt as err:
                 if isinstance(err, Interrupted) or self.flag.forced:
