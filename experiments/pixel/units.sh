@@ -53,11 +53,12 @@
 # Measured: halfcheetah-ltq on one H100 (2026-11-25, core_impl flax) trained 10,000 updates in 809 s (8.1 ms per run
 # and update), 1,008 s from start to end with evaluation and strips. On one H200 with core_impl fused (the presets
 # since 2026-11-26): halfcheetah-ltq-cd0 and -cd1 623 and 607 s (6.1-6.2 ms), 821 and 802 s from start to end;
-# reacher-ltq 562 s (5.6 ms), 732 s. One unit per machine (held 30 minutes at most); at 50% counting (session 21)
-# a session's device time bought four machines' units. Run so far: halfcheetah-ltq, reacher-ltq; halfcheetah-ltq-cd0
-# and -cd1 ran before 4cf108f (alpha 100 also weighed the encoder's share of l_cc, and every encoder shrank ~10,000x:
-# experiments/pixel/RESULTS.md "Fifth pass"), so they run again. Left: those two, reacher-ltq-cd0, -ltq-cd1 and
-# pusher's three. A unit whose runs are slower than an estimate
+# reacher-ltq 562 s (5.6 ms), 732 s; after 4cf108f halfcheetah-ltq-cd0 and -cd1 606 and 617 s, 815 and 856 s, and
+# pusher-ltq 563 s (5.6 ms), 772 s. One unit per machine (held 30 minutes at most), or one and sweep-speed, or
+# one ltq unit after a cd unit with LIMIT_S/END_S cut to the machine's time left (session 22: pusher-ltq with
+# LIMIT_S=720 END_S=880 after halfcheetah-ltq-cd1, and it still reached 10,000 updates). Run so far: halfcheetah's
+# three (cd0 and cd1 again after 4cf108f; the collapsed ones are in data/presets-length-collapsed/), reacher-ltq,
+# pusher-ltq. Left: reacher-ltq-cd0, -ltq-cd1, pusher-ltq-cd0, -ltq-cd1. A unit whose runs are slower than an estimate
 # says in its log where --time-limit stopped it; each unit's "Trained in" line gives its real rate. Fewer runs may not
 # be proportionally faster (the update is bound by kernel launches).
 # The experts are the kept ones (experiments/pixel/data/three-tasks-x2/TASK/expert.msgpack). The first call starts
