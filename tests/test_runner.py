@@ -83,6 +83,37 @@ def test_uninterrupted_run_writes_the_run_directory(uninterrupted):
         "cd/alpha=1.0/seed0", "cd/alpha=1.0/seed1"}
 
 
+def _tb_scalars(directory) -> dict[tuple[str, int], float]:
+    """{(tag, step): value} of a run's TensorBoard event files (TFRecord: length, its CRC, the event, its CRC)."""
+    import struct
+
+    from tensorboardX.proto.event_pb2 import Event
+
+    out = {}
+    for path in sorted(pathlib.Path(directory).glob("events.out.tfevents.*")):
+        data, at = path.read_bytes(), 0
+        while at < len(data):
+            (length,) = struct.unpack("<Q", data[at:at + 8])
+            event = Event.FromString(data[at + 12:at + 12 + length])
+            at += 12 + length + 4
+            for value in event.summary.value:
+                out[(value.tag, event.step)] = value.simple_value
+    return out
+
+
+def test_tensorboard_holds_every_logged_scalar_of_each_run(uninterrupted):
+    """Each run's event file holds every metric of metrics.jsonl at its env steps (float32), nothing more."""
+    rows = io.read_jsonl(uninterrupted / "metrics.jsonl")  # wall_s included
+    for arm, hp, seed in {(r["arm"], r["hp"], r["seed"]) for r in rows}:
+        expected = {(name, r["env_steps"]): value for r in rows if (r["arm"], r["hp"], r["seed"]) == (arm, hp, seed)
+                    for name, value in r.items()
+                    if name not in ("arm", "hp", "seed", "update", "env_steps") and value is not None}
+        got = _tb_scalars(uninterrupted / "tb" / arm / hp / f"seed{seed}")
+        assert got.keys() == expected.keys(), (arm, hp, seed)
+        for key, value in expected.items():
+            assert got[key] == np.float32(value) or (np.isnan(got[key]) and np.isnan(value)), (arm, hp, seed, key)
+
+
 def test_interrupted_run_keeps_logs_and_checkpoints_and_resume_gives_the_same_numbers(uninterrupted, tmp_path):
     out = tmp_path / "cut"
 
@@ -147,6 +178,22 @@ def test_a_time_limit_reached_in_the_last_round_leaves_the_sweep_complete(uninte
     assert asked == list(range(UPDATES // CHUNK))  # consulted before each round, not after the last
     assert "Trained in" in capsys.readouterr().err
     _assert_same_states(_states(uninterrupted), _states(out))
+
+
+def test_the_trained_line_says_how_long_the_devices_waited_between_chunks(tmp_path, capsys, monkeypatch):
+    """Host work after a round's last chunk (its logs, the checkpoints) leaves the devices idle: the "Trained in" line
+    says how much of the training time it took. Here each TensorBoard write sleeps 0.25 s: at least 0.25 s per round
+    is between chunks (the last arm's write), and at most the training time."""
+    import re
+    import time
+
+    write = io.TensorBoard.write
+    monkeypatch.setattr(io.TensorBoard, "write", lambda self, rows: (time.sleep(0.25), write(self, rows))[1])
+    capsys.readouterr()
+    run_sweep(dataclasses.replace(SPEC, out=tmp_path / "slow"))
+    line = next(line for line in capsys.readouterr().err.splitlines() if "Trained in" in line)
+    total, between = re.search(r"Trained in ([\d.]+) s .*?; ([\d.]+) s of it between chunks", line).groups()
+    assert 0.25 * (UPDATES // CHUNK) <= float(between) <= float(total), line
 
 
 def test_killed_run_with_corrupt_latest_checkpoint_falls_back_and_still_reproduces(uninterrupted, tmp_path, capsys):

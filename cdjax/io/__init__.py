@@ -560,6 +560,9 @@ def phase_rows(arm: str, labels: Sequence[str], num_seeds: int, info: Mapping, e
 # TensorBoard
 
 
+_TAG_UNSAFE = re.compile(r"[^-/\w.]")  # what TensorBoard's tags may not hold (tensorboardX's scalar() cleans the same)
+
+
 class TensorBoard:
     """One TensorBoard event file per run (step = env steps of the run), written synchronously.
 
@@ -592,7 +595,7 @@ class TensorBoard:
 
     def write(self, rows: Iterable[dict]) -> None:
         from tensorboardX.proto.event_pb2 import Event
-        from tensorboardX.summary import scalar
+        from tensorboardX.proto.summary_pb2 import Summary
 
         skip = {"arm", "hp", "seed", "update", "env_steps"}
         with writing(self.run_dir.path / "tb"):
@@ -600,11 +603,13 @@ class TensorBoard:
             for row in rows:
                 writer = self._writer(row["arm"], row["hp"], row["seed"])
                 touched.add(id(writer))
-                now = time.time()
-                for name, value in row.items():
-                    if name not in skip and value is not None:
-                        writer.write_event(Event(wall_time=now, step=int(row["env_steps"]),
-                                                 summary=scalar(name, float(value))))
+                # One event per row holding all its scalars (TensorBoard reads each value as its own series): one
+                # event per scalar took ~0.45 ms a row, ~0.9 s of host time for a 10-run chunk of 200 updates while
+                # the GPU waited for the next chunk.
+                values = [Summary.Value(tag=_TAG_UNSAFE.sub("_", name), simple_value=float(value))
+                          for name, value in row.items() if name not in skip and value is not None]
+                writer.write_event(Event(wall_time=time.time(), step=int(row["env_steps"]),
+                                         summary=Summary(value=values)))
             for writer in self.writers.values():
                 if id(writer) in touched:
                     writer.flush()

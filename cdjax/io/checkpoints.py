@@ -96,6 +96,8 @@ def compact(tree, keep=None) -> tuple[dict[str, Any], dict]:
             stored[name] = x
             continue
         value = np.asarray(jax.device_get(x))
+        if isinstance(x, jax.Array) and any(d.platform == "cpu" for d in x.devices()):
+            value = value.copy()  # XLA:CPU may lend its own buffer, which the next chunk donates while this is written
         raw = np.ascontiguousarray(value).view(np.uint8)
         if not raw.any():
             layout["zeros"].append(name)
@@ -217,6 +219,7 @@ class Checkpoints:
             directory.resolve(), options=ocp.CheckpointManagerOptions(max_to_keep=MAX_TO_KEEP, create=True),
             item_names=("state", "progress"))
         self._pending: int | None = None
+        self._reads_device = False
 
     def steps(self) -> list[int]:
         return sorted(self.manager.all_steps())
@@ -229,7 +232,12 @@ class Checkpoints:
     def save(self, step: int, state, progress: dict, keep=None) -> None:
         """Start an (asynchronous, atomic) save; `wait` for it. `keep`: Trainer.saved_leaves() or None."""
         ocp = self._ocp
+        if self._pending is not None:  # the last save's write may still run (`release`): finish it, naming its step
+            self.wait()
         stored, layout = compact(state, keep)
+        # Several processes store global arrays as they are (the write reads the devices' buffers); one process
+        # stores host copies, made above, so its write no longer needs the state (`release`).
+        self._reads_device = any(isinstance(v, jax.Array) for v in stored.values())
         runs = leading_runs(state)
         if runs is not None:
             layout["runs"] = runs  # the (padded) run count: a restore on another device count re-pads to its own
@@ -240,6 +248,13 @@ class Checkpoints:
                 progress=ocp.args.JsonSave({**progress, "layout": layout})), force=True)
         except Exception as err:  # noqa: BLE001 - a failed write, whatever orbax wraps it in
             self._failed(step, err)
+
+    def release(self) -> None:
+        """Make the saved state's device buffers free for the next chunk to donate: wait for the save only where its
+        write still reads them (several processes); otherwise it goes on behind the next chunk, and the next `save`,
+        `wait` or `close` waits for it (a failed write is then reported by the next save or wait)."""
+        if self._pending is not None and self._reads_device:
+            self.wait()
 
     def wait(self) -> None:
         """Block until the last save is complete; WriteError (naming it) if it failed."""
@@ -408,13 +423,21 @@ class Checkpoints:
         return [self.set_aside(step, why) for step in reversed(self.steps())]
 
     def close(self) -> None:
-        """Wait for a save in flight and release the manager (a failed save was reported by `wait`, which follows
-        every save; orbax raises the same failure again while closing, dropped here). Nothing is waited for once
-        another process was lost (its barriers would never pass)."""
+        """Wait for a save in flight and release the manager. A failed save was reported by `wait`, which follows
+        every save but those written behind the next chunk (`release`); one of those that fails here (the run stopped
+        by an error or Ctrl-C meanwhile) is not reported: its partial files are removed and `latest` names the
+        checkpoint before it. orbax raises the same failure again while closing, dropped here. Nothing is waited
+        for once another process was lost (its barriers would never pass)."""
         if multihost.LOST.is_set():
             return
-        for step in (self.manager.wait_until_finished, self.manager.close):
-            try:
-                step()
-            except Exception:  # noqa: BLE001
-                pass
+        pending, self._pending = self._pending, None
+        try:
+            self.manager.wait_until_finished()
+        except Exception:  # noqa: BLE001
+            if pending is not None and multihost.is_writer():
+                for tmp in self.directory.glob(f"{pending}.orbax-checkpoint-tmp*"):
+                    shutil.rmtree(tmp, ignore_errors=True)
+        try:
+            self.manager.close()
+        except Exception:  # noqa: BLE001
+            pass

@@ -287,6 +287,8 @@ class Loop:
     rounds: int = 0  # rounds of chunks done, counted from the start of the run (also across resumes)
     steps_this_process: int = 0  # env steps trained by this process (for its rate)
     extra_compile: float = 0.0  # seconds compiling chunk sizes that were not compiled in advance
+    between_chunks: float = 0.0  # training seconds with no chunk on the devices (logs, checkpoints: round's end)
+    fetched_at: float = 0.0  # perf_counter when the last chunk's metrics reached the host
     complete_at_start: bool = False  # a resume found every arm done
     record: dict | None = None  # run.json to write (a resume writes it once every arm is restored)
     restart: set = dataclasses.field(default_factory=set)  # arms a resume trains again from update 0
@@ -408,6 +410,7 @@ class Loop:
         """Fetch the pending chunk's metrics, log them, make its state the arm's state."""
         new_state, metrics, n, wall_start = arm.pending
         metrics = {name: m[:, :n] for name, m in unpad(multihost.fetch(metrics), arm.num_runs).items()}  # [R, n]
+        self.fetched_at = time.perf_counter()
         wall_end = arm.wall_offset + self.clock.now()
         rows = io.metric_rows(arm.name, arm.plan.labels, self.spec.seeds, metrics, arm.updates, arm.steps_per_update,
                               wall_start, wall_end, steps_offset=arm.plan.phase_steps)
@@ -491,8 +494,12 @@ class Loop:
             if self.rounds % self.spec.checkpoint_every == 0 or last or self.stop_requested():
                 for arm in active:
                     self.save(arm)
-            for arm in active:
-                arm.ckpt.wait()  # the next chunk donates the saved buffers
+            for arm in active:  # the next chunk donates the saved buffers: free them; the last round's writes end here
+                arm.ckpt.wait() if last else arm.ckpt.release()
+            # From the last chunk's metrics on the host to here, no chunk of this process runs on its devices: the
+            # last arm's logs and the checkpoints' copies to the host (said in the "Trained in" line). One process
+            # writes a checkpoint to disk behind the next chunk.
+            self.between_chunks += time.perf_counter() - self.fetched_at
         return last
 
     def report_progress(self) -> None:
@@ -561,7 +568,8 @@ class Loop:
         else:
             rate = self.steps_this_process / max(self.clock.total, 1e-9)
             note = self.nonfinite_note()
-            self.say(f"Trained in {self.clock.total:.1f} s ({rate:,.0f} env steps/s over all runs); "
+            self.say(f"Trained in {self.clock.total:.1f} s ({rate:,.0f} env steps/s over all runs; "
+                     f"{self.between_chunks:.1f} s of it between chunks: logs and checkpoints); "
                      f"compile {self.extra_compile:.1f} s more" + (f"; {note}." if note else "."))
         if not self.spec.final_eval:
             return

@@ -15,6 +15,14 @@ Arms: ltq-cd (the default) or ltq (--arm ltq). CPU options shrink everything (--
 With --devices N [N ...] it measures instead the sweep itself (cdjax.sweep, the pixel trainer's own split of the
 runs over devices) on the first N devices for each N, in one process: compile, then steady-state seconds per chunk
 of --chunk updates and frames/s (issue 25: 1, 2 and 4 GPUs, `--runs 32 --devices 1 2 4`).
+
+With --loops it measures, on one device and the same runs, what a sweep's chunk adds to the update (issue 22: the
+sweeps trained ~13% below the update timed alone): --chunk updates as
+  update   the vmapped update called --chunk times, one program call per update (what the roofline times);
+  scan     the sweep's plain scan of --chunk updates (Sweep.run);
+  chunk    the sweep's chunk program, the scan with each update under a cond on the updates left (what a sweep runs:
+           one program serves full chunks and the last, shorter one).
+With --trace DIR, two steady-state calls of each are traced and summarised in DIR/MODE.md (benchmarks.profile_summary).
 """
 
 from __future__ import annotations
@@ -88,6 +96,52 @@ def measure_devices(config, runs: int, counts: list[int], chunk: int) -> dict:
     return out
 
 
+def measure_loops(config, runs: int, chunk: int, trace: str = "") -> dict:
+    """ms per update and frames/s of `chunk` updates of `runs` runs as the vmapped update called `chunk` times, the
+    sweep's plain scan and its chunk program (the scan with a cond per update), all on one device."""
+    from cdjax.sweep import make_sweep, runs_mesh
+
+    setting = agents.get("pixel")
+    trainer = setting.make_trainer(config)
+    sweep = make_sweep(trainer, mesh=runs_mesh(jax.devices()[:1]))
+    keys, hps = sweep.grid(seed=0, num_seeds=runs, hps=[setting.hparams_type()])
+    frames = runs * chunk * config.batch_size * config.seq_len
+    out = {"env": config.env, "arm": config.arm, "runs": runs, "chunk_updates": chunk,
+           "device": jax.devices()[0].device_kind, "frames_per_update_per_run": config.batch_size * config.seq_len}
+    state = sweep.init(keys, hps)
+    update = jax.jit(jax.vmap(trainer.update), donate_argnums=0).lower(state, hps).compile()
+    scan = sweep.lower(state, hps, chunk).compile()
+    chunked = sweep.lower_chunk(state, hps, chunk).compile()
+    programs = {"update": (update, lambda c: _updates(update, c[0], hps, chunk)),
+                "scan": (scan, lambda c: scan(c[0], hps)),
+                "chunk": (chunked, lambda c: chunked(c[0], hps, jnp.int32(chunk)))}
+    carry = (state, None)
+    for mode, (compiled, call) in programs.items():
+        first, carry = timed_chain(call, carry)
+        steady, carry = timed_chain(call, carry, repeats=3)
+        out[mode] = {"first_s": round(first, 3), "ms_per_update": round(1e3 * steady / chunk, 3),
+                     "frames_per_s": round(frames / steady)}
+        print(mode, out[mode], flush=True)
+        if trace:  # two steady-state calls, summarised beside the trace (DIR/MODE.md)
+            from benchmarks import profile_summary
+
+            where = pathlib.Path(trace) / mode
+            with profile_summary.trace(where, compiled):
+                _, carry = timed_chain(call, carry, repeats=2)
+            where.with_suffix(".md").write_text(profile_summary.markdown(profile_summary.summarize(where)))
+    for mode in programs:
+        out[mode]["vs_update"] = round(out["update"]["ms_per_update"] / out[mode]["ms_per_update"], 3)
+    return out
+
+
+def _updates(update, state, hps, n: int):
+    """n calls of the compiled vmapped update, each on the last's state: (state, the last call's metrics)."""
+    metrics = None
+    for _ in range(n):
+        state, metrics = update(state, hps)
+    return state, metrics
+
+
 def timed_chain(call, carry, repeats: int = 1):
     """(mean seconds of `repeats` calls, each on the last's output: the chunk donates its state, last carry)."""
     import time
@@ -110,11 +164,17 @@ def main(argv=None) -> dict:
     parser.add_argument("--trace", default="", help="write a jax.profiler trace of each mode under this directory")
     parser.add_argument("--devices", nargs="*", type=int, default=[],
                         help="measure the sweep on the first N devices for each N instead (e.g. 1 2 4)")
-    parser.add_argument("--chunk", type=int, default=20, help="updates per timed chunk (with --devices)")
+    parser.add_argument("--chunk", type=int, default=20, help="updates per timed chunk (with --devices or --loops)")
+    parser.add_argument("--loops", action="store_true",
+                        help="the update alone against the sweep's scan and chunk programs, one device (see above)")
     args = parser.parse_args(argv)
     runtime.configure(cache_dir=runtime.default_cache_dir())
     setting = agents.get("pixel")
     given = dict(setting.presets[f"pixel-{args.env}"].config, arm=args.arm) | overrides(args.set)
+    if args.loops:
+        result = measure_loops(setting.config_type(**given), args.runs, args.chunk, args.trace)
+        write_json(result, args.out)
+        return result
     if args.devices:
         result = measure_devices(setting.config_type(**given), args.runs, args.devices, args.chunk)
         write_json(result, args.out)
