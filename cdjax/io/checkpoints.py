@@ -268,9 +268,7 @@ class Checkpoints:
         self._pending = None
         if multihost.is_peer_error(err):  # a barrier of the save failed: another process is gone
             raise multihost.lost(err) from None
-        if multihost.is_writer():
-            for tmp in self.directory.glob(f"{step}.orbax-checkpoint-tmp*"):  # free what the failed save took
-                shutil.rmtree(tmp, ignore_errors=True)
+        self._remove_partial(step)
         raise WriteError(f"cannot write the checkpoint {self.directory / str(step)}: {reason(err)}") from None
 
     def _progress(self, step: int) -> dict:
@@ -422,6 +420,12 @@ class Checkpoints:
         """Every checkpoint of the arm moved aside (`set_aside`), newest first."""
         return [self.set_aside(step, why) for step in reversed(self.steps())]
 
+    def _remove_partial(self, step: int | None) -> None:
+        """Free what a failed save of `step` took on disk (orbax's temporary directory; process 0 writes it)."""
+        if multihost.is_writer():
+            for tmp in self.directory.glob(f"{step}.orbax-checkpoint-tmp*"):
+                shutil.rmtree(tmp, ignore_errors=True)
+
     def close(self) -> None:
         """Wait for a save in flight and release the manager. A failed save was reported by `wait`, which follows
         every save but those written behind the next chunk (`release`); one of those that fails here (the run stopped
@@ -434,9 +438,8 @@ class Checkpoints:
         try:
             self.manager.wait_until_finished()
         except Exception:  # noqa: BLE001
-            if pending is not None and multihost.is_writer():
-                for tmp in self.directory.glob(f"{pending}.orbax-checkpoint-tmp*"):
-                    shutil.rmtree(tmp, ignore_errors=True)
+            if pending is not None:
+                self._remove_partial(pending)
         try:
             self.manager.close()
         except Exception:  # noqa: BLE001
