@@ -626,9 +626,10 @@ def host(tree):
     return jax.tree.map(np.asarray, jax.device_get(tree))
 
 
-from cdjax.io.checkpoints import CheckpointMismatch, CheckpointWarning, Checkpoints  # noqa: E402  (uses the errors above)
+from cdjax.io.checkpoints import (  # noqa: E402  (uses the errors above)
+    CheckpointMismatch, CheckpointWarning, Checkpoints, snapshot)
 
 __all__ = ["RunDir", "RunDirError", "WriteError", "CheckpointMismatch", "CheckpointWarning", "Checkpoints", "TensorBoard", "Rows",
            "read_jsonl", "append_jsonl", "truncate_jsonl", "check_record", "metric_row_ok", "eval_row_ok",
-           "metric_rows", "phase_rows", "json_float",
+           "metric_rows", "phase_rows", "json_float", "snapshot",
            "dataclass_to_json", "dataclass_from_json", "hparams_to_json", "host", "reason", "writing"]

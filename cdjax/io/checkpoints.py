@@ -113,6 +113,26 @@ def compact(tree, keep=None) -> tuple[dict[str, Any], dict]:
     return stored, layout
 
 
+def snapshot(tree, keep=None):
+    """A copy on the devices of the leaves a save stores (`keep`: pytree of bool like `tree`; the others become
+    ShapeDtypeStructs, whose shapes are all a save records of them): what `save` reads once the next chunk has
+    donated the state's own buffers, so the chunk can start before the copy to the host."""
+    flags = jax.tree.leaves(keep) if keep is not None else None
+    leaves, treedef = jax.tree.flatten(tree)
+    out = []
+    for i, x in enumerate(leaves):
+        if not isinstance(x, jax.Array):
+            out.append(x)
+        elif (flags is not None and not flags[i]) or x.size == 0:
+            out.append(jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding))
+        elif _is_key(x):
+            out.append(jax.random.wrap_key_data(jnp.array(jax.random.key_data(x), copy=True),
+                                                impl=jax.random.key_impl(x)))
+        else:
+            out.append(jnp.array(x, copy=True))
+    return jax.tree.unflatten(treedef, out)
+
+
 def expand(stored: dict[str, Any], layout: dict | None, like):
     """Inverse of `compact`: the tree of `like` (concrete, with shardings) with the stored leaves put back."""
     leaves, treedef = jax.tree.flatten(like)

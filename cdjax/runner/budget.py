@@ -88,12 +88,14 @@ def program_bytes(compiled) -> int | None:
     return int(m.output_size_in_bytes) - int(m.alias_size_in_bytes) + int(m.temp_size_in_bytes)
 
 
-def check_programs(states: int, programs: dict[str, object], have: tuple[int, str] | None = None) -> None:
-    """ConfigError when the states plus the most demanding compiled program (by name) cannot fit."""
+def check_programs(states: int, programs: dict[str, object], have: tuple[int, str] | None = None) -> int:
+    """ConfigError when the states plus the most demanding compiled program (by name) cannot fit; else the bytes
+    per device left beside them (the loop copies the states there for a checkpoint when they fit: `Loop.round`)."""
     have, where = have or available()
     sizes = {name: b for name, p in programs.items() if (b := program_bytes(p)) is not None}
     if not sizes:
-        return
+        return have - states
     name = max(sizes, key=sizes.get)
     if states + sizes[name] > have:
         _refuse(states + sizes[name], have, where, f"states {gb(states)}, program {name} {gb(sizes[name])}")
+    return have - states - sizes[name]

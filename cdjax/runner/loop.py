@@ -200,8 +200,8 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             t_compile = time.perf_counter() - t_compile
             # init's output is the state, already counted; the phase and chunk programs donate it and return it
             with host_time("programs"):
-                budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms
-                                               for what, p in arm.programs.items() if what != "init"})
+                spare = budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms
+                                                       for what, p in arm.programs.items() if what != "init"})
     except KeyboardInterrupt as err:
         where = (f"{rd.path} is as it was; resume with `{_resume_hint(rd)}`" if resume
                  else f"nothing was written to {rd.path}")
@@ -222,8 +222,10 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
                                              "another --out.")
                     if not resume:
                         rd.write(record)
+            # A checkpoint's copy of the states on the devices (the next chunk starts before it goes to the host)
+            # where they have room for it, with a tenth of the rest to spare.
             return _train(Loop(rd, spec, setting, arms, record["chunk_updates"], progress, after_chunk,
-                               record=record, restart=restart), resume, t_compile)
+                               record=record, restart=restart, snapshots=states <= 0.9 * spare), resume, t_compile)
     except (Interrupted, Stopped):
         raise
     except KeyboardInterrupt as err:  # between the compilation and the loop: run.json may be written, no update
@@ -287,7 +289,8 @@ class Loop:
     rounds: int = 0  # rounds of chunks done, counted from the start of the run (also across resumes)
     steps_this_process: int = 0  # env steps trained by this process (for its rate)
     extra_compile: float = 0.0  # seconds compiling chunk sizes that were not compiled in advance
-    between_chunks: float = 0.0  # training seconds with no chunk on the devices (logs, checkpoints: round's end)
+    between_chunks: float = 0.0  # training seconds with no chunk of this process on its devices (`round`)
+    snapshots: bool = True  # the devices have room for a copy of the states: a checkpoint need not hold the next chunk
     fetched_at: float = 0.0  # perf_counter when the last chunk's metrics reached the host
     complete_at_start: bool = False  # a resume found every arm done
     record: dict | None = None  # run.json to write (a resume writes it once every arm is restored)
@@ -401,25 +404,36 @@ class Loop:
         self.save(arm)  # step 0: a resumed run restores it instead of running the phase again
 
     def dispatch(self, arm: Arm, n: int) -> None:
-        """Start a chunk of n updates (asynchronously); `commit` logs it."""
+        """Start a chunk of n updates (asynchronously); `commit` (or `fetch`, then `log`) takes its results."""
         wall_start = arm.wall_offset + self.clock.now()
         new_state, metrics = arm.chunk_program()(arm.state, arm.hps, np.int32(n))  # donates arm.state
         arm.state, arm.pending = None, (new_state, metrics, n, wall_start)
 
     def commit(self, arm: Arm) -> None:
         """Fetch the pending chunk's metrics, log them, make its state the arm's state."""
+        self.fetch(arm)
+        self.log(arm)
+
+    def fetch(self, arm: Arm) -> None:
+        """Wait for the pending chunk: its metrics to the host (kept in arm.unlogged for `log`), its state the
+        arm's state."""
         new_state, metrics, n, wall_start = arm.pending
         metrics = {name: m[:, :n] for name, m in unpad(multihost.fetch(metrics), arm.num_runs).items()}  # [R, n]
         self.fetched_at = time.perf_counter()
         wall_end = arm.wall_offset + self.clock.now()
         rows = io.metric_rows(arm.name, arm.plan.labels, self.spec.seeds, metrics, arm.updates, arm.steps_per_update,
                               wall_start, wall_end, steps_offset=arm.plan.phase_steps)
-        arm.state, arm.updates, arm.pending = new_state, arm.updates + n, None
+        arm.state, arm.updates, arm.pending, arm.unlogged = new_state, arm.updates + n, None, (metrics, rows)
+        self.steps_this_process += n * arm.steps_per_update * arm.num_runs
+
+    def log(self, arm: Arm) -> None:
+        """Write the fetched chunk's rows (metrics.jsonl, TensorBoard) and say what its metrics call for."""
+        metrics, rows = arm.unlogged
+        arm.unlogged = None
         with multihost.together():  # a failed write ends every process before any checkpoint holds its updates
             if self.writer:
                 io.append_jsonl(self.rd.metrics, rows)
                 self.tb.write(rows)
-        self.steps_this_process += n * arm.steps_per_update * arm.num_runs
         ret = self.setting.metrics.ret
         if ret in metrics:
             arm.last_return = nanmean(metrics[ret][:, -1])
@@ -456,17 +470,24 @@ class Loop:
         bad = [f"{a.name} {int((a.skipped > 0).sum())}/{a.num_runs}" for a in self.arms if (a.skipped > 0).any()]
         return f"non-finite steps skipped in runs: {', '.join(bad)}" if bad else ""
 
-    def save(self, arm: Arm) -> None:
+    def save(self, arm: Arm, state=None) -> None:
+        """Checkpoint the arm's state at its updates (`state`: a `io.snapshot` of it, taken before the next chunk
+        donated it)."""
         if arm.saved != arm.updates:
             done = {"updates": arm.updates, "env_steps": arm.env_steps(), "wall_s": arm.wall_offset + self.clock.now(),
                     "chunk_updates": self.chunk, "run": arm.identity}
-            keep = arm.trainer.saved_leaves() if arm.trainer.saved_leaves is not None else None
-            arm.ckpt.save(arm.updates, arm.state, done, keep=keep)
+            arm.ckpt.save(arm.updates, arm.state if state is None else state, done, keep=self._keep(arm))
             arm.saved = arm.updates
+
+    @staticmethod
+    def _keep(arm: Arm):
+        return arm.trainer.saved_leaves() if arm.trainer.saved_leaves is not None else None
 
     def stop(self) -> None:
         """Log and checkpoint what is done, then raise Interrupted."""
         for arm in self.arms:
+            if arm.unlogged is not None:  # fetched, its rows not yet written (an interrupt in a round's host work)
+                self.log(arm)
             if arm.pending is not None:
                 self.commit(arm)
             self.save(arm)
@@ -474,11 +495,18 @@ class Loop:
             arm.ckpt.wait()
         raise Interrupted(self.rd.path, {a.name: a.updates for a in self.arms}, self.flag.signum if self.flag else None)
 
-    def round(self) -> bool:
-        """One chunk of every arm with updates left, logged and (every checkpoint_every rounds) saved;
-        returns whether it was the last."""
+    def round(self) -> tuple[bool, bool | None]:
+        """One chunk of every arm with updates left (dispatched by the round before where it could be), logged and
+        (every checkpoint_every rounds) saved; returns (whether it was the last, whether to stop: None when an
+        evaluation comes first, after which `run` asks).
+
+        The next round's chunks are dispatched as soon as this round's metrics are on the host and the sweep goes
+        on, before this round's logs and checkpoints are written, so the devices do not wait for the host. A
+        checkpoint then saves a copy of the state made on the devices before the next chunk donated it
+        (`io.snapshot`, where the devices have room for it: `self.snapshots`), else its copy to the host is made
+        first. Not dispatched ahead: after the last round, before a stop, and before an evaluation between rounds.
+        """
         active = [a for a in self.arms if a.updates < a.num_updates]
-        sizes = {a.name: min(self.chunk, a.num_updates - a.updates) for a in active}
         for arm in active:
             if "chunk" not in arm.programs:  # not compiled in advance (e.g. a resume that found nothing left)
                 t0 = time.perf_counter()
@@ -486,21 +514,48 @@ class Loop:
                 self.extra_compile += time.perf_counter() - t0
         with self.clock.running():
             for arm in active:
-                self.dispatch(arm, sizes[arm.name])
+                if arm.pending is None:
+                    self.dispatch(arm, min(self.chunk, arm.num_updates - arm.updates))
             for arm in active:
-                self.commit(arm)
+                self.fetch(arm)
             self.rounds += 1
             last = all(a.updates >= a.num_updates for a in self.arms)
-            if self.rounds % self.spec.checkpoint_every == 0 or last or self.stop_requested():
+            # After the last round the time limit has nothing left to stop: a sweep that finished is complete, not
+            # "stopped before the time limit" (only Ctrl-C or SIGTERM still stop it here). Before an evaluation
+            # between rounds, `run` asks after it (the time limit counts it).
+            evaluate = self.evaluates()
+            stop = self.stop_requested() if last or evaluate else self.stop_asked()
+            save = self.rounds % self.spec.checkpoint_every == 0 or last or stop
+            ahead = not (last or stop or evaluate)
+            copies = {}
+            if save and ahead and self.snapshots:
+                copies = {arm.name: io.snapshot(arm.state, self._keep(arm)) for arm in active}
+            elif save and ahead:  # no room for a copy on the devices: to the host before the next chunk donates it
                 for arm in active:
                     self.save(arm)
+                    arm.ckpt.release()
+            if ahead:
+                for arm in self.arms:
+                    if arm.updates < arm.num_updates:
+                        self.dispatch(arm, min(self.chunk, arm.num_updates - arm.updates))
+                # From the last chunk's metrics on the host to here no chunk of this process ran on its devices
+                # (said in the "Trained in" line); the logs and checkpoints below are written while the next runs.
+                self.between_chunks += time.perf_counter() - self.fetched_at
+            for arm in active:
+                self.log(arm)
+            if save:
+                for arm in active:
+                    self.save(arm, copies.get(arm.name))
             for arm in active:  # the next chunk donates the saved buffers: free them; the last round's writes end here
                 arm.ckpt.wait() if last else arm.ckpt.release()
-            # From the last chunk's metrics on the host to here, no chunk of this process runs on its devices: the
-            # last arm's logs and the checkpoints' copies to the host (said in the "Trained in" line). One process
-            # writes a checkpoint to disk behind the next chunk.
-            self.between_chunks += time.perf_counter() - self.fetched_at
-        return last
+            if not ahead:  # the devices waited for all of it
+                self.between_chunks += time.perf_counter() - self.fetched_at
+        return last, None if evaluate and not stop else stop
+
+    def evaluates(self) -> bool:
+        """Whether an evaluation comes after this round (eval_every; not after the last: the final one does)."""
+        return (bool(self.spec.eval_every) and self.rounds % self.spec.eval_every == 0
+                and any(a.updates < a.num_updates for a in self.arms))
 
     def report_progress(self) -> None:
         rate = self.steps_this_process / max(self.clock.total, 1e-9)
@@ -540,14 +595,13 @@ class Loop:
                 if self.stop_asked():  # before this process's first round (after the phases)
                     self.stop()
                 while any(a.updates < a.num_updates for a in self.arms):
-                    last = self.round()
+                    last, stop = self.round()
                     self.report_progress()
-                    if self.spec.eval_every and self.rounds % self.spec.eval_every == 0 and not last:
+                    if stop is None:  # an evaluation between rounds, then the question whether to stop
                         evaluate_arms(self.rd, self.arms, self.spec.seeds, self.spec.eval_episodes,
                                       not self.setting.eval_sampled, self.say)
-                    # After the last round the time limit has nothing left to stop: a sweep that finished is
-                    # complete, not "stopped before the time limit" (only Ctrl-C or SIGTERM still stop it here).
-                    if self.stop_requested() if last else self.stop_asked():
+                        stop = self.stop_asked()
+                    if stop:
                         self.stop()
             except KeyboardInterrupt as err:
                 if isinstance(err, Interrupted) or self.flag.forced:
