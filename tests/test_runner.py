@@ -220,6 +220,26 @@ def test_the_next_chunk_runs_while_a_round_is_logged_and_checkpointed(uninterrup
     assert 1.0 <= float(between) < 1.5 <= float(total), line
 
 
+def test_evaluations_between_rounds_see_each_round_and_a_stop_after_one_keeps_it(uninterrupted, tmp_path):
+    """eval_every 1: an evaluation after every round but the last, of the state that round left (no chunk runs
+    ahead of an evaluation); the stop question comes after it, once per round, and a stop then keeps that round's
+    evaluation; the training itself equals the uninterrupted run."""
+    spec = dataclasses.replace(SPEC, eval_every=1, eval_episodes=2)
+    asked = []
+    with pytest.raises(Interrupted) as info:
+        run_sweep(dataclasses.replace(spec, out=tmp_path / "evals"),
+                  after_chunk=lambda chunks, updates: asked.append((chunks, dict(updates))) or chunks >= 2)
+    assert asked == [(r, {"mbmf": r * CHUNK, "cd": r * CHUNK}) for r in range(3)]
+    assert info.value.updates == {"mbmf": 2 * CHUNK, "cd": 2 * CHUNK}
+    evals = io.read_jsonl(tmp_path / "evals" / "eval.jsonl")
+    assert sorted({(r["arm"], r["update"]) for r in evals}) == [(a, u) for a in ("cd", "mbmf") for u in (CHUNK, 2 * CHUNK)]
+    run_sweep(resume_spec(tmp_path / "evals", progress=False), resume=True)
+    evals = io.read_jsonl(tmp_path / "evals" / "eval.jsonl")
+    assert sorted({r["update"] for r in evals}) == [CHUNK * r for r in range(1, UPDATES // CHUNK)]  # none after the last
+    assert _rows(tmp_path / "evals") == _rows(uninterrupted)
+    _assert_same_states(_states(tmp_path / "evals"), _states(uninterrupted))
+
+
 def test_killed_run_with_corrupt_latest_checkpoint_falls_back_and_still_reproduces(uninterrupted, tmp_path, capsys):
     out = tmp_path / "killed"
     with pytest.raises(Interrupted):

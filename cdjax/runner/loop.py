@@ -550,7 +550,7 @@ class Loop:
                 arm.ckpt.wait() if last else arm.ckpt.release()
             if not ahead:  # the devices waited for all of it
                 self.between_chunks += time.perf_counter() - self.fetched_at
-        return last, None if evaluate and not stop else stop
+        return last, None if evaluate else stop
 
     def evaluates(self) -> bool:
         """Whether an evaluation comes after this round (eval_every; not after the last: the final one does)."""
