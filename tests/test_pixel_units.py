@@ -91,6 +91,26 @@ def test_the_sweep_speed_unit_times_the_model_of_before_and_the_presets_on_the_s
     assert {h.lr_policy for p in after for h in p.hparams} == {1e-3}
 
 
+def test_the_sweep_long_unit_runs_the_presets_30_runs_at_the_length_of_the_sweep_before():
+    """The after-figure at the length the 41,440 frames/s before it came from (1,400 updates of halfcheetah's 30
+    runs): the presets as they are, no evaluation, stopped by its time limit inside the command's timeout."""
+    from cdjax import agents
+    from cdjax.cli import build_parser, sweep_spec
+    from cdjax.runner.plan import plan_arms
+
+    done = _command("sweep-long", LONG_LIMIT_S="400")
+    assert done.returncode == 0, done.stderr
+    argv = _sweep_argv(done.stdout)
+    assert argv[argv.index("--time-limit") + 1] == "400" and "--no-final-eval" in argv
+    assert done.stdout.startswith("timeout -s INT -k 60 520 ")
+    setting = agents.get("pixel")
+    spec = sweep_spec(build_parser(setting).parse_args(argv[:argv.index(">")]), setting)
+    arms = plan_arms(spec)
+    assert sum(len(p.hparams) * spec.seeds for p in arms) == 30 and {p.config.num_updates for p in arms} == {1400}
+    assert {(p.config.compute_dtype, p.config.conv_impl, p.config.core_impl) for p in arms} == {
+        ("bfloat16", "per-run", "fused")}
+
+
 def test_the_evaluation_gets_what_is_left_before_the_units_end_and_unknown_units_are_refused():
     line = _command("pusher-ltq", END_S="1700", EVAL_S="280").stdout
     assert "s=$(( 1700 - $(date +%s) + $(cat runs/pixel-units/pusher-ltq/started) - 180 ));" in line

@@ -27,6 +27,11 @@
 #                  with cc_policy 0 and 1, 10 seeds) for SPEED_UPDATES updates (default 200), once as the model
 #                  of before (--compute-dtype float32 --conv-impl grouped --core-impl flax --lr-policy 0) and once
 #                  as the presets run it; each sweep's "Trained in" line gives its frames/s (about 8 minutes)
+#   sweep-long     the presets' sweep as the 41,440 frames/s before it ran (the fourth pass: halfcheetah's 30 runs,
+#                  1,400 updates in chunks of 200, one H200): LONG_UPDATES (default 1400) updates, stopped by
+#                  LONG_LIMIT_S (default 480 s, compile included), no evaluation; its "Trained in" line gives the
+#                  frames/s and the seconds between chunks, over a length where one round's fixed costs (the first
+#                  chunk, the last checkpoint's write) weigh as they did then (about 5-6 minutes)
 #   devices        (a multi-GPU machine, issue 25) the pixel sweep's frames/s on 1, 2 and 4 of its GPUs in one
 #                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah
 #   TASK-ARM       the experiment at the presets' length: TASK halfcheetah, reacher or pusher, ARM ltq, ltq-cd
@@ -105,6 +110,12 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "timeout -s INT -k 60 420 $sweep --compute-dtype float32 --conv-impl grouped --core-impl flax --lr-policy 0" \
         "--out $work/before > $work/before.log 2>&1; timeout -s INT -k 60 420 $sweep --out $work/presets" \
         "> $work/presets.log 2>&1; grep -H -E 'Arms|Trained in' $work/before.log $work/presets.log" ;;
+    sweep-long)
+      local sweep="python -m cdjax.cli sweep --setting pixel --preset pixel-halfcheetah"
+      sweep="$sweep --expert $experts/halfcheetah/expert.msgpack --steps $(( ${LONG_UPDATES:-1400} * 800 ))"
+      echo "timeout -s INT -k 60 $(( ${LONG_LIMIT_S:-480} + 120 )) $sweep --no-progress --no-final-eval" \
+        "--time-limit ${LONG_LIMIT_S:-480} --out $work/presets > $work/presets.log 2>&1;" \
+        "grep -H -E 'Arms|Trained in|Stopped' $work/presets.log" ;;
     devices)
       echo "python -m experiments.pixel.speed --env halfcheetah --runs 32 --devices ${DEVICE_COUNTS:-1 2 4}" \
         "--out $work/devices.json" ;;
@@ -141,7 +152,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 30 \$(( s > $eval_max ? $eval_max : s < 120 ? 120 : s )) python -m cdjax.cli eval $work/pixel" \
         "--episodes 4; python -m cdjax.cli plot $work/pixel; timeout -k 10 150 python -m experiments.pixel.report" \
         "--strips $work/pixel $work/strips" ;;
-    *) echo "unknown unit $1: roofline, core, sweep-speed, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
+    *) echo "unknown unit $1: roofline, core, sweep-speed, sweep-long, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
          "ltq-cd, ltq-cd0, ltq-cd1)" >&2
        return 1 ;;
   esac
