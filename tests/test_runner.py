@@ -197,8 +197,8 @@ def test_the_next_chunk_runs_while_a_round_is_logged_and_checkpointed(uninterrup
     write, dispatch = io.TensorBoard.write, loop.Loop.dispatch
     monkeypatch.setattr(io.TensorBoard, "write", lambda self, rows: (
         events.append(("write", max(r["update"] for r in rows))), time.sleep(0.5), write(self, rows))[2])
-    monkeypatch.setattr(loop.Loop, "dispatch", lambda self, arm, n: (
-        events.append(("dispatch", arm.updates)), dispatch(self, arm, n))[1])
+    monkeypatch.setattr(loop.Loop, "dispatch", lambda self, arm: (
+        events.append(("dispatch", arm.updates)), dispatch(self, arm))[1])
     made = []
     monkeypatch.setattr(io, "snapshot", lambda *args, make=io.snapshot: made.append(1) or make(*args))
     if not snapshots:  # no room beside the states and programs

@@ -403,8 +403,10 @@ class Loop:
                  f"{wall_end - wall_start:.1f} s; {phase.describe({k: nanmean(v) for k, v in info.items()})}")
         self.save(arm)  # step 0: a resumed run restores it instead of running the phase again
 
-    def dispatch(self, arm: Arm, n: int) -> None:
-        """Start a chunk of n updates (asynchronously); `commit` (or `fetch`, then `log`) takes its results."""
+    def dispatch(self, arm: Arm) -> None:
+        """Start the arm's next chunk (asynchronously): `chunk` updates, or those left; `commit` (or `fetch`, then
+        `log`) takes its results."""
+        n = min(self.chunk, arm.num_updates - arm.updates)
         wall_start = arm.wall_offset + self.clock.now()
         new_state, metrics = arm.chunk_program()(arm.state, arm.hps, np.int32(n))  # donates arm.state
         arm.state, arm.pending = None, (new_state, metrics, n, wall_start)
@@ -515,7 +517,7 @@ class Loop:
         with self.clock.running():
             for arm in active:
                 if arm.pending is None:
-                    self.dispatch(arm, min(self.chunk, arm.num_updates - arm.updates))
+                    self.dispatch(arm)
             for arm in active:
                 self.fetch(arm)
             self.rounds += 1
@@ -537,7 +539,7 @@ class Loop:
             if ahead:
                 for arm in self.arms:
                     if arm.updates < arm.num_updates:
-                        self.dispatch(arm, min(self.chunk, arm.num_updates - arm.updates))
+                        self.dispatch(arm)
                 # From the last chunk's metrics on the host to here no chunk of this process ran on its devices
                 # (said in the "Trained in" line); the logs and checkpoints below are written while the next runs.
                 self.between_chunks += time.perf_counter() - self.fetched_at
