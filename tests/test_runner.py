@@ -186,8 +186,9 @@ def test_the_next_chunk_runs_while_a_round_is_logged_and_checkpointed(uninterrup
     """Each round's logs and checkpoint are written after the next round's chunks are dispatched (with the states
     copied on the devices for the checkpoint, or, without room for that copy, copied to the host first), so the
     devices do not wait for them; the run equals the uninterrupted one. The "Trained in" line says how long the
-    devices did wait: with each TensorBoard write sleeping 0.5 s, only the last round's two writes (nothing runs
-    after them), not the four before (a loop that writes before it dispatches counts all six)."""
+    devices did wait: with each TensorBoard write sleeping 1 s, the last round's two writes (nothing runs after
+    them) and the host's other work between chunks (a first checkpoint's setup on a cold machine took 0.5 s), not
+    the four writes before (a loop that writes before it dispatches counts all six: 6 s)."""
     import re
     import time
 
@@ -196,7 +197,7 @@ def test_the_next_chunk_runs_while_a_round_is_logged_and_checkpointed(uninterrup
     events = []
     write, dispatch = io.TensorBoard.write, loop.Loop.dispatch
     monkeypatch.setattr(io.TensorBoard, "write", lambda self, rows: (
-        events.append(("write", max(r["update"] for r in rows))), time.sleep(0.5), write(self, rows))[2])
+        events.append(("write", max(r["update"] for r in rows))), time.sleep(1.0), write(self, rows))[2])
     monkeypatch.setattr(loop.Loop, "dispatch", lambda self, arm: (
         events.append(("dispatch", arm.updates)), dispatch(self, arm))[1])
     made = []
@@ -217,7 +218,7 @@ def test_the_next_chunk_runs_while_a_round_is_logged_and_checkpointed(uninterrup
     _assert_same_states(_states(out), _states(uninterrupted))
     line = next(line for line in capsys.readouterr().err.splitlines() if "Trained in" in line)
     total, between = re.search(r"Trained in ([\d.]+) s .*?; ([\d.]+) s of it between chunks", line).groups()
-    assert 1.0 <= float(between) < 1.5 <= float(total), line
+    assert 2.0 <= float(between) < 4.0 <= 6.0 <= float(total), line
 
 
 def test_evaluations_between_rounds_see_each_round_and_a_stop_after_one_keeps_it(uninterrupted, tmp_path):
