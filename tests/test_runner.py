@@ -186,13 +186,15 @@ def test_the_next_chunk_runs_while_a_round_is_logged_and_checkpointed(uninterrup
     """Each round's logs and checkpoint are written after the next round's chunks are dispatched (with the states
     copied on the devices for the checkpoint, or, without room for that copy, copied to the host first), so the
     devices do not wait for them; the run equals the uninterrupted one. The "Trained in" line says how long the
-    devices did wait: with each TensorBoard write sleeping 1 s, the last round's two writes (nothing runs after
-    them) and the host's other work between chunks (a first checkpoint's setup on a cold machine took 0.5 s), not
-    the four writes before (a loop that writes before it dispatches counts all six: 6 s)."""
+    devices did wait: with each TensorBoard write sleeping 1 s and each chunk call holding its caller 0.5 s (as on
+    a GPU), the last round's two writes (nothing runs after them) and the host's other work between chunks (a first
+    checkpoint's setup on a cold machine took 0.5 s), not the four writes before (a loop that writes before it
+    dispatches counts all six: 6 s) nor the calls of the chunks dispatched ahead (a loop that calls them itself
+    counts 2 s more: the writes wait for them)."""
     import re
     import time
 
-    from cdjax.runner import loop
+    from cdjax.runner import arms, loop
 
     events = []
     write, dispatch = io.TensorBoard.write, loop.Loop.dispatch
@@ -200,6 +202,11 @@ def test_the_next_chunk_runs_while_a_round_is_logged_and_checkpointed(uninterrup
         events.append(("write", max(r["update"] for r in rows))), time.sleep(1.0), write(self, rows))[2])
     monkeypatch.setattr(loop.Loop, "dispatch", lambda self, arm: (
         events.append(("dispatch", arm.updates)), dispatch(self, arm))[1])
+    # A GPU's chunk call returns only once its loop has run (XLA launches each iteration's kernels from the calling
+    # thread): each call here holds its caller 0.5 s.
+    chunk_program = arms.Arm.chunk_program
+    monkeypatch.setattr(arms.Arm, "chunk_program", lambda self: (
+        lambda *args, program=chunk_program(self): (time.sleep(0.5), program(*args))[1]))
     made = []
     monkeypatch.setattr(io, "snapshot", lambda *args, make=io.snapshot: made.append(1) or make(*args))
     if not snapshots:  # no room beside the states and programs

@@ -62,7 +62,7 @@ class Arm:
     updates: int = 0  # updates done (and logged)
     saved: int = -1  # updates held by the newest checkpoint
     wall_offset: float = 0.0  # training seconds of earlier processes (restored)
-    pending: tuple | None = None  # (new_state, metrics, n, wall_start) dispatched, not yet logged
+    pending: tuple | None = None  # (future of (new_state, metrics), n, wall_start) dispatched, not yet logged
     unlogged: tuple | None = None  # (metrics, rows) of a chunk fetched (its state is `state`), not yet written
     programs: dict = dataclasses.field(default_factory=dict)  # "init", "phase", "chunk" -> compiled program
     chunk: int = 0  # updates the chunk program holds (it runs any n <= chunk of them)

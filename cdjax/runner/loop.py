@@ -20,6 +20,7 @@ same chunk, with the same checkpoint. A process that is lost ends the others wit
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import contextlib
 import dataclasses
 import math
@@ -292,6 +293,8 @@ class Loop:
     between_chunks: float = 0.0  # training seconds with no chunk of this process on its devices (`round`)
     snapshots: bool = True  # the devices have room for a copy of the states: a checkpoint need not hold the next chunk
     fetched_at: float = 0.0  # perf_counter when the last chunk's metrics reached the host
+    launcher: concurrent.futures.ThreadPoolExecutor = dataclasses.field(  # calls the chunk programs (`dispatch`)
+        default_factory=lambda: concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="cdjax-chunk"))
     complete_at_start: bool = False  # a resume found every arm done
     record: dict | None = None  # run.json to write (a resume writes it once every arm is restored)
     restart: set = dataclasses.field(default_factory=set)  # arms a resume trains again from update 0
@@ -408,8 +411,12 @@ class Loop:
         `log`) takes its results."""
         n = min(self.chunk, arm.num_updates - arm.updates)
         wall_start = arm.wall_offset + self.clock.now()
-        new_state, metrics = arm.chunk_program()(arm.state, arm.hps, np.int32(n))  # donates arm.state
-        arm.state, arm.pending = None, (new_state, metrics, n, wall_start)
+        program, state = arm.chunk_program(), arm.state
+        arm.state = None  # the chunk donates it
+        # Launched from a thread of its own: on a GPU the call returns only once the chunk's loop has been run
+        # (XLA launches its kernels from the calling thread, iteration after iteration), so called here it would
+        # hold the host's logs and checkpoints until the chunk ends.
+        arm.pending = (self.launcher.submit(program, state, arm.hps, np.int32(n)), n, wall_start)
 
     def commit(self, arm: Arm) -> None:
         """Fetch the pending chunk's metrics, log them, make its state the arm's state."""
@@ -419,7 +426,8 @@ class Loop:
     def fetch(self, arm: Arm) -> None:
         """Wait for the pending chunk: its metrics to the host (kept in arm.unlogged for `log`), its state the
         arm's state."""
-        new_state, metrics, n, wall_start = arm.pending
+        launched, n, wall_start = arm.pending
+        new_state, metrics = launched.result()
         metrics = {name: m[:, :n] for name, m in unpad(multihost.fetch(metrics), arm.num_runs).items()}  # [R, n]
         self.fetched_at = time.perf_counter()
         wall_end = arm.wall_offset + self.clock.now()
@@ -611,6 +619,7 @@ class Loop:
                 self.stop()
 
     def close(self) -> None:
+        self.launcher.shutdown(wait=False, cancel_futures=True)  # a chunk still running (a forced stop): at exit
         if self.tb is not None:
             self.tb.close()
         for arm in self.arms:
