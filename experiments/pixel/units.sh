@@ -60,12 +60,15 @@
 # since 2026-11-26): halfcheetah-ltq-cd0 and -cd1 623 and 607 s (6.1-6.2 ms), 821 and 802 s from start to end;
 # reacher-ltq 562 s (5.6 ms), 732 s; after 4cf108f halfcheetah-ltq-cd0 and -cd1 606 and 617 s, 815 and 856 s, and
 # pusher-ltq 563 s (5.6 ms), 772 s; at f991e7a reacher-ltq-cd0 and -cd1 538 and 523 s (5.4 and 5.2 ms; 61 and 49 s
-# of it between chunks), 725 and 644 s, and pusher-ltq-cd0 541 s (5.4 ms; 64 s between chunks), 808 s. One unit
+# of it between chunks), 725 and 644 s, and pusher-ltq-cd0 541 s (5.4 ms; 64 s between chunks), 808 s; at 4e78328
+# (H200) pusher-ltq-cd1 544.8 s (5.4 ms, 146,847 frames/s), 799 s from start to end (its log's 469.5 s "between
+# chunks" is an artifact: the chunk's call blocks the thread on a GPU, so whole chunks were counted), then
+# sweep-long on the same machine (236.8 s, 141,902 frames/s). One unit
 # per machine (held 30 minutes at most), or one and sweep-speed, or a second unit with LIMIT_S/END_S cut to the
 # machine's time left (session 22: pusher-ltq with LIMIT_S=720 END_S=880 after halfcheetah-ltq-cd1; session 23:
-# reacher-ltq-cd1 with LIMIT_S=880 END_S=1000 after reacher-ltq-cd0; both still reached 10,000 updates). Run so
-# far: halfcheetah's three (cd0 and cd1 again after 4cf108f; the collapsed ones are in
-# data/presets-length-collapsed/), reacher's three, pusher-ltq and pusher-ltq-cd0. Left: pusher-ltq-cd1. A unit
+# reacher-ltq-cd1 with LIMIT_S=880 END_S=1000 after reacher-ltq-cd0; both still reached 10,000 updates). Run: all
+# nine (halfcheetah's cd0 and cd1 again after 4cf108f; the collapsed ones are in data/presets-length-collapsed/);
+# nothing of the plan is left. A unit
 # whose runs are slower than an estimate says in its log where --time-limit stopped it; each unit's "Trained in"
 # line gives its real rate. Fewer runs may not be proportionally faster (the update is bound by kernel launches).
 # The experts are the kept ones (experiments/pixel/data/three-tasks-x2/TASK/expert.msgpack). The first call starts
