@@ -373,6 +373,45 @@ def test_float32_is_the_default_and_bfloat16_agrees_within_its_rounding(learner,
         assert relative(grads[1][group], grads[0][group]) < 1e-2, group
 
 
+def _convolution_operands(jaxpr) -> list[tuple[str, str]]:
+    """The operand dtypes of every convolution in the jaxpr (calls, custom rules and loop bodies entered)."""
+    found = []
+    for e in jaxpr.eqns:
+        if e.primitive.name == "conv_general_dilated":
+            found.append(tuple(str(v.aval.dtype) for v in e.invars))
+        for j in _subjaxprs(e):
+            found += _convolution_operands(j)
+    return found
+
+
+def test_output_grad_dtype_bfloat16_keeps_the_forward_and_runs_every_convolution_gradient_in_bfloat16(state):
+    """output_grad_dtype bfloat16 (with compute_dtype bfloat16): the loss is the same number (the forward pass is
+    unchanged); the output layers' backward takes a bfloat16 cotangent, so no convolution of the gradient has a
+    float32 operand (with float32, the decoder's output layer's two gradients do); the gradient of one batch's loss
+    differs from float32 cotangents' by less than 1e-2 (relative L2 per parameter group), as bfloat16 does from
+    float32; float32 compute refuses it."""
+    from cdjax.protocol import ConfigError
+
+    mixed = TINY.replace(compute_dtype="bfloat16")
+    learners = [learner_for(mixed), learner_for(mixed.replace(output_grad_dtype="bfloat16"))]
+    frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
+    losses, grads, operands = [], [], []
+    for lrn in learners:
+        loss = lambda p, lrn=lrn: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]  # noqa: E731
+        losses.append(float(jax.jit(loss)(state.params)))
+        grads.append(jax.jit(jax.grad(loss))(state.params))
+        operands.append(_convolution_operands(jax.make_jaxpr(jax.grad(loss))(state.params).jaxpr))
+    assert losses[1] == losses[0]
+    before, after = ([o for o in ops if "float32" in o] for ops in operands)
+    assert len(before) >= 2 and not after, (before, after)
+    assert len(operands[1]) >= len(operands[0])  # each in bfloat16 (the backward's vjp traces a forward XLA drops)
+    for group in state.params:
+        assert relative(grads[1][group], grads[0][group]) < 1e-2, group
+    assert all(relative(grads[1][group], grads[0][group]) > 0 for group in ("encoder", "decoder"))
+    with pytest.raises(ConfigError, match="output_grad_dtype"):
+        TINY.replace(output_grad_dtype="bfloat16")
+
+
 def _subjaxprs(eqn):
     for value in eqn.params.values():
         for v in value if isinstance(value, (tuple, list)) else (value,):

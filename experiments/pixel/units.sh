@@ -8,8 +8,9 @@
 # UNIT is one of
 #   roofline       python -m experiments.pixel.roofline on halfcheetah's preset (30 runs, the real task's data):
 #                  every compute_dtype/conv_impl variant, with a profile of each (roofline.json, .md, profile/)
-#   precision      float32 against a faster arrangement at equal updates: halfcheetah's preset arms (ltq, ltq-cd with
-#                  cc_policy 0 and 1), 10 seeds, PREC_UPDATES updates (default 300) each, once in float32/grouped and
+#   precision      a reference against a faster arrangement at equal updates: halfcheetah's preset arms (ltq, ltq-cd
+#                  with cc_policy 0 and 1), 10 seeds, PREC_UPDATES updates (default 300) each, once as the presets
+#                  run (with REF_SET's switches, default none; until 2026-11-26 the presets ran float32/grouped) and
 #                  once with PIXEL_SET (default "--compute-dtype bfloat16 --conv-impl auto"), then
 #                  experiments.pixel.precision: held-out ELBO, log-likelihoods and imitation error per seed
 #                  (precision.md); each sweep stops by half the unit's time limit
@@ -23,6 +24,10 @@
 #                  process each (flax.json/.md, fused.json/.md) with its update's kernels per pass and per run from
 #                  its optimised HLO (loops-flax.log, loops-fused.log); about 3 minutes: whether the presets should
 #                  run fused
+#   grad-dtype     the update's speed with output_grad_dtype float32 (the presets) and bfloat16 (the output layers'
+#                  gradients as bfloat16 products: PixelConfig.output_grad_dtype), halfcheetah's ltq-cd at the preset's
+#                  sizes (bfloat16/per-run, core fused), 30 runs, SyntheticWorld's frames, one roofline process each
+#                  (grad-float32.json/.md, grad-bfloat16.json/.md; about 4 minutes)
 #   sweep-speed    issue 22's before and after in one command: halfcheetah's preset sweep (30 runs: ltq and ltq-cd
 #                  with cc_policy 0 and 1, 10 seeds) for SPEED_UPDATES updates (default 200), once as the model
 #                  of before (--compute-dtype float32 --conv-impl grouped --core-impl flax --lr-policy 0) and once
@@ -106,6 +111,12 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" > $work/loops-$impl.log 2>&1; grep 'jit_update.*kernels per run' $work/loops-$impl.log;"
       done
       echo "$line cat $work/flax.md $work/fused.md" ;;
+    grad-dtype)
+      local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
+      rf="$rf --set core_impl=fused output_grad_dtype"
+      echo "$rf=float32 --out $work/grad-float32.json > $work/grad-float32.log 2>&1;" \
+        "$rf=bfloat16 --out $work/grad-bfloat16.json > $work/grad-bfloat16.log 2>&1;" \
+        "cat $work/grad-float32.md $work/grad-bfloat16.md" ;;
     sweep-speed)
       local sweep="python -m cdjax.cli sweep --setting pixel --preset pixel-halfcheetah"
       sweep="$sweep --expert $experts/halfcheetah/expert.msgpack --steps $(( ${SPEED_UPDATES:-200} * 800 ))"
@@ -127,9 +138,9 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       local sweep="python -m cdjax.cli sweep --setting pixel --preset pixel-halfcheetah"
       sweep="$sweep --expert $experts/halfcheetah/expert.msgpack --seeds 10 --steps $(( ${PREC_UPDATES:-300} * 800 ))"
       sweep="$sweep --no-progress --no-final-eval --time-limit $(( limit / 2 ))"
-      echo "timeout -s INT -k 60 $(( limit / 2 + 120 )) $sweep --out $work/float32;" \
+      echo "timeout -s INT -k 60 $(( limit / 2 + 120 )) $sweep ${REF_SET:-} --out $work/reference;" \
         "timeout -s INT -k 60 $(( limit / 2 + 120 )) $sweep $fast --out $work/candidate;" \
-        "python -m experiments.pixel.precision $work/float32 $work/candidate --labels float32 '$fast'" \
+        "python -m experiments.pixel.precision $work/reference $work/candidate --labels '${REF_SET:-presets}' '$fast'" \
         "--out $work/precision.md" ;;
     lr-check)
       echo "timeout -s INT -k 60 $(( limit + 300 )) python -m cdjax.cli sweep --setting pixel" \
@@ -155,7 +166,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 30 \$(( s > $eval_max ? $eval_max : s < 120 ? 120 : s )) python -m cdjax.cli eval $work/pixel" \
         "--episodes 4; python -m cdjax.cli plot $work/pixel; timeout -k 10 150 python -m experiments.pixel.report" \
         "--strips $work/pixel $work/strips" ;;
-    *) echo "unknown unit $1: roofline, core, sweep-speed, sweep-long, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
+    *) echo "unknown unit $1: roofline, core, grad-dtype, sweep-speed, sweep-long, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
          "ltq-cd, ltq-cd0, ltq-cd1)" >&2
        return 1 ;;
   esac
@@ -170,7 +181,7 @@ unit_run "$work" "$cmd" "$wait_s" "$t0" "bash experiments/pixel/units.sh $unit" 
 thin=runs/pixel-units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
 mkdir -p "$thin/$unit"
-for f in command before.log presets.log roofline.json roofline.md profile devices.json strips precision.md precision.json flax.json flax.md fused.json fused.md loops-flax.log loops-fused.log; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
+for f in command before.log presets.log grad-float32.json grad-float32.md grad-float32.log grad-bfloat16.json grad-bfloat16.md grad-bfloat16.log roofline.json roofline.md profile devices.json strips precision.md precision.json flax.json flax.md fused.json fused.md loops-flax.log loops-fused.log; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
 tar -czf "$out/$unit.tar.gz" -C "$thin" "$unit"
 cp "$work/unit.log" "$out/$unit.log"
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"

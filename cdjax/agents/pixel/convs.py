@@ -151,15 +151,38 @@ def matmul_conv(lhs, rhs, window_strides, padding, lhs_dilation=None, rhs_dilati
 
 # ------------------------------------------------------------------------------------------- precision
 
-def operands_in(fn: Callable, dtype) -> Callable:
+def operands_in(fn: Callable, dtype, grad_dtype=jnp.float32) -> Callable:
     """fn (lax.conv_general_dilated's or lax.dot_general's signature) with its two operands cast to `dtype`,
-    accumulated and returned in float32."""
+    accumulated and returned in float32. `grad_dtype`: the dtype the backward pass casts the result's cotangent to
+    (float32: as the result, so the operands' gradients are float32 products, TF32 on a GPU; `dtype`: the gradients
+    are products of `dtype` operands, as a hidden layer's are)."""
 
     def cast(lhs, rhs, *args, **kwargs):
         kwargs["preferred_element_type"] = jnp.float32
-        return fn(lhs.astype(dtype), rhs.astype(dtype), *args, **kwargs)
+        product = fn if jnp.dtype(grad_dtype) == jnp.float32 else _cotangent_in(fn, jnp.dtype(grad_dtype), args, kwargs)
+        return product(lhs.astype(dtype), rhs.astype(dtype), *args, **kwargs)
 
     return cast
+
+
+def _cotangent_in(fn: Callable, dtype, args, kwargs) -> Callable:
+    """fn(lhs, rhs, *args, **kwargs) whose backward pass casts the cotangent to `dtype` and differentiates fn
+    without `preferred_element_type` (its result in the operands' dtype), so both gradients are `dtype` products."""
+    low = {k: v for k, v in kwargs.items() if k != "preferred_element_type"}
+
+    @jax.custom_vjp
+    def product(lhs, rhs):
+        return fn(lhs, rhs, *args, **kwargs)
+
+    def forward(lhs, rhs):
+        return fn(lhs, rhs, *args, **kwargs), (lhs, rhs)
+
+    def backward(operands, cotangent):
+        _, vjp = jax.vjp(lambda lhs, rhs: fn(lhs, rhs, *args, **low), *operands)
+        return vjp(cotangent.astype(dtype))
+
+    product.defvjp(forward, backward)
+    return lambda lhs, rhs, *_, **__: product(lhs, rhs)  # called with fn's arguments, which it holds
 
 
 _CONVS = {"grouped": None, "per-run": per_run_conv, "matmul": matmul_conv}
@@ -176,23 +199,24 @@ def layer_impl(impl: str, channels: tuple[int, int] | None = None) -> str:
     return "per-run" if min(channels) < AUTO_MIN_CHANNELS else "grouped"
 
 
-def conv_kwargs(impl: str, compute_dtype: str, output: bool = False, channels: tuple[int, int] | None = None
-                ) -> dict:
+def conv_kwargs(impl: str, compute_dtype: str, output: bool = False, channels: tuple[int, int] | None = None,
+                output_grad_dtype: str = "float32") -> dict:
     """Keyword arguments of a flax nn.Conv layer for `impl` and `compute_dtype`; `output`: the layer whose result
-    leaves the network (float32 in any compute dtype); `channels`: the layer's (input, output) channels per run,
-    which "auto" needs. Float32 "grouped" gives {}: flax's own layer."""
+    leaves the network (float32 in any compute dtype; `output_grad_dtype`: its backward's, `operands_in`);
+    `channels`: the layer's (input, output) channels per run, which "auto" needs. Float32 "grouped" gives {}: flax's
+    own layer."""
     fn = _CONVS[layer_impl(impl, channels)]
     if compute_dtype == "float32":
         return {} if fn is None else {"conv_general_dilated": fn}
     dtype = jnp.dtype(compute_dtype)
     if output:
-        return {"conv_general_dilated": operands_in(fn or lax.conv_general_dilated, dtype)}
+        return {"conv_general_dilated": operands_in(fn or lax.conv_general_dilated, dtype, output_grad_dtype)}
     return {"dtype": dtype} | ({} if fn is None else {"conv_general_dilated": fn})
 
 
-def dense_kwargs(compute_dtype: str, output: bool = False) -> dict:
+def dense_kwargs(compute_dtype: str, output: bool = False, output_grad_dtype: str = "float32") -> dict:
     """Keyword arguments of a flax nn.Dense layer of the encoder or decoder (see conv_kwargs)."""
     if compute_dtype == "float32":
         return {}
     dtype = jnp.dtype(compute_dtype)
-    return {"dot_general": operands_in(lax.dot_general, dtype)} if output else {"dtype": dtype}
+    return {"dot_general": operands_in(lax.dot_general, dtype, output_grad_dtype)} if output else {"dtype": dtype}
