@@ -67,4 +67,5 @@ def test_every_pixel_preset_builds_a_valid_config_and_grid():
         for combo in itertools.product(*preset.hparams.values()):
             SETTING.hparams_type(**dict(zip(preset.hparams, combo)))
         if name != "pixel-tiny":
-            assert (config.compute_dtype, config.conv_impl, config.core_impl) == ("bfloat16", "per-run", "fused"), name
+            assert (config.compute_dtype, config.conv_impl, config.core_impl, config.output_grad) == (
+                "bfloat16", "per-run", "fused", "compute"), name

@@ -54,7 +54,8 @@ def test_a_units_sweep_has_its_arms_preset_and_time_limit_and_plans_its_runs(uni
     setting = agents.get("pixel")
     (plan,) = plan_arms(sweep_spec(build_parser(setting).parse_args(argv), setting))
     assert plan.name == arms[0] and plan.config.num_updates == 10_000
-    assert (plan.config.compute_dtype, plan.config.conv_impl, plan.config.core_impl) == ("bfloat16", "per-run", "fused")
+    assert (plan.config.compute_dtype, plan.config.conv_impl, plan.config.core_impl, plan.config.output_grad) == (
+        "bfloat16", "per-run", "fused", "compute")
     assert len(plan.hparams) * 10 == runs  # 10 seeds per hyper-parameter set
     if arms == ["ltq-cd"]:  # the grounded encoder's own loss (4cf108f); unused by ltq
         assert {h.enc_aux_coef for h in plan.hparams} == {10.0}
@@ -85,8 +86,13 @@ def test_the_sweep_speed_unit_times_the_model_of_before_and_the_presets_on_the_s
     before, after = plans
     for arms in plans:
         assert sum(len(p.hparams) * 10 for p in arms) == 30 and {p.config.num_updates for p in arms} == {150}
-    config = lambda arms: {(p.config.compute_dtype, p.config.conv_impl, p.config.core_impl) for p in arms}  # noqa: E731
-    assert config(before) == {("float32", "grouped", "flax")} and config(after) == {("bfloat16", "per-run", "fused")}
+
+    def config(arms):
+        return {(p.config.compute_dtype, p.config.conv_impl, p.config.core_impl, p.config.output_grad) for p in arms}
+
+    # output_grad is the presets' there too: with float32 operands it changes nothing (test_pixel_model)
+    assert config(before) == {("float32", "grouped", "flax", "compute")}
+    assert config(after) == {("bfloat16", "per-run", "fused", "compute")}
     assert {h.lr_policy for p in before for h in p.hparams} == {0.0}
     assert {h.lr_policy for p in after for h in p.hparams} == {1e-3}
 
@@ -107,8 +113,8 @@ def test_the_sweep_long_unit_runs_the_presets_30_runs_at_the_length_of_the_sweep
     spec = sweep_spec(build_parser(setting).parse_args(argv[:argv.index(">")]), setting)
     arms = plan_arms(spec)
     assert sum(len(p.hparams) * spec.seeds for p in arms) == 30 and {p.config.num_updates for p in arms} == {1400}
-    assert {(p.config.compute_dtype, p.config.conv_impl, p.config.core_impl) for p in arms} == {
-        ("bfloat16", "per-run", "fused")}
+    assert {(p.config.compute_dtype, p.config.conv_impl, p.config.core_impl, p.config.output_grad) for p in arms} == {
+        ("bfloat16", "per-run", "fused", "compute")}
 
 
 def test_the_evaluation_gets_what_is_left_before_the_units_end_and_unknown_units_are_refused():

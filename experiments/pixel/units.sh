@@ -24,8 +24,8 @@
 #                  process each (flax.json/.md, fused.json/.md) with its update's kernels per pass and per run from
 #                  its optimised HLO (loops-flax.log, loops-fused.log); about 3 minutes: whether the presets should
 #                  run fused
-#   grad-dtype     the update's speed with output_grad_dtype float32 (the presets) and bfloat16 (the output layers'
-#                  gradients as bfloat16 products: PixelConfig.output_grad_dtype), halfcheetah's ltq-cd at the preset's
+#   grad-dtype     the update's speed with output_grad float32 (the model of before) and compute (the output layers'
+#                  gradients as bfloat16 products: PixelConfig.output_grad), halfcheetah's ltq-cd at the preset's
 #                  sizes (bfloat16/per-run, core fused), 30 runs, SyntheticWorld's frames, one roofline process each
 #                  (grad-float32.json/.md, grad-bfloat16.json/.md; about 4 minutes)
 #   sweep-speed    issue 22's before and after in one command: halfcheetah's preset sweep (30 runs: ltq and ltq-cd
@@ -113,9 +113,9 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "$line cat $work/flax.md $work/fused.md" ;;
     grad-dtype)
       local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
-      rf="$rf --set core_impl=fused output_grad_dtype"
+      rf="$rf --set core_impl=fused output_grad"
       echo "$rf=float32 --out $work/grad-float32.json > $work/grad-float32.log 2>&1;" \
-        "$rf=bfloat16 --out $work/grad-bfloat16.json > $work/grad-bfloat16.log 2>&1;" \
+        "$rf=compute --out $work/grad-bfloat16.json > $work/grad-bfloat16.log 2>&1;" \
         "cat $work/grad-float32.md $work/grad-bfloat16.md" ;;
     sweep-speed)
       local sweep="python -m cdjax.cli sweep --setting pixel --preset pixel-halfcheetah"

@@ -17,6 +17,7 @@ Upsample = Literal["transpose", "subpixel"]
 ComputeDtype = Literal["float32", "bfloat16"]
 ConvImpl = Literal["grouped", "per-run", "auto", "matmul"]
 CoreImpl = Literal["flax", "fused"]
+OutputGrad = Literal["float32", "compute"]
 PIXEL_ENVS = ("halfcheetah", "reacher", "pusher")
 
 
@@ -40,10 +41,11 @@ class PixelConfig:
     conv_impl: ConvImpl = "grouped"  # how a sweep's vmapped runs meet the convolutions: grouped (XLA's grouped
     # convolution), per-run (one ungrouped convolution per run), auto (per layer: per-run for the narrow first and
     # last layers, grouped for the rest; convs.py) or matmul (patches x kernel, a batched product)
-    output_grad_dtype: ComputeDtype = "float32"  # operands of the output layers' gradients (bfloat16 compute)
-    # the encoder's and decoder's output layers return float32; their backward pass takes the cotangent as float32
-    # (their gradients' products in float32, TF32 on a GPU: the model of before) or cast to bfloat16 (products of
-    # bfloat16 operands, as the hidden layers' gradients are; convs.operands_in). Needs compute_dtype bfloat16.
+    output_grad: OutputGrad = "float32"  # operands of the output layers' gradient products: float32 or compute
+    # (compute_dtype's). The encoder's and decoder's output layers return float32 in any compute dtype; their
+    # backward pass takes that cotangent as it is (float32: their gradients are float32 products, TF32 on a GPU; the
+    # model of before) or cast to compute_dtype (bfloat16 products, as the hidden layers' gradients are;
+    # convs.operands_in). With compute_dtype float32 both are float32, bit for bit.
     core_impl: CoreImpl = "flax"  # how the filter's and the prior's steps compute: flax (the modules' calls: the
     # model of before, bit for bit) or fused (the same function to float32 rounding, in fewer kernels per step on a
     # GPU: the filter's products on h merged and the inputs' shares taken out of its loop, its backward written out,
@@ -81,9 +83,6 @@ class PixelConfig:
         if self.upsample == "transpose" and (self.compute_dtype, self.conv_impl) != ("float32", "grouped"):
             raise ConfigError(f"upsample='transpose' runs only with compute_dtype='float32' and conv_impl='grouped' "
                               f"(got {self.compute_dtype!r} and {self.conv_impl!r}); use upsample='subpixel'.")
-        if self.output_grad_dtype != "float32" and self.compute_dtype == "float32":
-            raise ConfigError(f"output_grad_dtype={self.output_grad_dtype!r} needs compute_dtype "
-                              f"{self.output_grad_dtype!r} (got 'float32': every product is float32 there).")
         if not self.horizon <= self.eval_horizon:
             raise ConfigError(f"horizon={self.horizon} must not exceed eval_horizon={self.eval_horizon}.")
 

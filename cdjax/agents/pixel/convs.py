@@ -200,23 +200,26 @@ def layer_impl(impl: str, channels: tuple[int, int] | None = None) -> str:
 
 
 def conv_kwargs(impl: str, compute_dtype: str, output: bool = False, channels: tuple[int, int] | None = None,
-                output_grad_dtype: str = "float32") -> dict:
+                output_grad: str = "float32") -> dict:
     """Keyword arguments of a flax nn.Conv layer for `impl` and `compute_dtype`; `output`: the layer whose result
-    leaves the network (float32 in any compute dtype; `output_grad_dtype`: its backward's, `operands_in`);
-    `channels`: the layer's (input, output) channels per run, which "auto" needs. Float32 "grouped" gives {}: flax's
-    own layer."""
+    leaves the network (float32 in any compute dtype; `output_grad`: PixelConfig's, the operands of its gradients'
+    products, float32 or "compute" (compute_dtype): `operands_in`); `channels`: the layer's (input, output) channels
+    per run, which "auto" needs. Float32 "grouped" gives {}: flax's own layer."""
     fn = _CONVS[layer_impl(impl, channels)]
     if compute_dtype == "float32":
         return {} if fn is None else {"conv_general_dilated": fn}
     dtype = jnp.dtype(compute_dtype)
     if output:
-        return {"conv_general_dilated": operands_in(fn or lax.conv_general_dilated, dtype, output_grad_dtype)}
+        grad_dtype = dtype if output_grad == "compute" else jnp.float32
+        return {"conv_general_dilated": operands_in(fn or lax.conv_general_dilated, dtype, grad_dtype)}
     return {"dtype": dtype} | ({} if fn is None else {"conv_general_dilated": fn})
 
 
-def dense_kwargs(compute_dtype: str, output: bool = False, output_grad_dtype: str = "float32") -> dict:
+def dense_kwargs(compute_dtype: str, output: bool = False, output_grad: str = "float32") -> dict:
     """Keyword arguments of a flax nn.Dense layer of the encoder or decoder (see conv_kwargs)."""
     if compute_dtype == "float32":
         return {}
     dtype = jnp.dtype(compute_dtype)
-    return {"dot_general": operands_in(lax.dot_general, dtype, output_grad_dtype)} if output else {"dtype": dtype}
+    if output:
+        return {"dot_general": operands_in(lax.dot_general, dtype, dtype if output_grad == "compute" else jnp.float32)}
+    return {"dtype": dtype}

@@ -58,7 +58,7 @@ def newest_frames(frames: jax.Array, stack: int) -> jax.Array:
 
 
 class ConvEncoder(nn.Module):
-    """Convolutions of 4x4, stride 2, ReLU, then a dense layer. compute_dtype, conv_impl and output_grad_dtype:
+    """Convolutions of 4x4, stride 2, ReLU, then a dense layer. compute_dtype, conv_impl and output_grad:
     PixelConfig's (convs.py); the output is float32 in any compute dtype."""
 
     layers: int
@@ -66,7 +66,7 @@ class ConvEncoder(nn.Module):
     features: int
     compute_dtype: str = "float32"
     conv_impl: str = "grouped"
-    output_grad_dtype: str = "float32"
+    output_grad: str = "float32"
 
     @nn.compact
     def __call__(self, x):  # [N, S, S, C] -> [N, features]
@@ -74,7 +74,7 @@ class ConvEncoder(nn.Module):
             conv = nn.Conv(self.channels, (4, 4), strides=(2, 2), padding="SAME",
                            **conv_kwargs(self.conv_impl, self.compute_dtype, channels=(x.shape[-1], self.channels)))
             x = nn.relu(conv(x))
-        dense = nn.Dense(self.features, **dense_kwargs(self.compute_dtype, True, self.output_grad_dtype))
+        dense = nn.Dense(self.features, **dense_kwargs(self.compute_dtype, True, self.output_grad))
         return dense(x.reshape(x.shape[0], -1))
 
 
@@ -94,7 +94,7 @@ class ConvDecoder(nn.Module):
     contains, so "subpixel" can represent every "transpose" layer; it avoids the input-dilated convolutions
     (three zeros in four inputs) that a transposed convolution is lowered to.
 
-    compute_dtype, conv_impl and output_grad_dtype: PixelConfig's (convs.py, "subpixel" only); the means and scales
+    compute_dtype, conv_impl and output_grad: PixelConfig's (convs.py, "subpixel" only); the means and scales
     are float32."""
 
     size: int
@@ -104,13 +104,13 @@ class ConvDecoder(nn.Module):
     upsample: str = "subpixel"  # PixelConfig.upsample's default
     compute_dtype: str = "float32"
     conv_impl: str = "grouped"
-    output_grad_dtype: str = "float32"
+    output_grad: str = "float32"
 
     def _up(self, y, features, output=False):
         if self.upsample == "subpixel":
             conv = nn.Conv(4 * features, (3, 3), padding="SAME",
                            **conv_kwargs(self.conv_impl, self.compute_dtype, output, (y.shape[-1], 4 * features),
-                                         self.output_grad_dtype))
+                                         self.output_grad))
             return depth_to_space(conv(y))
         return nn.ConvTranspose(features, (4, 4), strides=(2, 2), padding="SAME")(y)
 
@@ -351,9 +351,9 @@ class LtqModel:
         self.config, self.A = config, action_size
         c = config
         self.encoder = ConvEncoder(c.conv_layers, c.conv_channels, c.embed_dim, c.compute_dtype, c.conv_impl,
-                                   c.output_grad_dtype)
+                                   c.output_grad)
         self.decoder = ConvDecoder(c.image_size, c.conv_layers, c.conv_channels, c.min_std, c.upsample,
-                                   c.compute_dtype, c.conv_impl, c.output_grad_dtype)
+                                   c.compute_dtype, c.conv_impl, c.output_grad)
         self.core = Core(c.hidden, c.latent, c.mlp, c.min_std)
         self.policy = Policy(tuple(c.policy_hidden), action_size)
         self.cc_encoder = None
