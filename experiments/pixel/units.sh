@@ -10,10 +10,13 @@
 #                  every compute_dtype/conv_impl variant, with a profile of each (roofline.json, .md, profile/)
 #   precision      a reference against a faster arrangement at equal updates: halfcheetah's preset arms (ltq, ltq-cd
 #                  with cc_policy 0 and 1), 10 seeds, PREC_UPDATES updates (default 300) each, once as the presets
-#                  run (with REF_SET's switches, default none; until 2026-11-26 the presets ran float32/grouped) and
-#                  once with PIXEL_SET (default "--compute-dtype bfloat16 --conv-impl auto"), then
-#                  experiments.pixel.precision: held-out ELBO, log-likelihoods and imitation error per seed
-#                  (precision.md); each sweep stops by half the unit's time limit
+#                  run (with REF_SET's switches, default none; until 2026-11-25, 28bb851, the presets ran
+#                  float32/grouped) and once with PIXEL_SET (default "--compute-dtype bfloat16 --conv-impl auto"),
+#                  then experiments.pixel.precision: held-out ELBO, log-likelihoods and imitation error per seed
+#                  (precision.md); each sweep stops by half the unit's time limit. Run twice on one H200:
+#                  2026-11-25 (float32/grouped against "--compute-dtype bfloat16 --conv-impl per-run", 491 s) and
+#                  2026-11-26 at 5848209 (the presets against "--output-grad-dtype bfloat16", now spelled
+#                  --output-grad compute, which the presets run since f4aa752; 272 s from start to end)
 #   lr-check       the learning-rate check: the ltq arm on halfcheetah, 5 seeds, a vmapped grid of the model's rate
 #                  (--lr) x the policy's (--lr-policy; 0 = the model's), LR_UPDATES updates (default 500) or the
 #                  time limit; PIXEL_SET (e.g. "--compute-dtype bfloat16 --conv-impl per-run") picks the arrangement
@@ -27,7 +30,7 @@
 #   grad-dtype     the update's speed with output_grad float32 (the model of before) and compute (the output layers'
 #                  gradients as bfloat16 products: PixelConfig.output_grad), halfcheetah's ltq-cd at the preset's
 #                  sizes (bfloat16/per-run, core fused), 30 runs, SyntheticWorld's frames, one roofline process each
-#                  (grad-float32.json/.md, grad-bfloat16.json/.md; about 4 minutes)
+#                  (grad-float32.json/.md, grad-bfloat16.json/.md; 161 s from start to end on one H200 at 5848209)
 #   sweep-speed    issue 22's before and after in one command: halfcheetah's preset sweep (30 runs: ltq and ltq-cd
 #                  with cc_policy 0 and 1, 10 seeds) for SPEED_UPDATES updates (default 200), once as the model
 #                  of before (--compute-dtype float32 --conv-impl grouped --core-impl flax --lr-policy 0) and once
@@ -68,9 +71,12 @@
 # of it between chunks), 725 and 644 s, and pusher-ltq-cd0 541 s (5.4 ms; 64 s between chunks), 808 s; at 4e78328
 # (H200) pusher-ltq-cd1 544.8 s (5.4 ms, 146,847 frames/s), 799 s from start to end (its log's 469.5 s "between
 # chunks" is an artifact: the chunk's call blocks the thread on a GPU, so whole chunks were counted), then
-# sweep-long on the same machine (236.8 s, 141,902 frames/s). One unit
-# per machine (held 30 minutes at most), or one and sweep-speed, or a second unit with LIMIT_S/END_S cut to the
-# machine's time left (session 22: pusher-ltq with LIMIT_S=720 END_S=880 after halfcheetah-ltq-cd1; session 23:
+# sweep-long on the same machine (236.8 s, 141,902 frames/s; its 181.1 s "between chunks" the same artifact). Since
+# 5bf6219 the chunks are launched from a thread of their own, so that count is real again; sweep-long has not run
+# with it. Session 24 (2026-11-26, one H200, at 5848209): grad-dtype 161 s and precision 272 s from start to end
+# (precision's sweeps: 30 runs, 300 updates, "Trained in" 48.4 s with 3.9 s between chunks and 43.7 s with 3.8 s).
+# One unit per machine (held 30 minutes at most), or one and sweep-speed, or a second unit with LIMIT_S/END_S cut to
+# the machine's time left (session 22: pusher-ltq with LIMIT_S=720 END_S=880 after halfcheetah-ltq-cd1; session 23:
 # reacher-ltq-cd1 with LIMIT_S=880 END_S=1000 after reacher-ltq-cd0; both still reached 10,000 updates). Run: all
 # nine (halfcheetah's cd0 and cd1 again after 4cf108f; the collapsed ones are in data/presets-length-collapsed/);
 # nothing of the plan is left. A unit
