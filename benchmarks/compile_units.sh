@@ -46,6 +46,13 @@
 #            into more products), profiled. Each flag is skipped, saying so, where the image's XLA refuses it
 #            (`python -m benchmarks.xla_flags --accepts`). On 2026-11-26 (H200): Mb-Mf 0.4320, paper-CD 0.7072 s/update
 #            (1.64x) with the defaults; triton_gemm_any 0.4354 and 0.7147 (benchmarks/results/2026-11-26-h200-kernels/).
+#   autotune XLA's GPU autotuner at lower levels (about 7 minutes a level): the 4-arm ant sweep cold (an empty persistent
+#            cache) with XLA_FLAGS=--xla_gpu_autotune_level=L for L in LEVELS (default "1"; XLA's default is 4,
+#            which also initialises buffers and checks each candidate's results against a reference; 0, no autotuning,
+#            cost the CD arm 0.66x on 2026-11-24), then what each level costs at run time: the compare suite's
+#            model-free, Mb-Mf and paper-CD cases in a process per level, and once with XLA's defaults. A level the
+#            image's XLA refuses is skipped, saying so. Whether the cold start can come near 60 s without the 1.05-1.19x
+#            steady-state cost of Triton's GEMMs off (`--compile-mode fast`).
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -93,6 +100,18 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "> $work/cold.log 2>&1;" \
         "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold.log;" \
         "tail -n 14 $work/compare/results.md $work/seeds/results.md" ;;
+    autotune)
+      local cases="--suite compare --cases model-free mbmf cd-paper --budget-s 150" line="" level
+      for level in ${LEVELS:-1}; do
+        line+="if python -m benchmarks.xla_flags --accepts xla_gpu_autotune_level=$level > /dev/null; then"
+        line+=" XLA_FLAGS=--xla_gpu_autotune_level=$level timeout -k 20 240 python -m benchmarks.compile_time"
+        line+=" --out $work/level$level --cache-dir $work/cache-level$level -- $sweep > $work/level$level.log 2>&1;"
+        line+=" XLA_FLAGS=--xla_gpu_autotune_level=$level timeout -k 20 180 python -m benchmarks.run $cases"
+        line+=" --out $work/run-level$level > $work/run-level$level.log 2>&1;"
+        line+=" else echo 'this XLA refuses xla_gpu_autotune_level=$level: skipped'; fi;"
+      done
+      echo "$line timeout -k 20 180 python -m benchmarks.run $cases --out $work/run-default > $work/run-default.log 2>&1;" \
+        "grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/level*.log; grep -H ' s/update' $work/run-*.log" ;;
     kernels)
       local cases="--suite compare --cases mbmf cd-paper --budget-s 120" flag line
       line="python -m benchmarks.xla_flags > $work/xla-gpu-flags.txt; wc -l < $work/xla-gpu-flags.txt;"
@@ -122,7 +141,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" grep -h ' s/update' $work/compare-$case.log;"
       done
       echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, kernels or hlo" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, kernels or hlo" >&2; return 1 ;;
   esac
 }
 
