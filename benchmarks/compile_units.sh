@@ -46,8 +46,8 @@
 #            into more products), profiled. Each flag is skipped, saying so, where the image's XLA refuses it
 #            (`python -m benchmarks.xla_flags --accepts`). On 2026-11-26 (H200): Mb-Mf 0.4320, paper-CD 0.7072 s/update
 #            (1.64x) with the defaults; triton_gemm_any 0.4354 and 0.7147 (benchmarks/results/2026-11-26-h200-kernels/).
-#   autotune XLA's GPU autotuner at lower levels (about 7 minutes a level): the 4-arm ant sweep cold (an empty persistent
-#            cache) with XLA_FLAGS=--xla_gpu_autotune_level=L for L in LEVELS (default "1"; XLA's default is 4,
+#   autotune XLA's GPU autotuner at lower levels (about 7 minutes a level): the 4-arm ant sweep cold (an empty
+#            persistent cache) with XLA_FLAGS=--xla_gpu_autotune_level=L for L in LEVELS (default "1"; XLA's default is 4,
 #            which also initialises buffers and checks each candidate's results against a reference; 0, no autotuning,
 #            cost the CD arm 0.66x on 2026-11-24), then what each level costs at run time: the compare suite's
 #            model-free, Mb-Mf and paper-CD cases in a process per level, and once with XLA's defaults. A level the
