@@ -65,6 +65,13 @@ export PYTHONUNBUFFERED=1
 sweep="--env ant --arms model-free mbmf cd-k5 cd --seeds 3"
 cd_run="--env ant --arms cd --seeds 3 --steps 8000000 --no-final-eval --no-progress"
 
+with_flag() {  # FLAG (NAME=VALUE) COMMANDS -> a bash line: COMMANDS with XLA_FLAGS=--FLAG where this image's XLA
+  # takes the flag (it aborts on one it does not know), else a sentence saying they were skipped
+  local flag=$1; shift
+  echo "if python -m benchmarks.xla_flags --accepts $flag > /dev/null; then (export XLA_FLAGS=--$flag; $*);" \
+    "else echo 'this XLA refuses ${flag%%=*}: skipped'; fi;"
+}
+
 command_of() {  # UNIT -> the unit's commands (one bash line)
   case "$1" in
     flags)
@@ -103,12 +110,10 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
     autotune)
       local cases="--suite compare --cases model-free mbmf cd-paper --budget-s 150" line="" level
       for level in ${LEVELS:-1}; do
-        line+="if python -m benchmarks.xla_flags --accepts xla_gpu_autotune_level=$level > /dev/null; then"
-        line+=" XLA_FLAGS=--xla_gpu_autotune_level=$level timeout -k 20 240 python -m benchmarks.compile_time"
-        line+=" --out $work/level$level --cache-dir $work/cache-level$level -- $sweep > $work/level$level.log 2>&1;"
-        line+=" XLA_FLAGS=--xla_gpu_autotune_level=$level timeout -k 20 180 python -m benchmarks.run $cases"
-        line+=" --out $work/run-level$level > $work/run-level$level.log 2>&1;"
-        line+=" else echo 'this XLA refuses xla_gpu_autotune_level=$level: skipped'; fi;"
+        line+=" $(with_flag xla_gpu_autotune_level=$level "timeout -k 20 240 python -m benchmarks.compile_time" \
+          "--out $work/level$level --cache-dir $work/cache-level$level -- $sweep > $work/level$level.log 2>&1;" \
+          "timeout -k 20 180 python -m benchmarks.run $cases --out $work/run-level$level" \
+          "> $work/run-level$level.log 2>&1")"
       done
       echo "$line timeout -k 20 180 python -m benchmarks.run $cases --out $work/run-default > $work/run-default.log 2>&1;" \
         "grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/level*.log; grep -H ' s/update' $work/run-*.log" ;;
@@ -117,9 +122,8 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       line="python -m benchmarks.xla_flags > $work/xla-gpu-flags.txt; wc -l < $work/xla-gpu-flags.txt;"
       line+=" timeout -k 20 150 python -m benchmarks.run $cases --out $work/default > $work/default.log 2>&1;"
       for flag in xla_gpu_experimental_enable_split_k_rewrite=false xla_gpu_triton_gemm_any=true; do
-        line+=" if python -m benchmarks.xla_flags --accepts $flag > /dev/null; then XLA_FLAGS=--$flag timeout -k 20 170"
-        line+=" python -m benchmarks.run $cases --trace $work/trace-${flag%%=*} --out $work/${flag%%=*}"
-        line+=" > $work/${flag%%=*}.log 2>&1; else echo 'this XLA refuses ${flag%%=*}: skipped'; fi;"
+        line+=" $(with_flag $flag "timeout -k 20 170 python -m benchmarks.run $cases --trace $work/trace-${flag%%=*}" \
+          "--out $work/${flag%%=*} > $work/${flag%%=*}.log 2>&1")"
       done
       echo "$line grep -H ' s/update' $work/default.log $work/xla_gpu_*.log" ;;
     hlo)
