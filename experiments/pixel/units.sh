@@ -31,6 +31,12 @@
 #                  gradients as bfloat16 products: PixelConfig.output_grad), halfcheetah's ltq-cd at the preset's
 #                  sizes (bfloat16/per-run, core fused), 30 runs, SyntheticWorld's frames, one roofline process each
 #                  (grad-float32.json/.md, grad-bfloat16.json/.md; 161 s from start to end on one H200 at 5848209)
+#   profile        where the presets' update spends its time now: the roofline of halfcheetah's ltq-cd as the presets
+#                  run it (bfloat16/per-run, core fused, output_grad compute), 30 runs, SyntheticWorld's frames, with
+#                  a profile (presets.json/.md, profile/); then the same with XLA_FLAGS
+#                  --xla_gpu_enable_dynamic_slice_fusion=true (slice-fusion.json/.md; skipped where the image's XLA
+#                  refuses it): per-run convolutions read each run's operands as slices of the stacked runs, which
+#                  XLA copies out unless it fuses the slice into the cuDNN call (about 4 minutes)
 #   sweep-speed    issue 22's before and after in one command: halfcheetah's preset sweep (30 runs: ltq and ltq-cd
 #                  with cc_policy 0 and 1, 10 seeds) for SPEED_UPDATES updates (default 200), once as the model
 #                  of before (--compute-dtype float32 --conv-impl grouped --core-impl flax --lr-policy 0) and once
@@ -123,6 +129,13 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "$rf=float32 --out $work/grad-float32.json > $work/grad-float32.log 2>&1;" \
         "$rf=compute --out $work/grad-bfloat16.json > $work/grad-bfloat16.log 2>&1;" \
         "cat $work/grad-float32.md $work/grad-bfloat16.md" ;;
+    profile)
+      local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
+      local flag=xla_gpu_enable_dynamic_slice_fusion=true
+      echo "$rf --profile $work/profile --out $work/presets.json > $work/presets.log 2>&1;" \
+        "if python -m benchmarks.xla_flags --accepts $flag > /dev/null; then XLA_FLAGS=--$flag $rf" \
+        "--out $work/slice-fusion.json > $work/slice-fusion.log 2>&1; else echo 'this XLA refuses ${flag%%=*}';" \
+        "fi; cat $work/presets.md $work/slice-fusion.md; head -n 40 $work/profile/*.md" ;;
     sweep-speed)
       local sweep="python -m cdjax.cli sweep --setting pixel --preset pixel-halfcheetah"
       sweep="$sweep --expert $experts/halfcheetah/expert.msgpack --steps $(( ${SPEED_UPDATES:-200} * 800 ))"
@@ -172,7 +185,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 30 \$(( s > $eval_max ? $eval_max : s < 120 ? 120 : s )) python -m cdjax.cli eval $work/pixel" \
         "--episodes 4; python -m cdjax.cli plot $work/pixel; timeout -k 10 150 python -m experiments.pixel.report" \
         "--strips $work/pixel $work/strips" ;;
-    *) echo "unknown unit $1: roofline, core, grad-dtype, sweep-speed, sweep-long, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
+    *) echo "unknown unit $1: roofline, core, grad-dtype, profile, sweep-speed, sweep-long, precision, devices, lr-check or TASK-ARM (halfcheetah, reacher, pusher x ltq," \
          "ltq-cd, ltq-cd0, ltq-cd1)" >&2
        return 1 ;;
   esac
@@ -187,7 +200,7 @@ unit_run "$work" "$cmd" "$wait_s" "$t0" "bash experiments/pixel/units.sh $unit" 
 thin=runs/pixel-units-thin
 rm -rf "${thin:?}/$unit" && python -m experiments.thin_logs "$work" "$thin/$unit" >/dev/null
 mkdir -p "$thin/$unit"
-for f in command before.log presets.log grad-float32.json grad-float32.md grad-float32.log grad-bfloat16.json grad-bfloat16.md grad-bfloat16.log roofline.json roofline.md profile devices.json strips precision.md precision.json flax.json flax.md fused.json fused.md loops-flax.log loops-fused.log; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
+for f in command before.log presets.log presets.json presets.md slice-fusion.json slice-fusion.md slice-fusion.log grad-float32.json grad-float32.md grad-float32.log grad-bfloat16.json grad-bfloat16.md grad-bfloat16.log roofline.json roofline.md profile devices.json strips precision.md precision.json flax.json flax.md fused.json fused.md loops-flax.log loops-fused.log; do [ -e "$work/$f" ] && cp -r "$work/$f" "$thin/$unit/"; done
 tar -czf "$out/$unit.tar.gz" -C "$thin" "$unit"
 cp "$work/unit.log" "$out/$unit.log"
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
