@@ -359,12 +359,13 @@ def test_float32_is_the_default_and_bfloat16_agrees_within_its_rounding(learner,
     assert all(np.isfinite(v) for v in metrics.values()), metrics
     mixed = learner_for(TINY.replace(compute_dtype="bfloat16"))
     assert jax.tree.structure(mixed.model.init(jax.random.key(0))) == jax.tree.structure(state.params)
-    after_mixed, metrics_mixed = three_updates(jax.jit(mixed.update), state)
-    for name, value in metrics.items():
-        np.testing.assert_allclose(metrics_mixed[name], value, rtol=2e-3, err_msg=name)
-    assert metrics_mixed != metrics  # it did compute in another precision
-    assert all(x.dtype == jnp.float32 for x in jax.tree.leaves((after_mixed.params, after_mixed.opt_state))
-               if jnp.issubdtype(x.dtype, jnp.floating))
+    for config in (mixed.config, mixed.config.replace(output_grad="compute")):  # the second: as the presets run
+        after_mixed, metrics_mixed = three_updates(jax.jit(learner_for(config).update), state)
+        for name, value in metrics.items():
+            np.testing.assert_allclose(metrics_mixed[name], value, rtol=2e-3, err_msg=name)
+        assert metrics_mixed != metrics  # it did compute in another precision
+        assert all(x.dtype == jnp.float32 for x in jax.tree.leaves((after_mixed.params, after_mixed.opt_state))
+                   if jnp.issubdtype(x.dtype, jnp.floating))
     # Adam's first steps are about lr * sign(g): compare the gradients themselves
     frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
     grads = [jax.jit(jax.grad(lambda p, lrn=lrn: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]))(state.params)
@@ -389,7 +390,8 @@ def test_output_grad_compute_keeps_the_forward_and_runs_every_convolution_gradie
     unchanged); the output layers' backward takes a bfloat16 cotangent, so no convolution of the gradient has a
     float32 operand (with "float32", the decoder's output layer's two gradients do); the gradient of one batch's loss
     differs from float32 cotangents' by less than 1e-2 (relative L2 per parameter group), as bfloat16 does from
-    float32. With compute_dtype float32 (the switch back to full float32) it changes nothing, bit for bit."""
+    float32 (and so, against full float32, do the presets' gradients). With compute_dtype float32 (the switch back
+    to full float32) it changes nothing, bit for bit."""
     frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
 
     def loss_grad_convolutions(config):
@@ -408,11 +410,14 @@ def test_output_grad_compute_keeps_the_forward_and_runs_every_convolution_gradie
     for group in state.params:
         assert relative(grads1[group], grads0[group]) < 1e-2, group
     assert all(relative(grads1[group], grads0[group]) > 0 for group in ("encoder", "decoder"))
+    presets = grads1  # bfloat16 with output_grad compute, as the task presets run
     (loss0, grads0, _), (loss1, grads1, _) = (loss_grad_convolutions(c)
                                               for c in (TINY, TINY.replace(output_grad="compute")))
     assert loss1 == loss0
     for a, b in zip(jax.tree.leaves(grads1), jax.tree.leaves(grads0)):
         np.testing.assert_array_equal(a, b)
+    for group in state.params:  # the presets' arrangement against full float32: within bfloat16's rounding
+        assert relative(presets[group], grads0[group]) < 1e-2, group
 
 
 def _subjaxprs(eqn):
