@@ -413,10 +413,17 @@ class Loop:
         wall_start = arm.wall_offset + self.clock.now()
         program, state = arm.chunk_program(), arm.state
         arm.state = None  # the chunk donates it
-        # Launched from a thread of its own: on a GPU the call returns only once the chunk's loop has been run
-        # (XLA launches its kernels from the calling thread, iteration after iteration), so called here it would
-        # hold the host's logs and checkpoints until the chunk ends.
-        arm.pending = (self.launcher.submit(program, state, arm.hps, np.int32(n)), n, wall_start)
+        if multihost.count() == 1:
+            # Launched from a thread of its own: on a GPU the call returns only once the chunk's loop has been run
+            # (XLA launches its kernels from the calling thread, iteration after iteration), so called here it would
+            # hold the host's logs and checkpoints until the chunk ends.
+            launched = self.launcher.submit(program, state, arm.hps, np.int32(n))
+        else:
+            # Several processes issue their collectives (the chunk's, the metrics' gather, the exchanges around
+            # writes and checkpoints) in the same order, or they wait on each other for ever: all from this thread.
+            launched = concurrent.futures.Future()
+            launched.set_result(program(state, arm.hps, np.int32(n)))
+        arm.pending = (launched, n, wall_start)
 
     def commit(self, arm: Arm) -> None:
         """Fetch the pending chunk's metrics, log them, make its state the arm's state."""
