@@ -134,16 +134,14 @@ class BatchedEnv:
     """`num_envs` auto-resetting copies of a single env. Not a pytree: close over it."""
 
     def __init__(self, env, num_envs: int, episode_length: int, action_repeat: int = 1,
-                 reset_mode: str = "cached", stagger: bool = False):
+                 reset_mode: str = "cached", stagger: bool = False, observation_size: int | None = None):
         self.env = env
         self.num_envs = num_envs
         self.episode_length = episode_length
         self.action_repeat = action_repeat
         self.reset_mode = reset_mode
         self.stagger = stagger  # reset() starts each env at its own random point of the time limit
-        # Brax's observation_size property runs reset op by op (~30 s for an MJX env on a CPU): trace it instead.
-        shapes = jax.eval_shape(env.reset, jax.random.key(0))
-        self.observation_size = int(shapes.obs.shape[-1])
+        self.observation_size = observation_size if observation_size is not None else traced_observation_size(env)
         self.action_size = int(env.action_size)
 
     def max_timeouts(self, steps: int) -> int:
@@ -215,8 +213,33 @@ class BatchedEnv:
         return new_state, step
 
 
+def traced_observation_size(env) -> int:
+    """The size of env's observation, from its reset traced (Brax's observation_size property runs reset op by op:
+    ~30 s for an MJX env on a CPU; traced, ~1 s)."""
+    return int(jax.eval_shape(env.reset, jax.random.key(0)).obs.shape[-1])
+
+
+_OBSERVATION_SIZES: dict[str, int] = {}
+
+
+def observation_size(name: str, env=None) -> int:
+    """The observation size of make_single_env(name) (`env`, when made already), traced once per name in this
+    process: the arms of a sweep and their phases and evaluations all act in the same kind of env."""
+    if name not in _OBSERVATION_SIZES:
+        _OBSERVATION_SIZES[name] = traced_observation_size(env if env is not None else make_single_env(name))
+    return _OBSERVATION_SIZES[name]
+
+
+def batched(name: str, num_envs: int, episode_length: int, action_repeat: int = 1, reset_mode: str = "cached",
+            stagger: bool = False) -> BatchedEnv:
+    """`num_envs` auto-resetting copies of make_single_env(name) (BatchedEnv; the observation size traced once
+    per name in this process)."""
+    env = make_single_env(name)
+    return BatchedEnv(env, num_envs, episode_length, action_repeat, reset_mode, stagger,
+                      observation_size(name, env))
+
+
 def make_env(config) -> BatchedEnv:
     """The batched, auto-resetting environment that `config` describes."""
-    env = make_single_env(config.env)
-    return BatchedEnv(env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode,
-                      stagger=getattr(config, "stagger_resets", False))
+    return batched(config.env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode,
+                   stagger=getattr(config, "stagger_resets", False))

@@ -77,7 +77,7 @@ check_hparam = HP_RANGES.check_one
 def _needed_env_leaves(env_name: str, num_envs: int, episode_length: int, action_repeat: int, reset_mode: str):
     """The env-state leaves a resume needs; every leaf (a bigger checkpoint, never a wrong one) when the
     analysis of the traced step fails on a JAX release whose primitives it does not know."""
-    env = envs.BatchedEnv(envs.make_single_env(env_name), num_envs, episode_length, action_repeat, reset_mode)
+    env = envs.batched(env_name, num_envs, episode_length, action_repeat, reset_mode)
     try:
         return needed_leaves(env)
     except Exception as err:  # noqa: BLE001 - an optimisation of the checkpoint's size must not end a run
@@ -105,7 +105,7 @@ def make_trainer(config: Config) -> Trainer:
 
     def eval_env(num_envs: int) -> envs.BatchedEnv:
         return envs.BatchedEnv(agent.env.env, num_envs, config.episode_length, config.action_repeat,
-                               config.reset_mode)
+                               config.reset_mode, observation_size=agent.env.observation_size)
 
     def fresh_policy(key: jax.Array) -> dict:
         """The policy network as its module initialises it, statistics at their initial values."""

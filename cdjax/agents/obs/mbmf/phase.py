@@ -56,7 +56,7 @@ from cdjax.agents.obs.config import Config, HParams
 from cdjax.agents.obs.mbmf.data import Labelled, Rollout, Transitions, model_objective
 from cdjax.agents.obs.mbmf.spec import HANDOVER_CHECKS, MbMfPhase, validate_phase
 from cdjax.agents.obs.rollout import env_step
-from cdjax.envs import BatchedEnv, EnvState, EpisodeStats, make_single_env, rewards, strong_types
+from cdjax.envs import BatchedEnv, EnvState, EpisodeStats, batched, rewards, strong_types
 from cdjax.numerics import masked_mean
 from cdjax.optim import clipped_adam
 from cdjax.replay import RingBuffer, fit
@@ -127,8 +127,7 @@ def phase_env(config: Config, phase: MbMfPhase, agent: ObsAgent) -> BatchedEnv:
     B = phase.envs(config)
     if B == config.num_envs and not agent.env.stagger:  # the phase's episode statistics count every episode
         return agent.env
-    return BatchedEnv(make_single_env(config.env), B, config.episode_length, config.action_repeat,
-                      config.reset_mode)
+    return batched(config.env, B, config.episode_length, config.action_repeat, config.reset_mode)
 
 
 def make_mpc_controller(agent: ObsAgent, phase: MbMfPhase) -> Callable:
