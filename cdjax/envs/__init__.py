@@ -222,11 +222,11 @@ def traced_observation_size(env) -> int:
 _OBSERVATION_SIZES: dict[str, int] = {}
 
 
-def observation_size(name: str, env=None) -> int:
-    """The observation size of make_single_env(name) (`env`, when made already), traced once per name in this
-    process: the arms of a sweep and their phases and evaluations all act in the same kind of env."""
+def observation_size(name: str, env) -> int:
+    """The observation size of `env`, made by make_single_env(name), traced once per name in this process: the arms
+    of a sweep and their phases and evaluations all act in the same kind of env."""
     if name not in _OBSERVATION_SIZES:
-        _OBSERVATION_SIZES[name] = traced_observation_size(env if env is not None else make_single_env(name))
+        _OBSERVATION_SIZES[name] = traced_observation_size(env)
     return _OBSERVATION_SIZES[name]
 
 
