@@ -53,6 +53,14 @@
 #            model-free, Mb-Mf and paper-CD cases in a process per level, and once with XLA's defaults. A level the
 #            image's XLA refuses is skipped, saying so. Whether the cold start can come near 60 s without the 1.05-1.19x
 #            steady-state cost of Triton's GEMMs off (`--compile-mode fast`).
+#   levels   cdjax's autotuner level (level 1 since `import cdjax` adds GPU_AUTOTUNE_FLAG, cdjax/runtime.py) against
+#            XLA's own (XLA_FLAGS=--xla_gpu_autotune_level=4) in one lease: the 4-arm ant sweep cold
+#            (an empty persistent cache each) with cdjax's defaults, with level 4, and in `--compile-mode fast`
+#            (CDJAX_COMPILE_MODE=fast: Triton's GEMMs off per program, at level 1); then the pixel presets' update
+#            (experiments.pixel.roofline, halfcheetah, 30 runs, synthetic batch) at cdjax's level and at level 4: the
+#            convolutions are autotuned too, so what level 1 picks for them is timed against level 4's picks; then the
+#            compare suite (Brax PPO, model-free, Mb-Mf, paper-CD; one process, all at cdjax's level) (about 14 minutes
+#            in all).
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -117,6 +125,22 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       done
       echo "$line timeout -k 20 180 python -m benchmarks.run $cases --out $work/run-default > $work/run-default.log 2>&1;" \
         "grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/level*.log; grep -H ' s/update' $work/run-*.log" ;;
+    levels)
+      local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
+      echo "python -c 'import os, cdjax; print(os.environ)' | grep -o -E 'XLA_FLAGS[^,]*' > $work/xla-flags.log 2>&1;" \
+        "timeout -k 20 200 python -m benchmarks.compile_time --out $work/level1 --cache-dir $work/cache-level1" \
+        "-- $sweep > $work/level1.log 2>&1;" \
+        "XLA_FLAGS=--xla_gpu_autotune_level=4 timeout -k 20 240 python -m benchmarks.compile_time --out $work/level4" \
+        "--cache-dir $work/cache-level4 -- $sweep > $work/level4.log 2>&1;" \
+        "CDJAX_COMPILE_MODE=fast timeout -k 20 200 python -m benchmarks.compile_time --out $work/fast-level1" \
+        "--cache-dir $work/cache-fast -- $sweep > $work/fast-level1.log 2>&1;" \
+        "timeout -k 20 150 $rf --out $work/pixel-level1.json > $work/pixel-level1.log 2>&1;" \
+        "XLA_FLAGS=--xla_gpu_autotune_level=4 timeout -k 20 150 $rf --out $work/pixel-level4.json" \
+        "> $work/pixel-level4.log 2>&1;" \
+        "timeout -k 20 330 python -m benchmarks.run --suite compare --cases brax-ppo model-free mbmf cd-paper" \
+        "--budget-s 300 --out $work/compare > $work/compare.log 2>&1;" \
+        "grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/level*.log $work/fast-level1.log;" \
+        "cat $work/pixel-level1.md $work/pixel-level4.md; tail -n 14 $work/compare/results.md" ;;
     kernels)
       local cases="--suite compare --cases mbmf cd-paper --budget-s 120" flag line
       line="python -m benchmarks.xla_flags > $work/xla-gpu-flags.txt; wc -l < $work/xla-gpu-flags.txt;"
@@ -145,7 +169,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" grep -h ' s/update' $work/compare-$case.log;"
       done
       echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, kernels or hlo" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels or hlo" >&2; return 1 ;;
   esac
 }
 
@@ -156,7 +180,7 @@ ensure_wheels || exit 1
 unit_run "$work" "$cmd" "$wait_s" "$t0" "bash benchmarks/compile_units.sh $unit" || exit 0
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
 archive=$(cd "$out" && pwd)/$unit.tar.gz
-(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name 'results.*' -o -name '*.log' -o -name hlo.tar.gz \
+(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name 'results.*' -o -name 'pixel-*' -o -name '*.log' -o -name hlo.tar.gz \
   | grep -v '/checkpoints/' \
   | tar -czf "$archive" -T -)
 cp "$work/unit.log" "$out/$unit.log"

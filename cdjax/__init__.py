@@ -9,9 +9,9 @@ The package's face is the observation-space agent (`cdjax.agents.obs`), the pape
 `make_trainer(config)` gives it as every setting gives itself to the host side (`cdjax.protocol.Trainer`).
 """
 
-from cdjax.runtime import apply_cpu_workaround
+from cdjax.runtime import apply_xla_defaults
 
-apply_cpu_workaround()  # before anything starts a JAX backend
+apply_xla_defaults()  # before anything starts a JAX backend
 
 
 import contextlib as _contextlib

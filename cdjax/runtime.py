@@ -1,4 +1,4 @@
-"""The one place for runtime switches: XLA workarounds, the compilation cache, the compile mode, NaN checks,
+"""The one place for runtime switches: XLA's flags, the compilation cache, the compile mode, NaN checks,
 disabling jit.
 
 `cdjax` applies the CPU workaround when it is imported (before JAX starts its backends). Everything else
@@ -18,6 +18,14 @@ import warnings
 # machine (seen with jax 0.10.2: 6 vmapped runs of the point-mass agent hang in BlockUntilReady every
 # time, 2, 4 and 8 do not; with this flag, or pinned to one core, they run). It only affects the CPU backend.
 CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+# XLA:GPU's autotuner at level 1: it still times each GEMM and convolution candidate and keeps the fastest, but
+# skips XLA's default (level 4) extras: filling the candidates' buffers with random data, refilling them between
+# runs and comparing every candidate's result with a reference (which, at level 4, only logs a mismatch). One H200
+# (2026-11-26, benchmarks/results/2026-11-26-h200-autotune/): the cold 4-arm ant sweep compiled in 68.7 s instead
+# of 145.7 s (2026-11-25, level 4), while model-free, Mb-Mf and the paper's CD ran 0.98-0.999x the time per
+# update of level 4 in the compare suite. Only the GPU backend reads it. A user who names the level in XLA_FLAGS
+# (e.g. --xla_gpu_autotune_level=4, XLA's own default) keeps theirs.
+GPU_AUTOTUNE_FLAG = "--xla_gpu_autotune_level=1"
 CACHE_ENV = "CDJAX_JAX_CACHE"  # environment variable naming the persistent compilation cache
 MODE_ENV = "CDJAX_COMPILE_MODE"  # environment variable naming the compile mode (configure's compile_mode wins)
 
@@ -35,11 +43,16 @@ COMPILE_MODES: dict[str, dict] = {
 _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "default"
 
 
-def apply_cpu_workaround() -> None:
-    """Add the XLA:CPU scheduler flag to XLA_FLAGS unless the user set that option already."""
+def apply_xla_defaults() -> None:
+    """Add cdjax's XLA flags (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG) to XLA_FLAGS, each unless the user set that
+    option already. XLA reads XLA_FLAGS when a backend starts: `import cdjax` calls this, so it takes effect unless
+    a JAX backend was started before cdjax was imported."""
     flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_enable_concurrency_optimized_scheduler" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {CPU_SCHEDULER_FLAG}".strip()
+    for option, flag in (("xla_cpu_enable_concurrency_optimized_scheduler", CPU_SCHEDULER_FLAG),
+                         ("xla_gpu_autotune_level", GPU_AUTOTUNE_FLAG)):
+        if option not in flags:
+            flags = f"{flags} {flag}".strip()
+    os.environ["XLA_FLAGS"] = flags
 
 
 def default_cache_dir() -> str:

@@ -6,6 +6,7 @@ import json
 import math
 import os
 import pathlib
+import subprocess
 import sys
 
 import pytest
@@ -387,6 +388,32 @@ def test_compile_workers_reads_its_variable(monkeypatch):
         arms.compile_workers()
     monkeypatch.delenv("CDJAX_COMPILE_WORKERS")
     assert arms.compile_workers() == max(1, (os.cpu_count() or 1) // 2)
+
+
+def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch):
+    from cdjax import runtime
+
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    runtime.apply_xla_defaults()
+    assert os.environ["XLA_FLAGS"].split() == [runtime.CPU_SCHEDULER_FLAG, runtime.GPU_AUTOTUNE_FLAG]
+    runtime.apply_xla_defaults()  # a second import (a reload) adds nothing twice
+    assert os.environ["XLA_FLAGS"].split() == [runtime.CPU_SCHEDULER_FLAG, runtime.GPU_AUTOTUNE_FLAG]
+    # a level the user names (XLA's own default 4, say) wins, and the user's other flags stay first, as given
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2 --xla_gpu_autotune_level=4")
+    runtime.apply_xla_defaults()
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2",
+                                               "--xla_gpu_autotune_level=4", runtime.CPU_SCHEDULER_FLAG]
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_concurrency_optimized_scheduler=true")
+    runtime.apply_xla_defaults()
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_enable_concurrency_optimized_scheduler=true",
+                                               runtime.GPU_AUTOTUNE_FLAG]
+    # a fresh process: importing cdjax sets them before JAX starts, and XLA:CPU accepts the GPU flag (it aborts on
+    # a flag it does not know)
+    assert runtime.GPU_AUTOTUNE_FLAG in subprocess.run(
+        [sys.executable, "-c", "import os, cdjax, jax; jax.numpy.ones(2).block_until_ready(); "
+                               "print(os.environ['XLA_FLAGS'])"],
+        env={k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}, capture_output=True, text=True,
+        check=True).stdout
 
 
 def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypatch):
