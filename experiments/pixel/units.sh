@@ -78,9 +78,12 @@
 # (H200) pusher-ltq-cd1 544.8 s (5.4 ms, 146,847 frames/s), 799 s from start to end (its log's 469.5 s "between
 # chunks" is an artifact: the chunk's call blocks the thread on a GPU, so whole chunks were counted), then
 # sweep-long on the same machine (236.8 s, 141,902 frames/s; its 181.1 s "between chunks" the same artifact). Since
-# 5bf6219 the chunks are launched from a thread of their own, so that count is real again; sweep-long has not run
-# with it. Session 24 (2026-11-26, one H200, at 5848209): grad-dtype 161 s and precision 272 s from start to end
-# (precision's sweeps: 30 runs, 300 updates, "Trained in" 48.4 s with 3.9 s between chunks and 43.7 s with 3.8 s).
+# 5bf6219 the chunks are launched from a thread of their own, so that count is real again. Session 24 (2026-11-26,
+# one H200, at 5848209): grad-dtype 161 s and precision 272 s from start to end (precision's sweeps: 30 runs, 300
+# updates, "Trained in" 48.4 s with 3.9 s between chunks and 43.7 s with 3.8 s). At 2729efe (2026-11-26, one H200,
+# one machine, one after the other; experiments/pixel/data/speed-final-h200/): sweep-speed 427 s from start to end
+# ("Trained in" 116.6 s before, 31.4 s presets), sweep-long 267 s (191.8 s, 175,225 frames/s, 6.5 s between
+# chunks), profile 151 s.
 # One unit per machine (held 30 minutes at most), or one and sweep-speed, or a second unit with LIMIT_S/END_S cut to
 # the machine's time left (session 22: pusher-ltq with LIMIT_S=720 END_S=880 after halfcheetah-ltq-cd1; session 23:
 # reacher-ltq-cd1 with LIMIT_S=880 END_S=1000 after reacher-ltq-cd0; both still reached 10,000 updates). Run: all
