@@ -50,7 +50,7 @@
 #            persistent cache) with XLA_FLAGS=--xla_gpu_autotune_level=L for L in LEVELS (default "1"; XLA's default is 4,
 #            which also initialises buffers and checks each candidate's results against a reference; 0, no autotuning,
 #            cost the CD arm 0.66x on 2026-11-24), then what each level costs at run time: the compare suite's
-#            model-free, Mb-Mf and paper-CD cases in a process per level, and once with XLA's defaults. A level the
+#            model-free, Mb-Mf and paper-CD cases in a process per level, and once at XLA's default level 4. A level the
 #            image's XLA refuses is skipped, saying so. Whether the cold start can come near 60 s without the 1.05-1.19x
 #            steady-state cost of Triton's GEMMs off (`--compile-mode fast`).
 #   levels   cdjax's autotuner level (level 1 since `import cdjax` adds GPU_AUTOTUNE_FLAG, cdjax/runtime.py) against
@@ -61,6 +61,9 @@
 #            convolutions are autotuned too, so what level 1 picks for them is timed against level 4's picks; then the
 #            compare suite (Brax PPO, model-free, Mb-Mf, paper-CD; one process, all at cdjax's level) (about 14 minutes
 #            in all).
+# Since 5043691 `import cdjax` adds --xla_gpu_autotune_level=1 to XLA_FLAGS unless they name a level: "XLA's defaults"
+# above means level 1 for the units run since, Triton's GEMM flag and the others set beside it; `autotune` and `levels`
+# name level 4 (XLA's own default) where they compare against it. The units' earlier results ran at level 4.
 # Each call waits up to WAIT_S seconds (default 560) for the unit, then says RUNNING (call again at once) or DONE,
 # after packing into $OUT (default runs/compile-units-out) UNIT.tar.gz (every compile_time.json, lowered.json and
 # log) and UNIT.log. The runs' checkpoints are not kept.
@@ -123,7 +126,8 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "timeout -k 20 180 python -m benchmarks.run $cases --out $work/run-level$level" \
           "> $work/run-level$level.log 2>&1")"
       done
-      echo "$line timeout -k 20 180 python -m benchmarks.run $cases --out $work/run-default > $work/run-default.log 2>&1;" \
+      echo "$line XLA_FLAGS=--xla_gpu_autotune_level=4 timeout -k 20 180 python -m benchmarks.run $cases" \
+        "--out $work/run-default > $work/run-default.log 2>&1;" \
         "grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/level*.log; grep -H ' s/update' $work/run-*.log" ;;
     levels)
       local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
