@@ -485,7 +485,7 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
         # ones otherwise; imagined rows: scaled (as the two encode() below)
         scales = (1.0 if recon else weights.to_encoder, weights.to_encoder)
         h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared,
-                                       chain)
+                                       chain=chain)
         return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim)
 
     if recon:

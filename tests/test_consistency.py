@@ -341,3 +341,66 @@ def test_mlp_step_is_the_agents_model_step():
     a = jax.random.uniform(jax.random.key(5), (7, agent.A), minval=-1, maxval=1)
     np.testing.assert_allclose(cc.mlp_step(agent.mlp_model(params["model"], norms), s, a),
                                agent.model_step(params["model"], norms, s, a)[0], rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("shared,hidden,scales", [(True, (7,), (0.7, 0.0)), (False, (7, 10), (0.0, 1.3))])
+def test_pallas_chain_equals_the_xla_chain_values_and_gradients(shared, hidden, scales):
+    """The chain as two Pallas kernels (`cdjax.kernels.chain`, interpret mode on CPU) against the XLA chain at sizes
+    that need padding (O=5, A=3, hidden widths 7 (and 10), H=6, k=4, W=9 rows: each padded to 16): the outputs, and
+    the gradients of a function of them with respect to every input (model, GRU, start states, actions, real rows'
+    inputs), within float32 rounding; with the encoder normalising by the model's statistics (shared) or by others,
+    one or two hidden layers, either GRU row kind's gradient scale 0, and start states far enough out that some
+    normalised inputs are clipped."""
+    from cdjax.kernels.chain import pallas_chain
+
+    O, A, H, k, w = 5, 3, 6, 4, 9
+    model = _mlp_model(obs=O, act=A, hidden=hidden)
+    keys = iter(jax.random.split(jax.random.key(11), 12))
+    gru = tuple(0.4 * jax.random.normal(next(keys), shape) for shape in ((O, 3 * H), (3 * H,), (H, 3 * H), (H,)))
+    s0 = 6.0 * jax.random.normal(next(keys), (w, O))
+    actions = jax.random.normal(next(keys), (k, w, A))
+    x_re = jax.random.normal(next(keys), (k, w, O))
+    other = nz.update(nz.RunningStats.create(O), 2.0 * jax.random.normal(next(keys), (64, O)))
+    enc_obs = model.obs if shared else other
+    assert float(jnp.mean(jnp.abs((s0 - model.obs.mean) / model.obs.std) > nz.CLIP)) > 0  # some inputs clipped
+    cotangents = [jax.random.normal(next(keys), shape) for shape in ((w, H), (w, H), (w, O))]
+
+    def f(chain, *args):
+        out = cc.fused_chain(*args, enc_obs, scales, shared, chain=chain)
+        return sum(jnp.sum(x * c) for x, c in zip(out, cotangents)), out
+
+    args = (model, gru, s0, actions, x_re)
+    grad = lambda chain: jax.jit(jax.value_and_grad(functools.partial(f, chain), argnums=(0, 1, 2, 3, 4),  # noqa: E731
+                                                    has_aux=True))(*args)
+    (_, out_x), g_x = grad(None)
+    (_, out_p), g_p = grad(pallas_chain)
+    for a, b in zip(out_x, out_p):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5)
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_x), jax.tree.leaves(g_p)):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5, err_msg=jax.tree_util.keystr(path))
+    assert float(jnp.abs(g_x[1][2]).max()) > 0 and float(jnp.abs(g_x[0].layers[-1][0]).max()) > 0
+
+
+def test_agent_with_the_pallas_chain_gives_the_xla_chains_loss_and_gradients():
+    """The obs-space agent with cc_chain_impl="pallas": the same loss, metrics and gradients of a minibatch as with the
+    XLA chain (statistics and a model one update in)."""
+    from cdjax import HParams, make_agent
+
+    from _shared import POINT, compiled
+
+    hp = HParams(alpha=1.0)
+    agent, init, update = compiled(POINT)
+    state, _ = update(init(jax.random.key(0), hp), hp)
+    _, _, _, batch = jax.jit(agent.collect)(state, hp, jax.random.key(7))
+    mb = jax.tree.map(lambda x: x[:, :POINT.minibatch_seqs], batch)
+    offsets = jnp.arange(POINT.num_windows)
+    pallas = make_agent(POINT.replace(cc_chain_impl="pallas"))
+    assert agent.chain is None and pallas.chain is not None
+    (v_x, m_x), g_x = jax.jit(jax.value_and_grad(agent.loss, has_aux=True))(state.params, state.norms, mb, offsets, hp)
+    (v_p, m_p), g_p = jax.jit(jax.value_and_grad(pallas.loss, has_aux=True))(state.params, state.norms, mb, offsets, hp)
+    np.testing.assert_allclose(v_p, v_x, rtol=1e-5)
+    for name in m_x:
+        np.testing.assert_allclose(m_p[name], m_x[name], rtol=1e-5, atol=1e-6, err_msg=name)
+    assert float(m_x["loss/consistency"]) > 0
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_x), jax.tree.leaves(g_p)):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path))

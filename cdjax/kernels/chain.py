@@ -237,7 +237,7 @@ def _backward_kernel(n_mid: int, shared: bool, k: int, *refs):
 
 
 def _over_row_tiles(kernel, tiled: list, whole: list, out_shapes: list, block_rows: int, interpret: bool | None,
-                    num_warps: int | None) -> list:
+                    num_warps: int | None, num_stages: int | None) -> list:
     """kernel on a grid of row tiles: `tiled` arrays and the outputs (shapes, float32) have their rows second to last
     (a block of `block_rows` of them per program), `whole` arrays are read whole by every program."""
     if interpret is None:
@@ -254,10 +254,11 @@ def _over_row_tiles(kernel, tiled: list, whole: list, out_shapes: list, block_ro
         return pl.BlockSpec(block_shape=tuple(shape), index_map=lambda i: (0,) * len(shape))
 
     extra = {}
-    if num_warps is not None and not interpret:  # only where asked: Triton's default otherwise
+    tuned = {name: n for name, n in (("num_warps", num_warps), ("num_stages", num_stages)) if n is not None}
+    if tuned and not interpret:  # only where asked: Triton's defaults otherwise
         from jax.experimental.pallas import triton as pl_triton
 
-        extra["compiler_params"] = pl_triton.CompilerParams(num_warps=num_warps)
+        extra["compiler_params"] = pl_triton.CompilerParams(**tuned)
     call = pl.pallas_call(
         kernel, grid=(rows // block_rows,),
         in_specs=[row_tile(x.shape) for x in tiled] + [every(x.shape) for x in whole],
@@ -268,7 +269,7 @@ def _over_row_tiles(kernel, tiled: list, whole: list, out_shapes: list, block_ro
 
 
 def chain_fwd(shared: bool, p: dict, c: dict, *, block_rows: int = BLOCK_ROWS, interpret: bool | None = None,
-              num_warps: int | None = None):
+              num_warps: int | None = None, num_stages: int | None = None):
     """`consistency._chain_fwd`'s contract, the k steps in one kernel: -> ((h_re [W, H], h_im [W, H], s_k [W, O]),
     residuals).
 
@@ -294,7 +295,7 @@ def chain_fwd(shared: bool, p: dict, c: dict, *, block_rows: int = BLOCK_ROWS, i
     out_shapes = ([(k + 1, rows, lanes)] * 2 + ([] if shared else [(k, rows, lanes)]) + [(k, rows, n) for n in widths]
                   + [(k, 3, rows, h_lanes), (k, 2, 3, rows, h_lanes), (k + 1, 2, rows, h_lanes)])
     outs = _over_row_tiles(functools.partial(_forward_kernel, len(layers) - 2, shared, k), tiled, whole, out_shapes,
-                           block_rows, interpret, num_warps)
+                           block_rows, interpret, num_warps, num_stages)
     states, xm = outs[:2]
     xe = None if shared else outs[2]
     outs = outs[2 if shared else 3:]
@@ -305,7 +306,7 @@ def chain_fwd(shared: bool, p: dict, c: dict, *, block_rows: int = BLOCK_ROWS, i
 
 
 def chain_bwd(shared: bool, residuals: dict, cotangents: tuple, *, block_rows: int = BLOCK_ROWS,
-              interpret: bool | None = None, num_warps: int | None = None):
+              interpret: bool | None = None, num_warps: int | None = None, num_stages: int | None = None):
     """`consistency._chain_bwd`'s contract: the per-step loop in one kernel, reversed over k, then `_chain_bwd`'s
     products after its loop (the same expressions, in XLA).
 
@@ -326,7 +327,7 @@ def chain_bwd(shared: bool, residuals: dict, cotangents: tuple, *, block_rows: i
     out_shapes = ([(k, 2, 3, rows, h_lanes)] * 2 + [(k, rows, u.shape[-1]) for u in r["hidden"]]
                   + [(k, rows, lanes), (rows, lanes)])
     dgi, dhh, *dz, ds0 = _over_row_tiles(functools.partial(_backward_kernel, len(layers) - 2, shared, k), tiled,
-                                         whole, out_shapes, block_rows, interpret, num_warps)
+                                         whole, out_shapes, block_rows, interpret, num_warps, num_stages)
 
     # after the loop: `_chain_bwd`'s products over all steps and rows
     dz_layers = [d[:, :W, :kernel.shape[1]] for d, (kernel, _) in zip(dz, layers)]
@@ -345,12 +346,14 @@ def chain_bwd(shared: bool, residuals: dict, cotangents: tuple, *, block_rows: i
     return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
 
 
-def make_chain(block_rows: int = BLOCK_ROWS, interpret: bool | None = None, num_warps: int | None = None):
+def make_chain(block_rows: int = BLOCK_ROWS, interpret: bool | None = None, num_warps: int | None = None,
+               num_stages: int | None = None):
     """The chain with these kernels: a function (shared, p, c) -> (h_re, h_im, s_k) with `consistency._chain`'s
     contract and gradient, for `fused_chain(..., chain=)`. block_rows: rows per program (a power of two >= 16);
-    interpret: Pallas' interpret mode (None: off a GPU); num_warps: Triton's warps per program (None: its default)."""
+    interpret: Pallas' interpret mode (None: off a GPU); num_warps, num_stages: Triton's warps per program and
+    software-pipelining stages of its loops (None: its defaults)."""
     assert block_rows >= MIN_LANES and block_rows & (block_rows - 1) == 0, block_rows
-    options = dict(block_rows=block_rows, interpret=interpret, num_warps=num_warps)
+    options = dict(block_rows=block_rows, interpret=interpret, num_warps=num_warps, num_stages=num_stages)
 
     @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
     def chain(shared, p, c):
@@ -361,3 +364,127 @@ def make_chain(block_rows: int = BLOCK_ROWS, interpret: bool | None = None, num_
 
 
 pallas_chain = make_chain()
+
+
+# ---------------------------------------------------------------------------------------------------
+# On a GPU: the kernels against the XLA chain, then both timed
+
+
+def random_inputs(key: jax.Array, rows: int, obs: int, act: int, hidden: tuple, encoder_dim: int, horizon: int,
+                  shared: bool) -> tuple:
+    """Random arguments of `consistency.fused_chain` at these sizes: (model, gru, s0, actions, x_re, enc_obs), the
+    weights at the scale of an initialised network, states spread as normalised ones."""
+    keys = iter(jax.random.split(key, 16))
+    sizes = (obs + act,) + tuple(hidden) + (obs,)
+    layers = tuple((jax.random.normal(next(keys), (a, b)) / np.sqrt(a), 0.1 * jax.random.normal(next(keys), (b,)))
+                   for a, b in zip(sizes[:-1], sizes[1:]))
+
+    def stats(scale):
+        return nz.update(nz.RunningStats.create(obs), scale * jax.random.normal(next(keys), (256, obs)))
+
+    model = cc.MLPModel(layers=layers, obs=stats(1.0), delta=stats(0.1))
+    H = encoder_dim
+    gru = (jax.random.normal(next(keys), (obs, 3 * H)) / np.sqrt(obs), 0.1 * jax.random.normal(next(keys), (3 * H,)),
+           jax.random.normal(next(keys), (H, 3 * H)) / np.sqrt(H), 0.1 * jax.random.normal(next(keys), (H,)))
+    s0 = jax.random.normal(next(keys), (rows, obs))
+    actions = jax.random.uniform(next(keys), (horizon, rows, act), minval=-1.0, maxval=1.0)
+    x_re = jax.random.normal(next(keys), (horizon, rows, obs))
+    return model, gru, s0, actions, x_re, model.obs if shared else stats(1.0)
+
+
+def _loss_and_grads(chain, inputs: tuple, shared: bool, scales: tuple):
+    """jit(value_and_grad) of a fixed linear function of the chain's outputs, with the outputs as aux."""
+    model, gru, s0, actions, x_re, enc_obs = inputs
+    W, O, H = s0.shape[0], s0.shape[1], gru[2].shape[0]
+    keys = jax.random.split(jax.random.key(99), 3)
+    weights = [jax.random.normal(key, shape) for key, shape in zip(keys, ((W, H), (W, H), (W, O)))]
+
+    def loss(*args):
+        out = cc.fused_chain(*args, enc_obs, scales, shared, chain=chain)
+        return sum(jnp.sum(x * w) for x, w in zip(out, weights)), out
+
+    return jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4), has_aux=True)), (model, gru, s0, actions, x_re)
+
+
+def differences(chain, inputs: tuple, shared: bool, scales: tuple = (1.0, 1.0)) -> dict:
+    """{name: (max abs difference, max relative difference)} of `chain`'s outputs and gradients against the XLA
+    chain's on `inputs` (`random_inputs`); relative to the XLA value's largest magnitude in that array."""
+    fx, args = _loss_and_grads(None, inputs, shared, scales)
+    fp, _ = _loss_and_grads(chain, inputs, shared, scales)
+    (_, out_x), grads_x = fx(*args)
+    (_, out_p), grads_p = fp(*args)
+    found = {}
+    named = [(f"out/{name}", a, b) for name, a, b in zip(("h_re", "h_im", "s_k"), out_x, out_p)]
+    names = ("model", "gru", "s0", "actions", "x_re")
+    grads_x, grads_p = dict(zip(names, grads_x)), dict(zip(names, grads_p))
+    named += [(f"grad{jax.tree_util.keystr(path)}", a, b)
+              for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(grads_x), jax.tree.leaves(grads_p))]
+    for name, a, b in named:
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        if a.size == 0 or not np.any(a):
+            continue  # the statistics' zero gradients
+        err = float(np.abs(a - b).max())
+        found[name] = (err, err / float(np.abs(a).max()))
+    return found
+
+
+def time_chain(chain, inputs: tuple, shared: bool, repeats: int = 50) -> float:
+    """Median seconds of one forward and backward of the chain (jitted, synchronised after each call)."""
+    f, args = _loss_and_grads(chain, inputs, shared, (1.0, 1.0))
+    for _ in range(3):
+        jax.block_until_ready(f(*args))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(f(*args))
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m cdjax.kernels.chain", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--rows", type=int, default=512, help="windows per minibatch (compare suite: 512 of ant)")
+    p.add_argument("--obs", type=int, default=27, help="O, the observation size")
+    p.add_argument("--act", type=int, default=8, help="A, the action size")
+    p.add_argument("--hidden", type=int, nargs="+", default=[500], help="the model's hidden widths")
+    p.add_argument("--encoder-dim", type=int, default=128, help="H")
+    p.add_argument("--horizon", type=int, default=20, help="k")
+    p.add_argument("--block-rows", type=int, nargs="+", default=[16, 32], help="row tiles to time")
+    p.add_argument("--num-warps", type=int, default=None, help="Triton's warps per program (default: its own)")
+    p.add_argument("--num-stages", type=int, default=None, help="Triton's pipelining stages (default: its own)")
+    p.add_argument("--repeats", type=int, default=50, help="timed calls per implementation")
+    p.add_argument("--no-time", action="store_true", help="the differences only")
+    args = p.parse_args(argv)
+    print(f"backend {jax.default_backend()}, devices {jax.devices()}, jax {jax.__version__}", flush=True)
+    sizes = dict(rows=args.rows, obs=args.obs, act=args.act, hidden=tuple(args.hidden), encoder_dim=args.encoder_dim,
+                 horizon=args.horizon)
+    print(f"sizes {sizes}", flush=True)
+    tuned = functools.partial(make_chain, num_warps=args.num_warps, num_stages=args.num_stages)
+    worst = 0.0
+    for shared in (True, False):
+        inputs = random_inputs(jax.random.key(0), shared=shared, **sizes)
+        for precision in ("default", "highest"):
+            with jax.default_matmul_precision(None if precision == "default" else precision):
+                found = differences(tuned(args.block_rows[0]), inputs, shared, (1.0, 0.5))
+            largest, (err, rel) = max(found.items(), key=lambda item: item[1][1])
+            print(f"shared={shared} precision={precision}: largest relative difference {rel:.2e} "
+                  f"(abs {err:.2e}) in {largest}", flush=True)
+            for name, (e, r) in found.items():
+                print(f"    {name:36s} abs {e:.2e} rel {r:.2e}")
+            if precision == "highest":
+                worst = max(worst, rel)
+    if not args.no_time:
+        inputs = random_inputs(jax.random.key(0), shared=True, **sizes)
+        base = time_chain(None, inputs, True, args.repeats)
+        print(f"xla chain: {base * 1e3:.3f} ms per forward+backward", flush=True)
+        for block_rows in args.block_rows:
+            t = time_chain(tuned(block_rows), inputs, True, args.repeats)
+            print(f"pallas chain, {block_rows} rows per program: {t * 1e3:.3f} ms per forward+backward "
+                  f"({t / base:.2f}x the xla chain's)", flush=True)
+    print(f"worst relative difference at precision highest: {worst:.2e}")
+    return 0 if worst < 1e-4 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -25,6 +25,8 @@ PolicyStd = Literal["state", "global"]
 Entropy = Literal["squashed", "gaussian"]
 Init = Literal["orthogonal", "lecun"]
 ClipScope = Literal["group", "policy-value"]
+ChainImpl = Literal["xla", "pallas"]
+CHAIN_IMPLS = ("xla", "pallas")  # how the fused consistency chain runs (cdjax.consistency, cdjax.kernels.chain)
 ENCODERS = KINDS  # the consistency term's encoders (cdjax.consistency)
 
 
@@ -58,6 +60,7 @@ class Config:
     encoder_dim: int = 128  # GRU hidden size
     cc_windows: int = 0  # consistency windows per env per minibatch, random start offsets; 0 = all T-k+1
     cc_unroll: int = 1  # lax.scan unroll factor of the scanned k-step term (the obs agent's fused chain is unrolled)
+    cc_chain_impl: ChainImpl = "xla"  # the fused k-step chain: xla (unrolled XLA ops) or pallas (one kernel each way)
     cc_epochs: int = 0  # PPO epochs (the first ones) whose minibatches include the consistency term; 0 = all
     eval_horizon: int = 50  # longer open-loop horizon for the compounding-error metric (paper: 50)
     eval_envs: int = 8  # environments whose recent history is kept for the open-loop error metrics
@@ -149,7 +152,8 @@ FIELDS = Fields(
     Config, encoder=Choice(ENCODERS), num_envs=Count(1), rollout_len=Count(1), horizon=Count(1), num_updates=Count(1),
     num_epochs=Count(1), num_minibatches=Count(1), segment_len=Count(1, zero="the whole rollout"),
     episode_length=Count(1), action_repeat=Count(1), encoder_dim=Count(1), cc_windows=Count(1, zero="all windows"),
-    cc_unroll=Count(1), cc_epochs=Count(1, zero="all epochs"), eval_horizon=Count(1), eval_envs=Count(1))
+    cc_unroll=Count(1), cc_epochs=Count(1, zero="all epochs"), cc_chain_impl=Choice(CHAIN_IMPLS), eval_horizon=Count(1),
+    eval_envs=Count(1))
 
 
 def _linen():
