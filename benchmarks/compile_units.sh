@@ -61,6 +61,14 @@
 #            convolutions are autotuned too, so what level 1 picks for them is timed against level 4's picks; then the
 #            compare suite (Brax PPO, model-free, Mb-Mf, paper-CD; one process, all at cdjax's level) (about 14 minutes
 #            in all).
+#   pallas   the consistency chain as two Pallas kernels (`cdjax.kernels.chain`: one launch for the k steps forward,
+#            one for the backward) against XLA's unrolled chain (about 5-7 minutes): first `python -m
+#            cdjax.kernels.chain` at the compare suite's sizes (512 windows, O 27, A 8, a hidden layer of 500, H 128,
+#            k 20): the kernels' outputs and gradients against the XLA chain's (max abs/rel differences, at the
+#            default matmul precision and at highest; exit status 1 above 1e-4 relative at highest), then one
+#            forward+backward of each timed alone (16 and 32 rows per program); then the compare suite's Mb-Mf and
+#            paper-CD cases with XLA's chain, and in a process of its own with `benchmarks.variants pallas-chain`,
+#            profiled (--trace). Issue 21: paper-CD at <= 1.5x Mb-Mf's time per update.
 # Since 5043691 `import cdjax` adds --xla_gpu_autotune_level=1 to XLA_FLAGS unless they name a level: "XLA's defaults"
 # above means level 1 for the units run since, Triton's GEMM flag and the others set beside it; `autotune` and `levels`
 # name level 4 (XLA's own default) where they compare against it. The units' earlier results ran at level 4.
@@ -173,7 +181,15 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" grep -h ' s/update' $work/compare-$case.log;"
       done
       echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels or hlo" >&2; return 1 ;;
+    pallas)
+      local cases="--suite compare --cases mbmf cd-paper --budget-s 120"
+      echo "timeout -k 20 150 python -m cdjax.kernels.chain > $work/check.log 2>&1; echo \"check: exit \$?\";" \
+        "tail -n 4 $work/check.log;" \
+        "timeout -k 20 150 python -m benchmarks.run $cases --out $work/default > $work/default.log 2>&1;" \
+        "timeout -k 20 170 python -m benchmarks.variants pallas-chain -- $cases --trace $work/trace-pallas" \
+        "--out $work/pallas > $work/pallas.log 2>&1;" \
+        "grep -H ' s/update' $work/default.log $work/pallas.log" ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo or pallas" >&2; return 1 ;;
   esac
 }
 

@@ -19,6 +19,9 @@ Variants:
                    separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
                    The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
                    it against 0.805 s without.
+  pallas-chain     the fused consistency chain as two Pallas kernels (`cdjax.kernels.chain`: one launch for the
+                   k steps forward, one for the backward, a program per tile of rows) whatever the config's
+                   cc_chain_impl; only the CD cases run the chain. The same function up to float32 rounding.
   (pad-hidden, the fused chain's hidden widths zero-padded to a multiple of 128 once per minibatch, was removed
   after its A/B: paper-CD 0.7306 s/update with it against 0.7304 s without, one H100, 2026-11-25,
   benchmarks/results/2026-11-25-h100-probes/.)
@@ -59,7 +62,17 @@ def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
-VARIANTS = ("none", "no-loss-metrics", "bias-sum")
+VARIANTS = ("none", "no-loss-metrics", "bias-sum", "pallas-chain")
+
+
+def _with_chain(fn: Callable, chain: Callable) -> Callable:
+    """consistency.fused_chain with `chain` whatever chain its caller passes (its ninth argument, or chain=)."""
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        return fn(*args[:8], **{**kwargs, "chain": chain})
+
+    return wrapped
 
 
 @contextlib.contextmanager
@@ -68,18 +81,22 @@ def applied(variant: str) -> Iterator[None]:
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
-    outer = consistency._outer
+    outer, fused_chain = consistency._outer, consistency.fused_chain
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
     if variant == "bias-sum":
         consistency._outer = _outer_bias_sum
+    if variant == "pallas-chain":
+        from cdjax.kernels.chain import pallas_chain
+
+        consistency.fused_chain = _with_chain(fused_chain, pallas_chain)
     try:
         yield
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
-        consistency._outer = outer
+        consistency._outer, consistency.fused_chain = outer, fused_chain
 
 
 def main(argv=None) -> dict:
