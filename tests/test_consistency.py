@@ -350,8 +350,9 @@ def test_pallas_chain_equals_the_xla_chain_values_and_gradients(shared, hidden, 
     the gradients of a function of them with respect to every input (model, GRU, start states, actions, real rows'
     inputs), within float32 rounding; with the encoder normalising by the model's statistics (shared) or by others,
     one or two hidden layers, either GRU row kind's gradient scale 0, and start states far enough out that some
-    normalised inputs are clipped."""
-    from cdjax.kernels.chain import pallas_chain
+    normalised inputs are clipped. Compiled, not interpreted, the same gradient lowers for a GPU (here, without
+    one): two Triton kernels, every operation and shape in them accepted by Pallas' Triton lowering."""
+    from cdjax.kernels.chain import make_chain, pallas_chain
 
     O, A, H, k, w = 5, 3, 6, 4, 9
     model = _mlp_model(obs=O, act=A, hidden=hidden)
@@ -379,6 +380,8 @@ def test_pallas_chain_equals_the_xla_chain_values_and_gradients(shared, hidden, 
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_x), jax.tree.leaves(g_p)):
         np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5, err_msg=jax.tree_util.keystr(path))
     assert float(jnp.abs(g_x[1][2]).max()) > 0 and float(jnp.abs(g_x[0].layers[-1][0]).max()) > 0
+    gpu = jax.jit(jax.grad(lambda *a: f(make_chain(interpret=False), *a)[0], argnums=(0, 1, 2, 3, 4)))
+    assert gpu.trace(*args).lower(lowering_platforms=("cuda",)).as_text().count("__gpu$xla.gpu.triton") == 2
 
 
 def test_agent_with_the_pallas_chain_gives_the_xla_chains_loss_and_gradients():

@@ -254,11 +254,11 @@ def _over_row_tiles(kernel, tiled: list, whole: list, out_shapes: list, block_ro
         return pl.BlockSpec(block_shape=tuple(shape), index_map=lambda i: (0,) * len(shape))
 
     extra = {}
-    tuned = {name: n for name, n in (("num_warps", num_warps), ("num_stages", num_stages)) if n is not None}
-    if tuned and not interpret:  # only where asked: Triton's defaults otherwise
+    if not interpret:  # Triton's parameters name the backend: pallas_call's default on GPU is Mosaic GPU (jax 0.10)
         from jax.experimental.pallas import triton as pl_triton
 
-        extra["compiler_params"] = pl_triton.CompilerParams(**tuned)
+        tuned = {name: n for name, n in (("num_warps", num_warps), ("num_stages", num_stages)) if n is not None}
+        extra["compiler_params"] = pl_triton.CompilerParams(**tuned)  # None: Triton's defaults
     call = pl.pallas_call(
         kernel, grid=(rows // block_rows,),
         in_specs=[row_tile(x.shape) for x in tiled] + [every(x.shape) for x in whole],
