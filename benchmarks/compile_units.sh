@@ -66,9 +66,10 @@
 #            cdjax.kernels.chain` at the compare suite's sizes (512 windows, O 27, A 8, a hidden layer of 500, H 128,
 #            k 20): the kernels' outputs and gradients against the XLA chain's (max abs/rel differences, at the
 #            default matmul precision and at highest; exit status 1 above 1e-4 relative at highest), then one
-#            forward+backward of each timed alone (16 and 32 rows per program); then the compare suite's Mb-Mf and
-#            paper-CD cases with XLA's chain, and in a process of its own with `benchmarks.variants pallas-chain`,
-#            profiled (--trace). Issue 21: paper-CD at <= 1.5x Mb-Mf's time per update.
+#            forward+backward of each timed alone (rows:warps:stages per program 16:4:1, the default, 32:4:1, 16:8:1
+#            and 16:4:3; one that Triton fails to compile is reported and skipped); then the compare suite's Mb-Mf
+#            and paper-CD cases with XLA's chain, and in a process of its own with `benchmarks.variants
+#            pallas-chain`, profiled (--trace). Issue 21: paper-CD at <= 1.5x Mb-Mf's time per update.
 # Since 5043691 `import cdjax` adds --xla_gpu_autotune_level=1 to XLA_FLAGS unless they name a level: "XLA's defaults"
 # above means level 1 for the units run since, Triton's GEMM flag and the others set beside it; `autotune` and `levels`
 # name level 4 (XLA's own default) where they compare against it. The units' earlier results ran at level 4.

@@ -39,6 +39,10 @@ from cdjax import consistency as cc
 from cdjax import normalize as nz
 
 BLOCK_ROWS = 16  # rows (windows) per program: the smallest operand dimension Triton's matrix products take
+NUM_WARPS = 4  # Triton's warps per program (its default)
+# Triton's software-pipelining stages of the kernels' loop over k: 1, none. Its default (3) would prefetch the next
+# step's reads, weights included, into shared memory (the steps depend on each other through their carry anyway).
+NUM_STAGES = 1
 MIN_LANES = 16  # the smallest padded width (the same limit, on the other dimensions)
 # The rows of the statistics matrix [8, O'] the kernels read (padded lanes: mean 0, std 1; rows 6-7 unused).
 MODEL_MEAN, MODEL_STD, ENC_MEAN, ENC_STD, DELTA_MEAN, DELTA_STD = range(6)
@@ -176,16 +180,17 @@ def _forward_kernel(n_mid: int, shared: bool, k: int, *refs):
             xe = _normalize(stats_ref, ENC_MEAN, s)
             xe_ref[t] = xe
         gi_im = [jnp.dot(xe, w_i_ref[g]) + b_i_ref[g] for g in range(3)]
-        hs = []
-        for kind, (h, gi) in enumerate(((h_re, [gi_re_ref[t, g] for g in range(3)]), (h_im, gi_im))):
-            gh = [jnp.dot(h, w_h_ref[g]) for g in range(3)]
-            for g in range(3):
-                gh_ref[t, kind, g] = gh[g]
-            h = _gru(gi, gh, h, b_hn_ref[...])
-            hs_ref[t + 1, kind] = h
-            hs.append(h)
-        for g in range(3):
+        hs, gh = (h_re, h_im), ([], [])
+        for g in range(3):  # each gate's recurrent weights read once for both row kinds
+            w = w_h_ref[g]
+            for kind in range(2):
+                gh[kind].append(jnp.dot(hs[kind], w))
+                gh_ref[t, kind, g] = gh[kind][g]
             gi_im_ref[t, g] = gi_im[g]
+        hs = [_gru(gi, gh[kind], hs[kind], b_hn_ref[...])
+              for kind, gi in enumerate(([gi_re_ref[t, g] for g in range(3)], gi_im))]
+        for kind in range(2):
+            hs_ref[t + 1, kind] = hs[kind]
         return s, jnp.dot(xm, w1x_ref[...]), hs[0], hs[1]
 
     jax.lax.fori_loop(0, k, step, (s, jnp.dot(xm, w1x_ref[...]), h0, h0))
@@ -210,18 +215,21 @@ def _backward_kernel(n_mid: int, shared: bool, k: int, *refs):
     def step(i, carry):
         t = k - 1 - i
         dh_re, dh_im, ds, dp1 = carry  # dp1: the cotangent of step t + 1's first layer (zeros after the last step)
-        dhs = []
+        dgi, dhh, dhs = [], [], []
         for kind, dh in enumerate((dh_re, dh_im)):
             gi = [(gi_re_ref if kind == 0 else gi_im_ref)[t, g] for g in range(3)]
             gh = [gh_ref[t, kind, g] for g in range(3)]
-            dgi, dhh, dh = _gru_vjp(gi, gh, hs_ref[t, kind], b_hn_ref[...], dh)
-            for g in range(3):
-                dgi_ref[t, kind, g] = dgi[g]
-                dhh_ref[t, kind, g] = dhh[g]
-                dh = dh + _dot_t(dhh[g], w_h_ref[g])
+            d_gi, d_hh, dh = _gru_vjp(gi, gh, hs_ref[t, kind], b_hn_ref[...], dh)
+            dgi.append(d_gi)
+            dhh.append(d_hh)
             dhs.append(dh)
-        # dgi: the imagined rows' (the last kind), whose GRU input is the imagined state's encoder input
-        dxe = _dot_t(dgi[0], w_i_ref[0]) + _dot_t(dgi[1], w_i_ref[1]) + _dot_t(dgi[2], w_i_ref[2])
+        for g in range(3):  # each gate's recurrent weights read once for both row kinds
+            w = w_h_ref[g]
+            for kind in range(2):
+                dgi_ref[t, kind, g] = dgi[kind][g]
+                dhh_ref[t, kind, g] = dhh[kind][g]
+                dhs[kind] = dhs[kind] + _dot_t(dhh[kind][g], w)
+        dxe = _dot_t(dgi[1][0], w_i_ref[0]) + _dot_t(dgi[1][1], w_i_ref[1]) + _dot_t(dgi[1][2], w_i_ref[2])  # imagined
         ds = ds + vjp(states_ref[t + 1], _dot_t(dp1, w1x_ref[...]), dxe)  # every path into s_{t+1}
         dz = ds * _row(stats_ref, DELTA_STD)  # the output layer's
         dz_refs[-1][t] = dz
@@ -346,12 +354,12 @@ def chain_bwd(shared: bool, residuals: dict, cotangents: tuple, *, block_rows: i
     return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
 
 
-def make_chain(block_rows: int = BLOCK_ROWS, interpret: bool | None = None, num_warps: int | None = None,
-               num_stages: int | None = None):
+def make_chain(block_rows: int = BLOCK_ROWS, interpret: bool | None = None, num_warps: int | None = NUM_WARPS,
+               num_stages: int | None = NUM_STAGES):
     """The chain with these kernels: a function (shared, p, c) -> (h_re, h_im, s_k) with `consistency._chain`'s
     contract and gradient, for `fused_chain(..., chain=)`. block_rows: rows per program (a power of two >= 16);
     interpret: Pallas' interpret mode (None: off a GPU); num_warps, num_stages: Triton's warps per program and
-    software-pipelining stages of its loops (None: its defaults)."""
+    software-pipelining stages of its loops (None: Triton's defaults)."""
     assert block_rows >= MIN_LANES and block_rows & (block_rows - 1) == 0, block_rows
     options = dict(block_rows=block_rows, interpret=interpret, num_warps=num_warps, num_stages=num_stages)
 
@@ -441,6 +449,12 @@ def time_chain(chain, inputs: tuple, shared: bool, repeats: int = 50) -> float:
     return float(np.median(times))
 
 
+def _tiling(text: str) -> dict:
+    """'ROWS:WARPS:STAGES' (e.g. 16:4:1) -> make_chain's block_rows, num_warps, num_stages."""
+    rows, warps, stages = (int(x) for x in text.split(":"))
+    return dict(block_rows=rows, num_warps=warps, num_stages=stages)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m cdjax.kernels.chain", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -450,23 +464,23 @@ def main(argv=None) -> int:
     p.add_argument("--hidden", type=int, nargs="+", default=[500], help="the model's hidden widths")
     p.add_argument("--encoder-dim", type=int, default=128, help="H")
     p.add_argument("--horizon", type=int, default=20, help="k")
-    p.add_argument("--block-rows", type=int, nargs="+", default=[16, 32], help="row tiles to time")
-    p.add_argument("--num-warps", type=int, default=None, help="Triton's warps per program (default: its own)")
-    p.add_argument("--num-stages", type=int, default=None, help="Triton's pipelining stages (default: its own)")
+    p.add_argument("--tilings", nargs="+", default=[f"{BLOCK_ROWS}:{NUM_WARPS}:{NUM_STAGES}", "32:4:1", "16:8:1",
+                                                     "16:4:3"],
+                   help="ROWS:WARPS:STAGES per program to time (the first is also checked; default: pallas_chain's "
+                        "first); one that fails to compile is reported and skipped")
     p.add_argument("--repeats", type=int, default=50, help="timed calls per implementation")
     p.add_argument("--no-time", action="store_true", help="the differences only")
     args = p.parse_args(argv)
     print(f"backend {jax.default_backend()}, devices {jax.devices()}, jax {jax.__version__}", flush=True)
     sizes = dict(rows=args.rows, obs=args.obs, act=args.act, hidden=tuple(args.hidden), encoder_dim=args.encoder_dim,
                  horizon=args.horizon)
-    print(f"sizes {sizes}", flush=True)
-    tuned = functools.partial(make_chain, num_warps=args.num_warps, num_stages=args.num_stages)
+    print(f"sizes {sizes}; checked with rows:warps:stages {args.tilings[0]}", flush=True)
     worst = 0.0
     for shared in (True, False):
         inputs = random_inputs(jax.random.key(0), shared=shared, **sizes)
         for precision in ("default", "highest"):
             with jax.default_matmul_precision(None if precision == "default" else precision):
-                found = differences(tuned(args.block_rows[0]), inputs, shared, (1.0, 0.5))
+                found = differences(make_chain(**_tiling(args.tilings[0])), inputs, shared, (1.0, 0.5))
             largest, (err, rel) = max(found.items(), key=lambda item: item[1][1])
             print(f"shared={shared} precision={precision}: largest relative difference {rel:.2e} "
                   f"(abs {err:.2e}) in {largest}", flush=True)
@@ -478,9 +492,14 @@ def main(argv=None) -> int:
         inputs = random_inputs(jax.random.key(0), shared=True, **sizes)
         base = time_chain(None, inputs, True, args.repeats)
         print(f"xla chain: {base * 1e3:.3f} ms per forward+backward", flush=True)
-        for block_rows in args.block_rows:
-            t = time_chain(tuned(block_rows), inputs, True, args.repeats)
-            print(f"pallas chain, {block_rows} rows per program: {t * 1e3:.3f} ms per forward+backward "
+        for tiling in args.tilings:
+            try:
+                t = time_chain(make_chain(**_tiling(tiling)), inputs, True, args.repeats)
+            except Exception as e:  # noqa: BLE001 - e.g. Triton out of shared memory: the others still run
+                print(f"pallas chain, rows:warps:stages {tiling}: failed: {type(e).__name__}: {str(e)[:300]}",
+                      flush=True)
+                continue
+            print(f"pallas chain, rows:warps:stages {tiling}: {t * 1e3:.3f} ms per forward+backward "
                   f"({t / base:.2f}x the xla chain's)", flush=True)
     print(f"worst relative difference at precision highest: {worst:.2e}")
     return 0 if worst < 1e-4 else 1
