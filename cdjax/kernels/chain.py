@@ -19,7 +19,9 @@ lane normalises to 0 and a zero output lane denormalises to 0; a GRU lane with z
 has gates r = z = 1/2 and n = 0, so it stays 0; and the weight rows that read padded lanes are zero. Padded rows
 are sliced away. float32 throughout; the matrix products at the default precision, as the XLA chain's.
 
-Off a GPU (`jax.default_backend() != "gpu"`) the kernels run in Pallas' interpret mode: the tests, on CPU.
+On a GPU the kernels are Triton's, named by passing Triton's compiler parameters (pallas_call's default GPU backend
+is Mosaic GPU since jax 0.10). Off a GPU (`jax.default_backend() != "gpu"`) they run in Pallas' interpret mode: the
+tests, on CPU, which also lower them for a GPU without one.
 
     python -m cdjax.kernels.chain  # outputs and gradients against the XLA chain, then both timed (meant for a GPU)
 """
@@ -290,6 +292,7 @@ def chain_fwd(shared: bool, p: dict, c: dict, *, block_rows: int = BLOCK_ROWS, i
     layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
     s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
     k, (W, O), H = actions.shape[0], s0.shape, w_h.shape[0]
+    assert len(layers) >= 2 and x_re.shape[-1] == w_i.shape[0] == O, (len(layers), x_re.shape, w_i.shape, O)
     w_1, b_1 = layers[0]
     gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
     z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
