@@ -144,6 +144,9 @@ def validate(config: Config) -> None:
         )
     if config.eval_envs > config.num_envs:
         raise ConfigError(f"eval_envs={config.eval_envs} is larger than num_envs={config.num_envs}.")
+    if config.cc_chain_impl == "pallas" and config.encoder == "l2":
+        raise ConfigError("cc_chain_impl='pallas' runs the fused chain of a GRU encoder, and encoder 'l2' has none; "
+                          "use cc_chain_impl='xla' or a GRU encoder.")
 
 
 # The kind and range of every Config field (cdjax.checks; the Literal, tuple and bool fields take theirs from
