@@ -228,6 +228,35 @@ def test_the_next_chunk_runs_while_a_round_is_logged_and_checkpointed(uninterrup
     assert 2.0 <= float(between) < 4.0 <= 6.0 <= float(total), line
 
 
+def test_a_snapshot_copies_what_a_save_keeps_in_one_program_and_outlives_the_donated_state():
+    """`io.snapshot`: the kept leaves (typed keys too) as fresh device buffers with the same values, the others as
+    their shapes, other leaves as they are; all copies made by one compiled program, whatever their shapes (leaf by
+    leaf, the first checkpoint of a sweep compiled one per shape: 2.3 s for 200 leaves on a 2-core CPU), into buffers
+    of their own, which a chunk that donates the state after the snapshot leaves intact."""
+    import jax.numpy as jnp
+
+    from cdjax.io import checkpoints
+
+    arrays = [jnp.arange(float(n * (n % 4 + 1))).reshape(n, n % 4 + 1) + 0.5 for n in range(3, 40)]  # 37 shapes
+    tree = {"arrays": arrays, "key": jax.random.split(jax.random.key(7), 3), "dropped": jnp.ones((5, 2)),
+            "empty": jnp.zeros((0, 3)), "step": 12}
+    keep = {"arrays": [True] * len(arrays), "key": True, "dropped": False, "empty": True, "step": True}
+    before = checkpoints._copies._cache_size()
+    copy = io.snapshot(tree, keep)
+    assert checkpoints._copies._cache_size() == before + 1
+    assert copy["step"] == 12 and isinstance(copy["dropped"], jax.ShapeDtypeStruct)
+    assert isinstance(copy["empty"], jax.ShapeDtypeStruct) and copy["empty"].shape == (0, 3)
+    expected = [np.asarray(x) for x in arrays]
+    key_data = np.asarray(jax.random.key_data(tree["key"]))
+    assert jax.dtypes.issubdtype(copy["key"].dtype, jax.dtypes.prng_key)
+    assert all(got.unsafe_buffer_pointer() != x.unsafe_buffer_pointer() for got, x in zip(copy["arrays"], arrays))
+    donate = jax.jit(lambda t: jax.tree.map(lambda x: x * 2, t), donate_argnums=0)
+    jax.block_until_ready(donate(tree["arrays"]))  # the next chunk donates the state's own buffers (where XLA can)
+    for got, want in zip(copy["arrays"], expected):
+        np.testing.assert_array_equal(np.asarray(got), want)
+    np.testing.assert_array_equal(np.asarray(jax.random.key_data(copy["key"])), key_data)
+
+
 def test_evaluations_between_rounds_see_each_round_and_a_stop_after_one_keeps_it(uninterrupted, tmp_path):
     """eval_every 1: an evaluation after every round but the last, of the state that round left (no chunk runs
     ahead of an evaluation); the stop question comes after it, once per round, and a stop then keeps that round's
