@@ -1,9 +1,9 @@
 """The one place for runtime switches: XLA's flags, the compilation cache, the compile mode, NaN checks,
 disabling jit.
 
-`cdjax` applies the CPU workaround when it is imported (before JAX starts its backends). Everything else
-goes through `configure`, which the CLI (--cache-dir, --compile-mode, --debug-nans, --disable-jit), the tests,
-the benchmarks and the examples call:
+`cdjax` adds its XLA flags when it is imported (`apply_xla_defaults`, before JAX starts its backends).
+Everything else goes through `configure`, which the CLI (--cache-dir, --compile-mode, --debug-nans,
+--disable-jit), the tests, the benchmarks and the examples call:
 
     cdjax.runtime.configure(cache_dir=cdjax.runtime.default_cache_dir())
 """
@@ -48,9 +48,8 @@ def apply_xla_defaults() -> None:
     option already. XLA reads XLA_FLAGS when a backend starts: `import cdjax` calls this, so it takes effect unless
     a JAX backend was started before cdjax was imported."""
     flags = os.environ.get("XLA_FLAGS", "")
-    for option, flag in (("xla_cpu_enable_concurrency_optimized_scheduler", CPU_SCHEDULER_FLAG),
-                         ("xla_gpu_autotune_level", GPU_AUTOTUNE_FLAG)):
-        if option not in flags:
+    for flag in (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG):
+        if flag.split("=")[0].lstrip("-") not in flags:  # the option's name
             flags = f"{flags} {flag}".strip()
     os.environ["XLA_FLAGS"] = flags
 

@@ -340,21 +340,13 @@ def chain_bwd(shared: bool, residuals: dict, cotangents: tuple, *, block_rows: i
     dgi, dhh, *dz, ds0 = _over_row_tiles(functools.partial(_backward_kernel, len(layers) - 2, shared, k), tiled,
                                          whole, out_shapes, block_rows, interpret, num_warps, num_stages)
 
-    # after the loop: `_chain_bwd`'s products over all steps and rows
-    dz_layers = [d[:, :W, :kernel.shape[1]] for d, (kernel, _) in zip(dz, layers)]
-    model_in = jnp.concatenate([r["xm"][:k, :W, :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
-    inputs = [model_in] + [u[:, :W, :kernel.shape[1]] for u, (kernel, _) in zip(r["hidden"], layers)]
-    dlayers = tuple(cc._outer(x, d) for x, d in zip(inputs, dz_layers))
-    dactions = dz_layers[0] @ layers[0][0][O:].T
-    scales = jnp.stack(c["scales"])[None, :, None, None]
-    scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
+    # after the loop: `_chain_bwd`'s products over all steps and rows, on the padding sliced away
     dgi, dhh = _gates_last(dgi, W, H), _gates_last(dhh, W, H)  # [k, 2, W, 3H]
-    x_im = (r["xm"][1:] if shared else r["xe"])[:, :W, :O]
-    dw_i, db_i = cc._outer(jnp.stack([p["x_re"], x_im], axis=1), scaled(dgi))
-    dw_h, dgh_bias = cc._outer(r["hs"][:k, :, :W, :H], scaled(dhh))
-    dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0[:W, :O], actions=dactions,
-              x_re=dgi[:, 0] @ p["w_i"].T)
-    return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
+    return cc.chain_gradients(p, c, r["xm"][:k, :W, :O],
+                              [u[:, :W, :kernel.shape[1]] for u, (kernel, _) in zip(r["hidden"], layers)],
+                              [d[:, :W, :kernel.shape[1]] for d, (kernel, _) in zip(dz, layers)],
+                              (r["xm"][1:] if shared else r["xe"])[:, :W, :O], dgi, r["hs"][:k, :, :W, :H], dhh,
+                              ds0[:W, :O])
 
 
 def make_chain(block_rows: int = BLOCK_ROWS, interpret: bool | None = None, num_warps: int | None = NUM_WARPS,
