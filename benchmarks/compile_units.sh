@@ -61,15 +61,13 @@
 #            convolutions are autotuned too, so what level 1 picks for them is timed against level 4's picks; then the
 #            compare suite (Brax PPO, model-free, Mb-Mf, paper-CD; one process, all at cdjax's level) (about 14 minutes
 #            in all).
-#   pallas   the consistency chain as two Pallas kernels (`cdjax.kernels.chain`: one launch for the k steps forward,
-#            one for the backward) against XLA's unrolled chain (about 5-8 minutes): first `python -m
-#            cdjax.kernels.chain` at the compare suite's sizes (512 windows, O 27, A 8, a hidden layer of 500, H 128,
-#            k 20): the kernels' outputs and gradients against the XLA chain's (max abs/rel differences, at the
-#            default matmul precision and at highest; exit status 1 above 1e-4 relative at highest), then one
-#            forward+backward of each timed alone (rows:warps:stages per program 16:4:1, the default, 32:4:1, 16:8:1
-#            and 16:4:3; one that Triton fails to compile is reported and skipped); then the compare suite's Mb-Mf
-#            and paper-CD cases with XLA's chain, and in a process of its own with `benchmarks.variants
-#            pallas-chain`, profiled (--trace). Issue 21: paper-CD at <= 1.5x Mb-Mf's time per update.
+#   parallel XLA's LLVM module compilation in parallel (about 11 minutes): the 4-arm ant sweep cold at cdjax's defaults,
+#            then with XLA_FLAGS=--xla_gpu_enable_llvm_module_compilation_parallelism=true (XLA splits each program's
+#            LLVM module and compiles the parts in threads; off by default), then with it and
+#            --xla_gpu_force_compilation_parallelism=8 (the thread count named); each flag skipped, saying so, where the
+#            image's XLA refuses it. Then the learning benchmark (cdjax's model-free arm, 5 seeds, ant, halfcheetah and
+#            reacher side by side on the one GPU, as on 2026-11-25) at cdjax's defaults: the rows to set beside Brax
+#            PPO's (`python -m benchmarks.learning --report`), owed since the autotuner's level 1 (5043691).
 # Since 5043691 `import cdjax` adds --xla_gpu_autotune_level=1 to XLA_FLAGS unless they name a level: "XLA's defaults"
 # above means level 1 for the units run since, Triton's GEMM flag and the others set beside it; `autotune` and `levels`
 # name level 4 (XLA's own default) where they compare against it. The units' earlier results ran at level 4.
@@ -182,15 +180,23 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" grep -h ' s/update' $work/compare-$case.log;"
       done
       echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
-    pallas)
-      local cases="--suite compare --cases mbmf cd-paper --budget-s 120"
-      echo "timeout -k 20 200 python -m cdjax.kernels.chain > $work/check.log 2>&1; echo \"check: exit \$?\";" \
-        "grep -v '^    ' $work/check.log | tail -n 14;" \
-        "timeout -k 20 150 python -m benchmarks.run $cases --out $work/default > $work/default.log 2>&1;" \
-        "timeout -k 20 170 python -m benchmarks.variants pallas-chain -- $cases --trace $work/trace-pallas" \
-        "--out $work/pallas > $work/pallas.log 2>&1;" \
-        "grep -H ' s/update' $work/default.log $work/pallas.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo or pallas" >&2; return 1 ;;
+    parallel)
+      local llvm=xla_gpu_enable_llvm_module_compilation_parallelism=true t
+      echo "timeout -k 20 200 python -m benchmarks.compile_time --out $work/default --cache-dir $work/cache-default" \
+        "-- $sweep > $work/default.log 2>&1;" \
+        "$(with_flag $llvm "timeout -k 20 200 python -m benchmarks.compile_time --out $work/llvm" \
+          "--cache-dir $work/cache-llvm -- $sweep > $work/llvm.log 2>&1")" \
+        "if python -m benchmarks.xla_flags --accepts $llvm xla_gpu_force_compilation_parallelism=8 > /dev/null; then" \
+        "XLA_FLAGS='--$llvm --xla_gpu_force_compilation_parallelism=8' timeout -k 20 200 python -m benchmarks.compile_time" \
+        "--out $work/llvm8 --cache-dir $work/cache-llvm8 -- $sweep > $work/llvm8.log 2>&1;" \
+        "else echo 'this XLA refuses force_compilation_parallelism: skipped'; fi;" \
+        "grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/default.log $work/llvm*.log;"
+      for t in ant halfcheetah reacher; do
+        echo "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 420 python -m benchmarks.learning --tasks $t" \
+          "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
+      done
+      echo "wait; tail -n 2 $work/learn-*.log" ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo or parallel" >&2; return 1 ;;
   esac
 }
 
@@ -201,7 +207,7 @@ ensure_wheels || exit 1
 unit_run "$work" "$cmd" "$wait_s" "$t0" "bash benchmarks/compile_units.sh $unit" || exit 0
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
 archive=$(cd "$out" && pwd)/$unit.tar.gz
-(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name 'results.*' -o -name 'pixel-*' -o -name '*.log' -o -name hlo.tar.gz \
+(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name 'results.*' -o -name 'pixel-*' -o -name '*.log' -o -name hlo.tar.gz -o -name rows.jsonl -o -name meta.json \
   | grep -v '/checkpoints/' \
   | tar -czf "$archive" -T -)
 cp "$work/unit.log" "$out/$unit.log"

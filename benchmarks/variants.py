@@ -19,12 +19,15 @@ Variants:
                    separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
                    The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
                    it against 0.805 s without.
-  pallas-chain     the fused consistency chain as two Pallas kernels (`cdjax.kernels.chain`: one launch for the
-                   k steps forward, one for the backward, a program per tile of rows) whatever the config's
-                   cc_chain_impl; only the CD cases run the chain. The same function up to float32 rounding.
   (pad-hidden, the fused chain's hidden widths zero-padded to a multiple of 128 once per minibatch, was removed
   after its A/B: paper-CD 0.7306 s/update with it against 0.7304 s without, one H100, 2026-11-25,
   benchmarks/results/2026-11-25-h100-probes/.)
+  (pallas-chain, the chain as two Pallas kernels (cdjax.kernels.chain, commit 7cc54f8), was removed with them:
+  paper-CD 0.982 s/update with it against 0.732 s with XLA's chain, and its gradients off by up to 3e-2 relative on
+  the GPU, one H100, 2026-11-26, benchmarks/results/2026-11-26-h100-pallas/.)
+  (skinny-reduce, the chain's narrow per-step products (the model's output layer forward, the states' cotangent
+  backward) as a fused multiply-and-sum instead of split-K dots, was tried and not kept: paper-CD 0.7601 s/update
+  with it against 0.7304 s without, one H100, 2026-11-26, benchmarks/results/2026-11-26-h100-compare/.)
 """
 
 from __future__ import annotations
@@ -62,17 +65,7 @@ def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
-VARIANTS = ("none", "no-loss-metrics", "bias-sum", "pallas-chain")
-
-
-def _with_chain(fn: Callable, chain: Callable) -> Callable:
-    """consistency.fused_chain with `chain` whatever chain its caller passes (its ninth argument, or chain=)."""
-
-    @functools.wraps(fn)
-    def wrapped(*args, **kwargs):
-        return fn(*args[:8], **{**kwargs, "chain": chain})
-
-    return wrapped
+VARIANTS = ("none", "no-loss-metrics", "bias-sum")
 
 
 @contextlib.contextmanager
@@ -81,22 +74,18 @@ def applied(variant: str) -> Iterator[None]:
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
-    outer, fused_chain = consistency._outer, consistency.fused_chain
+    outer = consistency._outer
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
     if variant == "bias-sum":
         consistency._outer = _outer_bias_sum
-    if variant == "pallas-chain":
-        from cdjax.kernels.chain import pallas_chain
-
-        consistency.fused_chain = _with_chain(fused_chain, pallas_chain)
     try:
         yield
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
-        consistency._outer, consistency.fused_chain = outer, fused_chain
+        consistency._outer = outer
 
 
 def main(argv=None) -> dict:

@@ -379,8 +379,8 @@ def chain_gradients(p: dict, c: dict, x_model, hidden: list, dz_layers: list, x_
     x_model [k, W, O] the model's normalised inputs of s_0..s_{k-1}; hidden the hidden layers' outputs [k, W, N]
     each; dz_layers the cotangents of every layer's output (the first layer's first); x_im [k, W, D] the encoder's
     inputs of the imagined states s_1..s_k; dgi, dhh [k, 2, W, 3H] the cotangents of the GRU's input and recurrent
-    parts (real rows, imagined rows); hs [k, 2, W, H] the hidden states h_0..h_{k-1}; ds0 [W, O]. Shared by
-    `_chain_bwd` and the Pallas chain's backward (`cdjax.kernels.chain`)."""
+    parts (real rows, imagined rows); hs [k, 2, W, H] the hidden states h_0..h_{k-1}; ds0 [W, O]. Called by
+    `_chain_bwd`."""
     layers, O = p["layers"], x_model.shape[-1]
     model_in = jnp.concatenate([x_model, p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
     dlayers = tuple(_outer(x, dz) for x, dz in zip([model_in] + list(hidden), dz_layers))
@@ -400,7 +400,7 @@ _chain.defvjp(_chain_fwd, _chain_bwd)
 
 
 def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.RunningStats, scales: tuple,
-                shared: bool = False, chain: Callable | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+                shared: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The k imagined steps of an MLPModel from s0 [W, O] under actions [k, W, A] and the GRU encodings of the real
     (normalised) states x_re [k, W, D] and of the imagined ones (normalised by enc_obs): (h_re, h_im [W, H], s_k).
 
@@ -409,16 +409,14 @@ def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.Runn
     afterwards in one product over all steps; the real and imagined rows share each GRU product. The GRU's
     gradient from the real rows is scaled by scales[0] and from the imagined rows by scales[1] (as
     `scale_gradient` would on the encoder's parameters of each); the running statistics are constants.
-    `shared`: enc_obs is the model's own obs statistics (one normalised input serves both). `chain`: another
-    implementation of `_chain`'s contract (shared, p, c) -> (h_re, h_im, s_k) with its gradient, such as
-    `cdjax.kernels.chain.pallas_chain` (one kernel launch for the forward, one for the backward); None: `_chain`.
+    `shared`: enc_obs is the model's own obs statistics (one normalised input serves both).
     """
     w_i, b_i, w_h, b_hn = gru
     layers = tuple(tuple(layer) for layer in model.layers)
     p = dict(layers=layers, w_i=w_i, b_i=b_i, w_h=w_h, b_hn=b_hn, s0=s0, actions=actions, x_re=x_re)
     c = jax.lax.stop_gradient(dict(model_obs=model.obs, delta=model.delta, enc_obs=enc_obs,
                                    scales=tuple(jnp.asarray(x, jnp.float32) for x in scales)))
-    return (_chain if chain is None else chain)(shared, p, c)
+    return _chain(shared, p, c)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -461,7 +459,7 @@ def _spread(x: jax.Array, mask: jax.Array) -> jax.Array:
 
 def consistency_loss(model_step: Callable, model_params, s0, actions, real_next, mask, *, kind: str,
                      normalize: Callable | nz.RunningStats, weights: PathWeights, encoder=None, encoder_params=None,
-                     unroll: int = 1, fused: bool = True, chain: Callable | None = None) -> tuple[dict, dict]:
+                     unroll: int = 1, fused: bool = True) -> tuple[dict, dict]:
     """The consistency terms of a batch of windows: ({name: loss}, metrics).
 
     model_step(model_params, s [W, O], a [W, A]) -> s' imagines in raw state space; s0 [W, O] real start
@@ -472,7 +470,7 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
 
     With `mlp_step` and an `MLPModel`, a GRU encoder whose parameters are a flax GRUCell's (`gru_weights`) and
     normalize given as RunningStats, that scan runs fused (`fused_chain`: the same function, its backward
-    written out, a third of the kernels on a GPU) unless fused=False; `chain` is `fused_chain`'s (None: XLA's).
+    written out, a third of the kernels on a GPU) unless fused=False.
 
     Terms: "consistency" (l_cc, averaged over unmasked windows) and, for grounded-gru, "encoder_aux"
     (the reconstruction error of the real window plus the spread floor's hinge).
@@ -498,8 +496,7 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
         # real rows: the encoder's own parameters for grounded-gru (l_cc's share is scaled on h_re below), scaled
         # ones otherwise; imagined rows: scaled (as the two encode() below)
         scales = (1.0 if recon else weights.to_encoder, weights.to_encoder)
-        h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared,
-                                       chain=chain)
+        h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared)
         return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim)
 
     if recon:

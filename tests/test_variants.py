@@ -67,30 +67,3 @@ def test_bias_sum_gives_the_same_weight_gradients_as_the_one_product():
         split_kernel, split_bias = consistency._outer(a, b)
     assert consistency._outer is one_product
     assert jnp.allclose(split_kernel, kernel, atol=1e-5) and jnp.allclose(split_bias, bias, atol=1e-5)
-
-
-def test_pallas_chain_variant_hands_the_kernels_chain_to_every_fused_chain_call_inside_its_block(monkeypatch):
-    """The variant makes `consistency.fused_chain` run `cdjax.kernels.chain.pallas_chain` whatever chain its caller
-    passes (the agent passes None: the XLA chain), and only inside its block."""
-    from cdjax import consistency
-    from cdjax import normalize as nz
-    from cdjax.kernels import chain as kernels
-
-    seen = []
-
-    def spy(shared, p, c):
-        seen.append(shared)
-        return p["s0"][:, :2], p["s0"][:, :2], p["s0"]
-
-    monkeypatch.setattr(kernels, "pallas_chain", spy)
-    model = consistency.MLPModel(layers=((jnp.ones((5, 4)), jnp.zeros(4)), (jnp.ones((4, 3)), jnp.zeros(3))),
-                                 obs=nz.RunningStats.create(3), delta=nz.RunningStats.create(3))
-    gru = (jnp.ones((3, 6)), jnp.zeros(6), jnp.ones((2, 6)), jnp.zeros(2))
-    s0, actions, x_re = jnp.ones((7, 3)), jnp.ones((4, 7, 2)), jnp.ones((4, 7, 3))
-    args = (model, gru, s0, actions, x_re, model.obs, (1.0, 1.0))
-    original = consistency.fused_chain
-    with variants.applied("pallas-chain"):
-        out = consistency.fused_chain(*args, True, chain=None)
-    assert seen == [True] and jnp.array_equal(out[2], s0)
-    assert consistency.fused_chain is original
-    assert consistency.fused_chain(*args, True)[0].shape == (7, 2) and seen == [True]  # the XLA chain again

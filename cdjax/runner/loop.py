@@ -38,7 +38,7 @@ from cdjax.runner import budget
 from cdjax.runner.arms import (Arm, abstract_state, build, check_memory, compile_all, evaluate_arms, expectation,
                                finished_evaluation, host_time, nanmean, restore, unreadable_text)
 from cdjax.runner.console import Clock, Progress, StopFlag, Stopped, library_log, stopped
-from cdjax.runner.plan import plan_arms, run_record, same_run
+from cdjax.runner.plan import plan_arms, run_record, same_run, without_retired
 from cdjax.runner.spec import SweepSpec, out_dir, resolve
 from cdjax.sweep import unpad
 
@@ -96,7 +96,7 @@ def _prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, Setting, list, d
     spec, setting = resolve(spec)
     old = None
     if resume:
-        old = rd.read()
+        old = without_retired(rd.read(), rd.run_json)
         if old.get("version") != io.RUN_VERSION:
             raise io.RunDirError(f"{rd.path} was written by an older cdjax (run.json version {old.get('version')}); "
                                  "it can be plotted and evaluated but not resumed.")

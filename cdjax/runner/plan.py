@@ -191,6 +191,37 @@ def _known(old, new):
     return new
 
 
+# Config fields that cdjax no longer has but a run.json written before their removal names: field -> (the value that
+# trained its runs as cdjax trains them now, what the other values were). A record holding that value is read
+# without the field; another value is refused.
+RETIRED = {
+    "cc_chain_impl": ("xla", "the consistency chain as Pallas kernels, removed on 2026-11-26: slower than XLA's chain, "
+                             "its gradients wrong on a GPU"),
+}
+
+
+def without_retired(run: dict, where: str | pathlib.Path) -> dict:
+    """run.json's record `run` without the retired Config fields (RETIRED) of its base config and arms' configs
+    (a copy; the record is not changed); RunDirError (one sentence) for one that holds another value than the kept
+    one."""
+    def config(fields):
+        if not isinstance(fields, dict):
+            return fields
+        for name, (kept, gone) in RETIRED.items():
+            if name in fields and fields[name] != kept:
+                raise io.RunDirError(f"{where} names {name} {fields[name]!r} ({gone}): this cdjax can plot its runs "
+                                     "but not resume or evaluate them.")
+        return {k: v for k, v in fields.items() if k not in RETIRED}
+
+    out = dict(run)
+    if "base_config" in out:
+        out["base_config"] = config(out["base_config"])
+    if isinstance(out.get("arms"), list):
+        out["arms"] = [{**a, "config": config(a["config"])} if isinstance(a, dict) and "config" in a else a
+                       for a in out["arms"]]
+    return out
+
+
 def spec_of(run: dict, out: str | pathlib.Path, **changes) -> SweepSpec:
     """The SweepSpec a run.json records (version 1 records: the options they lack take their defaults)."""
     return recorded(run, out, **changes)[0]
@@ -200,6 +231,7 @@ def recorded(run: dict, out: str | pathlib.Path, **changes) -> tuple[SweepSpec, 
     """(the SweepSpec a run.json records, resolved, and its setting): the setting is looked up by the name the
     record holds, once."""
     defaults = SweepSpec(out=out)
+    run = without_retired(run, f"{out}/run.json")
     try:
         setting = agents.get(run.get("setting", agents.DEFAULT))
         phase = run.get("phase")

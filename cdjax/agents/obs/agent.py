@@ -133,11 +133,6 @@ class ObsAgent:
         self.policy, self.value = self.modules["policy"], self.modules["value"]
         self.model = self.modules.get("model")
         self.encoder = self.modules.get("encoder")
-        self.chain = None  # the fused consistency chain: None is XLA's (consistency.fused_chain)
-        if config.cc_chain_impl == "pallas":
-            from cdjax.kernels.chain import pallas_chain  # only here: Pallas is imported when asked for
-
-            self.chain = pallas_chain
         self.yardstick = None  # the windows of config.yardstick the model is scored on (cdjax/agents/obs/yardstick.py)
         if config.yardstick and self.model is not None:
             data = yardstick.load(config.yardstick)
@@ -250,7 +245,7 @@ class ObsAgent:
                 consistency.mlp_step, self.mlp_model(model_params, norms), s0, window_actions, real_next, mask,
                 kind=self.config.encoder, normalize=norms.obs,
                 weights=consistency.path_weights(hp), encoder=self.encoder,
-                encoder_params=params.get("encoder"), unroll=self.config.cc_unroll, chain=self.chain)
+                encoder_params=params.get("encoder"), unroll=self.config.cc_unroll)
             terms.update(cc_terms)
             metrics.update(cc_metrics)
         return terms, metrics

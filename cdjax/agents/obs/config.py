@@ -25,8 +25,6 @@ PolicyStd = Literal["state", "global"]
 Entropy = Literal["squashed", "gaussian"]
 Init = Literal["orthogonal", "lecun"]
 ClipScope = Literal["group", "policy-value"]
-ChainImpl = Literal["xla", "pallas"]
-CHAIN_IMPLS = ("xla", "pallas")  # how the fused consistency chain runs (cdjax.consistency, cdjax.kernels.chain)
 ENCODERS = KINDS  # the consistency term's encoders (cdjax.consistency)
 
 
@@ -60,7 +58,6 @@ class Config:
     encoder_dim: int = 128  # GRU hidden size
     cc_windows: int = 0  # consistency windows per env per minibatch, random start offsets; 0 = all T-k+1
     cc_unroll: int = 1  # lax.scan unroll factor of the scanned k-step term (the obs agent's fused chain is unrolled)
-    cc_chain_impl: ChainImpl = "xla"  # the fused k-step chain: xla (unrolled XLA ops) or pallas (one kernel each way)
     cc_epochs: int = 0  # PPO epochs (the first ones) whose minibatches include the consistency term; 0 = all
     eval_horizon: int = 50  # longer open-loop horizon for the compounding-error metric (paper: 50)
     eval_envs: int = 8  # environments whose recent history is kept for the open-loop error metrics
@@ -144,9 +141,6 @@ def validate(config: Config) -> None:
         )
     if config.eval_envs > config.num_envs:
         raise ConfigError(f"eval_envs={config.eval_envs} is larger than num_envs={config.num_envs}.")
-    if config.cc_chain_impl == "pallas" and config.encoder == "l2":
-        raise ConfigError("cc_chain_impl='pallas' runs the fused chain of a GRU encoder, and encoder 'l2' has none; "
-                          "use cc_chain_impl='xla' or a GRU encoder.")
 
 
 # The kind and range of every Config field (cdjax.checks; the Literal, tuple and bool fields take theirs from
@@ -155,8 +149,7 @@ FIELDS = Fields(
     Config, encoder=Choice(ENCODERS), num_envs=Count(1), rollout_len=Count(1), horizon=Count(1), num_updates=Count(1),
     num_epochs=Count(1), num_minibatches=Count(1), segment_len=Count(1, zero="the whole rollout"),
     episode_length=Count(1), action_repeat=Count(1), encoder_dim=Count(1), cc_windows=Count(1, zero="all windows"),
-    cc_unroll=Count(1), cc_epochs=Count(1, zero="all epochs"), cc_chain_impl=Choice(CHAIN_IMPLS), eval_horizon=Count(1),
-    eval_envs=Count(1))
+    cc_unroll=Count(1), cc_epochs=Count(1, zero="all epochs"), eval_horizon=Count(1), eval_envs=Count(1))
 
 
 def _linen():
