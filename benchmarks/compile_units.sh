@@ -68,6 +68,18 @@
 #            image's XLA refuses it. Then the learning benchmark (cdjax's model-free arm, 5 seeds, ant, halfcheetah and
 #            reacher side by side on the one GPU, as on 2026-11-25) at cdjax's defaults: the rows to set beside Brax
 #            PPO's (`python -m benchmarks.learning --report`), owed since the autotuner's level 1 (5043691).
+#   workers  how many compiling threads the cold 4-arm ant sweep wants (about 5 minutes): the sweep cold (an empty
+#            persistent cache each) with CDJAX_COMPILE_WORKERS=W for W in WORKERS (default "2 4 8"; 8 is the default on
+#            these 16-core hosts). On 2026-11-26 (H100, level 1) the four chunks compiled side by side for 44-62 s each,
+#            model-free's in 42-44 s where its one-update program compiles alone in 17 s: whether fewer threads (less
+#            contention for the CPU and the one GPU's autotuner, and fusions autotuned once and then found in XLA's
+#            in-process results) start training sooner. Cold times spread ~20% between H100 hosts, so compare within
+#            the unit only.
+#   hc-seeds the learning benchmark's half-cheetah at 10 seeds a learner (about 8 minutes): cdjax's model-free arm,
+#            seeds 0-9 in one process, then Brax PPO's seeds 5-9 (its seeds 0-4 are 2026-11-22's rows), one after
+#            the other (side by side on one GPU they did not finish in one call, 2026-11-26). At level 1 the 5-seed
+#            final IQM fell below Brax's (1740 against 1930, intervals overlapping; benchmarks/results/
+#            2026-11-26-h100-learning/): whether that is the seeds' spread.
 # Since 5043691 `import cdjax` adds --xla_gpu_autotune_level=1 to XLA_FLAGS unless they name a level: "XLA's defaults"
 # above means level 1 for the units run since, Triton's GEMM flag and the others set beside it; `autotune` and `levels`
 # name level 4 (XLA's own default) where they compare against it. The units' earlier results ran at level 4.
@@ -180,6 +192,20 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" grep -h ' s/update' $work/compare-$case.log;"
       done
       echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
+    workers)
+      local line="" w
+      for w in ${WORKERS:-2 4 8}; do
+        line+="CDJAX_COMPILE_WORKERS=$w timeout -k 20 200 python -m benchmarks.compile_time --out $work/workers$w"
+        line+=" --cache-dir $work/cache-workers$w -- $sweep > $work/workers$w.log 2>&1; "
+      done
+      echo "$line grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/workers*.log" ;;
+    hc-seeds)
+      echo "timeout -k 20 240 python -m benchmarks.learning --tasks halfcheetah --frameworks cdjax --variants default" \
+        "--seeds 10 --out $work/learn/halfcheetah > $work/learn-halfcheetah.log 2>&1;" \
+        "timeout -k 20 480 python -m benchmarks.learning --cache-dir $work/cache-brax --tasks halfcheetah" \
+        "--frameworks brax --seeds 5 --first-seed 5 --out $work/learn/brax-halfcheetah-5-9" \
+        "> $work/learn-brax.log 2>&1;" \
+        "tail -n 3 $work/learn-halfcheetah.log $work/learn-brax.log" ;;
     parallel)
       local llvm=xla_gpu_enable_llvm_module_compilation_parallelism=true t
       echo "timeout -k 20 200 python -m benchmarks.compile_time --out $work/default --cache-dir $work/cache-default" \
@@ -196,7 +222,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo or parallel" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers or hc-seeds" >&2; return 1 ;;
   esac
 }
 
