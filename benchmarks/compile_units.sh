@@ -80,6 +80,12 @@
 #            the other (side by side on one GPU they did not finish in one call, 2026-11-26). At level 1 the 5-seed
 #            final IQM fell below Brax's (1740 against 1930, intervals overlapping; benchmarks/results/
 #            2026-11-26-h100-learning/): whether that is the seeds' spread.
+#   narrow   the chain's two narrow per-step products (`consistency._narrow`) in other forms (about 5 minutes): the
+#            compare suite's Mb-Mf and paper-CD cases, then paper-CD alone with `benchmarks.variants narrow-highest`
+#            (float32's highest precision: maybe cuBLAS, not a split-K Triton GEMM) and with `narrow-wide` (the weights
+#            padded to 128 output columns), each in a process of its own, the first profiled (--trace). Split-K's
+#            pads, partials and sums are about 5 of the chain's 17 kernels per imagined step (2026-11-25 HLO); the
+#            fused multiply-and-sum form (`skinny-reduce`) was 4% slower (2026-11-26).
 # Since 5043691 `import cdjax` adds --xla_gpu_autotune_level=1 to XLA_FLAGS unless they name a level: "XLA's defaults"
 # above means level 1 for the units run since, Triton's GEMM flag and the others set beside it; `autotune` and `levels`
 # name level 4 (XLA's own default) where they compare against it. The units' earlier results ran at level 4.
@@ -206,6 +212,14 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--frameworks brax --seeds 5 --first-seed 5 --out $work/learn/brax-halfcheetah-5-9" \
         "> $work/learn-brax.log 2>&1;" \
         "tail -n 3 $work/learn-halfcheetah.log $work/learn-brax.log" ;;
+    narrow)
+      local cd="--suite compare --cases cd-paper --budget-s 90"
+      echo "timeout -k 20 150 python -m benchmarks.run --suite compare --cases mbmf cd-paper --budget-s 120" \
+        "--out $work/default > $work/default.log 2>&1;" \
+        "timeout -k 20 120 python -m benchmarks.variants narrow-highest -- $cd --trace $work/trace-highest" \
+        "--out $work/highest > $work/highest.log 2>&1;" \
+        "timeout -k 20 120 python -m benchmarks.variants narrow-wide -- $cd --out $work/wide > $work/wide.log 2>&1;" \
+        "grep -H ' s/update' $work/default.log $work/highest.log $work/wide.log" ;;
     parallel)
       local llvm=xla_gpu_enable_llvm_module_compilation_parallelism=true t
       echo "timeout -k 20 200 python -m benchmarks.compile_time --out $work/default --cache-dir $work/cache-default" \
@@ -222,7 +236,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers or hc-seeds" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds or narrow" >&2; return 1 ;;
   esac
 }
 

@@ -19,6 +19,14 @@ Variants:
                    separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
                    The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
                    it against 0.805 s without.
+  narrow-highest   the fused chain's two per-step products with few output columns (`consistency._narrow`: the
+                   model's output layer forward, [W, hidden] x [hidden, O]; the states' cotangent backward,
+                   [W, N1 + 3H] x [N1 + 3H, O or 2O]) at float32's highest precision, which XLA:GPU may hand to
+                   cuBLAS rather than split along the contracting axis in a Triton GEMM (split-K: a pad, the
+                   partial products, their sum). The same function, rounded as float32 rather than TF32.
+  narrow-wide      the same two products with the weights zero-padded to 128 output columns and the product
+                   sliced back: more output tiles, so the autotuner has less reason to split the contracting axis.
+                   The same values.
   (pad-hidden, the fused chain's hidden widths zero-padded to a multiple of 128 once per minibatch, was removed
   after its A/B: paper-CD 0.7306 s/update with it against 0.7304 s without, one H100, 2026-11-25,
   benchmarks/results/2026-11-25-h100-probes/.)
@@ -65,7 +73,21 @@ def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
-VARIANTS = ("none", "no-loss-metrics", "bias-sum")
+VARIANTS = ("none", "no-loss-metrics", "bias-sum", "narrow-highest", "narrow-wide")
+
+
+def _narrow_highest(x: jax.Array, w: jax.Array) -> jax.Array:
+    """consistency._narrow at float32's highest precision."""
+    return jnp.matmul(x, w, precision=jax.lax.Precision.HIGHEST)
+
+
+def _narrow_wide(x: jax.Array, w: jax.Array) -> jax.Array:
+    """consistency._narrow with w zero-padded to a multiple of 128 columns, the product sliced back."""
+    J = w.shape[-1]
+    return (x @ jnp.pad(w, ((0, 0), (0, -J % 128))))[..., :J]
+
+
+NARROW = {"narrow-highest": _narrow_highest, "narrow-wide": _narrow_wide}
 
 
 @contextlib.contextmanager
@@ -74,18 +96,20 @@ def applied(variant: str) -> Iterator[None]:
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
-    outer = consistency._outer
+    outer, narrow = consistency._outer, consistency._narrow
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
     if variant == "bias-sum":
         consistency._outer = _outer_bias_sum
+    if variant in NARROW:
+        consistency._narrow = NARROW[variant]
     try:
         yield
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
-        consistency._outer = outer
+        consistency._outer, consistency._narrow = outer, narrow
 
 
 def main(argv=None) -> dict:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from benchmarks import variants
@@ -67,3 +68,48 @@ def test_bias_sum_gives_the_same_weight_gradients_as_the_one_product():
         split_kernel, split_bias = consistency._outer(a, b)
     assert consistency._outer is one_product
     assert jnp.allclose(split_kernel, kernel, atol=1e-5) and jnp.allclose(split_bias, bias, atol=1e-5)
+
+
+@pytest.mark.parametrize("variant,shared", [("narrow-highest", True), ("narrow-wide", False)])
+def test_the_narrow_variants_give_the_fused_chains_values_and_gradients(variant, shared):
+    """The chain's two narrow products in another form (at the highest precision; through weights padded to 128
+    columns) against the plain products: the same outputs and the same gradients with respect to every input within
+    float32 rounding, with shared or separate encoder statistics; the plain product back after the block."""
+    from cdjax import consistency
+    from cdjax import normalize as nz
+
+    O, A, N, H, k, w = 5, 3, 7, 6, 4, 9
+    keys = iter(jax.random.split(jax.random.key(2), 20))
+    stats = lambda: nz.update(nz.RunningStats.create(O), 2.0 * jax.random.normal(next(keys), (64, O)))  # noqa: E731
+    model = consistency.MLPModel(
+        layers=((0.4 * jax.random.normal(next(keys), (O + A, N)), 0.1 * jax.random.normal(next(keys), (N,))),
+                (0.4 * jax.random.normal(next(keys), (N, O)), 0.1 * jax.random.normal(next(keys), (O,)))),
+        obs=stats(), delta=stats())
+    gru = tuple(0.4 * jax.random.normal(next(keys), s) for s in ((O, 3 * H), (3 * H,), (H, 3 * H), (H,)))
+    args = (model, gru, 2.0 * jax.random.normal(next(keys), (w, O)), jax.random.normal(next(keys), (k, w, A)),
+            jax.random.normal(next(keys), (k, w, O)))
+    enc_obs = model.obs if shared else stats()
+    cotangents = [jax.random.normal(next(keys), s) for s in ((w, H), (w, H), (w, O))]
+    calls = []
+
+    def grad():
+        f = lambda *a: sum(jnp.sum(x * c) for x, c in zip(  # noqa: E731
+            consistency.fused_chain(*a, enc_obs, (0.5, 1.0), shared), cotangents))
+        return jax.jit(jax.value_and_grad(f, argnums=(0, 1, 2, 3, 4)))(*args)
+
+    v, g = grad()
+    plain = consistency._narrow
+    with variants.applied(variant):
+        inner = consistency._narrow
+        consistency._narrow = lambda x, w: calls.append(w.shape) or inner(x, w)
+        v_r, g_r = grad()
+        consistency._narrow = inner
+    assert inner is variants.NARROW[variant] and consistency._narrow is plain
+    # the model's output layer forward ([N, O]) and the states' cotangent backward ([3H or N + 3H, O or 2O])
+    assert (N, O) in calls and {(3 * H, O if shared else 2 * O), (N + 3 * H, O if shared else 2 * O)} <= set(calls)
+    np.testing.assert_allclose(v_r, v, rtol=1e-5)
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g), jax.tree.leaves(g_r)):  # float32 rounding of
+        # sums in another order: relative to each leaf's largest entry (the first layer's reach 170 here)
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=2e-6 * float(jnp.abs(a).max()),
+                                   err_msg=jax.tree_util.keystr(path))
+    assert float(jnp.abs(g[0].layers[-1][0]).max()) > 0 and float(jnp.abs(g[2]).max()) > 0
