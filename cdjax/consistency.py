@@ -372,33 +372,19 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     ds0 = ds + inputs_vjp(dp1 @ w_in[:, :N1].T)[0]
 
     stack = lambda xs: jnp.stack(xs)  # noqa: E731 - [k, ...]: one copy per kind, after the loop
-    hidden = [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
     dz_layers = [stack([d[i] for d in dzs]) for i in range(len(layers))]
-    x_im = stack(xin[1:])[..., -p["x_re"].shape[-1]:]  # the encoder's inputs of the imagined states
-    return chain_gradients(p, c, stack(xin[:-1])[..., :O], hidden, dz_layers, x_im, stack(dgi), stack(hs[:-1]),
-                           stack(dhh), ds0)
-
-
-def chain_gradients(p: dict, c: dict, x_model, hidden: list, dz_layers: list, x_im, dgi, hs, dhh, ds0) -> tuple:
-    """The chain's gradients after its backward loop, from the per-step arrays of every step [k, ...]: every
-    weight's gradient as one product over all steps and rows (the bias as its last row, `_outer`), and the inputs'
-    -> (cotangents of p, zero cotangents of c), the custom_vjp's backward result.
-
-    x_model [k, W, O] the model's normalised inputs of s_0..s_{k-1}; hidden the hidden layers' outputs [k, W, N]
-    each; dz_layers the cotangents of every layer's output (the first layer's first); x_im [k, W, D] the encoder's
-    inputs of the imagined states s_1..s_k; dgi, dhh [k, 2, W, 3H] the cotangents of the GRU's input and recurrent
-    parts (real rows, imagined rows); hs [k, 2, W, H] the hidden states h_0..h_{k-1}; ds0 [W, O]. Called by
-    `_chain_bwd`."""
-    layers, O = p["layers"], x_model.shape[-1]
-    model_in = jnp.concatenate([x_model, p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
-    dlayers = tuple(_outer(x, dz) for x, dz in zip([model_in] + list(hidden), dz_layers))
+    model_in = jnp.concatenate([stack(xin[:-1])[..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
+    inputs = [model_in] + [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
+    dlayers = tuple(_outer(x, dz) for x, dz in zip(inputs, dz_layers))
     dactions = dz_layers[0] @ layers[0][0][O:].T
     # the GRU's weights: real and imagined rows in one product, each kind's cotangent scaled as scale_gradient would
     scales = jnp.stack(c["scales"])[None, :, None, None]
     scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
-    dw_i, db_i = _outer(jnp.stack([p["x_re"], x_im], axis=1), scaled(dgi))  # inputs [k, 2, W, D]
-    dw_h, dgh_bias = _outer(hs, scaled(dhh))
-    H = p["w_h"].shape[0]
+    dgi = stack(dgi)  # [k, 2, W, 3H]
+    x_enc = jnp.stack([p["x_re"], stack(xin[1:])[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2, W, D]
+    dw_i, db_i = _outer(x_enc, scaled(dgi))
+    dw_h, dgh_bias = _outer(stack(hs[:-1]), scaled(stack(dhh)))
+    H = w_h.shape[0]
     dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
               x_re=dgi[:, 0] @ p["w_i"].T)
     return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})

@@ -23,7 +23,8 @@ CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 # runs and comparing every candidate's result with a reference (which, at level 4, only logs a mismatch). One H200
 # (2026-11-26, benchmarks/results/2026-11-26-h200-autotune/): the cold 4-arm ant sweep compiled in 68.7 s instead
 # of 145.7 s (2026-11-25, level 4), while model-free, Mb-Mf and the paper's CD ran 0.98-0.999x the time per
-# update of level 4 in the compare suite. Only the GPU backend reads it. A user who names the level in XLA_FLAGS
+# update of level 4 in the compare suite; one H100 in one lease (2026-11-26, benchmarks/results/2026-11-26-h100-levels/)
+# 77.7 s against 87.2 s, the pixel update 1.0% slower. Only the GPU backend reads it. A user who names the level in XLA_FLAGS
 # (e.g. --xla_gpu_autotune_level=4, XLA's own default) keeps theirs.
 GPU_AUTOTUNE_FLAG = "--xla_gpu_autotune_level=1"
 CACHE_ENV = "CDJAX_JAX_CACHE"  # environment variable naming the persistent compilation cache
