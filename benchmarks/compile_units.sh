@@ -67,7 +67,9 @@
 #            --xla_gpu_force_compilation_parallelism=8 (the thread count named); each flag skipped, saying so, where the
 #            image's XLA refuses it. Then the learning benchmark (cdjax's model-free arm, 5 seeds, ant, halfcheetah and
 #            reacher side by side on the one GPU, as on 2026-11-25) at cdjax's defaults: the rows to set beside Brax
-#            PPO's (`python -m benchmarks.learning --report`), owed since the autotuner's level 1 (5043691).
+#            PPO's (`python -m benchmarks.learning --report`), owed since the autotuner's level 1 (5043691). On 2026-11-26
+#            (H100) jax 0.11.2's XLA refused both flags, and half-cheetah hit the then 420 s limit at 2.9M of 3.9M env
+#            steps (each task now has 600 s; ant and reacher finished).
 #   workers  how many compiling threads the cold 4-arm ant sweep wants (about 5 minutes): the sweep cold (an empty
 #            persistent cache each) with CDJAX_COMPILE_WORKERS=W for W in WORKERS (default "2 4 8"; 8 is the default on
 #            these 16-core hosts). On 2026-11-26 (H100, level 1) the four chunks compiled side by side for 44-62 s each,
@@ -232,7 +234,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "else echo 'this XLA refuses force_compilation_parallelism: skipped'; fi;" \
         "grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/default.log $work/llvm*.log;"
       for t in ant halfcheetah reacher; do
-        echo "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 420 python -m benchmarks.learning --tasks $t" \
+        echo "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 600 python -m benchmarks.learning --tasks $t" \
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
