@@ -76,18 +76,31 @@
 #            model-free's in 42-44 s where its one-update program compiles alone in 17 s: whether fewer threads (less
 #            contention for the CPU and the one GPU's autotuner, and fusions autotuned once and then found in XLA's
 #            in-process results) start training sooner. Cold times spread ~20% between H100 hosts, so compare within
-#            the unit only.
+#            the unit only. Result (2026-11-26, H100): 93.2, 71.1 and 73.2 s at 2, 4 and 8; the default stays
+#            (benchmarks/results/2026-11-26-h100-workers/).
 #   hc-seeds the learning benchmark's half-cheetah at 10 seeds a learner (about 8 minutes): cdjax's model-free arm,
 #            seeds 0-9 in one process, then Brax PPO's seeds 5-9 (its seeds 0-4 are 2026-11-22's rows), one after
 #            the other (side by side on one GPU they did not finish in one call, 2026-11-26). At level 1 the 5-seed
 #            final IQM fell below Brax's (1740 against 1930, intervals overlapping; benchmarks/results/
-#            2026-11-26-h100-learning/): whether that is the seeds' spread.
+#            2026-11-26-h100-learning/): whether that is the seeds' spread. On 2026-11-26 Brax's 5 seeds took
+#            175-270 s each and the 480 s limit stopped it after seed 6; `hc-final` and a call of its own did the rest
+#            (benchmarks/results/2026-11-26-h100-halfcheetah-seeds/).
+#   hc-levels whether cdjax's autotuner level changes how half-cheetah learns (about 18 minutes): cdjax's model-free
+#            arm, 20 seeds vmapped, once at XLA's level 4 (XLA_FLAGS=--xla_gpu_autotune_level=4: autotuning with
+#            initialised buffers and each candidate's results checked against a reference) and once at cdjax's level
+#            1 (no such check), each in a process of its own with its own cache; then Brax PPO's seed 9. On
+#            2026-11-26 (H100) it found no difference: IQM 1533 against 1542 at 2.9M env steps, the same seed about
+#            the same return at either level (benchmarks/results/2026-11-26-h100-halfcheetah-seeds/). Its limits
+#            were 300 s then and cut every run after the 2.9M evaluation; they are 420 s now.
+#   hc-final half-cheetah's 10-seed comparison finished (about 8 minutes): cdjax's model-free arm at seeds 10-19 (its
+#            seeds 0-9 are `hc-seeds`' rows), then Brax PPO's seed 9 alone (`hc-levels` cut it at 2.9M env steps).
 #   narrow   the chain's two narrow per-step products (`consistency._narrow`) in other forms (about 5 minutes): the
 #            compare suite's Mb-Mf and paper-CD cases, then paper-CD alone with `benchmarks.variants narrow-highest`
 #            (float32's highest precision: maybe cuBLAS, not a split-K Triton GEMM) and with `narrow-wide` (the weights
 #            padded to 128 output columns), each in a process of its own, the first profiled (--trace). Split-K's
 #            pads, partials and sums are about 5 of the chain's 17 kernels per imagined step (2026-11-25 HLO); the
-#            fused multiply-and-sum form (`skinny-reduce`) was 4% slower (2026-11-26).
+#            fused multiply-and-sum form (`skinny-reduce`) was 4% slower (2026-11-26). Result (2026-11-26, H100):
+#            both slower, 0.7633 and 0.7399 against 0.7291 s/update (benchmarks/results/2026-11-26-h100-narrow/).
 # Since 5043691 `import cdjax` adds --xla_gpu_autotune_level=1 to XLA_FLAGS unless they name a level: "XLA's defaults"
 # above means level 1 for the units run since, Triton's GEMM flag and the others set beside it; `autotune` and `levels`
 # name level 4 (XLA's own default) where they compare against it. The units' earlier results ran at level 4.
@@ -214,6 +227,20 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--frameworks brax --seeds 5 --first-seed 5 --out $work/learn/brax-halfcheetah-5-9" \
         "> $work/learn-brax.log 2>&1;" \
         "tail -n 3 $work/learn-halfcheetah.log $work/learn-brax.log" ;;
+    hc-levels)
+      local learn="python -m benchmarks.learning --tasks halfcheetah --frameworks cdjax --variants default --seeds 20"
+      echo "XLA_FLAGS=--xla_gpu_autotune_level=4 timeout -k 20 420 $learn --cache-dir $work/cache-l4" \
+        "--out $work/learn/level4 > $work/learn-level4.log 2>&1;" \
+        "timeout -k 20 420 $learn --cache-dir $work/cache-l1 --out $work/learn/level1 > $work/learn-level1.log 2>&1;" \
+        "timeout -k 20 330 python -m benchmarks.learning --cache-dir $work/cache-brax --tasks halfcheetah" \
+        "--frameworks brax --seeds 1 --first-seed 9 --out $work/learn/brax-halfcheetah-9 > $work/learn-brax.log 2>&1;" \
+        "tail -n 2 $work/learn-*.log" ;;
+    hc-final)
+      echo "timeout -k 20 280 python -m benchmarks.learning --tasks halfcheetah --frameworks cdjax --variants default" \
+        "--seeds 10 --first-seed 10 --out $work/learn/halfcheetah-10-19 > $work/learn-halfcheetah.log 2>&1;" \
+        "timeout -k 20 330 python -m benchmarks.learning --cache-dir $work/cache-brax --tasks halfcheetah" \
+        "--frameworks brax --seeds 1 --first-seed 9 --out $work/learn/brax-halfcheetah-9 > $work/learn-brax.log 2>&1;" \
+        "tail -n 2 $work/learn-*.log" ;;
     narrow)
       local cd="--suite compare --cases cd-paper --budget-s 90"
       echo "timeout -k 20 150 python -m benchmarks.run --suite compare --cases mbmf cd-paper --budget-s 120" \
@@ -238,7 +265,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds or narrow" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final or narrow" >&2; return 1 ;;
   esac
 }
 
