@@ -94,6 +94,12 @@
 #            were 300 s then and cut every run after the 2.9M evaluation; they are 420 s now.
 #   hc-final half-cheetah's 10-seed comparison finished (about 8 minutes): cdjax's model-free arm at seeds 10-19 (its
 #            seeds 0-9 are `hc-seeds`' rows), then Brax PPO's seed 9 alone (`hc-levels` cut it at 2.9M env steps).
+#   stream   the fused chain on a second GPU stream (about 6 minutes): the compare suite's Mb-Mf and paper-CD cases
+#            in one process, then paper-CD alone with `benchmarks.variants chain-stream` (the chain's forward and
+#            backward as calls annotated with stream 1) with XLA_FLAGS=--xla_gpu_experimental_stream_annotation=true,
+#            profiled (--trace), and the same without the flag (the calls' own cost), each in a process of its own.
+#            The term's kernels are small and sequential (1.07 ms per minibatch beside Mb-Mf's 0.64 ms), and PPO's
+#            and the model's losses do not depend on the chain: whether XLA runs them side by side.
 #   narrow   the chain's two narrow per-step products (`consistency._narrow`) in other forms (about 5 minutes): the
 #            compare suite's Mb-Mf and paper-CD cases, then paper-CD alone with `benchmarks.variants narrow-highest`
 #            (float32's highest precision: maybe cuBLAS, not a split-K Triton GEMM) and with `narrow-wide` (the weights
@@ -241,6 +247,14 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 20 330 python -m benchmarks.learning --cache-dir $work/cache-brax --tasks halfcheetah" \
         "--frameworks brax --seeds 1 --first-seed 9 --out $work/learn/brax-halfcheetah-9 > $work/learn-brax.log 2>&1;" \
         "tail -n 2 $work/learn-*.log" ;;
+    stream)
+      local cd="--suite compare --cases cd-paper --budget-s 100"
+      echo "timeout -k 20 150 python -m benchmarks.run --suite compare --cases mbmf cd-paper --budget-s 120" \
+        "--out $work/default > $work/default.log 2>&1;" \
+        "$(with_flag xla_gpu_experimental_stream_annotation=true "timeout -k 20 150 python -m benchmarks.variants" \
+          "chain-stream -- $cd --trace $work/trace-stream --out $work/stream > $work/stream.log 2>&1")" \
+        "timeout -k 20 150 python -m benchmarks.variants chain-stream -- $cd --out $work/noflag > $work/noflag.log 2>&1;" \
+        "grep -H ' s/update' $work/default.log $work/stream.log $work/noflag.log" ;;
     narrow)
       local cd="--suite compare --cases cd-paper --budget-s 90"
       echo "timeout -k 20 150 python -m benchmarks.run --suite compare --cases mbmf cd-paper --budget-s 120" \
@@ -265,7 +279,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final or narrow" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, narrow or stream" >&2; return 1 ;;
   esac
 }
 

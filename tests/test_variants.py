@@ -70,11 +70,9 @@ def test_bias_sum_gives_the_same_weight_gradients_as_the_one_product():
     assert jnp.allclose(split_kernel, kernel, atol=1e-5) and jnp.allclose(split_bias, bias, atol=1e-5)
 
 
-@pytest.mark.parametrize("variant,shared", [("narrow-highest", True), ("narrow-wide", False)])
-def test_the_narrow_variants_give_the_fused_chains_values_and_gradients(variant, shared):
-    """The chain's two narrow products in another form (at the highest precision; through weights padded to 128
-    columns) against the plain products: the same outputs and the same gradients with respect to every input within
-    float32 rounding, with shared or separate encoder statistics; the plain product back after the block."""
+def _chain_problem(shared: bool):
+    """A small fused chain (k = 4 steps of a one-hidden-layer model, a GRU of 6 units, 9 windows) and a function
+    giving its value and its gradients with respect to every input, traced (and jitted) when called."""
     from cdjax import consistency
     from cdjax import normalize as nz
 
@@ -90,26 +88,76 @@ def test_the_narrow_variants_give_the_fused_chains_values_and_gradients(variant,
             jax.random.normal(next(keys), (k, w, O)))
     enc_obs = model.obs if shared else stats()
     cotangents = [jax.random.normal(next(keys), s) for s in ((w, H), (w, H), (w, O))]
-    calls = []
+
+    def loss(*a):
+        return sum(jnp.sum(x * c) for x, c in zip(consistency.fused_chain(*a, enc_obs, (0.5, 1.0), shared), cotangents))
 
     def grad():
-        f = lambda *a: sum(jnp.sum(x * c) for x, c in zip(  # noqa: E731
-            consistency.fused_chain(*a, enc_obs, (0.5, 1.0), shared), cotangents))
-        return jax.jit(jax.value_and_grad(f, argnums=(0, 1, 2, 3, 4)))(*args)
+        return jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4)))(*args)
 
-    v, g = grad()
-    plain = consistency._narrow
-    with variants.applied(variant):
-        inner = consistency._narrow
-        consistency._narrow = lambda x, w: calls.append(w.shape) or inner(x, w)
-        v_r, g_r = grad()
-        consistency._narrow = inner
-    assert inner is variants.NARROW[variant] and consistency._narrow is plain
-    # the model's output layer forward ([N, O]) and the states' cotangent backward ([3H or N + 3H, O or 2O])
-    assert (N, O) in calls and {(3 * H, O if shared else 2 * O), (N + 3 * H, O if shared else 2 * O)} <= set(calls)
-    np.testing.assert_allclose(v_r, v, rtol=1e-5)
+    return dict(O=O, N=N, H=H, args=args, loss=loss, grad=grad)
+
+
+def _assert_same_gradients(g, g_r):
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g), jax.tree.leaves(g_r)):  # float32 rounding of
         # sums in another order: relative to each leaf's largest entry (the first layer's reach 170 here)
         np.testing.assert_allclose(b, a, rtol=1e-5, atol=2e-6 * float(jnp.abs(a).max()),
                                    err_msg=jax.tree_util.keystr(path))
     assert float(jnp.abs(g[0].layers[-1][0]).max()) > 0 and float(jnp.abs(g[2]).max()) > 0
+
+
+@pytest.mark.parametrize("variant,shared", [("narrow-highest", True), ("narrow-wide", False)])
+def test_the_narrow_variants_give_the_fused_chains_values_and_gradients(variant, shared):
+    """The chain's two narrow products in another form (at the highest precision; through weights padded to 128
+    columns) against the plain products: the same outputs and the same gradients with respect to every input within
+    float32 rounding, with shared or separate encoder statistics; the plain product back after the block."""
+    from cdjax import consistency
+
+    case = _chain_problem(shared)
+    O, N, H = case["O"], case["N"], case["H"]
+    calls = []
+    v, g = case["grad"]()
+    plain = consistency._narrow
+    with variants.applied(variant):
+        inner = consistency._narrow
+        consistency._narrow = lambda x, w: calls.append(w.shape) or inner(x, w)
+        v_r, g_r = case["grad"]()
+        consistency._narrow = inner
+    assert inner is variants.NARROW[variant] and consistency._narrow is plain
+    # the model's output layer forward ([N, O]) and the states' cotangent backward ([3H or N + 3H, O or 2O])
+    assert (N, O) in calls and {(3 * H, O if shared else 2 * O), (N + 3 * H, O if shared else 2 * O)} <= set(calls)
+    np.testing.assert_allclose(v_r, v, rtol=1e-5)
+    _assert_same_gradients(g, g_r)
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_chain_stream_puts_the_chains_forward_and_backward_on_a_stream_and_keeps_the_function(shared):
+    """`chain-stream`: the lowered gradient holds the chain's forward and backward as calls annotated with the second
+    stream (and the plain chain none); values and gradients as the plain chain's, also vmapped over a leading axis
+    of runs; the plain chain back after the block."""
+    from cdjax import consistency
+
+    case = _chain_problem(shared)
+    plain_chain = consistency._chain
+    text = lambda: jax.jit(jax.grad(case["loss"], argnums=(0, 2))).lower(*case["args"]).as_text()  # noqa: E731
+    v, g = case["grad"]()
+    assert "_xla_stream_annotation" not in text()
+    batched = lambda: jax.vmap(lambda s0: jax.grad(case["loss"], argnums=2)(  # noqa: E731
+        *case["args"][:2], s0, *case["args"][3:]))(jnp.stack([case["args"][2], -case["args"][2]]))
+    b = jax.jit(batched)()
+    with variants.applied("chain-stream"):
+        assert consistency._chain is not plain_chain
+        annotated = text()
+        v_r, g_r = case["grad"]()
+        b_r = jax.jit(batched)()
+    assert consistency._chain is plain_chain
+    stream = variants.CHAIN_STREAM.split(":")[1]
+    calls = [line for line in annotated.splitlines() if " call @" in line]
+    on_stream = [line for line in calls if f'_xla_stream_annotation = "{stream}"' in line]
+    assert len(on_stream) == 2, "one call for the forward, one for the backward"
+    assert annotated.count("_xla_stream_annotation") == 2  # the ops inside the calls carry no annotation
+    assert "annotate_device_placement" not in annotated  # no placement calls between the chain and its users
+    np.testing.assert_allclose(v_r, v, rtol=1e-6)
+    _assert_same_gradients(g, g_r)
+    np.testing.assert_allclose(b_r, b, rtol=1e-5, atol=1e-6 * float(jnp.abs(b).max()))
+    assert not np.allclose(b[0], b[1])  # the two runs differ, so the vmapped check sees each
