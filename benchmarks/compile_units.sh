@@ -100,11 +100,11 @@
 #            profiled (--trace), and the same without the flag (the calls' own cost), each in a process of its own.
 #            The term's kernels are small and sequential (1.07 ms per minibatch beside Mb-Mf's 0.64 ms), and PPO's
 #            and the model's losses do not depend on the chain: whether XLA runs them side by side.
-#   hc-init  whether the weight initialisation decides which half-cheetah seeds fail (about 9 minutes): cdjax's
-#            model-free arm at 20 seeds vmapped, at its default (Brax's lecun-uniform weights) and with
-#            `--variants orthogonal-init` (its default before 2026-11-22), each in a process of its own. With lecun
-#            weights 5 of 20 seeds ended under 700 (2026-11-26) against 1 of Brax's 10; with orthogonal weights the
-#            5 seeds of 2026-11-22 ended at 2630-3214, where lecun-init's ended at 1010-3618
+#   hc-ablate what decides which half-cheetah seeds fail (about 13 minutes): cdjax's model-free arm at 20 seeds vmapped,
+#            at its defaults, with `--variants orthogonal-init` (its weights before 2026-11-22) and with `gae-once`
+#            (GAE once per update with the rollout's values, as Brax PPO does), each in a process of its own. With
+#            the default lecun-uniform weights 5 of 20 seeds ended under 700 (2026-11-26) against 1 of Brax's 10; with
+#            orthogonal weights the 5 seeds of 2026-11-22 ended at 2630-3214, where lecun-init's ended at 1010-3618
 #            (benchmarks/results/2026-11-22-h200-learning-lecun/). Lecun weights were adopted for ant (2128 -> 2833).
 #   narrow   the chain's two narrow per-step products (`consistency._narrow`) in other forms (about 5 minutes): the
 #            compare suite's Mb-Mf and paper-CD cases, then paper-CD alone with `benchmarks.variants narrow-highest`
@@ -261,13 +261,13 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "chain-stream -- $cd --trace $work/trace-stream --out $work/stream > $work/stream.log 2>&1")" \
         "timeout -k 20 150 python -m benchmarks.variants chain-stream -- $cd --out $work/noflag > $work/noflag.log 2>&1;" \
         "grep -H ' s/update' $work/default.log $work/stream.log $work/noflag.log" ;;
-    hc-init)
-      local learn="python -m benchmarks.learning --tasks halfcheetah --frameworks cdjax --seeds 20"
-      echo "timeout -k 20 420 $learn --variants default --out $work/learn/default > $work/learn-default.log 2>&1;" \
-        "timeout -k 20 420 $learn --variants orthogonal-init --out $work/learn/orthogonal" \
-        "> $work/learn-orthogonal.log 2>&1;" \
-        "python -m benchmarks.learning --report $work/learn/default $work/learn/orthogonal --write $work/report.md" \
-        "> /dev/null 2>&1; tail -n 12 $work/report.md" ;;
+    hc-ablate)
+      local learn="python -m benchmarks.learning --tasks halfcheetah --frameworks cdjax --seeds 20" line="" v
+      for v in default orthogonal-init gae-once; do
+        line+="timeout -k 20 420 $learn --variants $v --out $work/learn/$v > $work/learn-$v.log 2>&1; "
+      done
+      echo "$line python -m benchmarks.learning --report $work/learn/default $work/learn/orthogonal-init" \
+        "$work/learn/gae-once --write $work/report.md > /dev/null 2>&1; tail -n 14 $work/report.md" ;;
     narrow)
       local cd="--suite compare --cases cd-paper --budget-s 90"
       echo "timeout -k 20 150 python -m benchmarks.run --suite compare --cases mbmf cd-paper --budget-s 120" \
@@ -292,7 +292,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-init, narrow or stream" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, narrow or stream" >&2; return 1 ;;
   esac
 }
 
