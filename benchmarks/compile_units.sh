@@ -94,10 +94,12 @@
 #            were 300 s then and cut every run after the 2.9M evaluation; they are 420 s now.
 #   hc-final half-cheetah's 10-seed comparison finished (about 8 minutes): cdjax's model-free arm at seeds 10-19 (its
 #            seeds 0-9 are `hc-seeds`' rows), then Brax PPO's seed 9 alone (`hc-levels` cut it at 2.9M env steps).
-#   stream   the fused chain on a second GPU stream (about 6 minutes): the compare suite's Mb-Mf and paper-CD cases
+#   stream   the fused chain on a second GPU stream: the compare suite's Mb-Mf and paper-CD cases
 #            in one process, then paper-CD alone with `benchmarks.variants chain-stream` (the chain's forward and
 #            backward as calls annotated with stream 1) with XLA_FLAGS=--xla_gpu_experimental_stream_annotation=true,
-#            profiled (--trace), and the same without the flag (the calls' own cost), each in a process of its own.
+#            profiled (--trace), then the seeds suite with it (10 vmapped seeds of 256 envs, Mb-Mf and paper-CD: the
+#            10-seed ratio, 1.66x without it on 2026-11-26), and the variant without the flag (the calls' own cost),
+#            each in a process of its own (about 10 minutes in all).
 #            The term's kernels are small and sequential (1.07 ms per minibatch beside Mb-Mf's 0.64 ms), and PPO's
 #            and the model's losses do not depend on the chain: whether XLA runs them side by side.
 #   hc-ablate what decides which half-cheetah seeds fail (about 13 minutes): cdjax's model-free arm at 20 seeds vmapped,
@@ -258,9 +260,11 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "timeout -k 20 150 python -m benchmarks.run --suite compare --cases mbmf cd-paper --budget-s 120" \
         "--out $work/default > $work/default.log 2>&1;" \
         "$(with_flag xla_gpu_experimental_stream_annotation=true "timeout -k 20 150 python -m benchmarks.variants" \
-          "chain-stream -- $cd --trace $work/trace-stream --out $work/stream > $work/stream.log 2>&1")" \
+          "chain-stream -- $cd --trace $work/trace-stream --out $work/stream > $work/stream.log 2>&1;" \
+          "timeout -k 20 240 python -m benchmarks.variants chain-stream -- --suite seeds --scaling-cases mbmf" \
+          "cd-paper --seed-counts 10 --seed-envs 256 --budget-s 210 --out $work/seeds > $work/seeds.log 2>&1")" \
         "timeout -k 20 150 python -m benchmarks.variants chain-stream -- $cd --out $work/noflag > $work/noflag.log 2>&1;" \
-        "grep -H ' s/update' $work/default.log $work/stream.log $work/noflag.log" ;;
+        "grep -H ' s/update' $work/default.log $work/stream.log $work/noflag.log; tail -n 14 $work/seeds/results.md" ;;
     hc-ablate)
       local learn="python -m benchmarks.learning --tasks halfcheetah --frameworks cdjax --seeds 20" line="" v
       for v in default orthogonal-init gae-once; do
