@@ -161,3 +161,22 @@ def test_chain_stream_puts_the_chains_forward_and_backward_on_a_stream_and_keeps
     _assert_same_gradients(g, g_r)
     np.testing.assert_allclose(b_r, b, rtol=1e-5, atol=1e-6 * float(jnp.abs(b).max()))
     assert not np.allclose(b[0], b[1])  # the two runs differ, so the vmapped check sees each
+
+
+def test_chain_stream_without_xla_metadata_call_annotates_through_compute_on(monkeypatch):
+    """Where jax lacks `xla_metadata_call`, `chain-stream` falls back to a jitted call under `compute_on`: the chain's
+    calls are still annotated with the stream, and the gradients are still the plain chain's."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "jax.experimental.scheduling_groups", None)  # its import now fails
+    case = _chain_problem(False)
+    v, g = case["grad"]()
+    with variants.applied("chain-stream"):
+        text = jax.jit(jax.grad(case["loss"], argnums=(0, 2))).lower(*case["args"]).as_text()
+        v_r, g_r = case["grad"]()
+    stream = variants.CHAIN_STREAM.split(":")[1]
+    assert any(" call @" in line and f'_xla_stream_annotation = "{stream}"' in line and "_chain_" in line
+               for line in text.splitlines())
+    assert "xla_metadata_call" not in text
+    np.testing.assert_allclose(v_r, v, rtol=1e-6)
+    _assert_same_gradients(g, g_r)
