@@ -71,6 +71,12 @@ def _sps(c: dict) -> float:
     return last["env_steps"] * len(c["seeds"]) / last["train_s"] if last["train_s"] else math.nan
 
 
+def _devices(rows: list[dict]) -> str:
+    """The devices the rows were measured on, each once, in the order they first appear (a learner's seeds may
+    come from runs on several devices)."""
+    return " + ".join(dict.fromkeys(r.get("device", "?") for r in rows))
+
+
 def table(rows: list[dict], reps: int = 2000) -> list[dict]:
     from cdjax.stats import iqm_interval
 
@@ -85,7 +91,7 @@ def table(rows: list[dict], reps: int = 2000) -> list[dict]:
         f = iqm_interval(final, reps=reps)
         a = iqm_interval(auc, reps=reps)
         out.append({"task": task, "learner": learner, "seeds": len(c["seeds"]), "env_steps": int(c["steps"][last]),
-                    "final": f[:3], "auc": a[:3], "sps": _sps(c), "device": c["rows"][0]["device"],
+                    "final": f[:3], "auc": a[:3], "sps": _sps(c), "device": _devices(c["rows"]),
                     "per_seed": [round(float(x), 1) for x in final]})
     return out
 

@@ -73,6 +73,23 @@ def test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps(t
     assert f"at {expected[-1]:,} env steps" in text and (out / "report.png").exists()
 
 
+def test_learning_report_names_every_device_a_learners_seeds_ran_on():
+    """A learner whose seeds come from runs on two devices: its row of the table names both, once each, in the
+    order they first appear; a learner measured on one device names that one."""
+    from benchmarks import learning_report
+
+    def row(framework, seed, steps, ret, device):
+        return dict(task="t", framework=framework, variant="default", seed=seed, env_steps=steps, eval_return=ret,
+                    train_s=1.0, device=device)
+
+    rows = [row("brax", s, st, float(s + st), dev) for s, dev in ((0, "H200"), (1, "H200"), (2, "H100"))
+            for st in (0, 10)]
+    rows += [row("cdjax", s, st, float(s), "H100") for s in range(3) for st in (0, 10)]
+    by_learner = {e["learner"]: e for e in learning_report.table(rows, reps=50)}
+    assert by_learner["brax-ppo"]["device"] == "H200 + H100"
+    assert by_learner["cdjax default"]["device"] == "H100"
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """One run of the tiny suite (a subset of `--tiny --suite all`: every part except the devices
