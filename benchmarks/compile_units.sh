@@ -108,13 +108,9 @@
 #            the default lecun-uniform weights 5 of 20 seeds ended under 700 (2026-11-26) against 1 of Brax's 10; with
 #            orthogonal weights the 5 seeds of 2026-11-22 ended at 2630-3214, where lecun-init's ended at 1010-3618
 #            (benchmarks/results/2026-11-22-h200-learning-lecun/). Lecun weights were adopted for ant (2128 -> 2833).
-#   narrow   the chain's two narrow per-step products (`consistency._narrow`) in other forms (about 5 minutes): the
-#            compare suite's Mb-Mf and paper-CD cases, then paper-CD alone with `benchmarks.variants narrow-highest`
-#            (float32's highest precision: maybe cuBLAS, not a split-K Triton GEMM) and with `narrow-wide` (the weights
-#            padded to 128 output columns), each in a process of its own, the first profiled (--trace). Split-K's
-#            pads, partials and sums are about 5 of the chain's 17 kernels per imagined step (2026-11-25 HLO); the
-#            fused multiply-and-sum form (`skinny-reduce`) was 4% slower (2026-11-26). Result (2026-11-26, H100):
-#            both slower, 0.7633 and 0.7399 against 0.7291 s/update (benchmarks/results/2026-11-26-h100-narrow/).
+#   (narrow, the chain's narrow per-step products at float32's highest precision and through weights padded to 128
+#            columns, ran on 2026-11-26 and was removed with those variants: both slower, 0.7633 and 0.7399 against
+#            0.7291 s/update; benchmarks/results/2026-11-26-h100-narrow/.)
 # Since 5043691 `import cdjax` adds --xla_gpu_autotune_level=1 to XLA_FLAGS unless they name a level: "XLA's defaults"
 # above means level 1 for the units run since, Triton's GEMM flag and the others set beside it; `autotune` and `levels`
 # name level 4 (XLA's own default) where they compare against it. The units' earlier results ran at level 4.
@@ -272,14 +268,6 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       done
       echo "$line python -m benchmarks.learning --report $work/learn/default $work/learn/orthogonal-init" \
         "$work/learn/gae-once --write $work/report.md > /dev/null 2>&1; tail -n 14 $work/report.md" ;;
-    narrow)
-      local cd="--suite compare --cases cd-paper --budget-s 90"
-      echo "timeout -k 20 150 python -m benchmarks.run --suite compare --cases mbmf cd-paper --budget-s 120" \
-        "--out $work/default > $work/default.log 2>&1;" \
-        "timeout -k 20 120 python -m benchmarks.variants narrow-highest -- $cd --trace $work/trace-highest" \
-        "--out $work/highest > $work/highest.log 2>&1;" \
-        "timeout -k 20 120 python -m benchmarks.variants narrow-wide -- $cd --out $work/wide > $work/wide.log 2>&1;" \
-        "grep -H ' s/update' $work/default.log $work/highest.log $work/wide.log" ;;
     parallel)
       local llvm=xla_gpu_enable_llvm_module_compilation_parallelism=true t
       echo "timeout -k 20 200 python -m benchmarks.compile_time --out $work/default --cache-dir $work/cache-default" \
@@ -296,7 +284,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, narrow or stream" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate or stream" >&2; return 1 ;;
   esac
 }
 

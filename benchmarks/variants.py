@@ -19,14 +19,6 @@ Variants:
                    separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
                    The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
                    it against 0.805 s without.
-  narrow-highest   the fused chain's two per-step products with few output columns (`consistency._narrow`: the
-                   model's output layer forward, [W, hidden] x [hidden, O]; the states' cotangent backward,
-                   [W, N1 + 3H] x [N1 + 3H, O or 2O]) at float32's highest precision, which XLA:GPU may hand to
-                   cuBLAS rather than split along the contracting axis in a Triton GEMM (split-K: a pad, the
-                   partial products, their sum). The same function, rounded as float32 rather than TF32.
-  narrow-wide      the same two products with the weights zero-padded to 128 output columns and the product
-                   sliced back: more output tiles, so the autotuner has less reason to split the contracting axis.
-                   The same values.
   chain-stream     the fused chain's forward and backward each as a call on a second GPU stream
                    (a call annotated with stream 1 and not to be inlined, `_on_stream`), so that XLA may run the
                    chain's small sequential kernels beside the rest of the minibatch's gradient (PPO's and the model's
@@ -40,6 +32,10 @@ Variants:
   (pallas-chain, the chain as two Pallas kernels (cdjax.kernels.chain, commit 7cc54f8), was removed with them:
   paper-CD 0.982 s/update with it against 0.732 s with XLA's chain, and its gradients off by up to 3e-2 relative on
   the GPU, one H100, 2026-11-26, benchmarks/results/2026-11-26-h100-pallas/.)
+  (narrow-highest and narrow-wide, the chain's two narrow per-step products (the model's output layer forward, the
+  states' cotangent backward) at float32's highest precision and with the weights zero-padded to 128 output columns,
+  were removed with the hook they swapped (`consistency._narrow`) after their A/B: paper-CD 0.7633 and 0.7399
+  s/update against 0.7291 s with the plain products, one H100, 2026-11-26, benchmarks/results/2026-11-26-h100-narrow/.)
   (skinny-reduce, the chain's narrow per-step products (the model's output layer forward, the states' cotangent
   backward) as a fused multiply-and-sum instead of split-K dots, was tried and not kept: paper-CD 0.7601 s/update
   with it against 0.7304 s without, one H100, 2026-11-26, benchmarks/results/2026-11-26-h100-compare/.)
@@ -81,7 +77,7 @@ def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
-VARIANTS = ("none", "no-loss-metrics", "bias-sum", "narrow-highest", "narrow-wide", "chain-stream")
+VARIANTS = ("none", "no-loss-metrics", "bias-sum", "chain-stream")
 
 CHAIN_STREAM = "gpu_stream:1"  # the compute type of the chain's calls under `chain-stream`
 
@@ -124,34 +120,18 @@ def _chain_on_stream() -> Callable:
     return chain
 
 
-def _narrow_highest(x: jax.Array, w: jax.Array) -> jax.Array:
-    """consistency._narrow at float32's highest precision."""
-    return jnp.matmul(x, w, precision=jax.lax.Precision.HIGHEST)
-
-
-def _narrow_wide(x: jax.Array, w: jax.Array) -> jax.Array:
-    """consistency._narrow with w zero-padded to a multiple of 128 columns, the product sliced back."""
-    J = w.shape[-1]
-    return (x @ jnp.pad(w, ((0, 0), (0, -J % 128))))[..., :J]
-
-
-NARROW = {"narrow-highest": _narrow_highest, "narrow-wide": _narrow_wide}
-
-
 @contextlib.contextmanager
 def applied(variant: str) -> Iterator[None]:
     """The agent with `variant` while the block runs (programs traced inside it keep it); restored after."""
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
-    outer, narrow, chain = consistency._outer, consistency._narrow, consistency._chain
+    outer, chain = consistency._outer, consistency._chain
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
     if variant == "bias-sum":
         consistency._outer = _outer_bias_sum
-    if variant in NARROW:
-        consistency._narrow = NARROW[variant]
     if variant == "chain-stream":
         consistency._chain = _chain_on_stream()
     try:
@@ -159,7 +139,7 @@ def applied(variant: str) -> Iterator[None]:
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
-        consistency._outer, consistency._narrow, consistency._chain = outer, narrow, chain
+        consistency._outer, consistency._chain = outer, chain
 
 
 def main(argv=None) -> dict:

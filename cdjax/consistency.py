@@ -271,14 +271,6 @@ def _outer(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return g[:-1], g[-1]
 
 
-def _narrow(x: jax.Array, w: jax.Array) -> jax.Array:
-    """x [..., I] @ w [I, J] for the chain's per-step products with few output columns (J = O or 2O): the model's
-    output layer forward, the states' cotangent backward. XLA:GPU's Triton GEMMs split such a product's long
-    contracting axis (split-K: a pad, the partial products and their sum; 2026-11-25 H100 HLO), about 5 of the
-    chain's 17 kernels per step; `benchmarks.variants` times other forms of these two products."""
-    return x @ w
-
-
 def _chain_inputs(c: dict, shared: bool, s: jax.Array) -> jax.Array:
     """The model's normalised input of states s [W, O], and unless `shared` the encoder's beside it: [W, O or 2O]."""
     x = nz.normalize(c["model_obs"], s)
@@ -328,7 +320,7 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
         for kernel, bias in layers[1:-1]:
             u = jax.nn.relu(u @ kernel + bias)
             us.append(u)
-        states.append(states[-1] + nz.denormalize(c["delta"], _narrow(u, w_out) + b_out))
+        states.append(states[-1] + nz.denormalize(c["delta"], u @ w_out + b_out))
         xin.append(_chain_inputs(c, shared, states[-1]))
         both = xin[-1] @ w_in  # [W, N1 + 3H]: the next step's first layer (state part) | this step's GRU input
         p1 = both[:, :N1]
@@ -358,7 +350,7 @@ def _chain_bwd(shared: bool, residuals, cotangents):
         dgi[t] = jnp.stack([dgi_re, dgi_im])
         dh = dh_direct + dhh[t] @ w_h.T
         dboth = dgi_im if dp1 is None else jnp.concatenate([dp1, dgi_im], axis=-1)
-        dxin = _narrow(dboth, (w_in[:, N1:] if dp1 is None else w_in).T)
+        dxin = dboth @ (w_in[:, N1:] if dp1 is None else w_in).T
         _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[t + 1])
         ds = ds + inputs_vjp(dxin)[0]  # every path into s_{t+1}
         dz = ds * delta_std  # the output layer's

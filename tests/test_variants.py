@@ -106,30 +106,6 @@ def _assert_same_gradients(g, g_r):
     assert float(jnp.abs(g[0].layers[-1][0]).max()) > 0 and float(jnp.abs(g[2]).max()) > 0
 
 
-@pytest.mark.parametrize("variant,shared", [("narrow-highest", True), ("narrow-wide", False)])
-def test_the_narrow_variants_give_the_fused_chains_values_and_gradients(variant, shared):
-    """The chain's two narrow products in another form (at the highest precision; through weights padded to 128
-    columns) against the plain products: the same outputs and the same gradients with respect to every input within
-    float32 rounding, with shared or separate encoder statistics; the plain product back after the block."""
-    from cdjax import consistency
-
-    case = _chain_problem(shared)
-    O, N, H = case["O"], case["N"], case["H"]
-    calls = []
-    v, g = case["grad"]()
-    plain = consistency._narrow
-    with variants.applied(variant):
-        inner = consistency._narrow
-        consistency._narrow = lambda x, w: calls.append(w.shape) or inner(x, w)
-        v_r, g_r = case["grad"]()
-        consistency._narrow = inner
-    assert inner is variants.NARROW[variant] and consistency._narrow is plain
-    # the model's output layer forward ([N, O]) and the states' cotangent backward ([3H or N + 3H, O or 2O])
-    assert (N, O) in calls and {(3 * H, O if shared else 2 * O), (N + 3 * H, O if shared else 2 * O)} <= set(calls)
-    np.testing.assert_allclose(v_r, v, rtol=1e-5)
-    _assert_same_gradients(g, g_r)
-
-
 @pytest.mark.parametrize("shared", [True, False])
 def test_chain_stream_puts_the_chains_forward_and_backward_on_a_stream_and_keeps_the_function(shared):
     """`chain-stream`: the lowered gradient holds the chain's forward and backward as calls annotated with the second
