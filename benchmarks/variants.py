@@ -19,13 +19,6 @@ Variants:
                    separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
                    The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
                    it against 0.805 s without.
-  chain-stream     the fused chain's forward and backward each as a call on a second GPU stream
-                   (a call annotated with stream 1 and not to be inlined, `_on_stream`), so that XLA may run the
-                   chain's small sequential kernels beside the rest of the minibatch's gradient (PPO's and the model's
-                   losses, which do not depend on the chain) rather than after it. XLA:GPU acts on the annotation only
-                   with XLA_FLAGS=--xla_gpu_experimental_stream_annotation=true (set it beside the variant; without it
-                   the calls run on the one stream). The same function. The term adds about 1.07 ms per minibatch
-                   beside Mb-Mf's 0.64 ms (2026-11-26, H100), so overlap could hide up to about half of it.
   (pad-hidden, the fused chain's hidden widths zero-padded to a multiple of 128 once per minibatch, was removed
   after its A/B: paper-CD 0.7306 s/update with it against 0.7304 s without, one H100, 2026-11-25,
   benchmarks/results/2026-11-25-h100-probes/.)
@@ -36,6 +29,12 @@ Variants:
   states' cotangent backward) at float32's highest precision and with the weights zero-padded to 128 output columns,
   were removed with the hook they swapped (`consistency._narrow`) after their A/B: paper-CD 0.7633 and 0.7399
   s/update against 0.7291 s with the plain products, one H100, 2026-11-26, benchmarks/results/2026-11-26-h100-narrow/.)
+  (chain-stream, the fused chain's forward and backward each as a call annotated with a second GPU stream and not to
+  be inlined (`jax.experimental.scheduling_groups.xla_metadata_call`), under
+  XLA_FLAGS=--xla_gpu_experimental_stream_annotation=true, so that XLA might run the chain beside PPO's and the
+  model's losses, was removed after its A/B: paper-CD 0.7687 s/update with it, 0.7675 s with the calls but without
+  the flag, against 0.7335 s plain; 10 vmapped seeds 1.76x Mb-Mf; one H100, 2026-11-26,
+  benchmarks/results/2026-11-26-h100-stream/.)
   (skinny-reduce, the chain's narrow per-step products (the model's output layer forward, the states' cotangent
   backward) as a fused multiply-and-sum instead of split-K dots, was tried and not kept: paper-CD 0.7601 s/update
   with it against 0.7304 s without, one H100, 2026-11-26, benchmarks/results/2026-11-26-h100-compare/.)
@@ -46,7 +45,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
-import os
 from typing import Callable, Iterator
 
 import jax
@@ -77,48 +75,7 @@ def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
-VARIANTS = ("none", "no-loss-metrics", "bias-sum", "chain-stream")
-
-CHAIN_STREAM = "gpu_stream:1"  # the compute type of the chain's calls under `chain-stream`
-
-
-def _on_stream(fn: Callable) -> Callable:
-    """fn (arrays in, a tree of arrays out) as one call XLA:GPU may put on the stream CHAIN_STREAM names: a call
-    whose frontend attributes are the stream annotation and `inlineable = "false"`
-    (`jax.experimental.scheduling_groups.xla_metadata_call`), the ops inside it unannotated. Where this jax lacks
-    that, a jitted call traced under `compute_on(CHAIN_STREAM)`, which annotates every call inside it too."""
-    try:
-        from jax.experimental.scheduling_groups import xla_metadata_call
-    except ImportError:
-        from jax.experimental.compute_on import compute_on
-
-        jitted = jax.jit(fn)
-
-        def call(*args):
-            with compute_on(CHAIN_STREAM):
-                return jitted(*args)
-
-        return call
-    return xla_metadata_call(fn, _xla_stream_annotation=CHAIN_STREAM.split(":")[1], inlineable="false")
-
-
-def _chain_on_stream() -> Callable:
-    """consistency._chain with its forward and backward each run as a call on CHAIN_STREAM: the same custom_vjp,
-    its rules wrapped."""
-
-    @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-    def chain(shared, p, c):
-        return _on_stream(lambda p, c: consistency._chain_fwd(shared, p, c)[0])(p, c)
-
-    def fwd(shared, p, c):
-        return _on_stream(functools.partial(consistency._chain_fwd, shared))(p, c)
-
-    def bwd(shared, residuals, cotangents):
-        return _on_stream(functools.partial(consistency._chain_bwd, shared))(residuals, cotangents)
-
-    chain.defvjp(fwd, bwd)
-    return chain
-
+VARIANTS = ("none", "no-loss-metrics", "bias-sum")
 
 @contextlib.contextmanager
 def applied(variant: str) -> Iterator[None]:
@@ -126,20 +83,18 @@ def applied(variant: str) -> Iterator[None]:
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
-    outer, chain = consistency._outer, consistency._chain
+    outer = consistency._outer
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
     if variant == "bias-sum":
         consistency._outer = _outer_bias_sum
-    if variant == "chain-stream":
-        consistency._chain = _chain_on_stream()
     try:
         yield
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
-        consistency._outer, consistency._chain = outer, chain
+        consistency._outer = outer
 
 
 def main(argv=None) -> dict:
@@ -152,14 +107,6 @@ def main(argv=None) -> dict:
     from benchmarks import run
 
     print(f"variant: {args.variant}", flush=True)
-    if args.variant == "chain-stream":
-        try:
-            from jax.experimental.scheduling_groups import xla_metadata_call  # noqa: F401
-            form = "xla_metadata_call (the chain's calls annotated, nothing inside them)"
-        except ImportError:
-            form = "compute_on (this jax has no xla_metadata_call: every call inside the chain's is annotated too)"
-        print(f"the chain's calls on {CHAIN_STREAM} through {form}; XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}",
-              flush=True)
     with applied(args.variant):
         return run.main(rest)
 
