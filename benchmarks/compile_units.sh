@@ -94,20 +94,27 @@
 #            were 300 s then and cut every run after the 2.9M evaluation; they are 420 s now.
 #   hc-final half-cheetah's 10-seed comparison finished (about 8 minutes): cdjax's model-free arm at seeds 10-19 (its
 #            seeds 0-9 are `hc-seeds`' rows), then Brax PPO's seed 9 alone (`hc-levels` cut it at 2.9M env steps).
-#   stream   the fused chain on a second GPU stream: the compare suite's Mb-Mf and paper-CD cases
-#            in one process, then paper-CD alone with `benchmarks.variants chain-stream` (the chain's forward and
-#            backward as calls annotated with stream 1) with XLA_FLAGS=--xla_gpu_experimental_stream_annotation=true,
-#            profiled (--trace), then the seeds suite with it (10 vmapped seeds of 256 envs, Mb-Mf and paper-CD: the
-#            10-seed ratio, 1.66x without it on 2026-11-26), and the variant without the flag (the calls' own cost),
-#            each in a process of its own (about 10 minutes in all).
-#            The term's kernels are small and sequential (1.07 ms per minibatch beside Mb-Mf's 0.64 ms), and PPO's
-#            and the model's losses do not depend on the chain: whether XLA runs them side by side.
 #   hc-ablate what decides which half-cheetah seeds fail (about 13 minutes): cdjax's model-free arm at 20 seeds vmapped,
 #            at its defaults, with `--variants orthogonal-init` (its weights before 2026-11-22) and with `gae-once`
 #            (GAE once per update with the rollout's values, as Brax PPO does), each in a process of its own. With
 #            the default lecun-uniform weights 5 of 20 seeds ended under 700 (2026-11-26) against 1 of Brax's 10; with
 #            orthogonal weights the 5 seeds of 2026-11-22 ended at 2630-3214, where lecun-init's ended at 1010-3618
 #            (benchmarks/results/2026-11-22-h200-learning-lecun/). Lecun weights were adopted for ant (2128 -> 2833).
+#   init     lecun-uniform weights with the policy head's 100x smaller (`--variants lecun-small-head`, orthogonal's
+#            head) on the three learning tasks (about 25 minutes): half-cheetah at 20 seeds (hc-ablate, 2026-11-26:
+#            lecun 1963.0 [1401.9, 2547.0], orthogonal 3073.7 [2823.7, 3198.7]), ant at 10 seeds with and without it
+#            (orthogonal's 2128 against lecun's 2833 on 2026-11-22 is why lecun is the default), reacher at 10 seeds.
+#            Each in a process of its own, stopped by `timeout`; the report of the four at the end.
+#   head     the policy head's initial weights 10x smaller (`--variants head-0.1`: Config.policy_head_scale=0.1), between
+#            lecun's (ant's best) and lecun-small-head's (half-cheetah's): half-cheetah at 20 seeds, ant and reacher at
+#            10, then ant at 10 seeds with `orthogonal-init` (about 15 minutes). Report at the end.
+#   head-more the x0.1 default's ant figure at more seeds (not yet run; about 20 minutes): Brax PPO's ant seeds 5-9 (its
+#            2026-11-22 rows hold 0-4), cdjax's ant at 10 more seeds (base key 1: seeds 1000-1009) at x0.1 (the
+#            default) and with Brax's head (`brax-head`), and reacher at 10 seeds with Brax's head (beside `head`'s
+#            x0.1 rows). Report at the end.
+#   (stream, the fused chain's forward and backward as calls on a second GPU stream (`benchmarks.variants
+#            chain-stream`), ran on 2026-11-26 and was removed with that variant: paper-CD 0.7687 s/update with it and
+#            0.7675 s with its calls but without the stream flag, against 0.7335 s; benchmarks/results/2026-11-26-h100-stream/.)
 #   (narrow, the chain's narrow per-step products at float32's highest precision and through weights padded to 128
 #            columns, ran on 2026-11-26 and was removed with those variants: both slower, 0.7633 and 0.7399 against
 #            0.7291 s/update; benchmarks/results/2026-11-26-h100-narrow/.)
@@ -251,16 +258,6 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 20 330 python -m benchmarks.learning --cache-dir $work/cache-brax --tasks halfcheetah" \
         "--frameworks brax --seeds 1 --first-seed 9 --out $work/learn/brax-halfcheetah-9 > $work/learn-brax.log 2>&1;" \
         "tail -n 2 $work/learn-*.log" ;;
-    stream)
-      local cd="--suite compare --cases cd-paper --budget-s 100"
-      echo "timeout -k 20 150 python -m benchmarks.run --suite compare --cases mbmf cd-paper --budget-s 120" \
-        "--out $work/default > $work/default.log 2>&1;" \
-        "$(with_flag xla_gpu_experimental_stream_annotation=true "timeout -k 20 150 python -m benchmarks.variants" \
-          "chain-stream -- $cd --trace $work/trace-stream --out $work/stream > $work/stream.log 2>&1;" \
-          "timeout -k 20 240 python -m benchmarks.variants chain-stream -- --suite seeds --scaling-cases mbmf" \
-          "cd-paper --seed-counts 10 --seed-envs 256 --budget-s 210 --out $work/seeds > $work/seeds.log 2>&1")" \
-        "timeout -k 20 150 python -m benchmarks.variants chain-stream -- $cd --out $work/noflag > $work/noflag.log 2>&1;" \
-        "grep -H ' s/update' $work/default.log $work/stream.log $work/noflag.log; tail -n 14 $work/seeds/results.md" ;;
     hc-ablate)
       local learn="python -m benchmarks.learning --tasks halfcheetah --frameworks cdjax --seeds 20" line="" v
       for v in default orthogonal-init gae-once; do
@@ -268,6 +265,41 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       done
       echo "$line python -m benchmarks.learning --report $work/learn/default $work/learn/orthogonal-init" \
         "$work/learn/gae-once --write $work/report.md > /dev/null 2>&1; tail -n 14 $work/report.md" ;;
+    init)
+      local learn="python -m benchmarks.learning --frameworks cdjax"
+      echo "timeout -k 20 300 $learn --tasks halfcheetah --seeds 20 --variants lecun-small-head" \
+        "--out $work/learn/halfcheetah-small > $work/learn-halfcheetah-small.log 2>&1;" \
+        "timeout -k 20 420 $learn --tasks ant --seeds 10 --variants lecun-small-head" \
+        "--out $work/learn/ant-small > $work/learn-ant-small.log 2>&1;" \
+        "timeout -k 20 420 $learn --tasks ant --seeds 10 --variants default --out $work/learn/ant-default" \
+        "> $work/learn-ant-default.log 2>&1;" \
+        "timeout -k 20 360 $learn --tasks reacher --seeds 10 --variants lecun-small-head" \
+        "--out $work/learn/reacher-small > $work/learn-reacher-small.log 2>&1;" \
+        "python -m benchmarks.learning --report $work/learn/* --write $work/report.md > /dev/null 2>&1;" \
+        "tail -n 3 $work/learn-*.log; grep -A12 '^### Ablation' $work/report.md" ;;
+    head)
+      local learn="python -m benchmarks.learning --frameworks cdjax"
+      echo "timeout -k 20 420 $learn --tasks halfcheetah --seeds 20 --variants head-0.1" \
+        "--out $work/learn/halfcheetah-head > $work/learn-halfcheetah-head.log 2>&1;" \
+        "timeout -k 20 240 $learn --tasks ant --seeds 10 --variants head-0.1 --out $work/learn/ant-head" \
+        "> $work/learn-ant-head.log 2>&1;" \
+        "timeout -k 20 240 $learn --tasks reacher --seeds 10 --variants head-0.1 --out $work/learn/reacher-head" \
+        "> $work/learn-reacher-head.log 2>&1;" \
+        "timeout -k 20 200 $learn --tasks ant --seeds 10 --variants orthogonal-init --out $work/learn/ant-orthogonal" \
+        "> $work/learn-ant-orthogonal.log 2>&1;" \
+        "tail -n 2 $work/learn-*.log" ;;
+    head-more)
+      local learn="python -m benchmarks.learning --frameworks cdjax"
+      echo "timeout -k 20 240 $learn --tasks ant --seeds 10 --first-seed 1 --variants default" \
+        "--out $work/learn/ant-default-1 > $work/learn-ant-default-1.log 2>&1;" \
+        "timeout -k 20 240 $learn --tasks ant --seeds 10 --first-seed 1 --variants brax-head" \
+        "--out $work/learn/ant-brax-head-1 > $work/learn-ant-brax-head-1.log 2>&1;" \
+        "timeout -k 20 200 $learn --tasks reacher --seeds 10 --variants brax-head --out $work/learn/reacher-brax-head" \
+        "> $work/learn-reacher-brax-head.log 2>&1;" \
+        "timeout -k 20 540 python -m benchmarks.learning --cache-dir $work/cache-brax --tasks ant --frameworks brax" \
+        "--seeds 5 --first-seed 5 --out $work/learn/brax-ant-5-9 > $work/learn-brax-ant.log 2>&1;" \
+        "python -m benchmarks.learning --report $work/learn/* --write $work/report.md > /dev/null 2>&1;" \
+        "tail -n 2 $work/learn-*.log" ;;
     parallel)
       local llvm=xla_gpu_enable_llvm_module_compilation_parallelism=true t
       echo "timeout -k 20 200 python -m benchmarks.compile_time --out $work/default --cache-dir $work/cache-default" \
@@ -284,7 +316,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate or stream" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from cdjax import HParams, numerics
+from cdjax.protocol import ConfigError
 from cdjax.agents.obs import losses, networks
 from cdjax import normalize as nz
 
@@ -130,3 +131,33 @@ def test_backward_recurrence_equals_the_sequential_loop(steps):
                                atol=1e-6)
     got = numerics.backward_linear_recurrence(a, b.at[0].set(jnp.nan))
     assert bool(jnp.isfinite(got[1:]).all()) and not bool(jnp.isfinite(got[0]).any())
+
+
+
+def test_policy_head_scale_scales_only_the_policy_head():
+    """policy_head_scale multiplies lecun-uniform's policy head (its last layer's initial weights) and changes nothing
+    else (hidden layers, biases; the same key draws the same weights); orthogonal weights keep their own head (gain
+    0.01), and Config refuses another scale with them."""
+    from cdjax.agents.obs.config import Config, validate
+
+    key, obs = jax.random.PRNGKey(3), jnp.zeros((1, 5))
+
+    def mlp(**kw):
+        return networks.Policy(2, (8, 8), **kw).init(key, obs)["params"]["MLP_0"]
+
+    brax, small = mlp(weight_init="lecun", head_scale=1.0), mlp(weight_init="lecun", head_scale=0.1)
+    for layer in ("Dense_0", "Dense_1"):
+        np.testing.assert_array_equal(small[layer]["kernel"], brax[layer]["kernel"])
+    np.testing.assert_allclose(small["Dense_2"]["kernel"], 0.1 * brax["Dense_2"]["kernel"], rtol=1e-5, atol=1e-9)
+    np.testing.assert_array_equal(small["Dense_2"]["bias"], brax["Dense_2"]["bias"])
+    # lecun-uniform's own head: columns of 8 entries of variance 1/8, norm about 1; orthogonal's: norm 0.01
+    assert 0.5 < np.linalg.norm(brax["Dense_2"]["kernel"], axis=0).mean() < 1.5
+    for scale in (1.0, 0.1):
+        ortho = mlp(weight_init="orthogonal", head_scale=scale)["Dense_2"]["kernel"]
+        np.testing.assert_allclose(np.linalg.norm(ortho, axis=0), 0.01, rtol=1e-4)
+    # the Config field reaches the policy (the default is 0.1), and orthogonal takes no other scale
+    assert networks.build(Config(env="point", arm="model-free"), 5, 2)["policy"].head_scale == 0.1
+    assert networks.build(Config(env="point", arm="model-free", policy_head_scale=1.0), 5, 2)["policy"].head_scale == 1.0
+    validate(Config(env="point", weight_init="orthogonal"))
+    with pytest.raises(ConfigError, match="policy_head_scale"):
+        validate(Config(env="point", weight_init="orthogonal", policy_head_scale=1.0))

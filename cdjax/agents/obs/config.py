@@ -14,7 +14,7 @@ from typing import Literal
 import jax.numpy as jnp
 from flax import struct
 
-from cdjax.checks import ANY, POSITIVE, UNIT, Choice, Count, Fields, HParamRanges
+from cdjax.checks import ANY, POSITIVE, UNIT, Choice, Count, Fields, HParamRanges, Real
 from cdjax.consistency import KINDS, windows_per_sequence
 from cdjax.protocol import ConfigError
 
@@ -50,6 +50,7 @@ class Config:
     policy_std: PolicyStd = "state"  # policy std: state (softplus head, as Brax) or global (one log-std per dim)
     entropy: Entropy = "squashed"  # entropy bonus: of the tanh-squashed action (one-sample) or of the Gaussian
     weight_init: Init = "lecun"  # policy/value weights: lecun-uniform (Brax) or orthogonal (gain sqrt 2, small policy head)
+    policy_head_scale: float = 0.1  # lecun: the policy's last layer's initial weights (mean and std heads) x this; 1 = Brax's
     clip_scope: ClipScope = "group"  # gradient clipping: per parameter group, or policy and value together (Brax)
     policy_hidden: tuple[int, ...] = (64, 64)  # policy MLP widths
     value_hidden: tuple[int, ...] = (256, 256)  # value MLP widths
@@ -120,6 +121,10 @@ def validate(config: Config) -> None:
     if not callable(getattr(_linen(), config.activation, None)):
         raise ConfigError(f"Unknown activation {config.activation!r}; use a flax.linen activation such as swish, "
                           "tanh or relu.")
+    if config.weight_init == "orthogonal" and config.policy_head_scale != Config.policy_head_scale:
+        raise ConfigError(f"policy_head_scale scales lecun-uniform's policy head; orthogonal weights have their own (gain "
+                          f"0.01), so leave it at {Config.policy_head_scale} with weight_init='orthogonal', got "
+                          f"{config.policy_head_scale!r}.")
     if config.cc_epochs > config.num_epochs:
         raise ConfigError(f"cc_epochs must be between 0 (all epochs) and num_epochs={config.num_epochs}, got {config.cc_epochs!r}.")
     if config.rollout_len % config.segment != 0:
@@ -149,7 +154,8 @@ FIELDS = Fields(
     Config, encoder=Choice(ENCODERS), num_envs=Count(1), rollout_len=Count(1), horizon=Count(1), num_updates=Count(1),
     num_epochs=Count(1), num_minibatches=Count(1), segment_len=Count(1, zero="the whole rollout"),
     episode_length=Count(1), action_repeat=Count(1), encoder_dim=Count(1), cc_windows=Count(1, zero="all windows"),
-    cc_unroll=Count(1), cc_epochs=Count(1, zero="all epochs"), eval_horizon=Count(1), eval_envs=Count(1))
+    cc_unroll=Count(1), cc_epochs=Count(1, zero="all epochs"), eval_horizon=Count(1), eval_envs=Count(1),
+    policy_head_scale=Real(POSITIVE))
 
 
 def _linen():

@@ -57,15 +57,17 @@ class MLP(nn.Module):
     widths: Sequence[int]
     out: int
     activation: str = "swish"  # any flax.linen activation name (swish, tanh, relu, ...)
-    out_scale: float = 1.0  # orthogonal init scale of the last layer
+    out_scale: float = 1.0  # the last layer's initial weights: orthogonal's gain, or the factor on lecun-uniform's
     weight_init: str = Config.weight_init  # lecun-uniform (Brax); orthogonal: gain sqrt(2) hidden, out_scale last
 
     @nn.compact
     def __call__(self, x):
         act = getattr(nn, self.activation)
-        lecun = self.weight_init == "lecun"
-        hidden = nn.initializers.lecun_uniform() if lecun else nn.initializers.orthogonal(jnp.sqrt(2.0))
-        last = nn.initializers.lecun_uniform() if lecun else nn.initializers.orthogonal(self.out_scale)
+        if self.weight_init == "lecun":  # variance_scaling(1, fan_in, uniform) is lecun-uniform itself
+            hidden = nn.initializers.lecun_uniform()
+            last = nn.initializers.variance_scaling(self.out_scale ** 2, "fan_in", "uniform")
+        else:
+            hidden, last = nn.initializers.orthogonal(jnp.sqrt(2.0)), nn.initializers.orthogonal(self.out_scale)
         for w in self.widths:
             x = act(nn.Dense(w, kernel_init=hidden)(x))
         return nn.Dense(self.out, kernel_init=last)(x)
@@ -84,14 +86,16 @@ class Policy(nn.Module):
     activation: str = "swish"
     std_mode: str = "state"
     weight_init: str = Config.weight_init  # Config's default, so that a module built alone is the agent's
+    head_scale: float = Config.policy_head_scale  # lecun: the last layer's initial weights x this (orthogonal: gain 0.01)
 
     @nn.compact
     def __call__(self, obs):
         A = self.action_size
+        scale = self.head_scale if self.weight_init == "lecun" else 0.01
         if self.std_mode == "state":
-            out = MLP(self.hidden, 2 * A, self.activation, out_scale=0.01, weight_init=self.weight_init)(obs)
+            out = MLP(self.hidden, 2 * A, self.activation, out_scale=scale, weight_init=self.weight_init)(obs)
             return out[..., :A], jax.nn.softplus(out[..., A:]) + MIN_POLICY_STD
-        mean = MLP(self.hidden, A, self.activation, out_scale=0.01, weight_init=self.weight_init)(obs)
+        mean = MLP(self.hidden, A, self.activation, out_scale=scale, weight_init=self.weight_init)(obs)
         log_std = self.param("log_std", nn.initializers.zeros, (A,))
         return mean, jnp.exp(log_std) * jnp.ones_like(mean)
 
@@ -131,7 +135,8 @@ class DynamicsModel(nn.Module):
 def build(config, obs_size: int, action_size: int) -> dict[str, nn.Module]:
     """The modules an arm of `config` uses, by parameter-group name."""
     modules = {
-        "policy": Policy(action_size, tuple(config.policy_hidden), config.activation, config.policy_std, config.weight_init),
+        "policy": Policy(action_size, tuple(config.policy_hidden), config.activation, config.policy_std, config.weight_init,
+                         config.policy_head_scale),
         "value": Value(tuple(config.value_hidden), config.activation, config.weight_init),
     }
     if config.use_model:
@@ -167,7 +172,8 @@ def set_initial_std(policy: Policy, params: dict, init_log_std) -> dict:
         p = dict(p, log_std=jnp.full_like(p["log_std"], init_log_std))
         return {"params": p}
     # state: the std head's bias b with softplus(b) + floor = exp(init_log_std): the std in every state when the
-    # head's weights start near 0 (orthogonal init), the std where the features are 0 with lecun (as Brax).
+    # head's weights start near 0 (orthogonal init; lecun's x0.1, nearly), the std where the features are 0 with lecun's
+    # own head (as Brax).
     A = policy.action_size
     target = jnp.maximum(jnp.exp(init_log_std) - MIN_POLICY_STD, 1e-6)
     bias = target + jnp.log(-jnp.expm1(-target))  # softplus^-1, stable for small and large targets
