@@ -18,7 +18,8 @@ so that only the first seed compiles.
 previous value each, and `previous` with all of them): the ablation that says which options matter.
 
 Every row is appended to DIR/rows.jsonl as soon as it is measured (a run cut short keeps what it did);
-DIR/meta.json records the device, versions, specs and command. `--report` turns one or more such
+DIR/meta.json records the device, versions, specs and command, and for cdjax the code (commit, where git can tell)
+and the whole Config each variant ran with (what `default` meant then). `--report` turns one or more such
 directories into a markdown table (final IQM with 95% stratified-bootstrap intervals per task and
 learner, area under the curve, env steps/s) and a curve plot.
 """
@@ -114,6 +115,11 @@ class Rows:
         print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
 
 
+def cdjax_config(task: Task, variant: str):
+    """The Config of cdjax's model-free arm on `task` with `variant`'s overrides."""
+    return task.spec.config(arm="model-free", num_updates=task.evals * task.updates_per_eval, **VARIANTS[variant][0])
+
+
 def run_cdjax(name: str, task: Task, variant: str, seeds: int, rows: Rows, seed: int = 0) -> None:
     """cdjax model-free, `seeds` vmapped runs, evaluated every task.updates_per_eval updates. With seed b > 0
     the runs' keys come from base key b (rows say seeds b*1000 + s, so they never collide with b = 0's)."""
@@ -124,9 +130,9 @@ def run_cdjax(name: str, task: Task, variant: str, seeds: int, rows: Rows, seed:
     from cdjax.evaluate import make_evaluator
     from cdjax.sweep import make_sweep, unpad
 
-    cfg_over, hp_over = VARIANTS[variant]
+    hp_over = VARIANTS[variant][1]
     spec = task.spec
-    config = spec.config(arm="model-free", num_updates=task.evals * task.updates_per_eval, **cfg_over)
+    config = cdjax_config(task, variant)
     trainer = obs.make_trainer(config)
     sweep = make_sweep(trainer)
     keys, hps = sweep.grid(seed=seed, num_seeds=seeds, hps=[spec.hparams(**hp_over)])
@@ -233,6 +239,12 @@ def main(argv=None) -> int:
             "tasks": {n: {"spec": t.spec.describe(), "evals": t.evals, "updates_per_eval": t.updates_per_eval,
                           "eval_episodes": t.eval_episodes, "budget": t.budget} for n, t in tasks.items()},
             "variants": {v: [VARIANTS[v][0], VARIANTS[v][1]] for v in args.variants}}
+    if "cdjax" in args.frameworks:  # what `default` and each variant meant when these rows ran: the whole Config
+        from cdjax import io
+        from cdjax.runner.plan import code_record
+
+        meta["code"] = code_record()
+        meta["configs"] = {n: {v: io.dataclass_to_json(cdjax_config(t, v)) for v in args.variants} for n, t in tasks.items()}
     (out / "meta.json").write_text(json.dumps(meta, indent=1, default=str))
     t_start = time.perf_counter()
     for name, task in tasks.items():

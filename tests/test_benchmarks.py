@@ -1,6 +1,7 @@
 """Benchmarks: the tiny CPU suite runs end to end in this process; ratios, targets and tables follow
 from the raw numbers; the matched configuration is what Brax PPO's semantics say."""
 
+import dataclasses
 import inspect
 import json
 import math
@@ -55,6 +56,8 @@ def test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps(t
     """`python -m benchmarks.learning --tiny`: both learners, every seed, evaluated at the same env-step counts;
     the report's table and verdict come from those rows."""
     from benchmarks import learning, learning_report
+    from cdjax import io
+    from cdjax.agents.obs.config import Config
     from conftest import CACHE
 
     out = tmp_path / "learning"
@@ -71,6 +74,14 @@ def test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps(t
     text = learning_report.report([out], str(out / "report.md"))
     assert "| point | brax-ppo | 2 |" in text and "| point | cdjax default | 2 |" in text
     assert f"at {expected[-1]:,} env steps" in text and (out / "report.png").exists()
+    # meta.json holds the Config each cdjax variant ran with: what `default` meant when the rows were made
+    meta = json.loads((out / "meta.json").read_text())
+    config = meta["configs"]["point"]["default"]
+    ran = dataclasses.replace(task, evals=1)  # --evals 1
+    assert config == json.loads(json.dumps(io.dataclass_to_json(learning.cdjax_config(ran, "default"))))
+    assert config["num_updates"] == ran.updates_per_eval
+    assert config["arm"] == "model-free" and config["policy_head_scale"] == Config().policy_head_scale
+    assert config["num_envs"] == task.spec.num_envs and set(meta["code"]) >= {"commit", "jax"}
 
 
 def test_learning_report_names_every_device_a_learners_seeds_ran_on():
