@@ -107,7 +107,9 @@
 #            Each in a process of its own, stopped by `timeout`; the report of the four at the end.
 #   head     the policy head's initial weights 10x smaller (`--variants head-0.1`: Config.policy_head_scale=0.1), between
 #            lecun's (ant's best) and lecun-small-head's (half-cheetah's): half-cheetah at 20 seeds, ant and reacher at
-#            10, then ant at 10 seeds with `orthogonal-init` (about 15 minutes). Report at the end.
+#            10, then ant at 10 seeds with `orthogonal-init` (about 15 minutes). Report at the end. `init` and `head` ran
+#            on 2026-11-26 (benchmarks/results/2026-11-26-h100-head/) at ca7d478, when `default` was Brax's head: x0.1
+#            is the default since, so `init`'s `default` part now runs x0.1 (`brax-head` is the old one).
 #   head-more the x0.1 default's ant figure at more seeds (not yet run; about 20 minutes): Brax PPO's ant seeds 5-9 (its
 #            2026-11-22 rows hold 0-4), cdjax's ant at 10 more seeds (base key 1: seeds 1000-1009) at x0.1 (the
 #            default) and with Brax's head (`brax-head`), and reacher at 10 seeds with Brax's head (beside `head`'s
