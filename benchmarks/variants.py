@@ -77,6 +77,7 @@ def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
 
 VARIANTS = ("none", "no-loss-metrics", "bias-sum")
 
+
 @contextlib.contextmanager
 def applied(variant: str) -> Iterator[None]:
     """The agent with `variant` while the block runs (programs traced inside it keep it); restored after."""
