@@ -110,10 +110,11 @@
 #            10, then ant at 10 seeds with `orthogonal-init` (about 15 minutes). Report at the end. `init` and `head` ran
 #            on 2026-11-26 (benchmarks/results/2026-11-26-h100-head/) at ca7d478, when `default` was Brax's head: x0.1
 #            is the default since, so `init`'s `default` part now runs x0.1 (`brax-head` is the old one).
-#   head-more the x0.1 default's ant figure at more seeds (not yet run; about 20 minutes): Brax PPO's ant seeds 5-9 (its
-#            2026-11-22 rows hold 0-4), cdjax's ant at 10 more seeds (base key 1: seeds 1000-1009) at x0.1 (the
-#            default) and with Brax's head (`brax-head`), and reacher at 10 seeds with Brax's head (beside `head`'s
-#            x0.1 rows). Report at the end.
+#   head-more the x0.1 default's ant figure at more seeds: Brax PPO's ant seeds 5-9 (its 2026-11-22 rows hold 0-4),
+#            cdjax's ant at 10 more seeds (base key 1: seeds 1000-1009) at x0.1 (the default) and with Brax's head
+#            (`brax-head`), and reacher at 10 seeds with Brax's head (beside `head`'s x0.1 rows; its 200 s limit cut it
+#            at 13.1M of 19.7M steps). Report at the end. Ran 2026-11-26 (1165 s on one H100):
+#            benchmarks/results/2026-11-26-h100-head-more/.
 #   (stream, the fused chain's forward and backward as calls on a second GPU stream (`benchmarks.variants
 #            chain-stream`), ran on 2026-11-26 and was removed with that variant: paper-CD 0.7687 s/update with it and
 #            0.7675 s with its calls but without the stream flag, against 0.7335 s; benchmarks/results/2026-11-26-h100-stream/.)

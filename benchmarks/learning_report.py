@@ -17,29 +17,33 @@ from collections import defaultdict
 import numpy as np
 
 
-def split_source(source: str | pathlib.Path) -> tuple[pathlib.Path, str | None]:
-    """"DIR" -> (DIR, None); "DIR@FRAMEWORK" (brax or cdjax) -> (DIR, FRAMEWORK): only that framework's rows of
-    DIR, e.g. the Brax rows of a directory whose cdjax rows a later run replaces."""
+def split_source(source: str | pathlib.Path) -> tuple[pathlib.Path, str | None, str | None]:
+    """"DIR" -> (DIR, None, None); "DIR@FRAMEWORK" (brax or cdjax) -> (DIR, FRAMEWORK, None): only that framework's
+    rows of DIR, e.g. the Brax rows of a directory whose cdjax rows a later run replaces; "DIR@cdjax=NAME" -> (DIR,
+    "cdjax", NAME): DIR's cdjax rows, each reported as variant NAME, e.g. rows whose `default` ran before a default
+    changed, or one setting's seeds spread over runs under two variant names."""
     text = str(source)
     head, sep, tail = text.rpartition("@")
-    if sep and tail in ("brax", "cdjax") and not pathlib.Path(text).exists():
-        return pathlib.Path(head), tail
-    return pathlib.Path(text), None
+    if sep and not pathlib.Path(text).exists():
+        framework, eq, name = tail.partition("=")
+        if framework in ("brax", "cdjax") and not (eq and (framework != "cdjax" or not name)):
+            return pathlib.Path(head), framework, name or None
+    return pathlib.Path(text), None, None
 
 
 def load(dirs: list[pathlib.Path | str]) -> tuple[list[dict], list[dict]]:
-    """(rows, metas) of every directory (DIR or DIR@FRAMEWORK, see `split_source`); a row carries its
-    directory's device in `device`."""
+    """(rows, metas) of every directory (DIR, DIR@FRAMEWORK or DIR@cdjax=NAME, see `split_source`); a row carries
+    its directory's device in `device`."""
     rows, metas = [], []
     for source in dirs:
-        d, framework = split_source(source)
+        d, framework, name = split_source(source)
         meta = json.loads((d / "meta.json").read_text()) if (d / "meta.json").exists() else {}
         metas.append({"dir": str(source), **meta})
         for line in (d / "rows.jsonl").read_text().splitlines():
             if line.strip():
                 row = json.loads(line)
                 if framework is None or row["framework"] == framework:
-                    rows.append({**row, "device": meta.get("device", "?")})
+                    rows.append({**row, "device": meta.get("device", "?"), **({"variant": name} if name else {})})
     return rows, metas
 
 
@@ -54,7 +58,12 @@ def curves(rows: list[dict]) -> dict[tuple[str, str], dict]:
         steps = sorted({r["env_steps"] for r in rs})
         seeds = sorted({r["seed"] for r in rs})
         values = np.full((len(seeds), len(steps)), np.nan)
+        seen = set()
         for r in rs:
+            if (r["seed"], r["env_steps"]) in seen:  # two sources of one seed: one would hide the other
+                raise ValueError(f"{key[1]} on {key[0]}: seed {r['seed']} at {r['env_steps']} env steps comes from two "
+                                 "rows; report each seed once (DIR@FRAMEWORK selects one framework's rows of DIR)")
+            seen.add((r["seed"], r["env_steps"]))
             v = r["eval_return"]
             values[seeds.index(r["seed"]), steps.index(r["env_steps"])] = np.nan if v is None else v
         out[key] = {"steps": np.asarray(steps), "returns": values, "seeds": seeds, "rows": rs}

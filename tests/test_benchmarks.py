@@ -101,6 +101,32 @@ def test_learning_report_names_every_device_a_learners_seeds_ran_on():
     assert by_learner["cdjax default"]["device"] == "H100"
 
 
+def test_learning_report_sources_rename_cdjax_rows_and_refuse_a_seed_twice(tmp_path):
+    """DIR@cdjax=NAME: DIR's cdjax rows only, reported as variant NAME, so one setting's seeds from two runs under
+    two variant names pool into one learner; the same seed from two sources is refused, not silently overwritten."""
+    from benchmarks import learning_report
+
+    def write(d, framework, variant, seeds):
+        d.mkdir()
+        (d / "rows.jsonl").write_text("".join(json.dumps(dict(
+            task="t", framework=framework, variant=variant, seed=s, env_steps=st, eval_return=float(s), train_s=1.0))
+            + "\n" for s in seeds for st in (0, 10)))
+
+    write(tmp_path / "a", "cdjax", "head-0.1", range(3))
+    write(tmp_path / "b", "cdjax", "default", range(100, 103))
+    write(tmp_path / "c", "brax", "brax-ppo", range(2))
+    assert learning_report.split_source(f"{tmp_path / 'a'}@cdjax=x") == (tmp_path / "a", "cdjax", "x")
+    assert learning_report.split_source(f"{tmp_path / 'a'}@brax") == (tmp_path / "a", "brax", None)
+    assert learning_report.split_source(f"{tmp_path / 'a'}@brax=x")[1] is None  # only cdjax rows are renamed
+    rows, _ = learning_report.load([tmp_path / "a", f"{tmp_path / 'b'}@cdjax=head-0.1", f"{tmp_path / 'c'}@cdjax=y"])
+    assert {r["variant"] for r in rows} == {"head-0.1"} and len(rows) == 12  # c has no cdjax rows
+    (entry,) = learning_report.table(rows, reps=50)
+    assert entry["learner"] == "cdjax head-0.1" and entry["seeds"] == 6
+    rows, _ = learning_report.load([tmp_path / "a", f"{tmp_path / 'a'}@cdjax"])
+    with pytest.raises(ValueError, match="seed 0 at 0 env steps"):
+        learning_report.curves(rows)
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """One run of the tiny suite (a subset of `--tiny --suite all`: every part except the devices
