@@ -268,3 +268,21 @@ def test_every_units_sweeps_plan_without_an_error(name):
             assert abs(plan.total_env_steps - unit.budget.steps) <= plan.config.env_steps_per_update
             if "--cc-epochs" in part.options:
                 assert plan.config.cc_epochs == 0
+
+
+def test_the_header_names_the_policy_head_each_run_started_with():
+    """run.json's policy_head_scale is stated (a run.json from before the field ran Brax's head, x1); runs at two
+    scales are both named, each once."""
+    def run(info):
+        return report.Run(path=None, info=info, machine={}, unit={}, curves={}, evals={}, phase={}, planned={},
+                          phase_steps={})
+
+    def task(*runs):
+        return report.TaskData(name="t", runs=list(runs), curves={}, evals={}, phase={}, budget=0, stated=0,
+                               complete=True)
+
+    old, new = run({"base_config": {"env": "t"}}), run({"base_config": {"env": "t", "policy_head_scale": 0.1}})
+    assert "policy head x1 " in report._head_scales([task(old)])
+    assert "policy head x0.1 " in report._head_scales([task(new)])
+    assert "policy head x0.1 and x1 " in report._head_scales([task(old), task(new, new)])
+    assert report._head_scales([]) == ""
