@@ -112,8 +112,8 @@
 #            is the default since, so `init`'s `default` part now runs x0.1 (`brax-head` is the old one).
 #   head-more the x0.1 default's ant figure at more seeds: Brax PPO's ant seeds 5-9 (its 2026-11-22 rows hold 0-4),
 #            cdjax's ant at 10 more seeds (base key 1: seeds 1000-1009) at x0.1 (the default) and with Brax's head
-#            (`brax-head`), and reacher at 10 seeds with Brax's head (beside `head`'s x0.1 rows; its 200 s limit cut it
-#            at 13.1M of 19.7M steps). Report at the end. Ran 2026-11-26 (1165 s on one H100):
+#            (`brax-head`), and reacher at 10 seeds with Brax's head (beside `head`'s x0.1 rows; its 200 s limit, 280 s since, cut
+#            it at 13.1M of 19.7M steps). Report at the end. Ran 2026-11-26 (1165 s on one H100):
 #            benchmarks/results/2026-11-26-h100-head-more/.
 #   (stream, the fused chain's forward and backward as calls on a second GPU stream (`benchmarks.variants
 #            chain-stream`), ran on 2026-11-26 and was removed with that variant: paper-CD 0.7687 s/update with it and
@@ -297,7 +297,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--out $work/learn/ant-default-1 > $work/learn-ant-default-1.log 2>&1;" \
         "timeout -k 20 240 $learn --tasks ant --seeds 10 --first-seed 1 --variants brax-head" \
         "--out $work/learn/ant-brax-head-1 > $work/learn-ant-brax-head-1.log 2>&1;" \
-        "timeout -k 20 200 $learn --tasks reacher --seeds 10 --variants brax-head --out $work/learn/reacher-brax-head" \
+        "timeout -k 20 280 $learn --tasks reacher --seeds 10 --variants brax-head --out $work/learn/reacher-brax-head" \
         "> $work/learn-reacher-brax-head.log 2>&1;" \
         "timeout -k 20 540 python -m benchmarks.learning --cache-dir $work/cache-brax --tasks ant --frameworks brax" \
         "--seeds 5 --first-seed 5 --out $work/learn/brax-ant-5-9 > $work/learn-brax-ant.log 2>&1;" \
