@@ -217,8 +217,11 @@ def main(argv=None) -> int:
     if args.report:
         from benchmarks import learning_report
 
-        text = learning_report.report(args.report, args.write,
-                                      tuple(args.parity_variants))
+        try:
+            text = learning_report.report(args.report, args.write, tuple(args.parity_variants))
+        except ValueError as err:  # a source without rows, or a seed given twice: one sentence, not a traceback
+            print(f"python -m benchmarks.learning: {err}", file=sys.stderr)
+            return 2
         print(text)
         return 0
     if args.tiny:

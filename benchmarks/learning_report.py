@@ -37,6 +37,9 @@ def load(dirs: list[pathlib.Path | str]) -> tuple[list[dict], list[dict]]:
     rows, metas = [], []
     for source in dirs:
         d, framework, name = split_source(source)
+        if not (d / "rows.jsonl").is_file():
+            raise ValueError(f"{source} has no rows.jsonl: give a directory of `python -m benchmarks.learning --out`, "
+                             "as DIR, DIR@brax, DIR@cdjax or DIR@cdjax=NAME")
         meta = json.loads((d / "meta.json").read_text()) if (d / "meta.json").exists() else {}
         metas.append({"dir": str(source), **meta})
         for line in (d / "rows.jsonl").read_text().splitlines():

@@ -101,7 +101,7 @@ def test_learning_report_names_every_device_a_learners_seeds_ran_on():
     assert by_learner["cdjax default"]["device"] == "H100"
 
 
-def test_learning_report_sources_rename_cdjax_rows_and_refuse_a_seed_twice(tmp_path):
+def test_learning_report_sources_rename_cdjax_rows_and_refuse_a_seed_twice(tmp_path, capsys):
     """DIR@cdjax=NAME: DIR's cdjax rows only, reported as variant NAME, so one setting's seeds from two runs under
     two variant names pool into one learner; the same seed from two sources is refused, not silently overwritten."""
     from benchmarks import learning_report
@@ -125,6 +125,13 @@ def test_learning_report_sources_rename_cdjax_rows_and_refuse_a_seed_twice(tmp_p
     rows, _ = learning_report.load([tmp_path / "a", f"{tmp_path / 'a'}@cdjax"])
     with pytest.raises(ValueError, match="seed 0 at 0 env steps"):
         learning_report.curves(rows)
+    from benchmarks import learning  # the command says either in one sentence (exit 2), not with a traceback
+
+    for sources in ([str(tmp_path / "a"), f"{tmp_path / 'a'}@cdjax"], [f"{tmp_path / 'a'}@cdjax="], [str(tmp_path)]):
+        capsys.readouterr()
+        assert learning.main(["--report", *sources]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("python -m benchmarks.learning: ") and err.count("\n") == 1, err
 
 
 @pytest.fixture(scope="module")
