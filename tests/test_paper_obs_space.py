@@ -286,3 +286,18 @@ def test_the_header_names_the_policy_head_each_run_started_with():
     assert "policy head x0.1 " in report._head_scales([task(new)])
     assert "policy head x0.1 and x1 " in report._head_scales([task(old), task(new, new)])
     assert report._head_scales([]) == ""
+
+
+def test_the_paired_table_sets_each_seed_beside_the_same_seed_of_the_other_data(tmp_path):
+    """`report --paired DATA`: per (task, arm) in both, both IQMs and each side's seeds in order, with how many seeds
+    are higher here; an arm whose seed counts differ is named, not paired; an arm only one side has is left out."""
+    def row(arm, seeds):
+        return dict(task="t", arm=arm, final_return=[float(np.mean(seeds)), 0.0, 1.0], final_return_seeds=seeds)
+
+    here = [row("mbmf", [3.0, 1.0, 5.0]), row("cd-k5", [1.0, 2.0]), row("model-free", [1.0])]
+    there = [row("mbmf", [2.0, 2.0, 4.0]), row("cd-k5", [1.0, 2.0, 3.0])]
+    text = "\n".join(report.paired_table(here, there, "x1"))
+    (line,) = [x for x in text.splitlines() if x.startswith("| t | Mb-Mf |")]
+    assert "| 2 of 3 | 2, 2, 4 | 3, 1, 5 |" in line
+    assert "CD k=5 (3 seeds there, 2 here)" in text and "model-free" not in text
+    assert cli.main(["report", "--runs", str(tmp_path), "--paired", str(tmp_path / "none")]) == 2

@@ -131,8 +131,12 @@ def cmd_keep(args) -> int:
 def cmd_report(args) -> int:
     from experiments.paper_obs_space import report
 
+    if args.paired is not None and not (args.paired / "summary.json").is_file():
+        print(f"python -m experiments.paper_obs_space report: {args.paired} has no summary.json (give the data "
+              "directory of another report, e.g. experiments/paper_obs_space/data)", file=sys.stderr)
+        return 2
     tasks = report.load(args.runs)
-    path = report.write_results(tasks, pathlib.Path(args.out), reps=args.reps, keep=args.keep)
+    path = report.write_results(tasks, pathlib.Path(args.out), reps=args.reps, keep=args.keep, paired=args.paired)
     print(f"Wrote {path}")
     return 0
 
@@ -156,6 +160,9 @@ def main(argv=None) -> int:
     r.add_argument("--out", default=str(HERE))
     r.add_argument("--reps", type=int, default=2000, help="bootstrap replications")
     r.add_argument("--keep", action="store_true", help="also copy the runs' data (thinned) into OUT/data/")
+    r.add_argument("--paired", type=pathlib.Path, metavar="DATA",
+                   help="another report's data directory (its summary.json): set this data's final returns beside "
+                        "its, seed by seed (e.g. the same units at another setting)")
     args, rest = p.parse_known_args(argv)
     if args.command == "train":
         return cmd_train(args, rest)

@@ -606,9 +606,39 @@ def _head_scales(tasks: list[TaskData]) -> str:
             "head, cdjax's default x0.1 since 2026-11-26, `benchmarks/LEARNING.md`).")
 
 
-def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2000, keep: bool = False
-                  ) -> pathlib.Path:
-    """Figures, tables, summary.json and RESULTS.md into `out` (and, with keep, the runs' data into out/data/)."""
+def paired_table(rows: list[dict], other: list[dict], other_name: str) -> list[str]:
+    """Markdown lines setting each (task, arm) of `rows` (this report's summary) beside the same (task, arm) of
+    `other` (another report's data/summary.json, e.g. the same units at another setting), seed by seed: the i-th
+    seed of one beside the i-th of the other (the units run seeds base..base+9 with base seed 0 unless their
+    run.json says otherwise). Arms whose seed counts differ are left out and named."""
+    theirs = {(r["task"], r["arm"]): r for r in other}
+    head = ("task", "arm", f"final return, {other_name}", "final return, here", "seeds higher here",
+            f"per seed, {other_name}", "per seed, here")
+    body, skipped = [], []
+    for r in rows:
+        o = theirs.get((r["task"], r["arm"]))
+        if o is None:
+            continue
+        a, b = o.get("final_return_seeds", []), r.get("final_return_seeds", [])
+        if len(a) != len(b) or not a:
+            skipped.append(f"{r['task']} {LABELS.get(r['arm'], r['arm'])} ({len(a)} seeds there, {len(b)} here)")
+            continue
+        body.append([r["task"], LABELS.get(r["arm"], r["arm"]), _cell(o["final_return"]), _cell(r["final_return"]),
+                     f"{sum(y > x for x, y in zip(a, b))} of {len(a)}", ", ".join(f"{x:.0f}" for x in a),
+                     ", ".join(f"{y:.0f}" for y in b)])
+    if not body and not skipped:
+        return [f"No task and arm of this data is in {other_name}.", ""]
+    lines = [_table(head, body)] if body else []
+    if skipped:
+        lines.append("Not paired (their seed counts differ): " + "; ".join(skipped) + ".")
+    return lines + [""]
+
+
+def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2000, keep: bool = False,
+                  paired: pathlib.Path | None = None) -> pathlib.Path:
+    """Figures, tables, summary.json and RESULTS.md into `out` (and, with keep, the runs' data into out/data/);
+    with `paired` (a directory holding another report's summary.json), a section setting this data's final returns
+    beside that data's, seed by seed (`paired_table`)."""
     out.mkdir(parents=True, exist_ok=True)
     if keep:
         for t in tasks:
@@ -726,6 +756,13 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
                                  for t in start for a in START_ARMS
                                  for r in rows if r["task"] == t.name and r["arm"] == a)))
             lines.append("")
+        if paired is not None:
+            other = json.loads((paired / "summary.json").read_text())
+            lines += [f"## Seed by seed against `{paired}`", "",
+                      "Final return (the mean of each seed's last 10% of logged training episodes), IQM over seeds "
+                      "[95% interval], each side as its own report gives it; then each seed's value, the i-th seed of "
+                      "one side beside the i-th of the other.", ""]
+            lines += paired_table(rows, other, f"`{paired}`")
         lines += ["## Units: commands, devices, wall-clock", "", units_table(tasks), ""]
     (out / "data").mkdir(parents=True, exist_ok=True)
     (out / "data" / "summary.json").write_text(json.dumps(rows, indent=1, default=float))
