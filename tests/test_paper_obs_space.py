@@ -291,13 +291,19 @@ def test_the_header_names_the_policy_head_each_run_started_with():
 def test_the_paired_table_sets_each_seed_beside_the_same_seed_of_the_other_data(tmp_path):
     """`report --paired DATA`: per (task, arm) in both, both IQMs and each side's seeds in order, with how many seeds
     are higher here; an arm whose seed counts differ is named, not paired; an arm only one side has is left out."""
-    def row(arm, seeds):
-        return dict(task="t", arm=arm, final_return=[float(np.mean(seeds)), 0.0, 1.0], final_return_seeds=seeds)
+    def row(arm, seeds, ids=None):
+        out = dict(task="t", arm=arm, final_return=[1.0, 0.0, 2.0], final_return_seeds=seeds)
+        return out if ids is None else dict(out, seed_ids=ids)
 
-    here = [row("mbmf", [3.0, 1.0, 5.0]), row("cd-k5", [1.0, 2.0]), row("model-free", [1.0])]
-    there = [row("mbmf", [2.0, 2.0, 4.0]), row("cd-k5", [1.0, 2.0, 3.0])]
+    here = [row("mbmf", [3.0, 1.0, 5.0], [0, 1, 2]), row("cd-k5", [1.0, 2.0], [0, 1]), row("model-free", [1.0]),
+            row("cd-k20", [1.0, None], [0, 1]), row("cd-k20-paper", [1.0, 2.0], [0, 1])]
+    there = [row("mbmf", [2.0, 2.0, 4.0]), row("cd-k5", [1.0, 2.0, 3.0]), row("cd-k20", [0.0, 0.0], [0, 1]),
+             row("cd-k20-paper", [1.0, 2.0], [5, 6])]
     text = "\n".join(report.paired_table(here, there, "x1"))
     (line,) = [x for x in text.splitlines() if x.startswith("| t | Mb-Mf |")]
-    assert "| 2 of 3 | 2, 2, 4 | 3, 1, 5 |" in line
-    assert "CD k=5 (3 seeds there, 2 here)" in text and "model-free" not in text
+    assert "| 2 of 3 | 2, 2, 4 | 3, 1, 5 |" in line  # no ids there (an older summary): paired by position
+    (line,) = [x for x in text.splitlines() if x.startswith("| t | CD k=20 (cdjax's weights) |")]
+    assert "| 1 of 1 | 0, 0 | 1, n/a |" in line  # a seed without a final return is shown, not counted
+    assert "CD k=5 (seeds 3 there, [0, 1] here)" in text and "model-free" not in text
+    assert "CD k=20 (paper's weights) (seeds [5, 6] there, [0, 1] here)" in text  # other seeds: not paired
     assert cli.main(["report", "--runs", str(tmp_path), "--paired", str(tmp_path / "none")]) == 2

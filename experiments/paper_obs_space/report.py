@@ -248,7 +248,7 @@ def arm_rows(task: TaskData, reps: int) -> list[dict]:
     rows = []
     for key in _arm_order(task.curves):
         c = task.curves[key]
-        row = {"task": task.name, "arm": key, "seeds": len(c.seeds),
+        row = {"task": task.name, "arm": key, "seeds": len(c.seeds), "seed_ids": [int(x) for x in c.seeds],
                "env_steps": float(np.nanmax(c.env_steps)) if c.env_steps.size else math.nan,
                "ppo_updates": int(c.updates.max()) if c.updates.size else 0}
         for stat, fn in (("final", plots.per_seed_final), ("auc", plots.per_seed_auc)):
@@ -598,7 +598,8 @@ def _data_dates(tasks: list[TaskData]) -> str:
 def _head_scales(tasks: list[TaskData]) -> str:
     """A sentence saying with which policy head the runs started: run.json's `policy_head_scale` (lecun-uniform's
     last policy layer x this; a run.json from before the field ran with x1, Brax's head)."""
-    scales = sorted({float(run.info.get("base_config", {}).get("policy_head_scale", 1.0)) for t in tasks for run in t.runs})
+    scales = sorted({float(run.info.get("base_config", {}).get("policy_head_scale", 1.0))
+                     for t in tasks for run in t.runs})
     if not scales:
         return ""
     said = " and ".join(f"x{s:g}" for s in scales)
@@ -608,29 +609,36 @@ def _head_scales(tasks: list[TaskData]) -> str:
 
 def paired_table(rows: list[dict], other: list[dict], other_name: str) -> list[str]:
     """Markdown lines setting each (task, arm) of `rows` (this report's summary) beside the same (task, arm) of
-    `other` (another report's data/summary.json, e.g. the same units at another setting), seed by seed: the i-th
-    seed of one beside the i-th of the other (the units run seeds base..base+9 with base seed 0 unless their
-    run.json says otherwise). Arms whose seed counts differ are left out and named."""
+    `other` (another report's data/summary.json, e.g. the same units at another setting), seed by seed: the same seed
+    ids side by side (a summary.json from before the ids were recorded pairs by position: the units run seeds 0-9 of
+    base seed 0). An arm whose seeds differ is named, not paired; one only this side has is left out."""
     theirs = {(r["task"], r["arm"]): r for r in other}
     head = ("task", "arm", f"final return, {other_name}", "final return, here", "seeds higher here",
             f"per seed, {other_name}", "per seed, here")
     body, skipped = [], []
+
+    def said(x):
+        return "n/a" if x is None else f"{x:.0f}"
+
     for r in rows:
         o = theirs.get((r["task"], r["arm"]))
         if o is None:
             continue
         a, b = o.get("final_return_seeds", []), r.get("final_return_seeds", [])
-        if len(a) != len(b) or not a:
-            skipped.append(f"{r['task']} {LABELS.get(r['arm'], r['arm'])} ({len(a)} seeds there, {len(b)} here)")
+        ids_a, ids_b = o.get("seed_ids"), r.get("seed_ids")
+        if len(a) != len(b) or not a or (ids_a is not None and ids_b is not None and ids_a != ids_b):
+            skipped.append(f"{r['task']} {LABELS.get(r['arm'], r['arm'])} (seeds {ids_a or len(a)} there, "
+                           f"{ids_b or len(b)} here)")
             continue
+        pairs = [(x, y) for x, y in zip(a, b) if x is not None and y is not None]
         body.append([r["task"], LABELS.get(r["arm"], r["arm"]), _cell(o["final_return"]), _cell(r["final_return"]),
-                     f"{sum(y > x for x, y in zip(a, b))} of {len(a)}", ", ".join(f"{x:.0f}" for x in a),
-                     ", ".join(f"{y:.0f}" for y in b)])
+                     f"{sum(y > x for x, y in pairs)} of {len(pairs)}", ", ".join(map(said, a)),
+                     ", ".join(map(said, b))])
     if not body and not skipped:
         return [f"No task and arm of this data is in {other_name}.", ""]
     lines = [_table(head, body)] if body else []
     if skipped:
-        lines.append("Not paired (their seed counts differ): " + "; ".join(skipped) + ".")
+        lines.append("Not paired (their seeds differ): " + "; ".join(skipped) + ".")
     return lines + [""]
 
 
@@ -760,8 +768,8 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
             other = json.loads((paired / "summary.json").read_text())
             lines += [f"## Seed by seed against `{paired}`", "",
                       "Final return (the mean of each seed's last 10% of logged training episodes), IQM over seeds "
-                      "[95% interval], each side as its own report gives it; then each seed's value, the i-th seed of "
-                      "one side beside the i-th of the other.", ""]
+                      "[95% interval], each side as its own report gives it; then each seed's value, in the order of "
+                      "the seed ids, the same ids on both sides.", ""]
             lines += paired_table(rows, other, f"`{paired}`")
         lines += ["## Units: commands, devices, wall-clock", "", units_table(tasks), ""]
     (out / "data").mkdir(parents=True, exist_ok=True)
