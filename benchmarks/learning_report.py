@@ -26,7 +26,7 @@ def split_source(source: str | pathlib.Path) -> tuple[pathlib.Path, str | None, 
     head, sep, tail = text.rpartition("@")
     if sep and not pathlib.Path(text).exists():
         framework, eq, name = tail.partition("=")
-        if framework in ("brax", "cdjax") and not (eq and (framework != "cdjax" or not name)):
+        if tail == "brax" or framework == "cdjax" and bool(eq) == bool(name):  # a NAME only for cdjax, never empty
             return pathlib.Path(head), framework, name or None
     return pathlib.Path(text), None, None
 

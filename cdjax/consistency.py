@@ -316,7 +316,7 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     else:  # [model input | encoder input] times the block-diagonal [[W1_x, 0], [0, W_i]]
         w_in = jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
     c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
-    w_big = _merged_weights(w_in, w_h) if MERGED_PRODUCTS else None
+    w_big, G = (_merged_weights(w_in, w_h) if MERGED_PRODUCTS else None), w_h.shape[1]
     gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
     z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
     states, xin = [s0], [_chain_inputs(c, shared, s0)]
@@ -336,7 +336,6 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
             step_hh = hs[-1] @ w_h
         else:  # [both | h_re W_h | h_im W_h] in one product
             out = jnp.concatenate([xin[-1], hs[-1][0], hs[-1][1]], axis=-1) @ w_big
-            G = w_h.shape[1]
             both, step_hh = out[:, :-2 * G], jnp.stack([out[:, -2 * G:-G], out[:, -G:]])
         p1 = both[:, :N1]
         hidden.append(us)
@@ -356,6 +355,7 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     dh_re, dh_im, ds = cotangents
     k, O = len(hidden), ds.shape[-1]
     N1 = layers[0][0].shape[1]
+    D, H = w_in.shape[0], w_h.shape[0]  # the chain's inputs' and hidden states' widths
     delta_std = c["delta"].std  # d denormalize(delta, z) / dz
     dh, dp1 = jnp.stack([dh_re, dh_im]), None  # cotangents of h_{t+1} and of the next step's first layer
     dgi, dhh, dzs = [None] * k, [None] * k, [None] * k
@@ -370,7 +370,6 @@ def _chain_bwd(shared: bool, residuals, cotangents):
         else:  # the cotangents of [x, h_re, h_im] in one product (the last step has no next first layer)
             dout = jnp.concatenate(([] if dp1 is None else [dp1]) + [dgi_im, dhh[t][0], dhh[t][1]], axis=-1)
             dx = dout @ (w_big[:, N1:] if dp1 is None else w_big).T
-            D, H = w_in.shape[0], w_h.shape[0]
             dxin, dh = dx[:, :D], dh_direct + jnp.stack([dx[:, D:D + H], dx[:, D + H:]])
         _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[t + 1])
         ds = ds + inputs_vjp(dxin)[0]  # every path into s_{t+1}
@@ -397,7 +396,6 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     x_enc = jnp.stack([p["x_re"], stack(xin[1:])[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2, W, D]
     dw_i, db_i = _outer(x_enc, scaled(dgi))
     dw_h, dgh_bias = _outer(stack(hs[:-1]), scaled(stack(dhh)))
-    H = w_h.shape[0]
     dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
               x_re=dgi[:, 0] @ p["w_i"].T)
     return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
