@@ -115,11 +115,9 @@
 #            (`brax-head`), and reacher at 10 seeds with Brax's head (beside `head`'s x0.1 rows; its 200 s limit, 280 s since, cut
 #            it at 13.1M of 19.7M steps). Report at the end. Ran 2026-11-26 (1165 s on one H100):
 #            benchmarks/results/2026-11-26-h100-head-more/.
-#   merged    an A/B of `benchmarks.variants merged-products` (the fused chain's per-step products of the next inputs,
-#            and of their cotangents, each as one block-diagonal product: one kernel fewer per step each way), about
-#            10 minutes: the compare suite's Mb-Mf and paper-CD, then paper-CD with the variant (traced), without it
-#            and with it again (the alternation shows the machine's drift), then the seeds suite's 10-seed Mb-Mf and
-#            paper-CD with the variant (beside `accept`'s 10-seed rows). Not yet run.
+#   (merged, an A/B of the fused chain's per-step products as block-diagonal ones, ran on 2026-11-26 and was removed
+#            with that variant: paper-CD 0.7982 and 0.8031 s/update with it against 0.7338 and 0.7355 s without;
+#            benchmarks/results/2026-11-26-h100-merged/.)
 #   (stream, the fused chain's forward and backward as calls on a second GPU stream (`benchmarks.variants
 #            chain-stream`), ran on 2026-11-26 and was removed with that variant: paper-CD 0.7687 s/update with it and
 #            0.7675 s with its calls but without the stream flag, against 0.7335 s; benchmarks/results/2026-11-26-h100-stream/.)
@@ -308,16 +306,6 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--seeds 5 --first-seed 5 --out $work/learn/brax-ant-5-9 > $work/learn-brax-ant.log 2>&1;" \
         "python -m benchmarks.learning --report $work/learn/* --write $work/report.md > /dev/null 2>&1;" \
         "tail -n 2 $work/learn-*.log" ;;
-    merged)
-      local run="timeout -k 20 170 python -m benchmarks.run --suite compare" \
-        var="timeout -k 20 170 python -m benchmarks.variants merged-products -- --suite compare"
-      echo "$run --cases mbmf cd-paper --budget-s 140 --out $work/plain-1 > $work/plain-1.log 2>&1;" \
-        "$var --cases cd-paper --budget-s 120 --trace $work/trace-merged --out $work/merged-1 > $work/merged-1.log 2>&1;" \
-        "$run --cases cd-paper --budget-s 120 --out $work/plain-2 > $work/plain-2.log 2>&1;" \
-        "$var --cases cd-paper --budget-s 120 --out $work/merged-2 > $work/merged-2.log 2>&1;" \
-        "timeout -k 20 240 python -m benchmarks.variants merged-products -- --suite seeds --scaling-cases mbmf" \
-        "cd-paper --seed-counts 10 --seed-envs 256 --budget-s 210 --out $work/seeds-merged > $work/seeds-merged.log 2>&1;" \
-        "grep -H ' s/update' $work/plain-*.log $work/merged-*.log; tail -n 8 $work/seeds-merged/results.md" ;;
     parallel)
       local llvm=xla_gpu_enable_llvm_module_compilation_parallelism=true t
       echo "timeout -k 20 200 python -m benchmarks.compile_time --out $work/default --cache-dir $work/cache-default" \
@@ -334,7 +322,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head, head-more or merged" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

@@ -19,11 +19,6 @@ Variants:
                    separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
                    The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
                    it against 0.805 s without.
-  merged-products  the fused chain's two per-step products that form the next step's inputs (the normalised state
-                   times [W1_x | W_i], the hidden states times W_h) as one product with a block-diagonal weight, and
-                   the two of their cotangents as one (`consistency.MERGED_PRODUCTS`): one kernel fewer per step each
-                   way, for more multiplications by zeros. The same values and gradients up to rounding. Not yet
-                   measured on a GPU.
   (pad-hidden, the fused chain's hidden widths zero-padded to a multiple of 128 once per minibatch, was removed
   after its A/B: paper-CD 0.7306 s/update with it against 0.7304 s without, one H100, 2026-11-25,
   benchmarks/results/2026-11-25-h100-probes/.)
@@ -40,6 +35,10 @@ Variants:
   model's losses, was removed after its A/B: paper-CD 0.7687 s/update with it, 0.7675 s with the calls but without
   the flag, against 0.7335 s plain; 10 vmapped seeds 1.76x Mb-Mf; one H100, 2026-11-26,
   benchmarks/results/2026-11-26-h100-stream/.)
+  (merged-products, the fused chain's per-step products of the next inputs (the normalised state times
+  [W1_x | W_i], the hidden states times W_h) and the two of their cotangents each as one block-diagonal product, was
+  removed after its A/B: paper-CD 0.7982 and 0.8031 s/update with it against 0.7338 and 0.7355 s without, one H100,
+  2026-11-26, benchmarks/results/2026-11-26-h100-merged/.)
   (skinny-reduce, the chain's narrow per-step products (the model's output layer forward, the states' cotangent
   backward) as a fused multiply-and-sum instead of split-K dots, was tried and not kept: paper-CD 0.7601 s/update
   with it against 0.7304 s without, one H100, 2026-11-26, benchmarks/results/2026-11-26-h100-compare/.)
@@ -80,7 +79,7 @@ def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
-VARIANTS = ("none", "no-loss-metrics", "bias-sum", "merged-products")
+VARIANTS = ("none", "no-loss-metrics", "bias-sum")
 
 
 @contextlib.contextmanager
@@ -89,8 +88,7 @@ def applied(variant: str) -> Iterator[None]:
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
-    outer, merged = consistency._outer, consistency.MERGED_PRODUCTS
-    consistency.MERGED_PRODUCTS = variant == "merged-products"
+    outer = consistency._outer
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
@@ -101,7 +99,7 @@ def applied(variant: str) -> Iterator[None]:
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
-        consistency._outer, consistency.MERGED_PRODUCTS = outer, merged
+        consistency._outer = outer
 
 
 def main(argv=None) -> dict:

@@ -284,14 +284,6 @@ def _gates(c: dict, gi_re, both_im, hh, h):
     return gru_gates(gi, hh + c["gh_bias"], h)
 
 
-# How the chain's per-step products are formed (read when the chain is traced; `benchmarks.variants` sets it for an
-# A/B on a GPU, training never does): False, two products per step for the next step's inputs (the normalised state
-# times [W1_x | W_i], the hidden states times W_h) and two for their cotangents; True, one product each way, of
-# [x, h_re, h_im] with the block-diagonal [[W1_x | W_i, 0, 0], [0, W_h, 0], [0, 0, W_h]] (one kernel fewer per step
-# each way, for several times the multiplications, most of them by zeros).
-MERGED_PRODUCTS = False
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _chain(shared: bool, p: dict, c: dict):
     return _chain_fwd(shared, p, c)[0]
@@ -316,7 +308,6 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     else:  # [model input | encoder input] times the block-diagonal [[W1_x, 0], [0, W_i]]
         w_in = jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
     c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
-    w_big, G = (_merged_weights(w_in, w_h) if MERGED_PRODUCTS else None), w_h.shape[1]
     gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
     z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
     states, xin = [s0], [_chain_inputs(c, shared, s0)]
@@ -331,18 +322,13 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
             us.append(u)
         states.append(states[-1] + nz.denormalize(c["delta"], u @ w_out + b_out))
         xin.append(_chain_inputs(c, shared, states[-1]))
-        if w_big is None:
-            both = xin[-1] @ w_in  # [W, N1 + 3H]: the next step's first layer (state part) | this step's GRU input
-            step_hh = hs[-1] @ w_h
-        else:  # [both | h_re W_h | h_im W_h] in one product
-            out = jnp.concatenate([xin[-1], hs[-1][0], hs[-1][1]], axis=-1) @ w_big
-            both, step_hh = out[:, :-2 * G], jnp.stack([out[:, -2 * G:-G], out[:, -G:]])
+        both = xin[-1] @ w_in  # [W, N1 + 3H]: the next step's first layer (state part) | this step's GRU input
         p1 = both[:, :N1]
         hidden.append(us)
         both_im.append(both[:, N1:])
-        hh.append(step_hh)
+        hh.append(hs[-1] @ w_h)
         hs.append(_gates(c, gi_re[t], both_im[-1], hh[-1], hs[-1]))
-    residuals = (p, c, w_in, w_big, gi_re, states, xin, hidden, both_im, hh, hs)
+    residuals = (p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs)
     return (hs[-1][0], hs[-1][1], states[-1]), residuals
 
 
@@ -350,12 +336,12 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     """The chain's backward, unrolled: per step only the cotangents of the states and hidden states (three
     matrix products); every weight's gradient afterwards, one product over all k steps and both row kinds each
     (the bias as the product's last row)."""
-    p, c, w_in, w_big, gi_re, states, xin, hidden, both_im, hh, hs = residuals
+    p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs = residuals
     layers, w_h = p["layers"], p["w_h"]
     dh_re, dh_im, ds = cotangents
     k, O = len(hidden), ds.shape[-1]
     N1 = layers[0][0].shape[1]
-    D, H = w_in.shape[0], w_h.shape[0]  # the chain's inputs' and hidden states' widths
+    H = w_h.shape[0]  # the hidden states' width
     delta_std = c["delta"].std  # d denormalize(delta, z) / dz
     dh, dp1 = jnp.stack([dh_re, dh_im]), None  # cotangents of h_{t+1} and of the next step's first layer
     dgi, dhh, dzs = [None] * k, [None] * k, [None] * k
@@ -363,14 +349,9 @@ def _chain_bwd(shared: bool, residuals, cotangents):
         _, gates_vjp = jax.vjp(functools.partial(_gates, c), gi_re[t], both_im[t], hh[t], hs[t])
         dgi_re, dgi_im, dhh[t], dh_direct = gates_vjp(dh)
         dgi[t] = jnp.stack([dgi_re, dgi_im])
-        if w_big is None:
-            dh = dh_direct + dhh[t] @ w_h.T
-            dboth = dgi_im if dp1 is None else jnp.concatenate([dp1, dgi_im], axis=-1)
-            dxin = dboth @ (w_in[:, N1:] if dp1 is None else w_in).T
-        else:  # the cotangents of [x, h_re, h_im] in one product (the last step has no next first layer)
-            dout = jnp.concatenate(([] if dp1 is None else [dp1]) + [dgi_im, dhh[t][0], dhh[t][1]], axis=-1)
-            dx = dout @ (w_big[:, N1:] if dp1 is None else w_big).T
-            dxin, dh = dx[:, :D], dh_direct + jnp.stack([dx[:, D:D + H], dx[:, D + H:]])
+        dh = dh_direct + dhh[t] @ w_h.T
+        dboth = dgi_im if dp1 is None else jnp.concatenate([dp1, dgi_im], axis=-1)
+        dxin = dboth @ (w_in[:, N1:] if dp1 is None else w_in).T
         _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[t + 1])
         ds = ds + inputs_vjp(dxin)[0]  # every path into s_{t+1}
         dz = ds * delta_std  # the output layer's
@@ -402,13 +383,6 @@ def _chain_bwd(shared: bool, residuals, cotangents):
 
 
 _chain.defvjp(_chain_fwd, _chain_bwd)
-
-
-def _merged_weights(w_in: jax.Array, w_h: jax.Array) -> jax.Array:
-    """[[w_in, 0, 0], [0, w_h, 0], [0, 0, w_h]]: [D + 2H, N1 + 3H + 2 * 3H], for `MERGED_PRODUCTS`."""
-    (D, N), (H, G) = w_in.shape, w_h.shape
-    return (jnp.zeros((D + 2 * H, N + 2 * G), w_in.dtype).at[:D, :N].set(w_in).at[D:D + H, N:N + G].set(w_h)
-            .at[D + H:, N + G:].set(w_h))
 
 
 def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.RunningStats, scales: tuple,

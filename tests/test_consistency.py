@@ -305,43 +305,6 @@ def test_fused_chain_equals_the_scanned_term_values_and_gradients(kind, hidden, 
     assert moved == (kind != "frozen-gru")
 
 
-@pytest.mark.parametrize("hidden,shared", [((16,), True), ((16, 12), False)])
-def test_the_merged_products_variant_is_the_same_chain(hidden, shared):
-    """`consistency.MERGED_PRODUCTS` (`benchmarks.variants merged-products`): the chain's per-step products of the
-    next inputs and of their cotangents each as one block-diagonal product give the same encodings, final states
-    and gradients (every input of the chain) as the separate products; the switch is off again after the block."""
-    from benchmarks import variants
-
-    s0, actions, real = _real_windows(seed=2)
-    model = _mlp_model(hidden=hidden)
-    gru = cc.gru_weights(_encoder("gru")["encoder_params"])
-    enc_obs = model.obs if shared else _stats()
-    x_re = nz.normalize(enc_obs, real)
-    weights = jax.random.normal(jax.random.key(9), (3, W, gru[2].shape[0]))
-
-    def run():
-        def f(model, gru, s0, actions, x_re):
-            h_re, h_im, s_k = cc.fused_chain(model, gru, s0, actions, x_re, enc_obs, (0.7, 0.4), shared)
-            return (weights[0] * h_re).sum() + (weights[1] * h_im).sum() + (s_k ** 2).sum(), (h_re, h_im, s_k)
-        grad = jax.value_and_grad(f, argnums=(0, 1, 2, 3, 4), has_aux=True)
-        args = (model, gru, s0, actions, x_re)
-        return jax.jit(grad)(*args), str(jax.make_jaxpr(grad)(*args)).count("dot_general")
-
-    ((v, out), g), products = run()
-    assert not cc.MERGED_PRODUCTS
-    with variants.applied("merged-products"):
-        assert cc.MERGED_PRODUCTS
-        ((v_m, out_m), g_m), merged_products = run()
-    assert not cc.MERGED_PRODUCTS
-    assert merged_products == products - 2 * K  # one product fewer per step each way
-    np.testing.assert_allclose(v_m, v, rtol=1e-5)
-    for a, b in zip(out, out_m):
-        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
-    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g), jax.tree.leaves(g_m)):
-        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6, err_msg=jax.tree_util.keystr(path))
-    assert all(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g[1]))  # every GRU weight gets a gradient
-
-
 def test_grounding_term_alone_is_the_terms_encoder_aux_with_its_gradient():
     """The grounded encoder's auxiliary term without the k-step chain (what the gradient diagnostics differentiate
     apart) equals the fused term's encoder_aux, in value and in its gradient on the encoder."""
