@@ -227,9 +227,10 @@ class MLPModel:
     delta: nz.RunningStats  # statistics of the change of state (the model's output)
 
 
-def mlp_step(model: MLPModel, s: jax.Array, a: jax.Array) -> jax.Array:
-    """One imagined step of an MLPModel: s [..., O], a [..., A] -> s' [..., O]."""
-    x = jnp.concatenate([nz.normalize(model.obs, s), a], axis=-1)
+def mlp_step(model: MLPModel, s: jax.Array, a: jax.Array, clip: bool = True) -> jax.Array:
+    """One imagined step of an MLPModel: s [..., O], a [..., A] -> s' [..., O]. clip=False: the state normalised
+    without the clip at +-CLIP (`consistency_loss`'s clip)."""
+    x = jnp.concatenate([nz.normalize(model.obs, s, clip), a], axis=-1)
     for kernel, bias in model.layers[:-1]:
         x = jax.nn.relu(x @ kernel + bias)
     kernel, bias = model.layers[-1]
@@ -271,10 +272,19 @@ def _outer(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return g[:-1], g[-1]
 
 
-def _chain_inputs(c: dict, shared: bool, s: jax.Array) -> jax.Array:
+def _chain_inputs(c: dict, shared: bool, s: jax.Array, clip: bool = True) -> jax.Array:
     """The model's normalised input of states s [W, O], and unless `shared` the encoder's beside it: [W, O or 2O]."""
-    x = nz.normalize(c["model_obs"], s)
-    return x if shared else jnp.concatenate([x, nz.normalize(c["enc_obs"], s)], axis=-1)
+    x = nz.normalize(c["model_obs"], s, clip)
+    return x if shared else jnp.concatenate([x, nz.normalize(c["enc_obs"], s, clip)], axis=-1)
+
+
+def _input_weights(w_1: jax.Array, w_i: jax.Array, O: int, shared: bool) -> jax.Array:
+    """The weights of the chain's input product: [W1_x | W_i] when `shared` (the model and the encoder normalise
+    alike: one input), else the block-diagonal [[W1_x, 0], [0, W_i]] of [model input | encoder input]."""
+    N1 = w_1.shape[1]
+    if shared:
+        return jnp.concatenate([w_1[:O], w_i], axis=1)
+    return jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
 
 
 def _gates(c: dict, gi_re, both_im, hh, h):
@@ -303,10 +313,7 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     k, O = actions.shape[0], s0.shape[-1]
     (w_1, b_1), (w_out, b_out) = layers[0], layers[-1]
     N1 = w_1.shape[1]
-    if shared:  # the model and the encoder normalise alike: one input, [W1_x | W_i]
-        w_in = jnp.concatenate([w_1[:O], w_i], axis=1)
-    else:  # [model input | encoder input] times the block-diagonal [[W1_x, 0], [0, W_i]]
-        w_in = jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
+    w_in = _input_weights(w_1, w_i, O, shared)
     c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
     gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
     z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
@@ -385,8 +392,125 @@ def _chain_bwd(shared: bool, residuals, cotangents):
 _chain.defvjp(_chain_fwd, _chain_bwd)
 
 
+# The chain without the clip (`consistency_loss`'s clip=False): every normalised input is then affine in the state,
+#     xin(s) = s J + xin(0),  s_{t+1} = s_t + delta.mean + delta.std * (u_t W_out + b_out),
+# so the next step's input products follow from this step's last hidden layer u_t alone:
+#     xin(s_{t+1}) [W1_x | W_i] = xin(s_t) [W1_x | W_i] + u_t W_f + b_f,
+#     W_f = W_out diag(delta.std) J [W1_x | W_i],  b_f = (delta.mean + delta.std * b_out) J [W1_x | W_i].
+# Per step that is one product where the clipped chain has three (the output layer, split-K on a GPU; the input
+# product) and the state update's elementwise work between them; the states themselves are formed after the loop,
+# for every step at once. The backward likewise: per step one product for the last hidden layer's cotangent, the
+# output layer's cotangents and gradient after the loop.
+
+
+def _affine_inputs(c: dict, shared: bool) -> jax.Array:
+    """J [O, D]: the unclipped chain inputs' (`_chain_inputs`, clip=False) linear part, xin(s) = s J + xin(0)."""
+    inv = [1.0 / c["model_obs"].std] + ([] if shared else [1.0 / c["enc_obs"].std])
+    return jnp.concatenate([jnp.diag(x) for x in inv], axis=1)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _folded_chain(shared: bool, p: dict, c: dict):
+    return _folded_fwd(shared, p, c)[0]
+
+
+def _folded_fwd(shared: bool, p: dict, c: dict):
+    """`_chain_fwd` without the clip, the output layer folded into the next step's input product (above)."""
+    layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
+    s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
+    k, O = actions.shape[0], s0.shape[-1]
+    (w_1, b_1), (w_out, b_out) = layers[0], layers[-1]
+    N1 = w_1.shape[1]
+    w_in = _input_weights(w_1, w_i, O, shared)
+    c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
+    delta = c["delta"]
+    jw = _affine_inputs(c, shared) @ w_in  # [O, N1 + 3H]: a change of state's share of the input products
+    w_f = (w_out * delta.std) @ jw
+    b_f = (delta.mean + delta.std * b_out) @ jw
+    gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
+    z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
+    both = _chain_inputs(c, shared, s0, clip=False) @ w_in  # [W, N1 + 3H], at s_0
+    hs = [jnp.zeros((2,) + s0.shape[:1] + (w_h.shape[0],), s0.dtype)]
+    hidden, both_im, hh = [], [], []
+    for t in range(k):
+        u = jax.nn.relu(both[:, :N1] + z1_actions[t])
+        us = [u]
+        for kernel, bias in layers[1:-1]:
+            u = jax.nn.relu(u @ kernel + bias)
+            us.append(u)
+        both = both + (u @ w_f + b_f)  # at s_{t+1}: the next step's first layer (state part) | this step's GRU input
+        hidden.append(us)
+        both_im.append(both[:, N1:])
+        hh.append(hs[-1] @ w_h)
+        hs.append(_gates(c, gi_re[t], both_im[-1], hh[-1], hs[-1]))
+    last = jnp.stack([us[-1] for us in hidden])  # [k, W, N_last]
+    states = s0 + jnp.cumsum(nz.denormalize(delta, last @ w_out + b_out), axis=0)  # s_1..s_k [k, W, O]
+    residuals = (p, c, w_in, jw, w_f, gi_re, states, hidden, both_im, hh, hs)
+    return (hs[-1][0], hs[-1][1], states[-1]), residuals
+
+
+def _folded_bwd(shared: bool, residuals, cotangents):
+    """`_chain_bwd` for `_folded_fwd`. Per step: the GRU's cotangents, the running cotangent B of the input products
+    at s_{t+1} (every later step's direct uses of them summed), the last hidden layer's cotangent B W_f^T plus s_k's
+    share (the same for every step) and the hidden layers'. After the loop, for all steps at once: the states' own
+    cotangents B [W1_x | W_i]^T J^T + ds_k, the output layer's, and every weight's gradient."""
+    p, c, w_in, jw, w_f, gi_re, states, hidden, both_im, hh, hs = residuals
+    layers, w_h = p["layers"], p["w_h"]
+    dh_re, dh_im, ds = cotangents
+    k, O = len(hidden), ds.shape[-1]
+    w_out = layers[-1][0]
+    N1 = layers[0][0].shape[1]
+    H = w_h.shape[0]
+    delta_std = c["delta"].std
+    ds_out = ds * delta_std  # s_k's share of every step's output layer cotangent
+    du_s = ds_out @ w_out.T  # ... and of its last hidden layer's
+    dh, B, dp1 = jnp.stack([dh_re, dh_im]), None, None
+    dgi, dhh, dzs, Bs = [None] * k, [None] * k, [None] * k, [None] * k
+    for t in reversed(range(k)):
+        _, gates_vjp = jax.vjp(functools.partial(_gates, c), gi_re[t], both_im[t], hh[t], hs[t])
+        dgi_re, dgi_im, dhh[t], dh_direct = gates_vjp(dh)
+        dgi[t] = jnp.stack([dgi_re, dgi_im])
+        dh = dh_direct + dhh[t] @ w_h.T
+        # both_{t+1}'s direct uses: step t+1's first layer (none after the last step) and step t's GRU input
+        direct = jnp.concatenate([jnp.zeros((dgi_im.shape[0], N1), dgi_im.dtype) if dp1 is None else dp1, dgi_im], -1)
+        B = direct if B is None else B + direct  # the input products' cotangent at s_{t+1}
+        Bs[t] = B
+        us = hidden[t]
+        dz = jnp.where(us[-1] > 0, B @ w_f.T + du_s, 0.0)  # the last hidden layer's pre-activation
+        dzs[t] = [dz]
+        for (kernel, _), u in zip(layers[-2:0:-1], us[-2::-1]):
+            dz = jnp.where(u > 0, dz @ kernel.T, 0.0)
+            dzs[t].append(dz)
+        dzs[t] = dzs[t][::-1]
+        dp1 = dz
+    B0 = B + jnp.concatenate([dp1, jnp.zeros((dp1.shape[0], B.shape[-1] - N1), dp1.dtype)], axis=-1)  # at s_0
+    _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared, clip=False), p["s0"])
+    ds0 = ds + inputs_vjp(B0 @ w_in.T)[0]
+
+    stack = lambda xs: jnp.stack(xs)  # noqa: E731 - [k, ...]: one copy per kind, after the loop
+    dz_out = (ds + stack(Bs) @ jw.T) * delta_std  # [k, W, O]: each step's output layer
+    dz_layers = [stack([d[i] for d in dzs]) for i in range(len(layers) - 1)] + [dz_out]
+    xin = _chain_inputs(c, shared, jnp.concatenate([p["s0"][None], states]), clip=False)  # [k + 1, W, D]
+    model_in = jnp.concatenate([xin[:-1, ..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
+    inputs = [model_in] + [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
+    dlayers = tuple(_outer(x, dz) for x, dz in zip(inputs, dz_layers))
+    dactions = dz_layers[0] @ layers[0][0][O:].T
+    scales = jnp.stack(c["scales"])[None, :, None, None]
+    scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
+    dgi = stack(dgi)  # [k, 2, W, 3H]
+    x_enc = jnp.stack([p["x_re"], xin[1:, ..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2, W, D]
+    dw_i, db_i = _outer(x_enc, scaled(dgi))
+    dw_h, dgh_bias = _outer(stack(hs[:-1]), scaled(stack(dhh)))
+    dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
+              x_re=dgi[:, 0] @ p["w_i"].T)
+    return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
+
+
+_folded_chain.defvjp(_folded_fwd, _folded_bwd)
+
+
 def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.RunningStats, scales: tuple,
-                shared: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
+                shared: bool = False, clip: bool = True) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The k imagined steps of an MLPModel from s0 [W, O] under actions [k, W, A] and the GRU encodings of the real
     (normalised) states x_re [k, W, D] and of the imagined ones (normalised by enc_obs): (h_re, h_im [W, H], s_k).
 
@@ -395,14 +519,16 @@ def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.Runn
     afterwards in one product over all steps; the real and imagined rows share each GRU product. The GRU's
     gradient from the real rows is scaled by scales[0] and from the imagined rows by scales[1] (as
     `scale_gradient` would on the encoder's parameters of each); the running statistics are constants.
-    `shared`: enc_obs is the model's own obs statistics (one normalised input serves both).
+    `shared`: enc_obs is the model's own obs statistics (one normalised input serves both). clip=False: the
+    imagined states normalised without the clip at +-CLIP (`mlp_step`'s and `normalize`'s clip=False), which lets the
+    chain fold the model's output layer into the next step's input product (`_folded_chain`).
     """
     w_i, b_i, w_h, b_hn = gru
     layers = tuple(tuple(layer) for layer in model.layers)
     p = dict(layers=layers, w_i=w_i, b_i=b_i, w_h=w_h, b_hn=b_hn, s0=s0, actions=actions, x_re=x_re)
     c = jax.lax.stop_gradient(dict(model_obs=model.obs, delta=model.delta, enc_obs=enc_obs,
                                    scales=tuple(jnp.asarray(x, jnp.float32) for x in scales)))
-    return _chain(shared, p, c)
+    return (_chain if clip else _folded_chain)(shared, p, c)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -445,7 +571,7 @@ def _spread(x: jax.Array, mask: jax.Array) -> jax.Array:
 
 def consistency_loss(model_step: Callable, model_params, s0, actions, real_next, mask, *, kind: str,
                      normalize: Callable | nz.RunningStats, weights: PathWeights, encoder=None, encoder_params=None,
-                     unroll: int = 1, fused: bool = True) -> tuple[dict, dict]:
+                     unroll: int = 1, fused: bool = True, clip: bool = True) -> tuple[dict, dict]:
     """The consistency terms of a batch of windows: ({name: loss}, metrics).
 
     model_step(model_params, s [W, O], a [W, A]) -> s' imagines in raw state space; s0 [W, O] real start
@@ -458,6 +584,11 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     normalize given as RunningStats, that scan runs fused (`fused_chain`: the same function, its backward
     written out, a third of the kernels on a GPU) unless fused=False.
 
+    clip=False (only with `mlp_step` and normalize as RunningStats): the term normalises states, real and imagined,
+    without `normalize`'s clip at +-CLIP, in the model's inputs and the encoder's alike. The fused chain is then
+    affine from one step's last hidden layer to the next step's inputs and folds the model's output layer into them
+    (`_folded_chain`: fewer kernels per step). Only states beyond CLIP standard deviations see a different function.
+
     Terms: "consistency" (l_cc, averaged over unmasked windows) and, for grounded-gru, "encoder_aux"
     (the reconstruction error of the real window plus the spread floor's hinge).
     """
@@ -466,8 +597,12 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     assert s0.shape[0] == W and real_next.shape[:2] == (k, W) and mask.shape == (W,), (
         s0.shape, actions.shape, real_next.shape, mask.shape)
     enc_obs = normalize if isinstance(normalize, nz.RunningStats) else None
+    if not clip and (model_step is not mlp_step or enc_obs is None):
+        raise ValueError("consistency_loss: clip=False needs mlp_step and normalize given as RunningStats")
     if enc_obs is not None:
-        normalize = functools.partial(nz.normalize, enc_obs)
+        normalize = functools.partial(nz.normalize, enc_obs, clip=clip)
+    if not clip:
+        model_step = functools.partial(mlp_step, clip=False)
     shared = isinstance(model_params, MLPModel) and model_params.obs is enc_obs  # the caller's own statistics object
     model_params = scale_gradient(model_params, weights.model)
     actions = scale_gradient(actions, weights.policy)
@@ -478,11 +613,13 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     dim = encoder.features if use_gru else 1
     zeros = jnp.zeros((W, dim), jnp.float32)
     gru = gru_weights(encoder_params) if use_gru else None
-    if fused and model_step is mlp_step and isinstance(model_params, MLPModel) and gru is not None and enc_obs is not None:
+    is_mlp = model_step is mlp_step or getattr(model_step, "func", None) is mlp_step
+    if fused and is_mlp and isinstance(model_params, MLPModel) and gru is not None and enc_obs is not None:
         # real rows: the encoder's own parameters for grounded-gru (l_cc's share is scaled on h_re below), scaled
         # ones otherwise; imagined rows: scaled (as the two encode() below)
         scales = (1.0 if recon else weights.to_encoder, weights.to_encoder)
-        h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared)
+        h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared,
+                                       clip)
         return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim)
 
     if recon:

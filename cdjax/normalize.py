@@ -45,9 +45,11 @@ def update(stats: RunningStats, x: jax.Array, mask: jax.Array | None = None) -> 
     return RunningStats(n, mean, m2)
 
 
-def normalize(stats: RunningStats, x: jax.Array) -> jax.Array:
+def normalize(stats: RunningStats, x: jax.Array, clip: bool = True) -> jax.Array:
+    """(x - mean) / std, clipped to [-CLIP, CLIP] unless clip=False."""
     stats = jax.lax.stop_gradient(stats)
-    return jnp.clip((x - stats.mean) / stats.std, -CLIP, CLIP)
+    z = (x - stats.mean) / stats.std
+    return jnp.clip(z, -CLIP, CLIP) if clip else z
 
 
 def denormalize(stats: RunningStats, z: jax.Array) -> jax.Array:

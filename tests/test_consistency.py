@@ -305,6 +305,120 @@ def test_fused_chain_equals_the_scanned_term_values_and_gradients(kind, hidden, 
     assert moved == (kind != "frozen-gru")
 
 
+def _clip_case(hidden, shared, spread):
+    """A fused-chain case whose states reach `spread` standard deviations of the model's statistics (beyond CLIP
+    when spread > CLIP): (loss(clip, fused, model, params, actions, s0) -> (value, terms), args)."""
+    s0, actions, real = _real_windows(seed=3)
+    model = _mlp_model(hidden=hidden)
+    tight = nz.update(nz.RunningStats.create(4), (1.0 / spread) * jax.random.normal(jax.random.key(7), (64, 4)))
+    model = model.replace(obs=tight)
+    enc = _encoder("grounded-gru")
+    stats = model.obs if shared else nz.update(nz.RunningStats.create(4), 0.5 * jax.random.normal(jax.random.key(8),
+                                                                                                    (64, 4)))
+    mask = jnp.arange(W) % 3 != 2
+    weights = cc.PathWeights(model=0.8, policy=0.5, encoder=0.3)
+
+    def loss(clip, fused, model, params, acts, s0):
+        terms, _ = cc.consistency_loss(cc.mlp_step, model, s0, acts, real, mask, kind="grounded-gru", normalize=stats,
+                                       weights=weights, encoder=enc["encoder"], encoder_params=params, fused=fused,
+                                       clip=clip)
+        return 1.3 * terms["consistency"] + 0.6 * terms["encoder_aux"], terms
+
+    return loss, (model, enc["encoder_params"], actions, s0)
+
+
+def _value_and_grads(loss, *flags):
+    return jax.jit(jax.value_and_grad(functools.partial(loss, *flags), argnums=(0, 1, 2, 3), has_aux=True))
+
+
+@pytest.mark.parametrize("hidden,shared", [((16,), True), ((16, 12), False)])
+def test_the_unclipped_chain_folds_its_output_layer_and_is_the_scanned_unclipped_term(hidden, shared):
+    """consistency_loss(clip=False): the fused chain without the clip (`_folded_chain`, the model's output layer
+    folded into the next step's input product) gives the scanned unclipped term's values and gradients (every input)
+    on windows whose states go far beyond CLIP standard deviations, where the clipped term is another function; it
+    traces fewer matrix products than the clipped chain."""
+    loss, args = _clip_case(hidden, shared, spread=40.0)
+    (v_f, t_f), g_f = _value_and_grads(loss, False, True)(*args)
+    (v_s, t_s), g_s = _value_and_grads(loss, False, False)(*args)
+    np.testing.assert_allclose(v_f, v_s, rtol=1e-5)
+    for name in t_s:
+        np.testing.assert_allclose(t_f[name], t_s[name], rtol=1e-5, err_msg=name)
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_s), jax.tree.leaves(g_f)):
+        np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-5, err_msg=jax.tree_util.keystr(path))
+    assert all(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g_f[0].layers))  # every model layer learns
+    (v_c, _), _ = _value_and_grads(loss, True, True)(*args)
+    assert abs(float(v_c) - float(v_f)) > 1e-3 * abs(float(v_f))  # the clip was active: a different function
+    count = lambda *flags: str(jax.make_jaxpr(jax.grad(functools.partial(loss, *flags), has_aux=True))(*args)).count(  # noqa: E731
+        "dot_general")
+    assert count(False, True) < count(True, True)
+
+
+@pytest.mark.parametrize("clip,hidden,shared", [(True, (16,), True), (False, (16,), True), (False, (16, 12), False)])
+def test_the_fused_chains_are_autodiff_of_the_plain_loop_with_every_output(clip, hidden, shared):
+    """`fused_chain` (clipped, and unclipped: folded) against JAX's own gradient of k plain `mlp_step`s and GRU
+    steps, with a loss on all three outputs (h_re, h_im and the final state s_k, which the terms use only in a
+    metric), the GRU's real and imagined rows' gradients scaled apart, on states far beyond CLIP."""
+    s0, actions, real = _real_windows(seed=4)
+    model = _mlp_model(hidden=hidden)
+    model = model.replace(obs=nz.update(nz.RunningStats.create(4), 0.025 * jax.random.normal(jax.random.key(7),
+                                                                                               (64, 4))))
+    enc_obs = model.obs if shared else _stats()
+    gru = cc.gru_weights(_encoder("gru")["encoder_params"])
+    x_re = nz.normalize(enc_obs, real, clip)
+    scales = (0.7, 0.4)
+    weights = jax.random.normal(jax.random.key(9), (3, W, gru[2].shape[0]))
+
+    def objective(h_re, h_im, s_k):
+        return (weights[0] * h_re).sum() + (weights[1] * h_im).sum() + 0.3 * (s_k ** 2).sum()
+
+    def fused(model, gru, s0, actions, x_re):
+        return objective(*cc.fused_chain(model, gru, s0, actions, x_re, enc_obs, scales, shared, clip))
+
+    def plain(model, gru, s0, actions, x_re):
+        def cell(g, h, x):
+            w_i, b_i, w_h, b_hn = g
+            gh = h @ w_h + jnp.concatenate([jnp.zeros((2 * w_h.shape[0],)), b_hn])
+            return cc.gru_gates(x @ w_i + b_i, gh, h)
+
+        g_re, g_im = cc.scale_gradient(gru, scales[0]), cc.scale_gradient(gru, scales[1])
+        s, h_re, h_im = s0, jnp.zeros((W, gru[2].shape[0])), jnp.zeros((W, gru[2].shape[0]))
+        for t in range(K):
+            s = cc.mlp_step(model, s, actions[t], clip)
+            h_re, h_im = cell(g_re, h_re, x_re[t]), cell(g_im, h_im, nz.normalize(enc_obs, s, clip))
+        return objective(h_re, h_im, s)
+
+    args = (model, gru, s0, actions, x_re)
+    v_f, g_f = jax.jit(jax.value_and_grad(fused, argnums=(0, 1, 2, 3, 4)))(*args)
+    v_p, g_p = jax.jit(jax.value_and_grad(plain, argnums=(0, 1, 2, 3, 4)))(*args)
+    np.testing.assert_allclose(v_f, v_p, rtol=1e-5)
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_p), jax.tree.leaves(g_f)):
+        np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6,
+                                   err_msg=jax.tree_util.keystr(path))
+    assert float(jnp.abs(g_f[2]).max()) > 0 and float(jnp.abs(g_f[0].layers[-1][0]).max()) > 0
+    unclipped = nz.normalize(model.obs, cc.fused_chain(model, gru, s0, actions, x_re, enc_obs, scales, shared,
+                                                       clip)[2], clip=False)
+    assert float(jnp.abs(unclipped).max()) > nz.CLIP  # the imagined states do leave the clip's range
+
+
+def test_the_unclipped_chain_equals_the_clipped_one_where_the_clip_is_inactive():
+    """Inside +-CLIP standard deviations the clip changes nothing: the folded chain's values and gradients equal the
+    clipped fused chain's."""
+    loss, args = _clip_case((16,), True, spread=1.0)
+    (v_f, _), g_f = _value_and_grads(loss, False, True)(*args)
+    (v_c, _), g_c = _value_and_grads(loss, True, True)(*args)
+    np.testing.assert_allclose(v_f, v_c, rtol=1e-5)
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_c), jax.tree.leaves(g_f)):
+        np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6, err_msg=jax.tree_util.keystr(path))
+
+
+def test_the_unclipped_term_needs_the_mlp_step_and_running_stats():
+    s0, actions, real = _real_windows()
+    step, params = _model(1.0)
+    with pytest.raises(ValueError, match="clip=False"):
+        cc.consistency_loss(step, params, s0, actions, real, jnp.ones((W,), bool), kind="l2", normalize=_stats(),
+                            weights=ONE, clip=False)
+
+
 def test_grounding_term_alone_is_the_terms_encoder_aux_with_its_gradient():
     """The grounded encoder's auxiliary term without the k-step chain (what the gradient diagnostics differentiate
     apart) equals the fused term's encoder_aux, in value and in its gradient on the encoder."""
