@@ -620,7 +620,9 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
         scales = (1.0 if recon else weights.to_encoder, weights.to_encoder)
         h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared,
                                        clip)
-        return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim)
+        terms, metrics = _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params,
+                                k, dim)
+        return terms, dict(metrics, **_beyond_clip(enc_obs, s_im, mask))
 
     if recon:
         # Real rows with the encoder's own parameters (the reconstruction trains them at full weight, and
@@ -649,7 +651,16 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
 
     init = (s0, zeros, zeros, jnp.zeros((W,), jnp.float32))
     (s_im, h_re, h_im, acc), _ = jax.lax.scan(step, init, (actions, real_next), unroll=unroll)
-    return _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k, dim, acc)
+    terms, metrics = _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k,
+                            dim, acc)
+    return terms, (metrics if enc_obs is None else dict(metrics, **_beyond_clip(enc_obs, s_im, mask)))
+
+
+def _beyond_clip(stats: nz.RunningStats, s_im: jax.Array, mask: jax.Array) -> dict:
+    """{"consistency/final_beyond_clip": the share of the final imagined states' features (unmasked windows) that
+    normalise beyond +-CLIP}: where the clip binds, the clipped and unclipped terms (clip) differ."""
+    out = (jnp.abs(nz.normalize(jax.lax.stop_gradient(stats), jax.lax.stop_gradient(s_im), clip=False)) > nz.CLIP)
+    return {"consistency/final_beyond_clip": masked_mean(out.astype(jnp.float32).mean(-1), mask)}
 
 
 def encoded_terms(kind: str, h_re, h_im, s_im, real_next, mask, normalize, weights: PathWeights, encoder,

@@ -307,7 +307,7 @@ def test_fused_chain_equals_the_scanned_term_values_and_gradients(kind, hidden, 
 
 def _clip_case(hidden, shared, spread):
     """A fused-chain case whose states reach `spread` standard deviations of the model's statistics (beyond CLIP
-    when spread > CLIP): (loss(clip, fused, model, params, actions, s0) -> (value, terms), args)."""
+    when spread > CLIP): (loss(clip, fused, model, params, actions, s0) -> (value, terms and metrics), args)."""
     s0, actions, real = _real_windows(seed=3)
     model = _mlp_model(hidden=hidden)
     tight = nz.update(nz.RunningStats.create(4), (1.0 / spread) * jax.random.normal(jax.random.key(7), (64, 4)))
@@ -319,10 +319,10 @@ def _clip_case(hidden, shared, spread):
     weights = cc.PathWeights(model=0.8, policy=0.5, encoder=0.3)
 
     def loss(clip, fused, model, params, acts, s0):
-        terms, _ = cc.consistency_loss(cc.mlp_step, model, s0, acts, real, mask, kind="grounded-gru", normalize=stats,
-                                       weights=weights, encoder=enc["encoder"], encoder_params=params, fused=fused,
-                                       clip=clip)
-        return 1.3 * terms["consistency"] + 0.6 * terms["encoder_aux"], terms
+        terms, metrics = cc.consistency_loss(cc.mlp_step, model, s0, acts, real, mask, kind="grounded-gru",
+                                             normalize=stats, weights=weights, encoder=enc["encoder"],
+                                             encoder_params=params, fused=fused, clip=clip)
+        return 1.3 * terms["consistency"] + 0.6 * terms["encoder_aux"], dict(terms, **metrics)
 
     return loss, (model, enc["encoder_params"], actions, s0)
 
@@ -346,8 +346,10 @@ def test_the_unclipped_chain_folds_its_output_layer_and_is_the_scanned_unclipped
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_s), jax.tree.leaves(g_f)):
         np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-5, err_msg=jax.tree_util.keystr(path))
     assert all(float(jnp.abs(x).max()) > 0 for x in jax.tree.leaves(g_f[0].layers))  # every model layer learns
-    (v_c, _), _ = _value_and_grads(loss, True, True)(*args)
+    (v_c, t_c), _ = _value_and_grads(loss, True, True)(*args)
     assert abs(float(v_c) - float(v_f)) > 1e-3 * abs(float(v_f))  # the clip was active: a different function
+    if shared:  # the metric reads the encoder's statistics, here the model's: the states beyond the clip
+        assert float(t_f["consistency/final_beyond_clip"]) > 0.1 and float(t_c["consistency/final_beyond_clip"]) > 0.1
     count = lambda *flags: str(jax.make_jaxpr(jax.grad(functools.partial(loss, *flags), has_aux=True))(*args)).count(  # noqa: E731
         "dot_general")
     assert count(False, True) < count(True, True)
@@ -404,9 +406,10 @@ def test_the_unclipped_chain_equals_the_clipped_one_where_the_clip_is_inactive()
     """Inside +-CLIP standard deviations the clip changes nothing: the folded chain's values and gradients equal the
     clipped fused chain's."""
     loss, args = _clip_case((16,), True, spread=1.0)
-    (v_f, _), g_f = _value_and_grads(loss, False, True)(*args)
+    (v_f, t_f), g_f = _value_and_grads(loss, False, True)(*args)
     (v_c, _), g_c = _value_and_grads(loss, True, True)(*args)
     np.testing.assert_allclose(v_f, v_c, rtol=1e-5)
+    assert float(t_f["consistency/final_beyond_clip"]) == 0.0
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_c), jax.tree.leaves(g_f)):
         np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6, err_msg=jax.tree_util.keystr(path))
 
