@@ -54,6 +54,7 @@ DIAGNOSTICS = (
     ("loss/consistency", "l_cc"),
     ("encoder/spread_real", "encoder spread"),
     ("consistency/masked_fraction", "masked windows"),
+    ("consistency/final_beyond_clip", "final imagined features beyond the clip"),
     ("ratio/policy", "l_cc grad / PPO grad (policy)"),
     ("ratio/model", "l_cc grad / NLL grad (model)"),
 )
