@@ -348,7 +348,6 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     dh_re, dh_im, ds = cotangents
     k, O = len(hidden), ds.shape[-1]
     N1 = layers[0][0].shape[1]
-    H = w_h.shape[0]  # the hidden states' width
     delta_std = c["delta"].std  # d denormalize(delta, z) / dz
     dh, dp1 = jnp.stack([dh_re, dh_im]), None  # cotangents of h_{t+1} and of the next step's first layer
     dgi, dhh, dzs = [None] * k, [None] * k, [None] * k
@@ -371,9 +370,22 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[0])
     ds0 = ds + inputs_vjp(dp1 @ w_in[:, :N1].T)[0]
 
+    dz_layers = [jnp.stack([d[i] for d in dzs]) for i in range(len(layers))]
+    D = p["x_re"].shape[-1]
+    return _weight_grads(p, c, jnp.stack(xin[:-1])[..., :O], jnp.stack(xin[1:])[..., -D:], hidden, dz_layers, dgi,
+                         dhh, hs, ds0)
+
+
+def _weight_grads(p: dict, c: dict, model_x, enc_x, hidden: list, dz_layers: list, dgi: list, dhh: list, hs: list,
+                  ds0) -> tuple[dict, dict]:
+    """The chain's backward after its loop, every step at once: each weight's gradient as one product over all k
+    steps (and both row kinds for the GRU), the actions' and real inputs' cotangents -> (dp, dc). model_x [k, W, O]:
+    the model's normalised state inputs at steps 0..k-1; enc_x [k, W, D]: the encoder's imagined inputs at 1..k;
+    dz_layers: each layer's pre-activation cotangents [k, W, N]; dgi, dhh, hs: the GRU's per-step lists."""
+    layers, H = p["layers"], p["w_h"].shape[0]
+    O = model_x.shape[-1]
     stack = lambda xs: jnp.stack(xs)  # noqa: E731 - [k, ...]: one copy per kind, after the loop
-    dz_layers = [stack([d[i] for d in dzs]) for i in range(len(layers))]
-    model_in = jnp.concatenate([stack(xin[:-1])[..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
+    model_in = jnp.concatenate([model_x, p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
     inputs = [model_in] + [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
     dlayers = tuple(_outer(x, dz) for x, dz in zip(inputs, dz_layers))
     dactions = dz_layers[0] @ layers[0][0][O:].T
@@ -381,7 +393,7 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     scales = jnp.stack(c["scales"])[None, :, None, None]
     scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
     dgi = stack(dgi)  # [k, 2, W, 3H]
-    x_enc = jnp.stack([p["x_re"], stack(xin[1:])[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2, W, D]
+    x_enc = jnp.stack([p["x_re"], enc_x], axis=1)  # [k, 2, W, D]
     dw_i, db_i = _outer(x_enc, scaled(dgi))
     dw_h, dgh_bias = _outer(stack(hs[:-1]), scaled(stack(dhh)))
     dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
@@ -460,7 +472,6 @@ def _folded_bwd(shared: bool, residuals, cotangents):
     k, O = len(hidden), ds.shape[-1]
     w_out = layers[-1][0]
     N1 = layers[0][0].shape[1]
-    H = w_h.shape[0]
     delta_std = c["delta"].std
     ds_out = ds * delta_std  # s_k's share of every step's output layer cotangent
     du_s = ds_out @ w_out.T  # ... and of its last hidden layer's
@@ -487,23 +498,11 @@ def _folded_bwd(shared: bool, residuals, cotangents):
     _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared, clip=False), p["s0"])
     ds0 = ds + inputs_vjp(B0 @ w_in.T)[0]
 
-    stack = lambda xs: jnp.stack(xs)  # noqa: E731 - [k, ...]: one copy per kind, after the loop
-    dz_out = (ds + stack(Bs) @ jw.T) * delta_std  # [k, W, O]: each step's output layer
-    dz_layers = [stack([d[i] for d in dzs]) for i in range(len(layers) - 1)] + [dz_out]
+    dz_out = (ds + jnp.stack(Bs) @ jw.T) * delta_std  # [k, W, O]: each step's output layer
+    dz_layers = [jnp.stack([d[i] for d in dzs]) for i in range(len(layers) - 1)] + [dz_out]
     xin = _chain_inputs(c, shared, jnp.concatenate([p["s0"][None], states]), clip=False)  # [k + 1, W, D]
-    model_in = jnp.concatenate([xin[:-1, ..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
-    inputs = [model_in] + [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
-    dlayers = tuple(_outer(x, dz) for x, dz in zip(inputs, dz_layers))
-    dactions = dz_layers[0] @ layers[0][0][O:].T
-    scales = jnp.stack(c["scales"])[None, :, None, None]
-    scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
-    dgi = stack(dgi)  # [k, 2, W, 3H]
-    x_enc = jnp.stack([p["x_re"], xin[1:, ..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2, W, D]
-    dw_i, db_i = _outer(x_enc, scaled(dgi))
-    dw_h, dgh_bias = _outer(stack(hs[:-1]), scaled(stack(dhh)))
-    dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
-              x_re=dgi[:, 0] @ p["w_i"].T)
-    return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
+    D = p["x_re"].shape[-1]
+    return _weight_grads(p, c, xin[:-1, ..., :O], xin[1:, ..., -D:], hidden, dz_layers, dgi, dhh, hs, ds0)
 
 
 _folded_chain.defvjp(_folded_fwd, _folded_bwd)
