@@ -294,6 +294,15 @@ def _gates(c: dict, gi_re, both_im, hh, h):
     return gru_gates(gi, hh + c["gh_bias"], h)
 
 
+def _chain_start(shared: bool, p: dict, c: dict) -> tuple:
+    """What a chain computes before its loop: (c with the GRU's input bias and recurrent biases, the input product's
+    weights w_in, the real rows' GRU inputs gi_re [k, W, 3H], the actions' share of the first layer [k, W, N1])."""
+    (w_1, b_1), w_i, w_h = p["layers"][0], p["w_i"], p["w_h"]
+    O = p["s0"].shape[-1]
+    c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
+    return c, _input_weights(w_1, w_i, O, shared), p["x_re"] @ w_i + p["b_i"], p["actions"] @ w_1[O:] + b_1
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _chain(shared: bool, p: dict, c: dict):
     return _chain_fwd(shared, p, c)[0]
@@ -308,15 +317,10 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     share of the first layer do not depend on the chain: one product each, before it. The residuals are the
     per-step arrays as they are (a list per kind), never written into stacked buffers step by step.
     """
-    layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
-    s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
-    k, O = actions.shape[0], s0.shape[-1]
-    (w_1, b_1), (w_out, b_out) = layers[0], layers[-1]
-    N1 = w_1.shape[1]
-    w_in = _input_weights(w_1, w_i, O, shared)
-    c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
-    gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
-    z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
+    layers, w_h, s0 = p["layers"], p["w_h"], p["s0"]
+    k, N1 = p["actions"].shape[0], layers[0][0].shape[1]
+    w_out, b_out = layers[-1]
+    c, w_in, gi_re, z1_actions = _chain_start(shared, p, c)
     states, xin = [s0], [_chain_inputs(c, shared, s0)]
     p1 = xin[0] @ w_in[:, :N1]
     hs = [jnp.zeros((2,) + s0.shape[:1] + (w_h.shape[0],), s0.dtype)]
@@ -428,19 +432,14 @@ def _folded_chain(shared: bool, p: dict, c: dict):
 
 def _folded_fwd(shared: bool, p: dict, c: dict):
     """`_chain_fwd` without the clip, the output layer folded into the next step's input product (above)."""
-    layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
-    s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
-    k, O = actions.shape[0], s0.shape[-1]
-    (w_1, b_1), (w_out, b_out) = layers[0], layers[-1]
-    N1 = w_1.shape[1]
-    w_in = _input_weights(w_1, w_i, O, shared)
-    c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
+    layers, w_h, s0 = p["layers"], p["w_h"], p["s0"]
+    k, N1 = p["actions"].shape[0], layers[0][0].shape[1]
+    w_out, b_out = layers[-1]
+    c, w_in, gi_re, z1_actions = _chain_start(shared, p, c)
     delta = c["delta"]
     jw = _affine_inputs(c, shared) @ w_in  # [O, N1 + 3H]: a change of state's share of the input products
     w_f = (w_out * delta.std) @ jw
     b_f = (delta.mean + delta.std * b_out) @ jw
-    gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
-    z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
     both = _chain_inputs(c, shared, s0, clip=False) @ w_in  # [W, N1 + 3H], at s_0
     hs = [jnp.zeros((2,) + s0.shape[:1] + (w_h.shape[0],), s0.dtype)]
     hidden, both_im, hh = [], [], []
