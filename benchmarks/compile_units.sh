@@ -117,7 +117,8 @@
 #            benchmarks/results/2026-11-26-h100-head-more/.
 #   noclip    the consistency term without the normalisation's clip (`cc_clip=False`, compare case `cd-paper-noclip`:
 #            the fused chain folds the model's output layer into the next step's input product), about 12 minutes:
-#            the compare suite's Mb-Mf, paper-CD and paper-CD unclipped in one process, the two CD cases again in the
+#            how closely each chain follows the plain loop at the GPU's default matmul precision
+#            (`benchmarks.chain_check`, seconds), the compare suite's Mb-Mf, paper-CD and paper-CD unclipped in one process, the two CD cases again in the
 #            other order in a second, the seeds suite's 10-seed Mb-Mf and paper-CD unclipped, and the cold 4-arm ant
 #            sweep's compile with --cc-clip false (beside `accept`'s clipped one). Not yet run.
 #   (merged, an A/B of the fused chain's per-step products as block-diagonal ones, ran on 2026-11-26 and was removed
@@ -300,7 +301,8 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "> $work/learn-ant-orthogonal.log 2>&1;" \
         "tail -n 2 $work/learn-*.log" ;;
     noclip)
-      echo "timeout -k 20 220 python -m benchmarks.run --suite compare --cases mbmf cd-paper cd-paper-noclip" \
+      echo "timeout -k 20 120 python -m benchmarks.chain_check --out $work/chain-check > $work/chain-check.log 2>&1;" \
+        "timeout -k 20 220 python -m benchmarks.run --suite compare --cases mbmf cd-paper cd-paper-noclip" \
         "--budget-s 190 --out $work/ab-1 > $work/ab-1.log 2>&1;" \
         "timeout -k 20 170 python -m benchmarks.run --suite compare --cases cd-paper-noclip cd-paper --budget-s 140" \
         "--out $work/ab-2 > $work/ab-2.log 2>&1;" \
@@ -309,7 +311,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 20 240 python -m benchmarks.compile_time --out $work/cold --cache-dir $work/cache-cold --" \
         "$sweep --cc-clip false > $work/cold.log 2>&1;" \
         "grep -H ' s/update' $work/ab-*.log; grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold.log;" \
-        "tail -n 8 $work/seeds/results.md" ;;
+        "tail -n 8 $work/seeds/results.md; tail -n 4 $work/chain-check.log" ;;
     head-more)
       local learn="python -m benchmarks.learning --frameworks cdjax"
       echo "timeout -k 20 240 $learn --tasks ant --seeds 10 --first-seed 1 --variants default" \

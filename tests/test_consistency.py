@@ -1,6 +1,7 @@
 """The consistency module alone, on hand-made batches: windows, l_cc, encoders, the two gradient paths."""
 
 import functools
+import json
 import types
 
 import jax
@@ -458,3 +459,30 @@ def test_mlp_step_is_the_agents_model_step():
     a = jax.random.uniform(jax.random.key(5), (7, agent.A), minval=-1, maxval=1)
     np.testing.assert_allclose(cc.mlp_step(agent.mlp_model(params["model"], norms), s, a),
                                agent.model_step(params["model"], norms, s, a)[0], rtol=1e-6, atol=1e-6)
+
+
+def test_chain_check_measures_both_chains_against_the_plain_loop(tmp_path):
+    """`benchmarks.chain_check` (run on a GPU to see what its matmul precision costs each chain): on CPU, in float32,
+    both fused chains follow its plain-loop reference to float32 rounding, for the value and every input's gradient,
+    and it writes them to results.json; a chain with a wrong gradient shows in its row."""
+    from benchmarks import chain_check
+
+    sizes = ["--windows", "16", "--horizon", "6", "--obs", "4", "--act", "2", "--hidden", "16", "--enc", "8"]
+    result = chain_check.main(sizes + ["--out", str(tmp_path)])
+    assert json.loads((tmp_path / "results.json").read_text()) == result
+    rows = result["relative_error"]
+    assert set(rows) == {"clipped (default)", "unclipped, folded"}
+    for row in rows.values():
+        assert set(row) == {"value", *chain_check.ARGS} and max(row.values()) < 1e-5, row
+    wrong = cc._weight_grads  # the after-the-loop gradients with the model layers' doubled
+
+    def doubled(*args):
+        dp, dc = wrong(*args)
+        return dict(dp, layers=jax.tree.map(lambda x: 2 * x, dp["layers"])), dc
+
+    cc._weight_grads = doubled
+    try:
+        bad = chain_check.check(16, 6, 4, 2, 16, 8)["relative_error"]
+    finally:
+        cc._weight_grads = wrong
+    assert all(row["model"] > 0.5 and row["s0"] < 1e-5 for row in bad.values())
