@@ -419,10 +419,11 @@ _chain.defvjp(_chain_fwd, _chain_bwd)
 # output layer's cotangents and gradient after the loop.
 
 
-def _affine_inputs(c: dict, shared: bool) -> jax.Array:
-    """J [O, D]: the unclipped chain inputs' (`_chain_inputs`, clip=False) linear part, xin(s) = s J + xin(0)."""
-    inv = [1.0 / c["model_obs"].std] + ([] if shared else [1.0 / c["enc_obs"].std])
-    return jnp.concatenate([jnp.diag(x) for x in inv], axis=1)
+def _state_share(c: dict, shared: bool, w_in: jax.Array) -> jax.Array:
+    """J w_in [O, N1 + 3H]: a change of state's share of the input products, J the unclipped chain inputs'
+    (`_chain_inputs`, clip=False) linear part, xin(s) = s J + xin(0): each input block's rows of w_in over its std."""
+    inv = jnp.concatenate([1.0 / c["model_obs"].std] + ([] if shared else [1.0 / c["enc_obs"].std]))
+    return (w_in * inv[:, None]).reshape(-1, c["model_obs"].mean.shape[-1], w_in.shape[-1]).sum(0)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -437,7 +438,7 @@ def _folded_fwd(shared: bool, p: dict, c: dict):
     w_out, b_out = layers[-1]
     c, w_in, gi_re, z1_actions = _chain_start(shared, p, c)
     delta = c["delta"]
-    jw = _affine_inputs(c, shared) @ w_in  # [O, N1 + 3H]: a change of state's share of the input products
+    jw = _state_share(c, shared, w_in)
     w_f = (w_out * delta.std) @ jw
     b_f = (delta.mean + delta.std * b_out) @ jw
     both = _chain_inputs(c, shared, s0, clip=False) @ w_in  # [W, N1 + 3H], at s_0
@@ -599,8 +600,6 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
         raise ValueError("consistency_loss: clip=False needs mlp_step and normalize given as RunningStats")
     if enc_obs is not None:
         normalize = functools.partial(nz.normalize, enc_obs, clip=clip)
-    if not clip:
-        model_step = functools.partial(mlp_step, clip=False)
     shared = isinstance(model_params, MLPModel) and model_params.obs is enc_obs  # the caller's own statistics object
     model_params = scale_gradient(model_params, weights.model)
     actions = scale_gradient(actions, weights.policy)
@@ -609,22 +608,35 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     if kind == "frozen-gru":
         encoder_params = jax.lax.stop_gradient(encoder_params)
     dim = encoder.features if use_gru else 1
-    zeros = jnp.zeros((W, dim), jnp.float32)
     gru = gru_weights(encoder_params) if use_gru else None
-    is_mlp = model_step is mlp_step or getattr(model_step, "func", None) is mlp_step
-    if fused and is_mlp and isinstance(model_params, MLPModel) and gru is not None and enc_obs is not None:
-        # real rows: the encoder's own parameters for grounded-gru (l_cc's share is scaled on h_re below), scaled
-        # ones otherwise; imagined rows: scaled (as the two encode() below)
+    if fused and model_step is mlp_step and isinstance(model_params, MLPModel) and gru is not None and enc_obs is not None:
+        # real rows: the encoder's own parameters for grounded-gru (l_cc's share is scaled on h_re in _terms), scaled
+        # ones otherwise; imagined rows: scaled (as the scan's encoder calls)
         scales = (1.0 if recon else weights.to_encoder, weights.to_encoder)
         h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared,
                                        clip)
-        terms, metrics = _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params,
-                                k, dim)
-        return terms, dict(metrics, **_beyond_clip(enc_obs, s_im, mask))
+        acc = None
+    else:
+        step = model_step if clip else functools.partial(mlp_step, clip=False)
+        h_re, h_im, s_im, acc = _scanned(step, model_params, s0, actions, real_next, normalize, kind, weights,
+                                         encoder, encoder_params, unroll, dim)
+    terms, metrics = _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k,
+                            dim, acc)
+    if enc_obs is not None:
+        metrics.update(_beyond_clip(enc_obs, s_im, mask))
+    return terms, metrics
 
+
+def _scanned(model_step, model_params, s0, actions, real_next, normalize, kind, weights, encoder, encoder_params,
+             unroll, dim) -> tuple:
+    """`consistency_loss`'s k steps as a scan (model_step and normalize as it passes them, the path weights already
+    on model_params and actions) -> (h_re, h_im [W, dim], s_k, acc: l2's summed per-step distances)."""
+    W = s0.shape[0]
+    use_gru, recon = kind != "l2", kind == "grounded-gru"
+    zeros = jnp.zeros((W, dim), jnp.float32)
     if recon:
         # Real rows with the encoder's own parameters (the reconstruction trains them at full weight, and
-        # l_cc's share is scaled on h_re below); imagined rows with the model-path-scaled parameters.
+        # l_cc's share is scaled on h_re in _terms); imagined rows with the model-path-scaled parameters.
         scaled_params = scale_gradient(encoder_params, weights.to_encoder)
 
         def encode(h_re, h_im, x_re, x_im):
@@ -649,15 +661,13 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
 
     init = (s0, zeros, zeros, jnp.zeros((W,), jnp.float32))
     (s_im, h_re, h_im, acc), _ = jax.lax.scan(step, init, (actions, real_next), unroll=unroll)
-    terms, metrics = _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k,
-                            dim, acc)
-    return terms, (metrics if enc_obs is None else dict(metrics, **_beyond_clip(enc_obs, s_im, mask)))
+    return h_re, h_im, s_im, acc
 
 
 def _beyond_clip(stats: nz.RunningStats, s_im: jax.Array, mask: jax.Array) -> dict:
     """{"consistency/final_beyond_clip": the share of the final imagined states' features (unmasked windows) that
     normalise beyond +-CLIP}: where the clip binds, the clipped and unclipped terms (clip) differ."""
-    out = (jnp.abs(nz.normalize(jax.lax.stop_gradient(stats), jax.lax.stop_gradient(s_im), clip=False)) > nz.CLIP)
+    out = jnp.abs(nz.normalize(stats, jax.lax.stop_gradient(s_im), clip=False)) > nz.CLIP
     return {"consistency/final_beyond_clip": masked_mean(out.astype(jnp.float32).mean(-1), mask)}
 
 
