@@ -32,10 +32,9 @@ from benchmarks.common import FULL, TINY, Spec, Timing, cleanup  # noqa: E402
 
 SUITES = ("compare", "seeds", "envs", "devices")
 DISTRIBUTED_SUITES = ("seeds", "devices")  # the suites whose sweeps span every process's devices
-COMPARE_CASES = ("brax-ppo", "ceiling", "collect", "model-free", "mbmf", "cd-fast", "cd-paper", "cd-paper-noclip",
-                 "cd-w2-unroll", "cd-default")
-# the designated CD first: its 32-vs-1 ratio is a target
-SCALING_CASES = ("cd-fast", "model-free", "mbmf", "cd-paper", "cd-paper-noclip")
+COMPARE_CASES = ("brax-ppo", "ceiling", "collect", "model-free", "mbmf", "cd-fast", "cd-paper", "cd-w2-unroll",
+                 "cd-default")
+SCALING_CASES = ("cd-fast", "model-free", "mbmf", "cd-paper")  # the designated CD first: its 32-vs-1 ratio is a target
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 

@@ -35,9 +35,6 @@ def cdjax_cases(spec: Spec) -> dict[str, tuple[str, dict, dict]]:
         "cd-paper": (f"CD k={k}, the paper's schedule: l_cc in every minibatch of every epoch, all {n} "
                      f"window(s)/sequence, unroll {k}", dict(arm="cd", cc_windows=0, cc_unroll=k, cc_epochs=0),
                      dict(alpha=1.0)),
-        "cd-paper-noclip": (f"CD k={k}, the paper's schedule as cd-paper, the term's states unclipped (cc_clip=False: "
-                            "the fused chain folds the model's output layer into the next step)",
-                            dict(arm="cd", cc_windows=0, cc_unroll=k, cc_epochs=0, cc_clip=False), dict(alpha=1.0)),
         "cd-w2-unroll": (f"CD k={k}: {w} windows/sequence/minibatch, unroll {k}, every epoch",
                          dict(arm="cd", cc_windows=w, cc_unroll=k), dict(alpha=1.0)),
         "cd-default": (f"CD k={k}: default settings (all windows, every epoch, unroll 1)",

@@ -369,23 +369,24 @@ def test_plan_grids_labels_and_refusals(tmp_path):
     path.write_text(json.dumps(record))
 
 
-def test_a_record_naming_the_removed_chain_impl_reads_as_the_xla_chain_and_refuses_another(tmp_path):
-    """A run.json written while Config had cc_chain_impl (removed with the Pallas chain, 2026-11-26) names it in its
-    base config and each arm's: "xla", how cdjax trains now, is read without it (resume and the recorded spec); any
-    other value is refused in one sentence."""
+@pytest.mark.parametrize("field,kept,other", [("cc_chain_impl", "xla", "pallas"), ("cc_clip", True, False)])
+def test_a_record_naming_a_removed_field_reads_as_cdjax_trains_now_and_refuses_another(tmp_path, field, kept, other):
+    """A run.json written while Config had a field since removed (cc_chain_impl with the Pallas chain, cc_clip with
+    the unclipped term, both 2026-11-26) names it in its base config and each arm's: the value that trained as cdjax
+    trains now is read without it (resume and the recorded spec); any other value is refused in one sentence."""
     spec = SweepSpec(out=tmp_path / "a", config=POINT, arms=("mbmf", "cd"), seeds=1)
     _write_record(spec)
     path = tmp_path / "a" / "run.json"
     record = json.loads(path.read_text())
     for config in [record["base_config"]] + [arm["config"] for arm in record["arms"]]:
-        config["cc_chain_impl"] = "xla"
+        config[field] = kept
     path.write_text(json.dumps(record))
     assert resume_spec(tmp_path / "a", progress=False).config.replace(num_updates=POINT.num_updates) == POINT
     prepare(spec, resume=True)
-    record["arms"][1]["config"]["cc_chain_impl"] = "pallas"
+    record["arms"][1]["config"][field] = other
     path.write_text(json.dumps(record))
     for read in (lambda: resume_spec(tmp_path / "a", progress=False), lambda: prepare(spec, resume=True)):
-        with pytest.raises(io.RunDirError, match="names cc_chain_impl 'pallas'") as info:
+        with pytest.raises(io.RunDirError, match=f"names {field} {other!r}") as info:
             read()
         assert str(info.value).endswith(".") and str(info.value).count(". ") == 0  # one sentence
 

@@ -197,6 +197,8 @@ def _known(old, new):
 RETIRED = {
     "cc_chain_impl": ("xla", "the consistency chain as Pallas kernels, removed on 2026-11-26: slower than XLA's chain, "
                              "its gradients wrong on a GPU"),
+    "cc_clip": (True, "the consistency term without the normalisation's clip, removed on 2026-11-26: slower on a GPU "
+                      "than the clipped term"),
 }
 
 

@@ -245,7 +245,7 @@ class ObsAgent:
                 consistency.mlp_step, self.mlp_model(model_params, norms), s0, window_actions, real_next, mask,
                 kind=self.config.encoder, normalize=norms.obs,
                 weights=consistency.path_weights(hp), encoder=self.encoder,
-                encoder_params=params.get("encoder"), unroll=self.config.cc_unroll, clip=self.config.cc_clip)
+                encoder_params=params.get("encoder"), unroll=self.config.cc_unroll)
             terms.update(cc_terms)
             metrics.update(cc_metrics)
         return terms, metrics

@@ -60,7 +60,6 @@ class Config:
     cc_windows: int = 0  # consistency windows per env per minibatch, random start offsets; 0 = all T-k+1
     cc_unroll: int = 1  # lax.scan unroll factor of the scanned k-step term (the obs agent's fused chain is unrolled)
     cc_epochs: int = 0  # PPO epochs (the first ones) whose minibatches include the consistency term; 0 = all
-    cc_clip: bool = True  # the consistency term's normalised states clipped at +-10 std as the model's inputs are; False: unclipped, and the fused chain folds the model's output layer into the next step (fewer GPU kernels)
     eval_horizon: int = 50  # longer open-loop horizon for the compounding-error metric (paper: 50)
     eval_envs: int = 8  # environments whose recent history is kept for the open-loop error metrics
     yardstick: str = ""  # held-out real trajectories (.npz) the model is also scored on each update (yardstick.py); "": none
