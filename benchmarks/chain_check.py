@@ -1,14 +1,11 @@
-"""How closely the fused consistency chains follow the plain loop on this device (issue 21).
+"""How closely the fused consistency chain follows the plain loop on this device (issue 21).
 
     python -m benchmarks.chain_check [--out DIR] [--windows 512 --horizon 20 --obs 27 --act 8 --hidden 500 --enc 128]
 
-At the ant's widths by default: the clipped fused chain (`consistency.fused_chain`, the default) and the unclipped one
-(clip=False: `_folded_chain`, the model's output layer folded into the next step's inputs), each at JAX's default
-matmul precision, against JAX's own gradient of k plain `mlp_step`s and GRU steps at the highest precision. The
-states stay well inside the clip, so both chains compute the reference's function. A loss on all three outputs (the
-encodings and the final state) reaches every input. On a GPU the default precision may round products to TF32, and
-the folded chain adds each step's change to the previous inputs where the clipped one recomputes them from the state:
-this says what each costs in accuracy. Prints a table and writes DIR/results.json.
+At the ant's widths by default: the fused chain (`consistency.fused_chain`) at JAX's default matmul precision against
+JAX's own gradient of k plain `mlp_step`s and GRU steps at the highest precision. A loss on all three outputs (the
+encodings and the final state) reaches every input. On a GPU the default precision may round products to TF32: this
+says what that costs the chain in accuracy. Prints a table and writes DIR/results.json.
 """
 
 from __future__ import annotations
@@ -63,8 +60,8 @@ def _plain(enc_obs, weights, scales, model, gru, s0, actions, x_re):
     return _objective(weights, h_re, h_im, s)
 
 
-def _fused(clip, enc_obs, weights, scales, *args):
-    return _objective(weights, *cc.fused_chain(*args, enc_obs, scales, True, clip))
+def _fused(enc_obs, weights, scales, *args):
+    return _objective(weights, *cc.fused_chain(*args, enc_obs, scales, True))
 
 
 def _errors(grads, reference) -> dict[str, float]:
@@ -84,13 +81,11 @@ def check(windows=512, horizon=20, obs=27, act=8, hidden=500, enc=128, seed=0) -
     grad = lambda f: jax.jit(jax.value_and_grad(f, argnums=tuple(range(5))))  # noqa: E731
     with jax.default_matmul_precision("highest"):
         v_ref, g_ref = grad(lambda *a: _plain(enc_obs, weights, scales, *a))(*args)
-    rows = {}
-    for name, clip in (("clipped (default)", True), ("unclipped, folded", False)):
-        v, g = grad(lambda *a, clip=clip: _fused(clip, enc_obs, weights, scales, *a))(*args)
-        rows[name] = {"value": abs(float(v) - float(v_ref)) / abs(float(v_ref)), **_errors(g, g_ref)}
+    v, g = grad(lambda *a: _fused(enc_obs, weights, scales, *a))(*args)
+    row = {"value": abs(float(v) - float(v_ref)) / abs(float(v_ref)), **_errors(g, g_ref)}
     return {"device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
             "sizes": dict(windows=windows, horizon=horizon, obs=obs, act=act, hidden=hidden, enc=enc, seed=seed),
-            "relative_error": rows}
+            "relative_error": row}
 
 
 def main(argv=None) -> dict:
@@ -104,10 +99,10 @@ def main(argv=None) -> dict:
     result = check(a.windows, a.horizon, a.obs, a.act, a.hidden, a.enc, a.seed)
     print(f"{result['device']} ({result['backend']}), {result['sizes']}: relative error against the plain loop at "
           "the highest precision")
-    print("| chain | value | " + " | ".join(ARGS) + " |")
-    print("| --- | ---: | " + " | ".join("---:" for _ in ARGS) + " |")
-    for name, row in result["relative_error"].items():
-        print(f"| {name} | {row['value']:.2e} | " + " | ".join(f"{row[k]:.2e}" for k in ARGS) + " |")
+    row = result["relative_error"]
+    print("| value | " + " | ".join(ARGS) + " |")
+    print("| ---: | " + " | ".join("---:" for _ in ARGS) + " |")
+    print(f"| {row['value']:.2e} | " + " | ".join(f"{row[k]:.2e}" for k in ARGS) + " |")
     if a.out:
         out = pathlib.Path(a.out)
         out.mkdir(parents=True, exist_ok=True)

@@ -227,10 +227,9 @@ class MLPModel:
     delta: nz.RunningStats  # statistics of the change of state (the model's output)
 
 
-def mlp_step(model: MLPModel, s: jax.Array, a: jax.Array, clip: bool = True) -> jax.Array:
-    """One imagined step of an MLPModel: s [..., O], a [..., A] -> s' [..., O]. clip=False: the state normalised
-    without the clip at +-CLIP (`consistency_loss`'s clip)."""
-    x = jnp.concatenate([nz.normalize(model.obs, s, clip), a], axis=-1)
+def mlp_step(model: MLPModel, s: jax.Array, a: jax.Array) -> jax.Array:
+    """One imagined step of an MLPModel: s [..., O], a [..., A] -> s' [..., O]."""
+    x = jnp.concatenate([nz.normalize(model.obs, s), a], axis=-1)
     for kernel, bias in model.layers[:-1]:
         x = jax.nn.relu(x @ kernel + bias)
     kernel, bias = model.layers[-1]
@@ -272,10 +271,10 @@ def _outer(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return g[:-1], g[-1]
 
 
-def _chain_inputs(c: dict, shared: bool, s: jax.Array, clip: bool = True) -> jax.Array:
+def _chain_inputs(c: dict, shared: bool, s: jax.Array) -> jax.Array:
     """The model's normalised input of states s [W, O], and unless `shared` the encoder's beside it: [W, O or 2O]."""
-    x = nz.normalize(c["model_obs"], s, clip)
-    return x if shared else jnp.concatenate([x, nz.normalize(c["enc_obs"], s, clip)], axis=-1)
+    x = nz.normalize(c["model_obs"], s)
+    return x if shared else jnp.concatenate([x, nz.normalize(c["enc_obs"], s)], axis=-1)
 
 
 def _input_weights(w_1: jax.Array, w_i: jax.Array, O: int, shared: bool) -> jax.Array:
@@ -295,7 +294,7 @@ def _gates(c: dict, gi_re, both_im, hh, h):
 
 
 def _chain_start(shared: bool, p: dict, c: dict) -> tuple:
-    """What a chain computes before its loop: (c with the GRU's input bias and recurrent biases, the input product's
+    """What the chain computes before its loop: (c with the GRU's input bias and recurrent biases, the input product's
     weights w_in, the real rows' GRU inputs gi_re [k, W, 3H], the actions' share of the first layer [k, W, N1])."""
     (w_1, b_1), w_i, w_h = p["layers"][0], p["w_i"], p["w_h"]
     O = p["s0"].shape[-1]
@@ -408,108 +407,8 @@ def _weight_grads(p: dict, c: dict, model_x, enc_x, hidden: list, dz_layers: lis
 _chain.defvjp(_chain_fwd, _chain_bwd)
 
 
-# The chain without the clip (`consistency_loss`'s clip=False): every normalised input is then affine in the state,
-#     xin(s) = s J + xin(0),  s_{t+1} = s_t + delta.mean + delta.std * (u_t W_out + b_out),
-# so the next step's input products follow from this step's last hidden layer u_t alone:
-#     xin(s_{t+1}) [W1_x | W_i] = xin(s_t) [W1_x | W_i] + u_t W_f + b_f,
-#     W_f = W_out diag(delta.std) J [W1_x | W_i],  b_f = (delta.mean + delta.std * b_out) J [W1_x | W_i].
-# Per step that is one product where the clipped chain has three (the output layer, split-K on a GPU; the input
-# product) and the state update's elementwise work between them; the states themselves are formed after the loop,
-# for every step at once. The backward likewise: per step one product for the last hidden layer's cotangent, the
-# output layer's cotangents and gradient after the loop.
-
-
-def _state_share(c: dict, shared: bool, w_in: jax.Array) -> jax.Array:
-    """J w_in [O, N1 + 3H]: a change of state's share of the input products, J the unclipped chain inputs'
-    (`_chain_inputs`, clip=False) linear part, xin(s) = s J + xin(0): each input block's rows of w_in over its std."""
-    inv = jnp.concatenate([1.0 / c["model_obs"].std] + ([] if shared else [1.0 / c["enc_obs"].std]))
-    return (w_in * inv[:, None]).reshape(-1, c["model_obs"].mean.shape[-1], w_in.shape[-1]).sum(0)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _folded_chain(shared: bool, p: dict, c: dict):
-    return _folded_fwd(shared, p, c)[0]
-
-
-def _folded_fwd(shared: bool, p: dict, c: dict):
-    """`_chain_fwd` without the clip, the output layer folded into the next step's input product (above)."""
-    layers, w_h, s0 = p["layers"], p["w_h"], p["s0"]
-    k, N1 = p["actions"].shape[0], layers[0][0].shape[1]
-    w_out, b_out = layers[-1]
-    c, w_in, gi_re, z1_actions = _chain_start(shared, p, c)
-    delta = c["delta"]
-    jw = _state_share(c, shared, w_in)
-    w_f = (w_out * delta.std) @ jw
-    b_f = (delta.mean + delta.std * b_out) @ jw
-    both = _chain_inputs(c, shared, s0, clip=False) @ w_in  # [W, N1 + 3H], at s_0
-    hs = [jnp.zeros((2,) + s0.shape[:1] + (w_h.shape[0],), s0.dtype)]
-    hidden, both_im, hh = [], [], []
-    for t in range(k):
-        u = jax.nn.relu(both[:, :N1] + z1_actions[t])
-        us = [u]
-        for kernel, bias in layers[1:-1]:
-            u = jax.nn.relu(u @ kernel + bias)
-            us.append(u)
-        both = both + (u @ w_f + b_f)  # at s_{t+1}: the next step's first layer (state part) | this step's GRU input
-        hidden.append(us)
-        both_im.append(both[:, N1:])
-        hh.append(hs[-1] @ w_h)
-        hs.append(_gates(c, gi_re[t], both_im[-1], hh[-1], hs[-1]))
-    last = jnp.stack([us[-1] for us in hidden])  # [k, W, N_last]
-    states = s0 + jnp.cumsum(nz.denormalize(delta, last @ w_out + b_out), axis=0)  # s_1..s_k [k, W, O]
-    residuals = (p, c, w_in, jw, w_f, gi_re, states, hidden, both_im, hh, hs)
-    return (hs[-1][0], hs[-1][1], states[-1]), residuals
-
-
-def _folded_bwd(shared: bool, residuals, cotangents):
-    """`_chain_bwd` for `_folded_fwd`. Per step: the GRU's cotangents, the running cotangent B of the input products
-    at s_{t+1} (every later step's direct uses of them summed), the last hidden layer's cotangent B W_f^T plus s_k's
-    share (the same for every step) and the hidden layers'. After the loop, for all steps at once: the states' own
-    cotangents B [W1_x | W_i]^T J^T + ds_k, the output layer's, and every weight's gradient."""
-    p, c, w_in, jw, w_f, gi_re, states, hidden, both_im, hh, hs = residuals
-    layers, w_h = p["layers"], p["w_h"]
-    dh_re, dh_im, ds = cotangents
-    k, O = len(hidden), ds.shape[-1]
-    w_out = layers[-1][0]
-    N1 = layers[0][0].shape[1]
-    delta_std = c["delta"].std
-    ds_out = ds * delta_std  # s_k's share of every step's output layer cotangent
-    du_s = ds_out @ w_out.T  # ... and of its last hidden layer's
-    dh, B, dp1 = jnp.stack([dh_re, dh_im]), None, None
-    dgi, dhh, dzs, Bs = [None] * k, [None] * k, [None] * k, [None] * k
-    for t in reversed(range(k)):
-        _, gates_vjp = jax.vjp(functools.partial(_gates, c), gi_re[t], both_im[t], hh[t], hs[t])
-        dgi_re, dgi_im, dhh[t], dh_direct = gates_vjp(dh)
-        dgi[t] = jnp.stack([dgi_re, dgi_im])
-        dh = dh_direct + dhh[t] @ w_h.T
-        # both_{t+1}'s direct uses: step t+1's first layer (none after the last step) and step t's GRU input
-        direct = jnp.concatenate([jnp.zeros((dgi_im.shape[0], N1), dgi_im.dtype) if dp1 is None else dp1, dgi_im], -1)
-        B = direct if B is None else B + direct  # the input products' cotangent at s_{t+1}
-        Bs[t] = B
-        us = hidden[t]
-        dz = jnp.where(us[-1] > 0, B @ w_f.T + du_s, 0.0)  # the last hidden layer's pre-activation
-        dzs[t] = [dz]
-        for (kernel, _), u in zip(layers[-2:0:-1], us[-2::-1]):
-            dz = jnp.where(u > 0, dz @ kernel.T, 0.0)
-            dzs[t].append(dz)
-        dzs[t] = dzs[t][::-1]
-        dp1 = dz
-    B0 = B + jnp.concatenate([dp1, jnp.zeros((dp1.shape[0], B.shape[-1] - N1), dp1.dtype)], axis=-1)  # at s_0
-    _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared, clip=False), p["s0"])
-    ds0 = ds + inputs_vjp(B0 @ w_in.T)[0]
-
-    dz_out = (ds + jnp.stack(Bs) @ jw.T) * delta_std  # [k, W, O]: each step's output layer
-    dz_layers = [jnp.stack([d[i] for d in dzs]) for i in range(len(layers) - 1)] + [dz_out]
-    xin = _chain_inputs(c, shared, jnp.concatenate([p["s0"][None], states]), clip=False)  # [k + 1, W, D]
-    D = p["x_re"].shape[-1]
-    return _weight_grads(p, c, xin[:-1, ..., :O], xin[1:, ..., -D:], hidden, dz_layers, dgi, dhh, hs, ds0)
-
-
-_folded_chain.defvjp(_folded_fwd, _folded_bwd)
-
-
 def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.RunningStats, scales: tuple,
-                shared: bool = False, clip: bool = True) -> tuple[jax.Array, jax.Array, jax.Array]:
+                shared: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The k imagined steps of an MLPModel from s0 [W, O] under actions [k, W, A] and the GRU encodings of the real
     (normalised) states x_re [k, W, D] and of the imagined ones (normalised by enc_obs): (h_re, h_im [W, H], s_k).
 
@@ -518,16 +417,14 @@ def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.Runn
     afterwards in one product over all steps; the real and imagined rows share each GRU product. The GRU's
     gradient from the real rows is scaled by scales[0] and from the imagined rows by scales[1] (as
     `scale_gradient` would on the encoder's parameters of each); the running statistics are constants.
-    `shared`: enc_obs is the model's own obs statistics (one normalised input serves both). clip=False: the
-    imagined states normalised without the clip at +-CLIP (`mlp_step`'s and `normalize`'s clip=False), which lets the
-    chain fold the model's output layer into the next step's input product (`_folded_chain`).
+    `shared`: enc_obs is the model's own obs statistics (one normalised input serves both).
     """
     w_i, b_i, w_h, b_hn = gru
     layers = tuple(tuple(layer) for layer in model.layers)
     p = dict(layers=layers, w_i=w_i, b_i=b_i, w_h=w_h, b_hn=b_hn, s0=s0, actions=actions, x_re=x_re)
     c = jax.lax.stop_gradient(dict(model_obs=model.obs, delta=model.delta, enc_obs=enc_obs,
                                    scales=tuple(jnp.asarray(x, jnp.float32) for x in scales)))
-    return (_chain if clip else _folded_chain)(shared, p, c)
+    return _chain(shared, p, c)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -570,7 +467,7 @@ def _spread(x: jax.Array, mask: jax.Array) -> jax.Array:
 
 def consistency_loss(model_step: Callable, model_params, s0, actions, real_next, mask, *, kind: str,
                      normalize: Callable | nz.RunningStats, weights: PathWeights, encoder=None, encoder_params=None,
-                     unroll: int = 1, fused: bool = True, clip: bool = True) -> tuple[dict, dict]:
+                     unroll: int = 1, fused: bool = True) -> tuple[dict, dict]:
     """The consistency terms of a batch of windows: ({name: loss}, metrics).
 
     model_step(model_params, s [W, O], a [W, A]) -> s' imagines in raw state space; s0 [W, O] real start
@@ -583,11 +480,6 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     normalize given as RunningStats, that scan runs fused (`fused_chain`: the same function, its backward
     written out, a third of the kernels on a GPU) unless fused=False.
 
-    clip=False (only with `mlp_step` and normalize as RunningStats): the term normalises states, real and imagined,
-    without `normalize`'s clip at +-CLIP, in the model's inputs and the encoder's alike. The fused chain is then
-    affine from one step's last hidden layer to the next step's inputs and folds the model's output layer into them
-    (`_folded_chain`: fewer kernels per step). Only states beyond CLIP standard deviations see a different function.
-
     Terms: "consistency" (l_cc, averaged over unmasked windows) and, for grounded-gru, "encoder_aux"
     (the reconstruction error of the real window plus the spread floor's hinge).
     """
@@ -596,10 +488,8 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
     assert s0.shape[0] == W and real_next.shape[:2] == (k, W) and mask.shape == (W,), (
         s0.shape, actions.shape, real_next.shape, mask.shape)
     enc_obs = normalize if isinstance(normalize, nz.RunningStats) else None
-    if not clip and (model_step is not mlp_step or enc_obs is None):
-        raise ValueError("consistency_loss: clip=False needs mlp_step and normalize given as RunningStats")
     if enc_obs is not None:
-        normalize = functools.partial(nz.normalize, enc_obs, clip=clip)
+        normalize = functools.partial(nz.normalize, enc_obs)
     shared = isinstance(model_params, MLPModel) and model_params.obs is enc_obs  # the caller's own statistics object
     model_params = scale_gradient(model_params, weights.model)
     actions = scale_gradient(actions, weights.policy)
@@ -613,12 +503,10 @@ def consistency_loss(model_step: Callable, model_params, s0, actions, real_next,
         # real rows: the encoder's own parameters for grounded-gru (l_cc's share is scaled on h_re in _terms), scaled
         # ones otherwise; imagined rows: scaled (as the scan's encoder calls)
         scales = (1.0 if recon else weights.to_encoder, weights.to_encoder)
-        h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared,
-                                       clip)
+        h_re, h_im, s_im = fused_chain(model_params, gru, s0, actions, normalize(real_next), enc_obs, scales, shared)
         acc = None
     else:
-        step = model_step if clip else functools.partial(mlp_step, clip=False)
-        h_re, h_im, s_im, acc = _scanned(step, model_params, s0, actions, real_next, normalize, kind, weights,
+        h_re, h_im, s_im, acc = _scanned(model_step, model_params, s0, actions, real_next, normalize, kind, weights,
                                          encoder, encoder_params, unroll, dim)
     terms, metrics = _terms(kind, h_re, h_im, s_im, real_next, mask, normalize, weights, encoder, encoder_params, k,
                             dim, acc)
@@ -665,9 +553,10 @@ def _scanned(model_step, model_params, s0, actions, real_next, normalize, kind, 
 
 
 def _beyond_clip(stats: nz.RunningStats, s_im: jax.Array, mask: jax.Array) -> dict:
-    """{"consistency/final_beyond_clip": the share of the final imagined states' features (unmasked windows) that
-    normalise beyond +-CLIP}: where the clip binds, the clipped and unclipped terms (clip) differ."""
-    out = jnp.abs(nz.normalize(stats, jax.lax.stop_gradient(s_im), clip=False)) > nz.CLIP
+    """{"consistency/final_beyond_clip": the share of the final imagined states' features (unmasked windows) whose
+    normalised value, before `normalize`'s clip, lies beyond +-CLIP}: how often the clip binds at the chain's end."""
+    stats = jax.lax.stop_gradient(stats)
+    out = jnp.abs((jax.lax.stop_gradient(s_im) - stats.mean) / stats.std) > nz.CLIP  # `normalize` without its clip
     return {"consistency/final_beyond_clip": masked_mean(out.astype(jnp.float32).mean(-1), mask)}
 
 

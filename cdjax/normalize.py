@@ -45,11 +45,9 @@ def update(stats: RunningStats, x: jax.Array, mask: jax.Array | None = None) -> 
     return RunningStats(n, mean, m2)
 
 
-def normalize(stats: RunningStats, x: jax.Array, clip: bool = True) -> jax.Array:
-    """(x - mean) / std, clipped to [-CLIP, CLIP] unless clip=False."""
+def normalize(stats: RunningStats, x: jax.Array) -> jax.Array:
     stats = jax.lax.stop_gradient(stats)
-    z = (x - stats.mean) / stats.std
-    return jnp.clip(z, -CLIP, CLIP) if clip else z
+    return jnp.clip((x - stats.mean) / stats.std, -CLIP, CLIP)
 
 
 def denormalize(stats: RunningStats, z: jax.Array) -> jax.Array:
