@@ -115,12 +115,10 @@
 #            (`brax-head`), and reacher at 10 seeds with Brax's head (beside `head`'s x0.1 rows; its 200 s limit, 280 s since, cut
 #            it at 13.1M of 19.7M steps). Report at the end. Ran 2026-11-26 (1165 s on one H100):
 #            benchmarks/results/2026-11-26-h100-head-more/.
-#   noclip    the consistency term without the normalisation's clip (`cc_clip=False`, compare case `cd-paper-noclip`:
-#            the fused chain folds the model's output layer into the next step's input product), about 12 minutes:
-#            how closely each chain follows the plain loop at the GPU's default matmul precision
-#            (`benchmarks.chain_check`, seconds), the compare suite's Mb-Mf, paper-CD and paper-CD unclipped in one process, the two CD cases again in the
-#            other order in a second, the seeds suite's 10-seed Mb-Mf and paper-CD unclipped, and the cold 4-arm ant
-#            sweep's compile with --cc-clip false (beside `accept`'s clipped one). Not yet run.
+#   (noclip, the consistency term without the normalisation's clip (its fused chain folding the model's output layer
+#            into the next step's input product), ran on 2026-11-26 on one H200 and was removed with Config.cc_clip:
+#            paper-CD 0.7971 and 0.7944 s/update unclipped against 0.7158 and 0.7122 s clipped; 10 vmapped seeds 1.87x
+#            Mb-Mf; cold 4-arm compile 82.8 s; benchmarks/results/2026-11-26-h200-noclip/.)
 #   (merged, an A/B of the fused chain's per-step products as block-diagonal ones, ran on 2026-11-26 and was removed
 #            with that variant: paper-CD 0.7982 and 0.8031 s/update with it against 0.7338 and 0.7355 s without;
 #            benchmarks/results/2026-11-26-h100-merged/.)
@@ -300,18 +298,6 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 20 200 $learn --tasks ant --seeds 10 --variants orthogonal-init --out $work/learn/ant-orthogonal" \
         "> $work/learn-ant-orthogonal.log 2>&1;" \
         "tail -n 2 $work/learn-*.log" ;;
-    noclip)
-      echo "timeout -k 20 120 python -m benchmarks.chain_check --out $work/chain-check > $work/chain-check.log 2>&1;" \
-        "timeout -k 20 220 python -m benchmarks.run --suite compare --cases mbmf cd-paper cd-paper-noclip" \
-        "--budget-s 190 --out $work/ab-1 > $work/ab-1.log 2>&1;" \
-        "timeout -k 20 170 python -m benchmarks.run --suite compare --cases cd-paper-noclip cd-paper --budget-s 140" \
-        "--out $work/ab-2 > $work/ab-2.log 2>&1;" \
-        "timeout -k 20 240 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper-noclip --seed-counts 10" \
-        "--seed-envs 256 --budget-s 210 --out $work/seeds > $work/seeds.log 2>&1;" \
-        "timeout -k 20 240 python -m benchmarks.compile_time --out $work/cold --cache-dir $work/cache-cold --" \
-        "$sweep --cc-clip false > $work/cold.log 2>&1;" \
-        "grep -H ' s/update' $work/ab-*.log; grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold.log;" \
-        "tail -n 8 $work/seeds/results.md; tail -n 4 $work/chain-check.log" ;;
     head-more)
       local learn="python -m benchmarks.learning --frameworks cdjax"
       echo "timeout -k 20 240 $learn --tasks ant --seeds 10 --first-seed 1 --variants default" \
@@ -340,7 +326,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head, head-more or noclip" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
