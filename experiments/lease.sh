@@ -65,7 +65,11 @@ ensure_wheels() {
 # 2026-11-25 (43 MB, mujoco 4.0.0 split into mujoco, mujoco-core and mujoco-studio) the tarball is 10.8 MB (15.9 MB
 # with MJX's test data, 23.1 MB with the GUI as well; the working tree grew to 51 MB on 2026-11-26, so only 10.8 fits): the
 # ALE units carry it beside .whl-ale/ and .whl-atari/ (`carry_size .whl-site .whl-ale .whl-atari` says whether
-# they fit).
+# they fit). Since 2026-11-26 also left out: TensorFlow Probability's numpy substrate and its TensorFlow modules
+# (tensorflow_probability/python/* but its __init__, internal/ and version.py: the jax substrate, which distrax imports,
+# reads only these; distrax's distributions and cdjax's tests/test_learner.py checked against the pruned package on
+# this machine), PyOpenGL's Windows DLLs and MuJoCo's documentation (mujoco/doc, reStructuredText), packed with
+# xz -9e: 10.8 -> 9.2 MB, since the tracked tree (56 MB that day) and the 10.8 MB no longer fitted in 64 MiB together.
 pack_site() {
   local tmp w
   tmp=$(mktemp -d) || return 1
@@ -75,8 +79,11 @@ pack_site() {
 assert not any('.data/' in n for n in z.namelist()), sys.argv[1] + ' has a .data directory'; z.extractall(sys.argv[2])" \
       "$w" "$tmp" || { rm -rf "$tmp"; return 1; }
   done
-  rm -rf "$tmp/mujoco/mjx/test_data" "$tmp/mujoco/sysid/tests" "$tmp/ml_collections/config_flags/tests"
-  mkdir -p .whl-site && tar -cJf .whl-site/site.tar.xz -C "$tmp" . && rm -rf "$tmp" && ls -l .whl-site/site.tar.xz
+  rm -rf "$tmp/mujoco/mjx/test_data" "$tmp/mujoco/sysid/tests" "$tmp/ml_collections/config_flags/tests" \
+    "$tmp/tensorflow_probability/substrates/numpy" "$tmp/OpenGL/DLLS" "$tmp/mujoco/doc"
+  find "$tmp/tensorflow_probability/python" -mindepth 1 -maxdepth 1 \
+    ! -name __init__.py ! -name internal ! -name version.py -exec rm -rf {} +
+  mkdir -p .whl-site && tar -cf - -C "$tmp" . | xz -9e -T2 > .whl-site/site.tar.xz && rm -rf "$tmp" && ls -l .whl-site/site.tar.xz
 }
 
 # ale_wheels: .whl-ale/ (ale-py 0.12.1, 3.1 MB; its wheel bundles the ROMs) and .whl-atari/ (gymnasium 1.3.0 and
