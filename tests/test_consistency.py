@@ -413,14 +413,17 @@ def test_mlp_step_is_the_agents_model_step():
 def test_chain_check_measures_the_fused_chain_against_the_plain_loop(tmp_path):
     """`benchmarks.chain_check` (run on a GPU to see what its matmul precision costs the chain): on CPU, in float32,
     the fused chain follows its plain-loop reference to float32 rounding, for the value and every input's gradient,
-    and it writes them to results.json; a chain with a wrong gradient shows in its row."""
+    and so do the rows beside it (the plain loop at the default precision, the fused chain at the highest); it writes
+    them to results.json; a chain with a wrong gradient shows in the fused rows only."""
     from benchmarks import chain_check
 
     sizes = ["--windows", "16", "--horizon", "6", "--obs", "4", "--act", "2", "--hidden", "16", "--enc", "8"]
     result = chain_check.main(sizes + ["--out", str(tmp_path)])
     assert json.loads((tmp_path / "results.json").read_text()) == result
-    row = result["relative_error"]
-    assert set(row) == {"value", *chain_check.ARGS} and max(row.values()) < 1e-5, row
+    rows = result["relative_error"]
+    assert list(rows) == [name for name, _, _ in chain_check.ROWS]
+    for row in rows.values():
+        assert set(row) == {"value", *chain_check.ARGS} and max(row.values()) < 1e-5, rows
     wrong = cc._weight_grads  # the after-the-loop gradients with the model layers' doubled
 
     def doubled(*args):
@@ -432,4 +435,5 @@ def test_chain_check_measures_the_fused_chain_against_the_plain_loop(tmp_path):
         bad = chain_check.check(16, 6, 4, 2, 16, 8)["relative_error"]
     finally:
         cc._weight_grads = wrong
-    assert bad["model"] > 0.5 and bad["s0"] < 1e-5
+    assert bad["fused chain"]["model"] > 0.5 and bad["fused chain"]["s0"] < 1e-5
+    assert bad["fused chain, highest"]["model"] > 0.5 and max(bad["plain loop"].values()) < 1e-5
