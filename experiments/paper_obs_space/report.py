@@ -498,7 +498,12 @@ def returns_figure(tasks: list[TaskData], path: pathlib.Path, arms: Sequence[str
             if i == 0:
                 ax.set_title(task.name + ("" if task.complete else f" (cut at {task.budget:,.0f})"))
             ax.grid(alpha=0.3)
-    handles, labels = axes[0, 0].get_legend_handles_labels()
+    found = {}  # every arm drawn in any column (the first task may lack some), in the order of `arms`
+    for ax in axes[0]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            found.setdefault(label, handle)
+    labels = [LABELS.get(arm, arm) for arm in arms if LABELS.get(arm, arm) in found]
+    handles = [found[label] for label in labels]
     ncol = max(1, min(len(labels), 2 * n))  # two labels per task column: the legend never outgrows the figure
     rows_legend = -(-len(labels) // ncol) if labels else 0
     if handles:
