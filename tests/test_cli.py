@@ -159,6 +159,7 @@ def test_sweep_then_resume_longer_then_eval_and_plot(tmp_path, capsys, monkeypat
     assert code["cdjax"] == cdjax.__version__ and code["jax"] == jax.__version__
     assert code["commit"] == (head.stdout.strip() if head.returncode == 0 else None)
     assert isinstance(code["modified"], bool) if code["commit"] else code["modified"] is None
+    assert "matmul_precision" not in code  # JAX's default precision: the key is absent (records of before match)
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == (1 + 2) * 2 * 4 and max(r["update"] for r in rows) == 4
     assert sorted(p.name for p in (out / "checkpoints" / "cd").iterdir() if p.name.isdigit()) == ["2", "4"]

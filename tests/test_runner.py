@@ -539,6 +539,16 @@ class _Counted:
         return self.env.reset(key)
 
 
+def test_the_code_record_names_a_set_matmul_precision():
+    """run.json's code record says when JAX's default matmul precision was set for the run ("highest": a GPU's float32
+    products not rounded to TF32), and has no such key at JAX's default."""
+    from cdjax.runner import plan
+
+    assert "matmul_precision" not in plan.code_record()
+    with jax.default_matmul_precision("highest"):
+        assert plan.code_record()["matmul_precision"] == "highest"
+
+
 def test_encoder_collapse_warning():
     """Said once the trainable GRU's spread stays below the threshold over the chunk's later updates in some run;
     not for a single low update among healthy ones (a noisy sample); never for other encoders. The sweep says it

@@ -105,10 +105,20 @@ def chunk_size(spec: SweepSpec, num_updates: int) -> int:
     return spec.chunk_updates or max(1, math.ceil(num_updates / 20))
 
 
-@functools.lru_cache(maxsize=1)
 def code_record() -> dict:
     """The code a run is trained with: cdjax's and JAX's versions and, when cdjax is imported from a git checkout,
-    its commit and whether tracked files differ from it (None where git cannot tell)."""
+    its commit and whether tracked files differ from it (None where git cannot tell); and `matmul_precision` where
+    JAX's default matmul precision is set (JAX_DEFAULT_MATMUL_PRECISION or jax.default_matmul_precision: "highest"
+    keeps a GPU's float32 products out of TF32), absent at JAX's default, so the records of before still match."""
+    import jax
+
+    precision = jax.config.jax_default_matmul_precision
+    return {**_checkout(), **({} if precision is None else {"matmul_precision": str(precision)})}
+
+
+@functools.lru_cache(maxsize=1)
+def _checkout() -> dict:
+    """code_record's versions and git state, read once per process."""
     import jax
 
     import cdjax
