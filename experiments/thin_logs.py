@@ -4,8 +4,8 @@
 
 Every run directory under SRC_DIR (a directory holding run.json) is copied to the same relative path under
 DEST_DIR with its run.json, eval.jsonl, summary.md, log.txt, phase.jsonl and machine.json where they exist, and
-its metrics.jsonl thinned and gzipped (metrics.jsonl.gz, which `cdjax.io.read_jsonl` reads in place of a missing
-metrics.jsonl):
+its metrics.jsonl thinned and compressed (metrics.jsonl.xz, `cdjax.io.write_packed`, which `cdjax.io.read_jsonl`
+reads in place of a missing metrics.jsonl):
 per run (arm, hyper-parameter label, seed), every update of the last `tail` logged updates (the window the
 reports average over) and, before them, evenly spaced updates so that a run keeps about `points` rows; each
 run's first two and last rows are always kept. Checkpoints, TensorBoard files and videos are left behind.
@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import argparse
 import collections
-import gzip
 import json
 import pathlib
 import shutil
+
+from cdjax import io
 
 KEPT = ("run.json", "eval.jsonl", "summary.md", "log.txt", "phase.jsonl", "machine.json")
 
@@ -55,8 +56,7 @@ def thin_dir(src: pathlib.Path, dest: pathlib.Path, points: int = 250, tail: int
             with metrics.open() as f:
                 rows = [json.loads(line) for line in f if line.strip()]
             text = "".join(json.dumps(r) + "\n" for r in thin_rows(rows, points, tail))
-            # mtime 0: the same rows give the same bytes, so a rebuilt copy does not show as a change in git
-            (out / "metrics.jsonl.gz").write_bytes(gzip.compress(text.encode(), mtime=0))
+            io.write_packed(out / "metrics.jsonl", text.encode())  # the same rows give the same bytes
         written.append(out)
     return written
 

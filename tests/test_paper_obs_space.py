@@ -59,7 +59,7 @@ def test_report_of_the_unit_and_a_rebuild_from_the_kept_data(trained, tmp_path):
     text = (out / "RESULTS.md").read_text()
     assert "| point | model-free | 2 | 768 |" in text and "| point | cd-k3 | 2 | 856 |" in text  # 88 + 4 x 192
     kept = out / "data" / "swimmer-1" / "mf-mbmf"
-    for name in ("metrics.jsonl.gz", "run.json", "phase.jsonl", "eval.jsonl", "machine.json"):
+    for name in ("metrics.jsonl.xz", "run.json", "phase.jsonl", "eval.jsonl", "machine.json"):
         assert (kept / name).exists(), name
     assert (out / "data" / "swimmer-1" / "unit.json").exists()
     rows = json.loads((out / "data" / "summary.json").read_text())
@@ -207,7 +207,7 @@ def test_fake_units_give_every_table_and_the_across_task_statistics(fake, tmp_pa
                    "figures/profiles.png", "figures/returns.png"):
         assert needle in text, needle
     for name in ("figures/returns.png", "figures/returns.csv", "figures/profiles.png", "figures/profiles.csv",
-                 "data/ant-3/schedule/metrics.jsonl.gz", "data/ant-3/unit.json"):
+                 "data/ant-3/schedule/metrics.jsonl.xz", "data/ant-3/unit.json"):
         assert (out / name).exists(), name
     again = tmp_path / "again"  # RESULTS.md again from the kept data alone, by one command
     assert cli.main(["report", "--runs", str(out / "data"), "--out", str(again), "--reps", "50"]) == 0

@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import gzip
 import json
+import lzma
 import math
 import os
 import pathlib
@@ -459,13 +460,16 @@ def test_a_damaged_run_json_is_one_sentence_for_every_command(runs, tmp_path, ca
     assert snapshot(out) == before
 
 
-@pytest.mark.parametrize("setup", ["missing", "garbage-gz", "no-rows"])
+@pytest.mark.parametrize("setup", ["missing", "garbage-gz", "garbage-xz", "no-rows"])
 def test_plot_refuses_rather_than_overwrite_a_summary_from_no_data(runs, tmp_path, capsys, setup):
     out = _copy(runs, "obs", tmp_path)
     metrics = out / "metrics.jsonl"
     if setup == "garbage-gz":
         metrics.unlink()
         (out / "metrics.jsonl.gz").write_bytes(b"\x1f\x8b\x08 not really gzip")
+    elif setup == "garbage-xz":
+        metrics.unlink()
+        (out / "metrics.jsonl.xz").write_bytes(b"\xfd7zXZ\x00 not really xz")
     elif setup == "no-rows":
         metrics.write_bytes(b"\xff\xfe\n{}\n")
     else:
@@ -478,14 +482,34 @@ def test_plot_refuses_rather_than_overwrite_a_summary_from_no_data(runs, tmp_pat
     assert snapshot(out) == before
 
 
-def test_a_gzipped_log_cut_short_gives_its_readable_rows(runs, tmp_path):
+@pytest.mark.parametrize("suffix, compress", [(".gz", gzip.compress), (".xz", lzma.compress)])
+def test_a_packed_log_cut_short_gives_its_readable_rows(runs, tmp_path, suffix, compress):
     out = _copy(runs, "obs", tmp_path)
     rows = io.read_jsonl(out / "metrics.jsonl")
-    packed = gzip.compress((out / "metrics.jsonl").read_bytes())
+    packed = compress((out / "metrics.jsonl").read_bytes())
     (out / "metrics.jsonl").unlink()
-    (out / "metrics.jsonl.gz").write_bytes(packed[: len(packed) * 2 // 3])
+    (out / ("metrics.jsonl" + suffix)).write_bytes(packed[: len(packed) * 2 // 3])
     cut = io.read_jsonl(out / "metrics.jsonl")
     assert 0 < len(cut) < len(rows) and cut == rows[: len(cut)] and cut.skipped >= 1
+
+
+def test_a_kept_log_is_written_as_xz_and_read_as_the_file_it_replaces(runs, tmp_path):
+    """write_packed: the rows read back exactly (gzip's copy and the file itself alike), the same bytes on every
+    write (no timestamp), and an older .gz copy beside it removed, so one file holds the rows."""
+    out = _copy(runs, "obs", tmp_path)
+    plain = out / "metrics.jsonl"
+    data, rows = plain.read_bytes(), io.read_jsonl(plain)
+    plain.unlink()
+    (out / "metrics.jsonl.gz").write_bytes(gzip.compress(data, mtime=0))
+    assert io.jsonl_source(plain) == out / "metrics.jsonl.gz" and io.read_jsonl(plain) == rows
+    packed = io.write_packed(plain, data)
+    assert packed == out / "metrics.jsonl.xz" and not (out / "metrics.jsonl.gz").exists()
+    assert lzma.decompress(packed.read_bytes()) == data
+    assert io.write_packed(plain, data).read_bytes() == packed.read_bytes()
+    again = io.read_jsonl(plain)
+    assert again == rows and again.skipped == rows.skipped == 0 and io.jsonl_exists(plain)
+    plain.write_bytes(data[: len(data) // 2])  # the file itself comes first
+    assert io.jsonl_source(plain) == plain and len(io.read_jsonl(plain)) < len(rows)
 
 
 def test_phase_and_eval_logs_are_trimmed_like_the_metrics(tmp_path):

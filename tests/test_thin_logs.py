@@ -36,8 +36,8 @@ def test_a_short_log_is_kept_whole(tmp_path):
     (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in _rows(500, [("a", 0), ("b", 0)])))
     (out,) = thin_dir(tmp_path / "src", tmp_path / "dest", points=50, tail=10)
     assert out == tmp_path / "dest" / "task" / "pixel"
-    assert sorted(p.name for p in out.iterdir()) == ["eval.jsonl", "metrics.jsonl.gz", "run.json"]
-    thinned = list(io.read_jsonl(out / "metrics.jsonl"))  # the gzipped copy, read in place of the missing file
+    assert sorted(p.name for p in out.iterdir()) == ["eval.jsonl", "metrics.jsonl.xz", "run.json"]
+    thinned = list(io.read_jsonl(out / "metrics.jsonl"))  # the compressed copy, read in place of the missing file
     full = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     assert len(thinned) < len(full) / 4
     # the pixel report's throughput reads each run's last update and the wall clock: the same from either copy

@@ -26,12 +26,14 @@ import contextlib
 import dataclasses
 import errno
 import json
+import lzma
 import math
 import os
 import pathlib
 import re
 import threading
 import time
+import zlib
 from typing import Any, Iterable, Mapping, Sequence
 
 import jax
@@ -392,29 +394,64 @@ def eval_row_ok(row: dict) -> bool:
 ROW_CHECKS = {"metrics.jsonl": metric_row_ok, "phase.jsonl": metric_row_ok, "eval.jsonl": eval_row_ok}
 
 
-def jsonl_exists(path: str | os.PathLike) -> bool:
-    """Whether `read_jsonl(path)` has a file to read: the JSONL file or its gzipped copy (`path` + ".gz")."""
+# Compressed copies of a JSONL file, read in its place when it is missing: the form experiments keep their logs in
+# (`metrics.jsonl.xz`, `write_packed`) first, then the older one (`metrics.jsonl.gz`).
+PACKED = (".xz", ".gz")
+
+
+def jsonl_source(path: str | os.PathLike) -> pathlib.Path | None:
+    """The file `read_jsonl(path)` reads: `path` itself, else its compressed copy beside it (`path` + a suffix of
+    `PACKED`, in that order), else None."""
     path = pathlib.Path(path)
-    return path.exists() or path.with_name(path.name + ".gz").exists()
+    for candidate in (path, *(path.with_name(path.name + suffix) for suffix in PACKED)):
+        if candidate.exists():
+            return candidate
+    return None
 
 
-def _gunzip(data: bytes) -> tuple[bytes, bool]:
-    """(what decompresses of a gzip stream, whether all of it did): a damaged or cut file gives its readable start."""
-    import zlib
+def jsonl_exists(path: str | os.PathLike) -> bool:
+    """Whether `read_jsonl(path)` has a file to read: the JSONL file or its compressed copy (`jsonl_source`)."""
+    return jsonl_source(path) is not None
 
+
+def write_packed(path: str | os.PathLike, data: bytes) -> pathlib.Path:
+    """Write `data` (the bytes of the JSONL file `path`) as `path` + ".xz", what `xz -9e` makes of them (the format
+    has no timestamp: the same rows give the same bytes, so a rebuilt copy does not show as a change in git), and
+    remove the other compressed copies of `path` beside it, so that one file holds its rows. WriteError on failure."""
+    path = pathlib.Path(path)
+    target = path.with_name(path.name + PACKED[0])
+    with writing(target):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(lzma.compress(data, format=lzma.FORMAT_XZ, check=lzma.CHECK_CRC64,
+                                         preset=9 | lzma.PRESET_EXTREME))
+        for suffix in PACKED[1:]:
+            path.with_name(path.name + suffix).unlink(missing_ok=True)
+    return target
+
+
+def _decompress(data: bytes, engine, error) -> tuple[bytes, bool]:
+    """(what decompresses of the streams in `data`, whether all of it did): a damaged or cut file gives its readable
+    start. `engine()` makes a decompressor of one stream (zlib's or lzma's); `error` is what it raises."""
     out, whole = [], True
     while data:
-        engine = zlib.decompressobj(16 + zlib.MAX_WBITS)
+        decompressor = engine()
         try:
-            out.append(engine.decompress(data))
-        except zlib.error:
+            out.append(decompressor.decompress(data))
+        except error:
             whole = False
             break
-        if not engine.eof:
+        if not decompressor.eof:
             whole = False
             break
-        data = engine.unused_data  # a second member (files concatenated)
+        data = decompressor.unused_data  # a second stream (files concatenated)
     return b"".join(out), whole
+
+
+def _unpack(path: pathlib.Path) -> tuple[bytes, bool]:
+    """The decompressed bytes of a compressed copy (suffix ".xz" or ".gz") and whether all of it decompressed."""
+    if path.suffix == ".xz":
+        return _decompress(path.read_bytes(), lambda: lzma.LZMADecompressor(lzma.FORMAT_XZ), lzma.LZMAError)
+    return _decompress(path.read_bytes(), lambda: zlib.decompressobj(16 + zlib.MAX_WBITS), zlib.error)
 
 
 def _row(line: bytes, check) -> dict | None:
@@ -432,21 +469,22 @@ def read_jsonl(path: str | os.PathLike, check=...) -> Rows:
     """The objects of a JSONL file ([] when it does not exist); lines that cannot be read are skipped and counted.
 
     `check(row) -> bool` says which rows have the right types (default: by the file's name, `ROW_CHECKS`; None:
-    any object). A kept copy compressed beside the missing file (`metrics.jsonl.gz`, as the committed experiment
-    data are stored) is read in its place; what of it cannot be decompressed counts as one torn line.
+    any object). A kept copy compressed beside the missing file (`metrics.jsonl.xz` or `.gz`, as the committed
+    experiment data are stored: `jsonl_source`) is read in its place; what of it cannot be decompressed counts as
+    one torn line.
     """
     rows = Rows()
     path = pathlib.Path(path)
     if check is ...:
         check = ROW_CHECKS.get(path.name)
+    source = jsonl_source(path)
+    if source is None:
+        return rows
     try:
-        if path.exists():
+        if source == path:
             data = path.read_bytes()
         else:
-            packed = path.with_name(path.name + ".gz")
-            if not packed.exists():
-                return rows
-            data, whole = _gunzip(packed.read_bytes())
+            data, whole = _unpack(source)
             rows.skipped += not whole
     except OSError as err:
         raise RunDirError(f"cannot read {path}: {reason(err)}.") from None

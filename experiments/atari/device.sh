@@ -14,7 +14,7 @@
 # again" (call the same command again at once: the machine goes back 30 s after a call) or "DONE" after packing into
 # $OUT (default runs/atari-units-out):
 #   ale-GAME.tar.gz          the run directory GAME/ without checkpoints (run.json, eval.jsonl, summary.md, log.txt
-#                            (the unit's output), metrics.jsonl.gz thinned by experiments.thin_logs keeping each
+#                            (the unit's output), metrics.jsonl.xz thinned by experiments.thin_logs keeping each
 #                            run's last 1,250 updates whole, the last 10% of 1M agent steps that its final return
 #                            averages)
 #   ale-GAME-results.md, ale-GAME-curves.png   experiments.atari.report's table and figure of the game

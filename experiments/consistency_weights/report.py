@@ -21,14 +21,13 @@ episodes), diagnostics are final values.
 from __future__ import annotations
 
 import argparse
-import gzip
 import json
 import pathlib
 import shutil
 
 import numpy as np
 
-from cdjax import plots, stats
+from cdjax import io, plots, stats
 from experiments.consistency_weights import TASKS
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -44,14 +43,13 @@ SPREAD = "encoder/spread_real"
 
 
 def keep(run_dir: pathlib.Path, task: str, data: pathlib.Path) -> pathlib.Path:
-    """Copy run.json, eval.jsonl and metrics.jsonl (gzipped) of a run directory into <data>/<task>/."""
+    """Copy run.json, eval.jsonl and metrics.jsonl (compressed: `cdjax.io.write_packed`) of a run directory into
+    <data>/<task>/."""
     out = data / task
     out.mkdir(parents=True, exist_ok=True)
     for name in ("run.json", "eval.jsonl"):
         shutil.copy(run_dir / name, out / name)
-    with open(run_dir / "metrics.jsonl", "rb") as src, open(out / "metrics.jsonl.gz", "wb") as raw, \
-            gzip.GzipFile(fileobj=raw, mode="wb", mtime=0) as dst:  # mtime 0: the same bytes on every rebuild
-        shutil.copyfileobj(src, dst)
+    io.write_packed(out / "metrics.jsonl", (run_dir / "metrics.jsonl").read_bytes())
     return out
 
 
@@ -184,7 +182,7 @@ def main(argv=None) -> int:
     for i, task in enumerate(TASKS):
         kept = keep(args.runs[i], task, data) if args.runs else data / task
         info = json.loads((kept / "run.json").read_text())
-        results[task] = cells(kept)  # its metrics.jsonl.gz is read in place of metrics.jsonl (cdjax.io.read_jsonl)
+        results[task] = cells(kept)  # its metrics.jsonl.xz (or .gz) is read in place of metrics.jsonl (io.read_jsonl)
         parts.append(tables(task, results[task]) + f"\n\nCommand: `{info.get('command', '?')}`\n")
     sweep = keep(args.default_sweep, "ant-defaults", data) if args.default_sweep else data / "ant-defaults"
     if sweep.exists():

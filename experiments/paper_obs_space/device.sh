@@ -9,7 +9,7 @@
 # "RUNNING: call again" (call the same command again at once: the machine goes back 30 s after a call) or
 # "DONE", after packing into $OUT (default runs/units-out):
 #   UNIT.tar.gz  the unit's run directories without checkpoints and TensorBoard files, metrics thinned and
-#                gzipped (experiments.thin_logs), with run.json, phase.jsonl, eval.jsonl, machine.json, log.txt,
+#                xz-compressed (experiments.thin_logs), with run.json, phase.jsonl, eval.jsonl, machine.json, log.txt,
 #                summary.md and the unit's unit.json (commands, exit codes, wall-clock)
 #   UNIT.log     the unit's whole output
 # The unit's sweeps stop by their --time-limit (train --limit, 1260 s from the unit's start, compile included);

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import gzip
 import json
 import math
 import pathlib
@@ -60,7 +59,7 @@ DIAGNOSTICS = (
 )
 RATIOS = {"ratio/policy": ("grad/consistency/policy", "grad/ppo/policy"),
           "ratio/model": ("grad/consistency/model", "grad/model_nll/model")}
-# the columns of metrics.jsonl kept in data/ (metrics.jsonl.gz)
+# the columns of metrics.jsonl kept in data/ (metrics.jsonl.xz; older units' metrics.jsonl.gz)
 KEEP = ("arm", "hp", "seed", "update", "env_steps", "wall_s", RETURN, DISC, "episode/count", "env/reward_mean",
         "env/invalid_fraction", "opt/skipped_updates", "policy/std") + tuple(
     n for n, _ in DIAGNOSTICS if not n.startswith("ratio/")) + tuple(x for pair in RATIOS.values() for x in pair)
@@ -551,7 +550,8 @@ def _csv(path: pathlib.Path, rows: list[dict]) -> None:
 
 def keep_run(run: Run, data: pathlib.Path) -> pathlib.Path | None:
     """data/<unit>/<part>/ (or data/<task>/<name>/): run.json, machine.json, phase.jsonl, eval.jsonl, the unit's
-    unit.json and KEEP's columns of metrics.jsonl (gzipped). None when the run is already under data/."""
+    unit.json and KEEP's columns of metrics.jsonl (compressed: `io.write_packed`). None when the run is already
+    under data/."""
     if data.resolve() in run.path.resolve().parents:
         return None
     unit = run.unit.get("unit") or run.task
@@ -559,7 +559,7 @@ def keep_run(run: Run, data: pathlib.Path) -> pathlib.Path | None:
     target.mkdir(parents=True, exist_ok=True)
     text = "".join(json.dumps({k: row[k] for k in KEEP if k in row}) + "\n"
                    for row in io.read_jsonl(run.path / "metrics.jsonl"))
-    (target / "metrics.jsonl.gz").write_bytes(gzip.compress(text.encode(), mtime=0))
+    io.write_packed(target / "metrics.jsonl", text.encode())
     for name in ("run.json", "machine.json", "phase.jsonl", "eval.jsonl"):
         if (run.path / name).exists():
             shutil.copy(run.path / name, target / name)
