@@ -477,10 +477,10 @@ def read_jsonl(path: str | os.PathLike, check=...) -> Rows:
     path = pathlib.Path(path)
     if check is ...:
         check = ROW_CHECKS.get(path.name)
-    source = jsonl_source(path)
-    if source is None:
-        return rows
     try:
+        source = jsonl_source(path)
+        if source is None:
+            return rows
         if source == path:
             data = path.read_bytes()
         else:
