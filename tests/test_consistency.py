@@ -437,3 +437,6 @@ def test_chain_check_measures_the_fused_chain_against_the_plain_loop(tmp_path):
         cc._weight_grads = wrong
     assert bad["fused chain"]["model"] > 0.5 and bad["fused chain"]["s0"] < 1e-5
     assert bad["fused chain, highest"]["model"] > 0.5 and max(bad["plain loop"].values()) < 1e-5
+    for size in ("0", "-3", "two"):  # a size that is no width: one sentence from argparse, no traceback
+        with pytest.raises(SystemExit, match="2"):
+            chain_check.main(["--windows", size])
