@@ -70,6 +70,8 @@ ensure_wheels() {
 # reads only these; distrax's distributions and cdjax's tests/test_learner.py checked against the pruned package on
 # this machine), PyOpenGL's Windows DLLs and MuJoCo's documentation (mujoco/doc, reStructuredText), packed with
 # xz -9e: 10.8 -> 9.2 MB, since the tracked tree (56 MB that day) and the 10.8 MB no longer fitted in 64 MiB together.
+# The same day the kept logs became metrics.jsonl.xz (cdjax.io.write_packed): the tracked tree is 47.9 MB, so about
+# 10 MB are left for the data units add; `carry_size .whl-site` says what is left before a call.
 pack_site() {
   local tmp w
   tmp=$(mktemp -d) || return 1
