@@ -277,29 +277,11 @@ def _chain_inputs(c: dict, shared: bool, s: jax.Array) -> jax.Array:
     return x if shared else jnp.concatenate([x, nz.normalize(c["enc_obs"], s)], axis=-1)
 
 
-def _input_weights(w_1: jax.Array, w_i: jax.Array, O: int, shared: bool) -> jax.Array:
-    """The weights of the chain's input product: [W1_x | W_i] when `shared` (the model and the encoder normalise
-    alike: one input), else the block-diagonal [[W1_x, 0], [0, W_i]] of [model input | encoder input]."""
-    N1 = w_1.shape[1]
-    if shared:
-        return jnp.concatenate([w_1[:O], w_i], axis=1)
-    return jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
-
-
 def _gates(c: dict, gi_re, both_im, hh, h):
     """One GRU step of the real and imagined rows (h [2, W, H]) from the real rows' input part gi_re [W, 3H], the
     imagined rows' raw product both_im [W, 3H] (x W_i, no bias) and the raw recurrent product hh [2, W, 3H]."""
     gi = jnp.stack([gi_re, both_im + c["b_i"]])
     return gru_gates(gi, hh + c["gh_bias"], h)
-
-
-def _chain_start(shared: bool, p: dict, c: dict) -> tuple:
-    """What the chain computes before its loop: (c with the GRU's input bias and recurrent biases, the input product's
-    weights w_in, the real rows' GRU inputs gi_re [k, W, 3H], the actions' share of the first layer [k, W, N1])."""
-    (w_1, b_1), w_i, w_h = p["layers"][0], p["w_i"], p["w_h"]
-    O = p["s0"].shape[-1]
-    c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
-    return c, _input_weights(w_1, w_i, O, shared), p["x_re"] @ w_i + p["b_i"], p["actions"] @ w_1[O:] + b_1
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -316,10 +298,18 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     share of the first layer do not depend on the chain: one product each, before it. The residuals are the
     per-step arrays as they are (a list per kind), never written into stacked buffers step by step.
     """
-    layers, w_h, s0 = p["layers"], p["w_h"], p["s0"]
-    k, N1 = p["actions"].shape[0], layers[0][0].shape[1]
-    w_out, b_out = layers[-1]
-    c, w_in, gi_re, z1_actions = _chain_start(shared, p, c)
+    layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
+    s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
+    k, O = actions.shape[0], s0.shape[-1]
+    (w_1, b_1), (w_out, b_out) = layers[0], layers[-1]
+    N1 = w_1.shape[1]
+    if shared:  # the model and the encoder normalise alike: one input, [W1_x | W_i]
+        w_in = jnp.concatenate([w_1[:O], w_i], axis=1)
+    else:  # [model input | encoder input] times the block-diagonal [[W1_x, 0], [0, W_i]]
+        w_in = jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
+    c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
+    gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
+    z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
     states, xin = [s0], [_chain_inputs(c, shared, s0)]
     p1 = xin[0] @ w_in[:, :N1]
     hs = [jnp.zeros((2,) + s0.shape[:1] + (w_h.shape[0],), s0.dtype)]
@@ -373,22 +363,10 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[0])
     ds0 = ds + inputs_vjp(dp1 @ w_in[:, :N1].T)[0]
 
-    dz_layers = [jnp.stack([d[i] for d in dzs]) for i in range(len(layers))]
-    D = p["x_re"].shape[-1]
-    return _weight_grads(p, c, jnp.stack(xin[:-1])[..., :O], jnp.stack(xin[1:])[..., -D:], hidden, dz_layers, dgi,
-                         dhh, hs, ds0)
-
-
-def _weight_grads(p: dict, c: dict, model_x, enc_x, hidden: list, dz_layers: list, dgi: list, dhh: list, hs: list,
-                  ds0) -> tuple[dict, dict]:
-    """The chain's backward after its loop, every step at once: each weight's gradient as one product over all k
-    steps (and both row kinds for the GRU), the actions' and real inputs' cotangents -> (dp, dc). model_x [k, W, O]:
-    the model's normalised state inputs at steps 0..k-1; enc_x [k, W, D]: the encoder's imagined inputs at 1..k;
-    dz_layers: each layer's pre-activation cotangents [k, W, N]; dgi, dhh, hs: the GRU's per-step lists."""
-    layers, H = p["layers"], p["w_h"].shape[0]
-    O = model_x.shape[-1]
+    H = w_h.shape[0]
     stack = lambda xs: jnp.stack(xs)  # noqa: E731 - [k, ...]: one copy per kind, after the loop
-    model_in = jnp.concatenate([model_x, p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
+    dz_layers = [stack([d[i] for d in dzs]) for i in range(len(layers))]
+    model_in = jnp.concatenate([stack(xin[:-1])[..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
     inputs = [model_in] + [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
     dlayers = tuple(_outer(x, dz) for x, dz in zip(inputs, dz_layers))
     dactions = dz_layers[0] @ layers[0][0][O:].T
@@ -396,7 +374,7 @@ def _weight_grads(p: dict, c: dict, model_x, enc_x, hidden: list, dz_layers: lis
     scales = jnp.stack(c["scales"])[None, :, None, None]
     scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
     dgi = stack(dgi)  # [k, 2, W, 3H]
-    x_enc = jnp.stack([p["x_re"], enc_x], axis=1)  # [k, 2, W, D]
+    x_enc = jnp.stack([p["x_re"], stack(xin[1:])[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2, W, D]
     dw_i, db_i = _outer(x_enc, scaled(dgi))
     dw_h, dgh_bias = _outer(stack(hs[:-1]), scaled(stack(dhh)))
     dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
