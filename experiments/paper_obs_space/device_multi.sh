@@ -80,7 +80,7 @@ done
 echo "$(( $(date +%s) - $(cat "$root/started") )) s since the queues started"
 [ -n "$sent" ] && echo "HANDED BACK: $sent"
 for q in "$root"/queue-?; do
-  echo "--- ${q##*/}: $(cat "$q")"; grep -E "GPU|skipped|DONE|queue done|exit status" "$q.log" 2>/dev/null | tail -n 4
+  echo "--- ${q##*/}: $(cat "$q")"; grep -E "^[0-9:]+ (GPU|skipped|queue done)|^DONE" "$q.log" 2>/dev/null | tail -n 4
   unit=$(grep -E "^[0-9:]+ GPU" "$q.log" 2>/dev/null | tail -n 1 | awk '{print $4}' | tr -d :)
   [ -n "$unit" ] && [ -f "runs/units/$unit/unit.log" ] && grep -v -i -E "warn|^\s*$" "runs/units/$unit/unit.log" | tail -n 2
 done
