@@ -145,6 +145,19 @@ def fake(tmp_path_factory):
     return root
 
 
+def test_a_report_of_cd_arms_alone_says_it_has_no_comparison(fake, tmp_path):
+    """A check that re-ran some arms alone (e.g. CD k=20 at another matmul precision) has no pair to compare: the
+    report says so in a sentence each, not with a table of n/a or an empty one, and names the tasks it lacks."""
+    out = tmp_path / "cd-only"
+    assert cli.main(["report", "--runs", str(fake / "halfcheetah-2"), "--out", str(out), "--reps", "50"]) == 0
+    text = (out / "RESULTS.md").read_text()
+    verdicts = text[text.index("## Verdicts per task"):text.index("## Across tasks")]
+    assert "None: no task here has both arms of CD k=20 (paper's weights) vs Mb-Mf;" in verdicts and "|" not in verdicts
+    across = text[text.index("## Across tasks"):text.index("## Returns")]
+    assert "None: no task here has both arms of any compared pair." in across and "| X | Y |" not in across
+    assert "- not in this data: ant" in text and "| halfcheetah | CD k=20 (paper's weights) | 10 |" in text
+
+
 def test_arm_keys_name_what_the_arms_are():
     assert report.arm_key(_arm("cd-k20", "cd", 20, []), {"cc_policy": 1.0, "cc_model": 1.0}) == "cd-k20-paper"
     assert report.arm_key(_arm("cd-k20", "cd", 20, []), {"cc_policy": 0.1}) == "cd-k20"

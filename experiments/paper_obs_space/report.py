@@ -685,12 +685,16 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
             lines.append(f"- {t.name}: {t.stated:,.0f} env steps per run asked{differs} (the Mb-Mf phase's included); "
                          f"{state}. Arms: {arms}.")
         if missing:
-            lines.append(f"- not run yet: {', '.join(missing)}.")
+            lines.append(f"- not in this data: {', '.join(missing)}.")
         lines += ["", "## Verdicts per task (final return, 95% intervals)", ""]
         pairs = (("cd-k20-paper", "mbmf"), ("cd-k20", "mbmf"), ("cd-k20-paper", "cd-k5"), ("mbmf", "model-free"))
-        lines.append(_table(("task",) + tuple(f"{LABELS[a]} vs {LABELS[b]}" for a, b in pairs),
-                            ([t.name] + [verdict([r for r in rows if r["task"] == t.name], a, b) for a, b in pairs]
-                             for t in tasks)))
+        cells = {t.name: [verdict([r for r in rows if r["task"] == t.name], a, b) for a, b in pairs] for t in tasks}
+        if all(c == "n/a" for row in cells.values() for c in row):  # e.g. a check that re-ran some CD arms alone
+            lines.append("None: no task here has both arms of " + "; ".join(
+                f"{LABELS[a]} vs {LABELS[b]}" for a, b in pairs) + ".")
+        else:
+            lines.append(_table(("task",) + tuple(f"{LABELS[a]} vs {LABELS[b]}" for a, b in pairs),
+                                ([name] + row for name, row in cells.items())))
         scores = final_scores(tasks)
         try:
             imp = improvement(scores, reps=reps)
@@ -701,8 +705,11 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
         lines += ["", "## Across tasks (rliable)", "",
                   "Probability of improvement P(X > Y) of the final return (per task over seeds, averaged over the "
                   "tasks that have both arms), with 95% stratified-bootstrap intervals:", ""]
-        lines.append(_table(("X", "Y", "tasks", "P(X > Y)"), ([LABELS[p["x"]], LABELS[p["y"]], ", ".join(p["tasks"]),
-                                                                _cell((p["p"], p["low"], p["high"]), 3)] for p in imp)))
+        if imp:
+            lines.append(_table(("X", "Y", "tasks", "P(X > Y)"), ([LABELS[p["x"]], LABELS[p["y"]], ", ".join(
+                p["tasks"]), _cell((p["p"], p["low"], p["high"]), 3)] for p in imp)))
+        else:
+            lines.append("None: no task here has both arms of any compared pair.")
         if imp:
             lines += ["", "The same per task (its seeds only):", ""]
             lines.append(per_task_improvement(scores, reps))
