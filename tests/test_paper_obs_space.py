@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from experiments.paper_obs_space import UNITS
+from experiments.paper_obs_space import CONFIRM_SEED, UNITS
 from experiments.paper_obs_space import __main__ as cli
 from experiments.paper_obs_space import report
 
@@ -272,8 +272,11 @@ def test_every_units_sweeps_plan_without_an_error(name):
     for part in unit.parts:
         argv = ["sweep", "--preset", f"paper-{unit.task}", "--out", "unused", *cli.yardstick_option(unit.task, []),
                 "--arms", *part.arms, "--seeds", str(part.seeds), "--steps", str(unit.budget.steps), *part.options]
-        plans = plan_arms(sweep_spec(build_parser(setting).parse_args(argv), setting))
+        spec = sweep_spec(build_parser(setting).parse_args(argv), setting)
+        plans = plan_arms(spec)
         assert {p.name for p in plans} == set(part.arms)
+        # fresh seeds for the confirmation units only: the others pair seed by seed on base seed 0
+        assert spec.seed == (CONFIRM_SEED if part.name == "confirm" else 0)
         for plan in plans:
             assert plan.config.stagger_resets and plan.config.yardstick.endswith(f"{unit.task}.npz")
             assert len(plan.hparams) == part.runs_per_arm
@@ -281,6 +284,8 @@ def test_every_units_sweeps_plan_without_an_error(name):
             assert abs(plan.total_env_steps - unit.budget.steps) <= plan.config.env_steps_per_update
             if "--cc-epochs" in part.options:
                 assert plan.config.cc_epochs == 0
+            if part.name == "confirm" and plan.name == "cd-k20":  # the arm of the finding: cdjax's weights
+                assert [float(h.cc_policy) for h in plan.hparams] == [0.1]
 
 
 def test_the_header_names_the_policy_head_each_run_started_with():
