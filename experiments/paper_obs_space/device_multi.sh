@@ -47,10 +47,11 @@ fi
 ensure_wheels || exit 1
 mkdir -p "$root" "$packed" "$out"
 if [ ! -f "$root/started" ]; then
-  nvidia-smi -L
+  [ -n "${QUEUES:-}" ] || { echo "QUEUES names the units, one queue per GPU, e.g. QUEUES=\"ant-2;swimmer-1 ant-4\""; exit 2; }
+  nvidia-smi -L 2>/dev/null || true
   date +%s > "$root/started"
   deadline=$(( t0 + ${DEADLINE_S:-1600} ))
-  IFS=';' read -ra queues <<< "${QUEUES:?QUEUES names the units, one queue per GPU}"
+  IFS=';' read -ra queues <<< "$QUEUES"
   for gpu in "${!queues[@]}"; do
     echo "${queues[$gpu]}" > "$root/queue-$gpu"
     setsid bash "$0" --queue "$gpu" "$deadline" < /dev/null > /dev/null 2>&1 &
