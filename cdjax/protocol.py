@@ -131,8 +131,6 @@ class Setting:
     # action. A greedy discrete policy can stall for a whole episode (Atari: not pressing FIRE under sticky actions),
     # and A2C's literature reports the sampling policy.
     eval_sampled: bool = False
-    # said once when a sweep's runs are split over several devices, for a setting whose sweeps do not gain from it
-    multi_device_note: str | None = None
 
 
 __all__ = ["ConfigError", "Metrics", "Phase", "Preset", "Setting", "Trainer"]

@@ -192,8 +192,6 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             for arm in arms:
                 arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
             done = survey(rd, arms, restart) if resume else {}
-            if setting.multi_device_note and arms and arms[0].sweep.num_devices > 1:
-                progress.say(f"Note: {setting.multi_device_note}")
             progress.say(f"Compiling the programs of {', '.join(a.name for a in arms)} (nothing is written before "
                          "they are compiled and fit in memory).")
             t_compile = time.perf_counter()

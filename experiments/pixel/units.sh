@@ -47,7 +47,9 @@
 #                  frames/s and the seconds between chunks, over a length where one round's fixed costs (the first
 #                  chunk, the last checkpoint's write) weigh as they did then (about 5-6 minutes)
 #   devices        (a multi-GPU machine, issue 25) the pixel sweep's frames/s on 1, 2 and 4 of its GPUs in one
-#                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah
+#                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah;
+#                  2026-11-27 on four H100s with DEVICE_COUNTS="1 4 2": 332 s from start to end, 2.02x on 2 GPUs and
+#                  3.98x on 4 (experiments/pixel/data/devices-h100x4/)
 #   TASK-ARM       the experiment at the presets' length: TASK halfcheetah, reacher or pusher, ARM ltq, ltq-cd
 #                  (alpha 100, cc_policy 0 and 1: 20 runs), ltq-cd0 or ltq-cd1 (ltq-cd with cc_policy 0 or 1
 #                  alone: 10 runs, `--arms ltq-cd --cc-policy N`; not the CLI's arm ltq-cdN, which is ltq-cd with

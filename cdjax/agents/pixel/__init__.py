@@ -135,12 +135,7 @@ SETTING = Setting(
         ("model/elbo_per_frame", "ELBO per frame (nats)", False),
         ("loss/consistency", "consistency loss", True),
         ("encoder/spread_real", "encoder spread (real)", False))),
-    presets=PRESETS, default_preset=preset_of_env, watch=collapse_warning,
-    multi_device_note=(
-        "this pixel sweep splits its runs over several devices, each running its own runs with no collective; "
-        "that split is not yet measured on GPUs (the partitioner's split, which all-gathered the runs' vmapped "
-        "convolutions, ran 30k frames/s on 4 H200s against 42k on one). Until it is, one sweep per GPU "
-        "(CUDA_VISIBLE_DEVICES=i), as experiments/pixel/device.sh does, is the measured choice."))
+    presets=PRESETS, default_preset=preset_of_env, watch=collapse_warning)
 
 __all__ = ["ARMS", "PRESETS", "SETTING", "PixelConfig", "PixelHParams", "PixelLearner", "arm_config", "make_trainer",
            "trainer_of"]
