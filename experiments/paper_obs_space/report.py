@@ -700,7 +700,7 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
             imp = improvement(scores, reps=reps)
             agg, profiles = aggregate(normalised(scores), reps=reps)
         except RuntimeError as err:
-            imp, agg, profiles = [], [], {}
+            imp, agg, profiles = None, [], {}  # said above; no second sentence below
             lines += ["", f"Across tasks: not computed ({err})."]
         lines += ["", "## Across tasks (rliable)", "",
                   "Probability of improvement P(X > Y) of the final return (per task over seeds, averaged over the "
@@ -708,7 +708,7 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
         if imp:
             lines.append(_table(("X", "Y", "tasks", "P(X > Y)"), ([LABELS[p["x"]], LABELS[p["y"]], ", ".join(
                 p["tasks"]), _cell((p["p"], p["low"], p["high"]), 3)] for p in imp)))
-        else:
+        elif imp is not None:
             lines.append("None: no task here has both arms of any compared pair.")
         if imp:
             lines += ["", "The same per task (its seeds only):", ""]
