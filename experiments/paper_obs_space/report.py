@@ -708,11 +708,10 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
         if imp:
             lines.append(_table(("X", "Y", "tasks", "P(X > Y)"), ([LABELS[p["x"]], LABELS[p["y"]], ", ".join(
                 p["tasks"]), _cell((p["p"], p["low"], p["high"]), 3)] for p in imp)))
-        elif imp is not None:
-            lines.append("None: no task here has both arms of any compared pair.")
-        if imp:
             lines += ["", "The same per task (its seeds only):", ""]
             lines.append(per_task_improvement(scores, reps))
+        elif imp is not None:
+            lines.append("None: no task here has both arms of any compared pair.")
         if agg:
             lines += ["", f"IQM of the normalised final return over {', '.join(agg[0]['tasks'])} (per task min-max over "
                       "every seed of every arm):", ""]
