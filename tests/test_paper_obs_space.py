@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from cdjax import plots
 from experiments.paper_obs_space import CONFIRM_SEED, UNITS
 from experiments.paper_obs_space import __main__ as cli
 from experiments.paper_obs_space import report
@@ -82,11 +83,11 @@ def _arm(name, kind, horizon, hps, cc_epochs=1, steps=2000, phase=100):
             "total_env_steps": steps, "phase_env_steps": 0 if kind == "model-free" else phase}
 
 
-def _fake_part(root, task, unit, part, arms, seeds=10, updates=20, spu=100, cut=None, phase=None):
+def _fake_part(root, task, unit, part, arms, seeds=10, updates=20, spu=100, cut=None, phase=None, base_seed=0):
     """A run directory by hand: return = level x update x (1 + 0.01 seed); every diagnostic logged."""
     d = root / unit / part
     d.mkdir(parents=True)
-    info = {"version": 1, "base_config": {"env": task}, "seeds": seeds, "seed": 0, "env_steps_per_update": spu,
+    info = {"version": 1, "base_config": {"env": task}, "seeds": seeds, "seed": base_seed, "env_steps_per_update": spu,
             "requested_env_steps": updates * spu, "total_env_steps": updates * spu,
             "command": f"cdjax sweep --preset paper-{task} ...", "arms": arms}
     if phase is not None:
@@ -237,6 +238,44 @@ def test_a_unit_cut_short_is_compared_where_every_arm_got(tmp_path):
     assert all(v is None for v in task.evals.values())  # evaluated at each run's end, not at the common budget
     text = report.write_results([task], tmp_path / "out", reps=50).read_text()
     assert "not every arm reached it" in text and "(cut)" in text
+
+
+def test_an_arm_run_on_other_seeds_is_pooled_and_one_run_again_is_named_and_left_out(tmp_path):
+    """The same arm in runs of other base seeds (`--seed`, e.g. a replication on fresh seeds) joins into one arm of
+    all their seeds, its seed ids kept apart; a run of it on seeds already found (a unit run again) is left out and
+    named; `--arms` keeps only the arms named."""
+    two = [_arm("model-free", "model-free", 20, [{}]), _arm("mbmf", "mbmf", 20, [{}])]
+    _fake_part(tmp_path, "ant", "ant-1", "mf-mbmf", two)
+    _fake_part(tmp_path, "ant", "ant-6", "confirm", [_arm("mbmf", "mbmf", 20, [{}])], seeds=4, base_seed=1)
+    _fake_part(tmp_path, "ant", "ant-9", "again", [_arm("mbmf", "mbmf", 20, [{}])], seeds=3)  # base seed 0 again
+    (task,) = report.load([tmp_path])
+    mbmf = task.curves["mbmf"]
+    assert mbmf.metrics["episode/return"].shape == (14, 20) and list(mbmf.seeds) == list(range(14))
+    assert task.pooled == {"mbmf": [0, 1]} and len(task.curves["model-free"].seeds) == 10
+    assert len(task.evals["mbmf"]["return"]) == 14 and len(task.phase["mbmf"]["random/reward_mean"]) == 14
+    assert list(task.evals["mbmf"]["seeds"]) == list(range(14))
+    assert len(task.dropped) == 1 and "ant-9" in task.dropped[0]
+    text = report.write_results([task], tmp_path / "out", reps=50).read_text()
+    assert "Pooled: Mb-Mf holds the seeds of runs of base seeds 0, 1 (14 seeds)" in text and "ant-9/again" in text
+    assert "| ant | Mb-Mf | 14 |" in text
+    (only,) = report.load([tmp_path], arms=["mbmf"])
+    assert set(only.curves) == {"mbmf"} and [r.path.name for r in only.runs] == ["mf-mbmf", "confirm", "again"]
+    assert cli.main(["report", "--runs", str(tmp_path), "--arms", "mbmf", "cd-k99", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_pooled_curves_line_up_on_the_updates_either_run_logged():
+    """Runs that logged different updates: the union, NaN and not present where a run did not log."""
+    def curves(seeds, updates):
+        u = np.array(updates)
+        return plots.Curves(arm="a", hp="", arm_type="mbmf", seeds=np.array(seeds), updates=u, env_steps=100.0 * u,
+                            present=np.ones((len(seeds), len(u)), bool),
+                            metrics={"r": np.tile(u.astype(float), (len(seeds), 1))})
+
+    pooled, offset = report.pool_curves(curves([0, 1], [1, 2, 4]), curves([0], [2, 3]))
+    assert offset == 2 and list(pooled.seeds) == [0, 1, 2] and list(pooled.updates) == [1, 2, 3, 4]
+    assert list(pooled.env_steps) == [100.0, 200.0, 300.0, 400.0]
+    assert pooled.present.tolist() == [[True, True, False, True]] * 2 + [[False, True, True, False]]
+    np.testing.assert_array_equal(pooled.metrics["r"][2], [np.nan, 2.0, 3.0, np.nan])
 
 
 def test_verdicts_follow_the_intervals():

@@ -135,7 +135,12 @@ def cmd_report(args) -> int:
         print(f"python -m experiments.paper_obs_space report: {args.paired} has no summary.json (give the data "
               "directory of another report, e.g. experiments/paper_obs_space/data)", file=sys.stderr)
         return 2
-    tasks = report.load(args.runs)
+    unknown = sorted(set(args.arms or ()) - set(report.LABELS))
+    if unknown:
+        print(f"python -m experiments.paper_obs_space report: no arm {', '.join(unknown)} (the arms: "
+              f"{', '.join(report.LABELS)})", file=sys.stderr)
+        return 2
+    tasks = report.load(args.runs, arms=args.arms)
     path = report.write_results(tasks, pathlib.Path(args.out), reps=args.reps, keep=args.keep, paired=args.paired)
     print(f"Wrote {path}")
     return 0
@@ -163,6 +168,8 @@ def main(argv=None) -> int:
     r.add_argument("--paired", type=pathlib.Path, metavar="DATA",
                    help="another report's data directory (its summary.json): set this data's final returns beside "
                         "its, seed by seed (e.g. the same units at another setting)")
+    r.add_argument("--arms", nargs="+", metavar="ARM",
+                   help="only these arms (the report's arm keys, e.g. mbmf cd-k20); default every arm found")
     args, rest = p.parse_known_args(argv)
     if args.command == "train":
         return cmd_train(args, rest)

@@ -132,6 +132,8 @@ class TaskData:
     budget: float  # env steps the arms are compared at
     stated: float  # the env steps per run its runs asked for (the largest)
     complete: bool  # every arm reached its planned env steps
+    pooled: dict = dataclasses.field(default_factory=dict)  # arm key -> base seeds of the runs pooled into it (>1)
+    dropped: list = dataclasses.field(default_factory=list)  # "arm key in DIR" for each arm found again and left out
 
 
 def find_runs(roots: Iterable[pathlib.Path]) -> list[pathlib.Path]:
@@ -195,8 +197,12 @@ def _reached(c: plots.Curves) -> float:
     return float(np.nanmax(c.env_steps[everywhere])) if everywhere.any() else 0.0
 
 
-def load(roots: Sequence[pathlib.Path]) -> list[TaskData]:
-    """Every task found under `roots`, in TASKS order (others after)."""
+def load(roots: Sequence[pathlib.Path], arms: Sequence[str] | None = None) -> list[TaskData]:
+    """Every task found under `roots`, in TASKS order (others after); with `arms`, only those arm keys (LABELS).
+
+    An arm found in several runs is pooled when they ran other base seeds (`cdjax sweep --seed`) at the same budget:
+    their seeds together are the arm's. A run of the same arm on seeds already found (a unit run again) is left out:
+    the first directory found wins, and the report names the one left out."""
     by_task: dict[str, list[Run]] = {}
     for path in find_runs(roots):
         run = load_run(path)
@@ -204,14 +210,28 @@ def load(roots: Sequence[pathlib.Path]) -> list[TaskData]:
     order = [t for t in TASKS if t in by_task] + sorted(t for t in by_task if t not in TASKS)
     tasks = []
     for name in order:
-        runs = by_task[name]
-        curves, evals, phase, planned = {}, {}, {}, {}
-        for run in runs:  # an arm found twice (a unit run again): the first directory found wins
+        runs = [r for r in by_task[name] if arms is None or any(k in arms for k in r.curves)]
+        if not runs:
+            continue
+        curves, evals, phase, planned, bases, dropped = {}, {}, {}, {}, {}, []
+        for run in runs:
+            base = int(run.info.get("seed", 0))
             for key, c in run.curves.items():
+                if arms is not None and key not in arms:
+                    continue
                 if key not in curves:
                     curves[key], planned[key] = c, run.planned.get(key, math.nan)
                     evals[key] = run.evals.get(key)
                     phase[key] = run.phase.get(key)
+                    bases[key] = [base]
+                elif base not in bases[key] and run.planned.get(key) == planned[key]:
+                    # the same arm on other seeds (another base seed) at the same budget: its seeds join the arm's
+                    curves[key], offset = pool_curves(curves[key], c)
+                    evals[key] = _pool_evals(evals[key], run.evals.get(key), offset)
+                    phase[key] = _pool_arrays(phase[key], run.phase.get(key))
+                    bases[key].append(base)
+                else:  # a unit run again on the same seeds, or at another budget: the first directory found wins
+                    dropped.append(f"{key} in {run.path}")
         reached = {k: _reached(c) for k, c in curves.items()}
         complete = all(reached[k] >= planned[k] for k in curves)
         budget = min(reached.values()) if reached else 0.0
@@ -220,8 +240,47 @@ def load(roots: Sequence[pathlib.Path]) -> list[TaskData]:
             curves = {k: _cut(c, budget + spu / 2) for k, c in curves.items()}
             evals = {k: None for k in evals}  # evaluations were made at each run's end, not at the common budget
         stated = max(planned.values(), default=math.nan)
-        tasks.append(TaskData(name, runs, curves, evals, phase, budget, stated, complete))
+        tasks.append(TaskData(name, runs, curves, evals, phase, budget, stated, complete,
+                              {k: b for k, b in bases.items() if len(b) > 1}, dropped))
     return tasks
+
+
+def pool_curves(a: plots.Curves, b: plots.Curves) -> tuple[plots.Curves, int]:
+    """b's seeds appended to a's, on the union of their logged updates (NaN and not present where a side did not
+    log), b's seed ids shifted past a's; and that shift."""
+    updates = np.union1d(a.updates, b.updates)
+    offset = int(a.seeds.max()) + 1 - int(b.seeds.min()) if len(a.seeds) and len(b.seeds) else 0
+
+    def spread(c: plots.Curves, x: np.ndarray, fill):
+        out = np.full((x.shape[0], len(updates)), fill, dtype=x.dtype)
+        out[:, np.searchsorted(updates, c.updates)] = x
+        return out
+
+    env_steps = np.full(len(updates), np.nan)
+    for c in (b, a):  # a's where both logged
+        env_steps[np.searchsorted(updates, c.updates)] = c.env_steps
+    names = sorted(set(a.metrics) | set(b.metrics))
+    nan_of = lambda c, n: c.metrics.get(n, np.full(c.present.shape, np.nan))  # noqa: E731
+    metrics = {n: np.concatenate([spread(a, nan_of(a, n).astype(float), np.nan),
+                                  spread(b, nan_of(b, n).astype(float), np.nan)]) for n in names}
+    present = np.concatenate([spread(a, a.present, False), spread(b, b.present, False)])
+    return dataclasses.replace(a, seeds=np.concatenate([a.seeds, b.seeds + offset]), updates=updates,
+                               env_steps=env_steps, present=present, metrics=metrics), offset
+
+
+def _pool_arrays(a: dict | None, b: dict | None) -> dict | None:
+    """Per-seed arrays of two runs of one arm, concatenated name by name (None unless both have them)."""
+    if a is None or b is None:
+        return None
+    return {n: np.concatenate([a[n], b[n]]) for n in a if n in b}
+
+
+def _pool_evals(a: dict | None, b: dict | None, offset: int) -> dict | None:
+    if a is None or b is None:
+        return None
+    out = _pool_arrays(a, b)
+    out["seeds"] = np.concatenate([a["seeds"], b["seeds"] + offset])
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -684,6 +743,13 @@ def write_results(tasks: list[TaskData], out: pathlib.Path = HERE, reps: int = 2
             differs = f" (PLAN.md's budget: {plan.steps:,})" if plan is not None and plan.steps != t.stated else ""
             lines.append(f"- {t.name}: {t.stated:,.0f} env steps per run asked{differs} (the Mb-Mf phase's included); "
                          f"{state}. Arms: {arms}.")
+            if t.pooled:
+                lines.append("  Pooled: " + "; ".join(
+                    f"{LABELS.get(a, a)} holds the seeds of runs of base seeds {', '.join(map(str, b))} "
+                    f"({len(t.curves[a].seeds)} seeds)" for a, b in t.pooled.items()) + ".")
+            if t.dropped:
+                lines.append("  Left out (an arm found again on the same seeds or at another budget; the first "
+                             "directory found is kept): " + "; ".join(t.dropped) + ".")
         if missing:
             lines.append(f"- not in this data: {', '.join(missing)}.")
         lines += ["", "## Verdicts per task (final return, 95% intervals)", ""]
