@@ -72,10 +72,14 @@ def main(argv=None) -> list[dict]:
             pass
         programs = [dict(r, s=round(r["s"], 2)) for r in arms.COMPILE_TIMES if r["step"] != "host"]
         host = {r["what"]: round(r["s"], 2) for r in arms.COMPILE_TIMES if r["step"] == "host"}
+        # the compile time depends on the host's cores (XLA:GPU compiles each program on many threads): say them
+        cores, workers = arms.usable_cores(), arms.compile_workers()
         rows.append({"sweep": i, "seconds_to_training": round(started["s"], 2),
-                     "command": "cdjax " + " ".join(sweep_argv), "host": host, "programs": programs})
-        print(f"sweep {i}: training would start {started['s']:.1f} s after run_sweep was called; on the host before "
-              "and after compiling: " + ", ".join(f"{k} {v:.1f} s" for k, v in host.items()), flush=True)
+                     "command": "cdjax " + " ".join(sweep_argv), "cores": cores, "compile_workers": workers,
+                     "host": host, "programs": programs})
+        print(f"sweep {i}: training would start {started['s']:.1f} s after run_sweep was called ({cores} CPU cores, "
+              f"{workers} compiling threads); on the host before and after compiling: "
+              + ", ".join(f"{k} {v:.1f} s" for k, v in host.items()), flush=True)
         for r in sorted(programs, key=lambda r: -r["s"]):
             print(f"  {r['arm']:>12} {r['what']:<6} {r['step']:<8} {r['s']:7.2f} s", flush=True)
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)

@@ -413,6 +413,7 @@ def test_compile_time_names_each_program_and_the_second_sweep_compiles_nothing(t
     assert second["programs"] == [] and second["seconds_to_training"] < first["seconds_to_training"]
     for sweep in rows:  # the host's steps around the compiling, each timed once per sweep
         assert list(sweep["host"]) == ["plan", "build", "memory", "programs"] and min(sweep["host"].values()) >= 0
+        assert sweep["cores"] == arms.usable_cores() and sweep["compile_workers"] == arms.compile_workers()
     assert json.loads((tmp_path / "compile_time.json").read_text()) == rows
 
 
@@ -448,7 +449,11 @@ def test_compile_workers_reads_its_variable(monkeypatch):
     with pytest.raises(ConfigError, match="whole number >= 1"):  # the command line's one sentence
         arms.compile_workers()
     monkeypatch.delenv("CDJAX_COMPILE_WORKERS")
-    assert arms.compile_workers() == max(1, (os.cpu_count() or 1) // 2)
+    assert arms.compile_workers() == max(1, arms.usable_cores() // 2)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)), raising=False)  # pinned to 16 cores
+    assert arms.usable_cores() == 16 and arms.compile_workers() == 8
+    monkeypatch.delattr(os, "sched_getaffinity")  # an OS without it: the machine's cores
+    assert arms.usable_cores() == (os.cpu_count() or 1)
 
 
 def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch):

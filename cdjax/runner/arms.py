@@ -260,14 +260,23 @@ def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
 
 
 def compile_workers() -> int:
-    """Threads compiling the arms' programs at once: half the CPU cores (XLA compiles in C++, without the
-    GIL; on a 2-core machine one, i.e. one after the other), or CDJAX_COMPILE_WORKERS when set (a count >= 1)."""
+    """Threads compiling the arms' programs at once: half the CPU cores this process may run on (XLA compiles in
+    C++, without the GIL; on a 2-core machine one, i.e. one after the other; a process pinned to some cores, by
+    taskset or a batch scheduler, counts those), or CDJAX_COMPILE_WORKERS when set (a count >= 1)."""
     text = os.environ.get("CDJAX_COMPILE_WORKERS", "").strip()
     if text:
         if not text.isdigit() or int(text) < 1:
             raise ConfigError(f"CDJAX_COMPILE_WORKERS must be a whole number >= 1, got {text!r}.")
         return int(text)
-    return max(1, (os.cpu_count() or 1) // 2)
+    return max(1, usable_cores() // 2)
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS says it), else all of the machine's."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):  # no sched_getaffinity (macOS, Windows)
+        return os.cpu_count() or 1
 
 
 def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
