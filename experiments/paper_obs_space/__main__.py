@@ -141,7 +141,8 @@ def cmd_report(args) -> int:
               f"{', '.join(report.LABELS)})", file=sys.stderr)
         return 2
     tasks = report.load(args.runs, arms=args.arms)
-    path = report.write_results(tasks, pathlib.Path(args.out), reps=args.reps, keep=args.keep, paired=args.paired)
+    path = report.write_results(tasks, pathlib.Path(args.out), reps=args.reps, keep=args.keep, paired=args.paired,
+                                sources=args.runs)
     print(f"Wrote {path}")
     return 0
 
