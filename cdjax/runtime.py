@@ -27,6 +27,17 @@ CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 # 77.7 s against 87.2 s, the pixel update 1.0% slower. Only the GPU backend reads it. A user who names the level in XLA_FLAGS
 # (e.g. --xla_gpu_autotune_level=4, XLA's own default) keeps theirs.
 GPU_AUTOTUNE_FLAG = "--xla_gpu_autotune_level=1"
+# XLA:GPU's cost model keeps the 2 best of its default Triton GEMM tilings (by its estimate) for the autotuner to
+# time, not all of them (about 2,100 candidate kernels in the cold 4-arm ant sweep, whose compiling took about 660 of
+# the 1,574 core-seconds on a 16-core host; benchmarks/results/2026-11-27-h100x4-compile-cores/). One H100 of a
+# 16-core host, one lease (2026-11-27, benchmarks/results/2026-11-27-h100-gemm-tilings/): the cold 4-arm ant sweep
+# started training after 65.4 s instead of 86.1 s, while Mb-Mf and the paper's CD ran 0.457 against 0.457 and 0.741
+# against 0.740 s per update (the compare suite). cuBLAS stays among the candidates. A user who names the option in
+# XLA_FLAGS keeps theirs: `--xla_gpu_experimental_cost_model_gemm_tiling_options=` (empty) is XLA's own search.
+# An experimental XLA option: jax is pinned (pyproject.toml), and XLA aborts on an option it does not know, so a
+# jax upgrade must keep it or drop it here.
+GPU_GEMM_TILINGS_FLAG = "--xla_gpu_experimental_cost_model_gemm_tiling_options=top=2,top_from_default=1"
+XLA_DEFAULTS = (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG)  # what `import cdjax` adds to XLA_FLAGS
 CACHE_ENV = "CDJAX_JAX_CACHE"  # environment variable naming the persistent compilation cache
 MODE_ENV = "CDJAX_COMPILE_MODE"  # environment variable naming the compile mode (configure's compile_mode wins)
 
@@ -45,11 +56,11 @@ _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "d
 
 
 def apply_xla_defaults() -> None:
-    """Add cdjax's XLA flags (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG) to XLA_FLAGS, each unless the user set that
-    option already. XLA reads XLA_FLAGS when a backend starts: `import cdjax` calls this, so it takes effect unless
+    """Add cdjax's XLA flags (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG) to XLA_FLAGS, each
+    unless the user set that option already. XLA reads XLA_FLAGS when a backend starts: `import cdjax` calls this, so it takes effect unless
     a JAX backend was started before cdjax was imported."""
     flags = os.environ.get("XLA_FLAGS", "")
-    for flag in (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG):
+    for flag in XLA_DEFAULTS:
         if flag.split("=")[0].lstrip("-") not in flags:  # the option's name
             flags = f"{flags} {flag}".strip()
     os.environ["XLA_FLAGS"] = flags
