@@ -61,6 +61,14 @@
 #            convolutions are autotuned too, so what level 1 picks for them is timed against level 4's picks; then the
 #            compare suite (Brax PPO, model-free, Mb-Mf, paper-CD; one process, all at cdjax's level) (about 14 minutes
 #            in all).
+#   tilings  cdjax's GEMM tilings option (GPU_GEMM_TILINGS_FLAG, cdjax/runtime.py: XLA's cost model keeps the 2 best
+#            of its default Triton tilings for the autotuner; default since 60ffa09) against XLA's own search
+#            (XLA_FLAGS=--xla_gpu_experimental_cost_model_gemm_tiling_options=, named empty) in one lease (about 16
+#            minutes): the 4-arm ant sweep cold at each; the pixel presets' update (as in `levels`) at each; then the
+#            compare suite (Brax PPO, model-free, Mb-Mf, paper-CD) in a process per setting. On 2026-11-27 (one H100,
+#            16 cores; benchmarks/results/2026-11-27-h100-gemm-tilings/) the sweep compiled in 57.2 s against 79.7 s
+#            and Mb-Mf and paper-CD ran the same time per update; model-free, Brax PPO and the pixel update were not
+#            timed: whether the option costs any case at run time.
 #   parallel XLA's LLVM module compilation in parallel (about 11 minutes): the 4-arm ant sweep cold at cdjax's defaults,
 #            then with XLA_FLAGS=--xla_gpu_enable_llvm_module_compilation_parallelism=true (XLA splits each program's
 #            LLVM module and compiles the parts in threads; off by default), then with it and
@@ -212,6 +220,21 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--budget-s 300 --out $work/compare > $work/compare.log 2>&1;" \
         "grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/level*.log $work/fast-level1.log;" \
         "cat $work/pixel-level1.md $work/pixel-level4.md; tail -n 14 $work/compare/results.md" ;;
+    tilings)
+      local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
+      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 300" off
+      off="XLA_FLAGS=--xla_gpu_experimental_cost_model_gemm_tiling_options="
+      echo "python -c 'import os, cdjax; print(os.environ)' | grep -o -E 'XLA_FLAGS[^,]*' > $work/xla-flags.log 2>&1;" \
+        "timeout -k 20 200 python -m benchmarks.compile_time --out $work/top2 --cache-dir $work/cache-top2" \
+        "-- $sweep > $work/top2.log 2>&1;" \
+        "$off timeout -k 20 200 python -m benchmarks.compile_time --out $work/xla --cache-dir $work/cache-xla" \
+        "-- $sweep > $work/xla.log 2>&1;" \
+        "timeout -k 20 150 $rf --out $work/pixel-top2.json > $work/pixel-top2.log 2>&1;" \
+        "$off timeout -k 20 150 $rf --out $work/pixel-xla.json > $work/pixel-xla.log 2>&1;" \
+        "timeout -k 20 330 python -m benchmarks.run $cases --out $work/compare-top2 > $work/compare-top2.log 2>&1;" \
+        "$off timeout -k 20 330 python -m benchmarks.run $cases --out $work/compare-xla > $work/compare-xla.log 2>&1;" \
+        "grep -H -E 'sweep [12]:|compile [0-9.]+ s' $work/top2.log $work/xla.log;" \
+        "cat $work/pixel-top2.md $work/pixel-xla.md; grep -H ' s/update' $work/compare-*.log" ;;
     kernels)
       local cases="--suite compare --cases mbmf cd-paper --budget-s 120" flag line
       line="python -m benchmarks.xla_flags > $work/xla-gpu-flags.txt; wc -l < $work/xla-gpu-flags.txt;"
@@ -326,7 +349,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
