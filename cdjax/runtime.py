@@ -56,9 +56,9 @@ _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "d
 
 
 def apply_xla_defaults() -> None:
-    """Add cdjax's XLA flags (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG) to XLA_FLAGS, each
-    unless the user set that option already. XLA reads XLA_FLAGS when a backend starts: `import cdjax` calls this, so it takes effect unless
-    a JAX backend was started before cdjax was imported."""
+    """Add cdjax's XLA flags (XLA_DEFAULTS: CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG) to
+    XLA_FLAGS, each unless the user set that option already. XLA reads XLA_FLAGS when a backend starts: `import
+    cdjax` calls this, so it takes effect unless a JAX backend was started before cdjax was imported."""
     flags = os.environ.get("XLA_FLAGS", "")
     for flag in XLA_DEFAULTS:
         if flag.split("=")[0].lstrip("-") not in flags:  # the option's name
