@@ -261,8 +261,9 @@ def test_an_arm_run_on_other_seeds_is_pooled_and_one_run_again_is_named_and_left
     (only,) = report.load([tmp_path], arms=["mbmf"])
     assert set(only.curves) == {"mbmf"} and [r.path.name for r in only.runs] == ["mf-mbmf", "confirm", "again"]
     assert cli.main(["report", "--runs", str(tmp_path), "--arms", "mbmf", "cd-k99", "--out", str(tmp_path / "x")]) == 2
-    assert cli.main(["report", "--runs", str(tmp_path), "--arms", "mbmf", "--out", str(tmp_path / "m"), "--reps", "50"]) == 0
-    head = (tmp_path / "m" / "RESULTS.md").read_text().split("\n\n")[1]  # where the runs came from: not copied there
+    out = tmp_path / "m"
+    assert cli.main(["report", "--runs", str(tmp_path), "--arms", "mbmf", "--out", str(out), "--reps", "50"]) == 0
+    head = (out / "RESULTS.md").read_text().split("\n\n")[1]  # where the runs came from: not copied there
     assert f"from the runs under `{tmp_path}` (not copied here" in head and "kept data" not in head
 
 
