@@ -167,7 +167,11 @@ def build_parser(setting: Setting | None = None) -> Parser:
     ev.add_argument("--video", action="store_true", help="also render a video of one episode per arm")
     plot = sub.add_parser("plot", help="curves and the summary table again from the logs", allow_abbrev=False,
                           parents=[runtime_parent])
-    plot.add_argument("run_dir", metavar="RUN_DIR")
+    plot.add_argument("run_dirs", nargs="+", metavar="RUN_DIR",
+                      help="a run directory; or several runs of one sweep started with other --seed values, whose "
+                           "seeds are pooled (with --out)")
+    plot.add_argument("--out", metavar="DIR",
+                      help="write plots/ and summary.{md,csv} here (needed for several RUN_DIRs; default RUN_DIR)")
     plot.add_argument("--bootstrap-reps", type=options.count, default=2000, metavar="N",
                       help="bootstrap replications of the 95%% intervals (default 2000)")
     return parser
@@ -300,19 +304,35 @@ def _print_eval(records: list[dict]) -> None:
 
 
 def cmd_plot(args: argparse.Namespace) -> None:
-    from cdjax.plots import plot_run
+    from cdjax.plots import plot_run, plot_runs
     from cdjax.runner.console import stopped
 
-    rd = io.RunDir(pathlib.Path(args.run_dir))
-    rd.check_name("RUN_DIR")
-    rd.read()  # a clear error for a directory that holds no run
+    dirs = []
+    for run_dir in args.run_dirs:
+        rd = io.RunDir(pathlib.Path(run_dir))
+        rd.check_name("RUN_DIR")
+        rd.read()  # a clear error for a directory that holds no run
+        dirs.append(rd.path)
+    if len(set(d.resolve() for d in dirs)) < len(dirs):
+        raise UsageError("a RUN_DIR is named twice; name each run once.")
+    if len(dirs) > 1 and args.out is None:
+        raise UsageError("several RUN_DIRs are pooled into one summary: name where it goes with --out DIR.")
     if not 1 <= args.bootstrap_reps <= INT32_MAX:
         raise UsageError(f"--bootstrap-reps must be an integer from 1 to {INT32_MAX:,}, got {args.bootstrap_reps}.")
+    out = dirs[0] if args.out is None else pathlib.Path(args.out)
+    if args.out is not None:
+        io.RunDir(out).check_name("--out")
+        if out.exists() and not out.is_dir():
+            raise UsageError(f"--out {out} is a file; name a directory.")
+    again = " ".join(shlex.quote(str(a)) for a in (*dirs, *(("--out", out) if args.out is not None else ())))
     try:
-        written = plot_run(rd.path, reps=args.bootstrap_reps, say=say)
+        if len(dirs) == 1 and args.out is None:
+            written = plot_run(out, reps=args.bootstrap_reps, say=say)
+        else:
+            written = plot_runs(dirs, out, reps=args.bootstrap_reps, say=say)
     except KeyboardInterrupt as err:
-        raise stopped(err, f"Interrupted while plotting; the plots and summary of {rd.path} may be partly rewritten: "
-                           f"run `cdjax plot {shlex.quote(str(rd.path))}` again.") from None
+        raise stopped(err, f"Interrupted while plotting; the plots and summary of {out} may be partly rewritten: "
+                           f"run `cdjax plot {again}` again.") from None
     for path in written.values():
         print(f"Wrote {path}")
 

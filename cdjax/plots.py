@@ -2,6 +2,7 @@
 
     curves = load_metrics(run_dir)        # {(arm, hp_label): Curves with arrays [seeds, updates]}
     paths = plot_run(run_dir)             # PNGs + the CSV behind each, summary.md, summary.csv
+    paths = plot_runs([run_a, run_b], out)  # the same of several runs' seeds pooled (runs of other --seed)
 
 The statistics (IQM across seeds with 95% stratified-bootstrap intervals, final value, area under the
 curve) are cdjax.stats'. Which metric is the return, the discounted return and the diagnostics panels is
@@ -352,29 +353,124 @@ def plot_run(run_dir: str | pathlib.Path, *, reps: int = 2000, max_points: int =
     """
     run_dir = pathlib.Path(run_dir)
     info = io.RunDir(run_dir).read_if_present()
-    names = Names.of(info)
+    curves = _loaded(run_dir, say, run_dir)
+    env = info.get("base_config", {}).get("env") if isinstance(info.get("base_config"), dict) else None
+    title = f"Summary of {run_dir.name}" + (f" ({env})" if env else "")
+    return _write(run_dir, curves, load_eval(run_dir, say), Names.of(info), title, reps, max_points, seed)
+
+
+def _loaded(run_dir: pathlib.Path, say: Callable[[str], None] | None, out: pathlib.Path) -> dict:
+    """load_metrics(run_dir), or RunDirError when it holds no row (rather than overwrite a summary with an empty
+    table)."""
     curves = load_metrics(run_dir, say)
-    if not curves:  # refuse rather than overwrite a summary with an empty table
+    if not curves:
         where = run_dir / "metrics.jsonl"
         state = "holds no readable row" if io.jsonl_exists(where) else "is missing"
-        raise io.RunDirError(f"{where} {state}, so there is nothing to plot; {run_dir}/summary.md and plots/ were "
+        raise io.RunDirError(f"{where} {state}, so there is nothing to plot; {out}/summary.md and plots/ were "
                              "left as they were.")
+    return curves
+
+
+def plot_runs(run_dirs: Sequence[str | pathlib.Path], out: str | pathlib.Path, *, reps: int = 2000,
+              max_points: int = 300, seed: int = 0, say: Callable[[str], None] | None = None
+              ) -> dict[str, pathlib.Path]:
+    """plot_run's figures and summary, into OUT/, of several runs of one environment with their seeds pooled.
+
+    Each (arm, hp label) holds the seeds of every run that has it (`pool_curves`): runs of the same sweep
+    started with other base seeds (`cdjax sweep --seed`), e.g. because one machine could not hold all the seeds.
+    RunDirError (one sentence) when the runs are of other environments or settings, when two of them share a base
+    seed (their seeds would be the same keys counted twice), or when one arm asked for other env steps per run in
+    another run (its seeds would end at other budgets).
+    """
+    run_dirs = [pathlib.Path(d) for d in run_dirs]
+    out = pathlib.Path(out)
+    infos = [io.RunDir(d).read() for d in run_dirs]
+    first, where = infos[0], run_dirs[0]
+    for info, d in zip(infos[1:], run_dirs[1:]):
+        for what, get in (("environment", lambda i: i.get("base_config", {}).get("env")),
+                          ("setting", lambda i: i.get("setting"))):
+            if get(info) != get(first):
+                raise io.RunDirError(f"{d} is a run of {what} {get(info)!r} and {where} of {get(first)!r}; pool runs "
+                                     f"of one {what}.")
+    bases = {}
+    for info, d in zip(infos, run_dirs):
+        base = int(info.get("seed", 0))
+        if base in bases:
+            raise io.RunDirError(f"{d} and {bases[base]} both ran base seed {base}, so their seeds are the same keys; "
+                                 "pool runs started with other --seed values.")
+        bases[base] = d
+    budgets: dict[str, tuple] = {}
+    for info, d in zip(infos, run_dirs):
+        for arm in info.get("arms", []):
+            steps = arm.get("total_env_steps", info.get("total_env_steps"))
+            if budgets.setdefault(arm["name"], (steps, d))[0] != steps:
+                raise io.RunDirError(f"arm {arm['name']} ran {steps:,} env steps per run in {d} and "
+                                     f"{budgets[arm['name']][0]:,} in {budgets[arm['name']][1]}; pool runs of one "
+                                     "budget.")
+    curves, evals = {}, {}
+    for d in run_dirs:
+        offsets = {}
+        for key, c in _loaded(d, say, out).items():
+            if key in curves:
+                curves[key], offsets[key] = pool_curves(curves[key], c)
+            else:
+                curves[key], offsets[key] = c, 0
+        for (arm, hp, det), e in load_eval(d, say).items():
+            offset = offsets.get((arm, hp), 0)
+            e = dict(e, seeds=e["seeds"] + offset)
+            evals[(arm, hp, det)] = pool_evals(evals[(arm, hp, det)], e) if (arm, hp, det) in evals else e
+    env = first.get("base_config", {}).get("env")
+    title = (f"Summary of {', '.join(d.name for d in run_dirs)} pooled (base seeds {', '.join(map(str, bases))})"
+             + (f" ({env})" if env else ""))
+    return _write(out, curves, evals, Names.of(first), title, reps, max_points, seed)
+
+
+def pool_curves(a: Curves, b: Curves) -> tuple[Curves, int]:
+    """b's seeds after a's, on the union of their logged updates (NaN and not present where a side did not log),
+    b's seed ids shifted past a's; and that shift (for b's evaluations)."""
+    updates = np.union1d(a.updates, b.updates)
+    offset = int(a.seeds.max()) + 1 - int(b.seeds.min()) if len(a.seeds) and len(b.seeds) else 0
+
+    def spread(c: Curves, x: np.ndarray, fill) -> np.ndarray:
+        wide = np.full((x.shape[0], len(updates)), fill, dtype=x.dtype)
+        wide[:, np.searchsorted(updates, c.updates)] = x
+        return wide
+
+    env_steps = np.full(len(updates), np.nan)
+    for c in (b, a):  # a's where both logged
+        env_steps[np.searchsorted(updates, c.updates)] = c.env_steps
+    of = lambda c, n: c.metrics.get(n, np.full(c.present.shape, np.nan)).astype(float)  # noqa: E731
+    metrics = {n: np.concatenate([spread(a, of(a, n), np.nan), spread(b, of(b, n), np.nan)])
+               for n in list(a.metrics) + [n for n in b.metrics if n not in a.metrics]}
+    present = np.concatenate([spread(a, a.present, False), spread(b, b.present, False)])
+    return dataclasses.replace(a, seeds=np.concatenate([a.seeds, b.seeds + offset]), updates=updates,
+                               env_steps=env_steps, present=present, metrics=metrics), offset
+
+
+def pool_evals(a: dict | None, b: dict | None) -> dict | None:
+    """Two load_eval records (per-seed arrays; b's seed ids already shifted) as one; None unless both exist."""
+    if a is None or b is None:
+        return None
+    return {n: np.concatenate([a[n], b[n]]) for n in a if n in b}
+
+
+def _write(out: pathlib.Path, curves: dict, evals: dict, names: Names, title: str, reps: int, max_points: int,
+           seed: int) -> dict[str, pathlib.Path]:
+    """The figures, their CSVs and the summary of `curves` into OUT/plots/ and OUT/summary.{md,csv}."""
     colors = {c.label: f"C{i % 10}" for i, c in enumerate(curves.values())}  # one colour per curve everywhere
-    plots = run_dir / "plots"
+    plots = out / "plots"
     written: dict[str, pathlib.Path] = {}
     with io.writing(plots):
         plots.mkdir(parents=True, exist_ok=True)
-        for key, name, title in (("return", names.ret, "return"),
-                                 ("discounted_return", names.discounted_ret, "discounted return")):
-            written.update(_return_figure(plots, key, name, title, curves, colors, max_points, reps, seed))
+        for key, name, what in (("return", names.ret, "return"),
+                                ("discounted_return", names.discounted_ret, "discounted return")):
+            written.update(_return_figure(plots, key, name, what, curves, colors, max_points, reps, seed))
         written.update(_panels_figure(plots, names.panels, curves, colors, max_points, reps, seed))
-    rows = summary_rows(curves, load_eval(run_dir, say), reps, seed, names)
-    env = info.get("base_config", {}).get("env") if isinstance(info.get("base_config"), dict) else None
-    title = f"Summary of {run_dir.name}" + (f" ({env})" if env else "")
-    written["summary_md"] = run_dir / "summary.md"
+    rows = summary_rows(curves, evals, reps, seed, names)
+    written["summary_md"] = out / "summary.md"
     with io.writing(written["summary_md"]):
         written["summary_md"].write_text(summary_markdown(rows, title))
-        written["summary_csv"] = _write_csv(run_dir / "summary.csv", rows)
+        written["summary_csv"] = _write_csv(out / "summary.csv", rows)
     return written
 
 

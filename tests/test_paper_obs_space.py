@@ -275,7 +275,7 @@ def test_pooled_curves_line_up_on_the_updates_either_run_logged():
                             present=np.ones((len(seeds), len(u)), bool),
                             metrics={"r": np.tile(u.astype(float), (len(seeds), 1))})
 
-    pooled, offset = report.pool_curves(curves([0, 1], [1, 2, 4]), curves([0], [2, 3]))
+    pooled, offset = plots.pool_curves(curves([0, 1], [1, 2, 4]), curves([0], [2, 3]))
     assert offset == 2 and list(pooled.seeds) == [0, 1, 2] and list(pooled.updates) == [1, 2, 3, 4]
     assert list(pooled.env_steps) == [100.0, 200.0, 300.0, 400.0]
     assert pooled.present.tolist() == [[True, True, False, True]] * 2 + [[False, True, True, False]]

@@ -9,7 +9,7 @@ import pytest
 import scipy.stats
 from rliable import metrics as rly_metrics
 
-from cdjax import plots, stats
+from cdjax import io, plots, stats
 
 UPDATES = 20
 STEPS_PER_UPDATE = 512
@@ -201,3 +201,67 @@ def test_auc_weights_each_point_by_the_env_steps_it_stands_for(tmp_path):
     auc = plots.per_seed_auc(c, plots.RETURN)
     # the NaN point (update 2) is skipped with its 100 steps
     np.testing.assert_allclose(auc, [(10 * 1000 + 20 * 200) / 1200, (0 * 1000 + 40 * 200) / 1200])
+
+
+def _small_run(path, base_seed, seeds, level, env="point", updates=6, steps=3072, log_every=1, evals=True):
+    """A run directory by hand of one arm, return = level + seed index + base seed x 100 at every logged update."""
+    path.mkdir(parents=True)
+    info = {"version": 1, "base_config": {"env": env}, "seeds": seeds, "seed": base_seed, "command": "synthetic",
+            "arms": [{"name": "cd", "arm": "cd", "hparams": [{}], "hp_labels": ["alpha=1.0"], "total_env_steps": steps}]}
+    (path / "run.json").write_text(json.dumps(info))
+    with (path / "metrics.jsonl").open("w") as f:
+        for s in range(seeds):
+            for u in range(0, updates, log_every):
+                f.write(json.dumps({"arm": "cd", "hp": "alpha=1.0", "seed": s, "update": u, "env_steps": 512 * (u + 1),
+                                    "episode/return": level + s + 100 * base_seed}) + "\n")
+    if evals:
+        with (path / "eval.jsonl").open("w") as f:
+            for s in range(seeds):
+                f.write(json.dumps({"arm": "cd", "hp": "alpha=1.0", "seed": s, "update": updates - 1,
+                                    "deterministic": True, "episodes": 2, "eval/return": 10.0 * base_seed + s}) + "\n")
+    return path
+
+
+def test_plot_runs_pools_the_seeds_of_runs_of_other_base_seeds(tmp_path):
+    """`cdjax plot A B --out C`: one arm holds every run's seeds (ids kept apart), on the updates either logged,
+    its evaluations too; the summary's statistics are those of all the seeds together."""
+    a = _small_run(tmp_path / "a", 0, 3, 10.0)
+    b = _small_run(tmp_path / "b", 1, 2, 10.0, log_every=2)  # logs every other update
+    paths = plots.plot_runs([a, b], tmp_path / "pooled", reps=200)
+    (row,) = _csv(paths["summary_csv"])
+    assert row["seeds"] == "5" and row["eval_det_seeds"] == "5"
+    finals = np.array([10.0, 11.0, 12.0, 110.0, 111.0])  # every seed's return is flat: its final value
+    assert float(row["final_return_iqm"]) == pytest.approx(scipy.stats.trim_mean(finals, 0.25))
+    evals = np.array([0.0, 1.0, 2.0, 10.0, 11.0])
+    assert float(row["eval_det_return_iqm"]) == pytest.approx(scipy.stats.trim_mean(evals, 0.25))
+    assert "pooled (base seeds 0, 1)" in paths["summary_md"].read_text()
+    assert not (a / "summary.md").exists()  # the runs are read, not written
+    c = plots.pool_curves(plots.load_metrics(a)[("cd", "alpha=1.0")], plots.load_metrics(b)[("cd", "alpha=1.0")])[0]
+    assert list(c.seeds) == [0, 1, 2, 3, 4] and list(c.updates) == list(range(6))
+    assert c.present[3:].tolist() == [[True, False] * 3] * 2 and np.isnan(c.metrics["episode/return"][4, 1])
+
+
+@pytest.mark.parametrize("second, message", [
+    (dict(base_seed=0), "both ran base seed 0, so their seeds are the same keys"),
+    (dict(base_seed=1, env="reacher"), "is a run of environment 'reacher' and"),
+    (dict(base_seed=1, steps=6144), "arm cd ran 6,144 env steps per run in"),
+])
+def test_plot_runs_refuses_runs_that_do_not_pool(tmp_path, second, message):
+    a = _small_run(tmp_path / "a", 0, 2, 1.0)
+    b = _small_run(tmp_path / "b", seeds=2, level=1.0, **second)
+    with pytest.raises(io.RunDirError, match=message):
+        plots.plot_runs([a, b], tmp_path / "out", reps=50)
+    assert not (tmp_path / "out").exists()
+
+
+def test_cdjax_plot_of_several_runs_needs_out(tmp_path, capsys):
+    from cdjax.cli import main
+
+    a, b = _small_run(tmp_path / "a", 0, 2, 1.0), _small_run(tmp_path / "b", 1, 2, 1.0)
+    for argv, said in ((["plot", str(a), str(b)], "name where it goes with --out DIR"),
+                       (["plot", str(a), str(a), "--out", str(tmp_path / "o")], "a RUN_DIR is named twice")):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code != 0 and said in capsys.readouterr().err
+    main(["plot", str(a), str(b), "--out", str(tmp_path / "o"), "--bootstrap-reps", "50"])
+    assert _csv(tmp_path / "o" / "summary.csv")[0]["seeds"] == "4" and (tmp_path / "o" / "plots" / "return.png").exists()

@@ -226,7 +226,7 @@ def load(roots: Sequence[pathlib.Path], arms: Sequence[str] | None = None) -> li
                     bases[key] = [base]
                 elif base not in bases[key] and run.planned.get(key) == planned[key]:
                     # the same arm on other seeds (another base seed) at the same budget: its seeds join the arm's
-                    curves[key], offset = pool_curves(curves[key], c)
+                    curves[key], offset = plots.pool_curves(curves[key], c)
                     evals[key] = _pool_evals(evals[key], run.evals.get(key), offset)
                     phase[key] = _pool_arrays(phase[key], run.phase.get(key))
                     bases[key].append(base)
@@ -245,29 +245,6 @@ def load(roots: Sequence[pathlib.Path], arms: Sequence[str] | None = None) -> li
     return tasks
 
 
-def pool_curves(a: plots.Curves, b: plots.Curves) -> tuple[plots.Curves, int]:
-    """b's seeds appended to a's, on the union of their logged updates (NaN and not present where a side did not
-    log), b's seed ids shifted past a's; and that shift."""
-    updates = np.union1d(a.updates, b.updates)
-    offset = int(a.seeds.max()) + 1 - int(b.seeds.min()) if len(a.seeds) and len(b.seeds) else 0
-
-    def spread(c: plots.Curves, x: np.ndarray, fill):
-        out = np.full((x.shape[0], len(updates)), fill, dtype=x.dtype)
-        out[:, np.searchsorted(updates, c.updates)] = x
-        return out
-
-    env_steps = np.full(len(updates), np.nan)
-    for c in (b, a):  # a's where both logged
-        env_steps[np.searchsorted(updates, c.updates)] = c.env_steps
-    names = sorted(set(a.metrics) | set(b.metrics))
-    nan_of = lambda c, n: c.metrics.get(n, np.full(c.present.shape, np.nan))  # noqa: E731
-    metrics = {n: np.concatenate([spread(a, nan_of(a, n).astype(float), np.nan),
-                                  spread(b, nan_of(b, n).astype(float), np.nan)]) for n in names}
-    present = np.concatenate([spread(a, a.present, False), spread(b, b.present, False)])
-    return dataclasses.replace(a, seeds=np.concatenate([a.seeds, b.seeds + offset]), updates=updates,
-                               env_steps=env_steps, present=present, metrics=metrics), offset
-
-
 def _pool_arrays(a: dict | None, b: dict | None) -> dict | None:
     """Per-seed arrays of two runs of one arm, concatenated name by name (None unless both have them)."""
     if a is None or b is None:
@@ -276,11 +253,7 @@ def _pool_arrays(a: dict | None, b: dict | None) -> dict | None:
 
 
 def _pool_evals(a: dict | None, b: dict | None, offset: int) -> dict | None:
-    if a is None or b is None:
-        return None
-    out = _pool_arrays(a, b)
-    out["seeds"] = np.concatenate([a["seeds"], b["seeds"] + offset])
-    return out
+    return plots.pool_evals(a, None if b is None else dict(b, seeds=b["seeds"] + offset))
 
 
 # ---------------------------------------------------------------------------------------------------
