@@ -324,6 +324,9 @@ def cmd_plot(args: argparse.Namespace) -> None:
         io.RunDir(out).check_name("--out")
         if out.exists() and not out.is_dir():
             raise UsageError(f"--out {out} is a file; name a directory.")
+        if len(dirs) > 1 and out.resolve() in {d.resolve() for d in dirs}:
+            raise UsageError(f"--out {out} is one of the runs, whose own summary the pooled one would replace; "
+                             "name another directory.")
     again = " ".join(shlex.quote(str(a)) for a in (*dirs, *(("--out", out) if args.out is not None else ())))
     try:
         if len(dirs) == 1 and args.out is None:

@@ -259,7 +259,8 @@ def test_cdjax_plot_of_several_runs_needs_out(tmp_path, capsys):
 
     a, b = _small_run(tmp_path / "a", 0, 2, 1.0), _small_run(tmp_path / "b", 1, 2, 1.0)
     for argv, said in ((["plot", str(a), str(b)], "name where it goes with --out DIR"),
-                       (["plot", str(a), str(a), "--out", str(tmp_path / "o")], "a RUN_DIR is named twice")):
+                       (["plot", str(a), str(a), "--out", str(tmp_path / "o")], "a RUN_DIR is named twice"),
+                       (["plot", str(a), str(b), "--out", str(b)], "is one of the runs")):
         with pytest.raises(SystemExit) as stop:
             main(argv)
         assert stop.value.code != 0 and said in capsys.readouterr().err
