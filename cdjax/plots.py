@@ -418,7 +418,7 @@ def plot_runs(run_dirs: Sequence[str | pathlib.Path], out: str | pathlib.Path, *
         for (arm, hp, det), e in load_eval(d, say).items():
             offset = offsets.get((arm, hp), 0)
             e = dict(e, seeds=e["seeds"] + offset)
-            evals[(arm, hp, det)] = pool_evals(evals[(arm, hp, det)], e) if (arm, hp, det) in evals else e
+            evals[(arm, hp, det)] = pool_seed_arrays(evals[(arm, hp, det)], e) if (arm, hp, det) in evals else e
     env = first.get("base_config", {}).get("env")
     title = (f"Summary of {', '.join(d.name for d in run_dirs)} pooled (base seeds {', '.join(map(str, bases))})"
              + (f" ({env})" if env else ""))
@@ -447,8 +447,9 @@ def pool_curves(a: Curves, b: Curves) -> tuple[Curves, int]:
                                env_steps=env_steps, present=present, metrics=metrics), offset
 
 
-def pool_evals(a: dict | None, b: dict | None) -> dict | None:
-    """Two load_eval records (per-seed arrays; b's seed ids already shifted) as one; None unless both exist."""
+def pool_seed_arrays(a: dict | None, b: dict | None) -> dict | None:
+    """Two records of per-seed arrays by name (load_eval's, b's seed ids already shifted; a report's per-seed
+    diagnostics) as one, b's seeds after a's, name by name; None unless both exist."""
     if a is None or b is None:
         return None
     return {n: np.concatenate([a[n], b[n]]) for n in a if n in b}

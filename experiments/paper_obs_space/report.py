@@ -227,8 +227,10 @@ def load(roots: Sequence[pathlib.Path], arms: Sequence[str] | None = None) -> li
                 elif base not in bases[key] and run.planned.get(key) == planned[key]:
                     # the same arm on other seeds (another base seed) at the same budget: its seeds join the arm's
                     curves[key], offset = plots.pool_curves(curves[key], c)
-                    evals[key] = _pool_evals(evals[key], run.evals.get(key), offset)
-                    phase[key] = _pool_arrays(phase[key], run.phase.get(key))
+                    theirs = run.evals.get(key)  # its seed ids shifted as its curves' were
+                    theirs = theirs and dict(theirs, seeds=theirs["seeds"] + offset)
+                    evals[key] = plots.pool_seed_arrays(evals[key], theirs)
+                    phase[key] = plots.pool_seed_arrays(phase[key], run.phase.get(key))
                     bases[key].append(base)
                 else:  # a unit run again on the same seeds, or at another budget: the first directory found wins
                     dropped.append(f"{key} in {run.path}")
@@ -243,17 +245,6 @@ def load(roots: Sequence[pathlib.Path], arms: Sequence[str] | None = None) -> li
         tasks.append(TaskData(name, runs, curves, evals, phase, budget, stated, complete,
                               {k: b for k, b in bases.items() if len(b) > 1}, dropped))
     return tasks
-
-
-def _pool_arrays(a: dict | None, b: dict | None) -> dict | None:
-    """Per-seed arrays of two runs of one arm, concatenated name by name (None unless both have them)."""
-    if a is None or b is None:
-        return None
-    return {n: np.concatenate([a[n], b[n]]) for n in a if n in b}
-
-
-def _pool_evals(a: dict | None, b: dict | None, offset: int) -> dict | None:
-    return plots.pool_evals(a, None if b is None else dict(b, seeds=b["seeds"] + offset))
 
 
 # ---------------------------------------------------------------------------------------------------
