@@ -68,7 +68,12 @@
 #            compare suite (Brax PPO, model-free, Mb-Mf, paper-CD) in a process per setting. On 2026-11-27 (one H100,
 #            16 cores; benchmarks/results/2026-11-27-h100-gemm-tilings/) the sweep compiled in 57.2 s against 79.7 s
 #            and Mb-Mf and paper-CD ran the same time per update; model-free, Brax PPO and the pixel update were not
-#            timed: whether the option costs any case at run time.
+#            timed: whether the option costs any case at run time. A second lease the same day (another H100 host,
+#            benchmarks/results/2026-11-27-h100-tilings-learning/): 79.6 against 92.5 s, the pixel update 164.0
+#            against 162.6 ms, the compare suite at the default as on other hosts; its last part (the compare suite at
+#            XLA's own search) was stopped to leave the lease to `learn`.
+#   learn    the learning benchmark alone (parallel's last part, about 10 minutes): cdjax's model-free arm at its defaults,
+#            5 seeds, ant, halfcheetah and reacher side by side on the one GPU; the rows to set beside Brax PPO's.
 #   parallel XLA's LLVM module compilation in parallel (about 11 minutes): the 4-arm ant sweep cold at cdjax's defaults,
 #            then with XLA_FLAGS=--xla_gpu_enable_llvm_module_compilation_parallelism=true (XLA splits each program's
 #            LLVM module and compiles the parts in threads; off by default), then with it and
@@ -349,7 +354,13 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    learn)
+      for t in ant halfcheetah reacher; do
+        echo "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 600 python -m benchmarks.learning --tasks $t" \
+          "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
+      done
+      echo "wait; tail -n 2 $work/learn-*.log" ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
