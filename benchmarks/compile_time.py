@@ -7,14 +7,16 @@ there, checkpointed, through its `after_chunk`), then the same sweep into DIR/2,
 from the call of `run_sweep` to that moment: planning, building, tracing, compiling, initialising and restoring.
 With an empty --cache-dir (JAX's persistent compilation cache) the first is a cold start; the second shows what
 this process's own cache of trainers and compiled programs saves. The runner's own line ("setup .. s, compile .. s")
-is printed too, each program's lowering (serial, in the calling thread) and compiling (in parallel threads) seconds,
+is printed too, each program's lowering (serial, in the calling thread) and compiling (in parallel threads) seconds
+and when each ended (seconds after the call: the critical path is the last lowering's end plus its compile),
 and the host's steps around them (planning, building the trainers, the memory checks before and after compiling).
 Results: DIR/compile_time.json.
 
     python -m benchmarks.compile_time --lower-only --out DIR -- --env ant --arms model-free mbmf cd-k5 cd --num-envs 16
 
 traces and lowers every program of the sweep without compiling any (so it runs on a CPU in a minute, and the
-device does not matter) and prints, per program, its lowering seconds and the size of its StableHLO: operations
+device does not matter) and prints, per program, its lowering seconds, when it was lowered (seconds after the
+sweep was called) and the size of its StableHLO: operations
 in all and the most frequent ones. What a program holds is a proxy for its compile time on any backend; compare
 variants of a config (e.g. `--cc-epochs 0`) to see what a feature adds. Results: DIR/lowered.json.
 
@@ -70,7 +72,10 @@ def main(argv=None) -> list[dict]:
             run_sweep(spec, after_chunk=stop)
         except Interrupted:
             pass
-        programs = [dict(r, s=round(r["s"], 2)) for r in arms.COMPILE_TIMES if r["step"] != "host"]
+        # "end": when the step ended, in seconds after run_sweep was called (the critical path: the last program's
+        # lowering ends, then its compile)
+        programs = [dict(r, s=round(r["s"], 2), end=round(r["end"] - t0, 2)) for r in arms.COMPILE_TIMES
+                    if r["step"] != "host"]
         host = {r["what"]: round(r["s"], 2) for r in arms.COMPILE_TIMES if r["step"] == "host"}
         # the compile time depends on the host's cores (XLA:GPU compiles each program on many threads): say them
         cores, workers = arms.usable_cores(), arms.compile_workers()
@@ -80,8 +85,9 @@ def main(argv=None) -> list[dict]:
         print(f"sweep {i}: training would start {started['s']:.1f} s after run_sweep was called ({cores} CPU cores, "
               f"{workers} compiling threads); on the host before and after compiling: "
               + ", ".join(f"{k} {v:.1f} s" for k, v in host.items()), flush=True)
-        for r in sorted(programs, key=lambda r: -r["s"]):
-            print(f"  {r['arm']:>12} {r['what']:<6} {r['step']:<8} {r['s']:7.2f} s", flush=True)
+        for r in sorted(programs, key=lambda r: r["end"]):
+            print(f"  {r['arm']:>12} {r['what']:<6} {r['step']:<8} {r['s']:7.2f} s, ended at {r['end']:6.1f} s",
+                  flush=True)
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     (pathlib.Path(args.out) / "compile_time.json").write_text(json.dumps(rows, indent=1))
     return rows
@@ -125,6 +131,7 @@ def lower_only(sweep_args: list[str], out: pathlib.Path) -> list[dict]:
     spec, sweep_argv = _spec(sweep_args, out / "lowered-run")
     arms.COMPILE_TIMES.clear()
     jax.stages.Lowered.compile = record
+    t0 = time.perf_counter()
     try:
         run_sweep(spec)
     except _Lowered:
@@ -132,10 +139,12 @@ def lower_only(sweep_args: list[str], out: pathlib.Path) -> list[dict]:
     finally:
         jax.stages.Lowered.compile = compile_
     lowered = [r for r in arms.COMPILE_TIMES if r["step"] == "lower"]
-    rows = [{"arm": r["arm"], "what": r["what"], "lower_s": round(r["s"], 2), **size} for r, size in zip(lowered, sizes)]
+    rows = [{"arm": r["arm"], "what": r["what"], "lower_s": round(r["s"], 2), "lowered_at": round(r["end"] - t0, 2),
+             **size} for r, size in zip(lowered, sizes)]
     for r in rows:
         top = ", ".join(f"{k.split('.')[-1]} {v}" for k, v in r["top"].items())
-        print(f"{r['arm']:>12} {r['what']:<6} lowered in {r['lower_s']:5.1f} s: {r['ops']:7,d} ops ({top})", flush=True)
+        print(f"{r['arm']:>12} {r['what']:<6} lowered in {r['lower_s']:5.1f} s (at {r['lowered_at']:5.1f} s): "
+              f"{r['ops']:7,d} ops ({top})", flush=True)
     out.mkdir(parents=True, exist_ok=True)
     (out / "lowered.json").write_text(json.dumps({"command": "cdjax " + " ".join(sweep_argv), "programs": rows},
                                                  indent=1))

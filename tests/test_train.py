@@ -193,3 +193,29 @@ def test_rollout_values_are_values_of_obs_and_next_obs(reset_mode):
     np.testing.assert_array_equal(lean.truncated, traj.truncated)
     np.testing.assert_allclose(lean.next_value, np.where(traj.truncated, value(traj.next_obs), 0.0), rtol=1e-6,
                                atol=1e-6)
+
+
+def test_the_arms_of_one_env_trace_its_physics_once(monkeypatch):
+    """Agents of one env (the arms of a sweep) act in one env object through one jitted batched step
+    (`envs.physics`): a second agent's rollout, here one with other options and under vmap over runs, reuses the
+    first one's trace of the physics instead of tracing the env's step again (on an MJX task thousands of
+    operations each time). Lowering only: nothing compiles."""
+    from cdjax import envs
+    from cdjax.envs.point import PointMass
+
+    traced = []
+    step = PointMass.step
+    monkeypatch.setattr(PointMass, "step", lambda self, state, action: traced.append(1) or step(self, state, action))
+    monkeypatch.setattr(envs, "_SHARED_ENVS", {})  # a fresh point env, made with the counting step
+    monkeypatch.setattr(envs, "_PHYSICS", {})
+    first, second = make_agent(POINT), make_agent(POINT.replace(horizon=3, num_epochs=1))
+    assert first.env.env is second.env.env
+    state = jax.eval_shape(first.env.reset, jax.random.key(0))
+    action = jnp.zeros((POINT.num_envs, first.env.action_size))
+    jax.jit(first.env.step).lower(state, action)
+    assert len(traced) == 1
+    jax.jit(jax.vmap(lambda s, a: second.env.step(s, a)[1].reward)).lower(
+        jax.tree.map(lambda x: jnp.zeros((2,) + x.shape, x.dtype), state), jnp.stack([action] * 2))
+    assert len(traced) == 1  # the second agent's env, under vmap over 2 runs: the same trace, batched
+    jax.jit(lambda s, a: envs.BatchedEnv(PointMass(), POINT.num_envs, 10).step(s, a)).lower(state, action)
+    assert len(traced) == 2  # another env object traces its own

@@ -130,6 +130,21 @@ def _all_finite(tree, batch: int) -> jax.Array:
     return ok
 
 
+_PHYSICS: dict[int, tuple[Any, Callable, Callable]] = {}
+
+
+def physics(env) -> tuple[Callable, Callable]:
+    """env's batched reset (keys [B] -> State [B]) and step ((State [B], actions [B, act]) -> State [B]), each one
+    `jax.jit` function per env object in this process (strong-typed). Every program that calls them, in any arm,
+    chunk or evaluation, then traces and batches the env's physics once: JAX keeps a jitted function's trace (and
+    its vmapped trace) for the same input shapes, where a plain call is traced anew in every program (an MJX step
+    is thousands of operations). XLA inlines the calls, so the compiled programs are the same."""
+    if id(env) not in _PHYSICS:  # the env is held in the entry, so its id stays its own while the entry lives
+        _PHYSICS[id(env)] = (env, jax.jit(lambda keys: strong_types(jax.vmap(env.reset)(keys))),
+                             jax.jit(lambda core, action: strong_types(jax.vmap(env.step)(core, action))))
+    return _PHYSICS[id(env)][1:]
+
+
 class BatchedEnv:
     """`num_envs` auto-resetting copies of a single env. Not a pytree: close over it."""
 
@@ -143,6 +158,7 @@ class BatchedEnv:
         self.stagger = stagger  # reset() starts each env at its own random point of the time limit
         self.observation_size = observation_size if observation_size is not None else traced_observation_size(env)
         self.action_size = int(env.action_size)
+        self._reset_many, self._step_many = physics(env)
 
     def max_timeouts(self, steps: int) -> int:
         """The most time-outs one env can have in `steps` agent steps: each needs a whole episode of agent
@@ -151,7 +167,7 @@ class BatchedEnv:
         return -(-steps // max(agent_steps, 1))
 
     def _reset_core(self, key):
-        return strong_types(jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs)))
+        return self._reset_many(jax.random.split(key, self.num_envs))
 
     def reset(self, key: jax.Array) -> EnvState:
         """Every env at the start of an episode; with `stagger`, env i's clock starts at a uniform random agent
@@ -178,7 +194,7 @@ class BatchedEnv:
         reward = jnp.zeros((B,), jnp.float32)
         done = jnp.zeros((B,), bool)
         for _ in range(self.action_repeat):
-            core = strong_types(jax.vmap(self.env.step)(core, action))
+            core = self._step_many(core, action)
             reward = reward + jnp.where(done, 0.0, core.reward.astype(jnp.float32))
             done = done | (core.done > 0.5)
         next_obs = core.obs.astype(jnp.float32)
@@ -230,11 +246,22 @@ def observation_size(name: str, env) -> int:
     return _OBSERVATION_SIZES[name]
 
 
+_SHARED_ENVS: dict[str, Any] = {}
+
+
+def shared_env(name: str):
+    """make_single_env(name), made once per name in this process: the arms of a sweep, their phases and evaluations
+    act in one env object, so they share its jitted physics (`physics`)."""
+    if name not in _SHARED_ENVS:
+        _SHARED_ENVS[name] = make_single_env(name)
+    return _SHARED_ENVS[name]
+
+
 def batched(name: str, num_envs: int, episode_length: int, action_repeat: int = 1, reset_mode: str = "cached",
             stagger: bool = False) -> BatchedEnv:
     """`num_envs` auto-resetting copies of make_single_env(name) (BatchedEnv; the observation size traced once
     per name in this process)."""
-    env = make_single_env(name)
+    env = shared_env(name)
     return BatchedEnv(env, num_envs, episode_length, action_repeat, reset_mode, stagger,
                       observation_size(name, env))
 

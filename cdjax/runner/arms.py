@@ -30,9 +30,9 @@ EVAL_TAG = 0x0E7A1  # folded into each run's training key to get its evaluation 
 _BUILT: dict = {}
 _COMPILED: dict = {}
 # Where compile time goes: a row per program this process lowered or compiled ({"arm", "what", "step": "lower" or
-# "compile", "s"}; lowering runs in the calling thread, compiling in compile_all's threads, so the compile rows
-# overlap in time), and a row per host-side step before training ("step": "host", "arm": "all": planning, building
-# the trainers, the memory checks). Read by benchmarks.compile_time; cleared by whoever reads it.
+# "compile", "s", "end": time.perf_counter() when it ended}; lowering runs in the calling thread, compiling in
+# compile_all's threads, so the compile rows overlap in time), and a row per host-side step before training
+# ("step": "host", "arm": "all": planning, building the trainers, the memory checks). Read by benchmarks.compile_time; cleared by whoever reads it.
 COMPILE_TIMES: list[dict] = []
 
 
@@ -43,7 +43,8 @@ def host_time(what: str):
     try:
         yield
     finally:
-        COMPILE_TIMES.append({"arm": "all", "what": what, "step": "host", "s": time.perf_counter() - t0})
+        COMPILE_TIMES.append({"arm": "all", "what": what, "step": "host", "s": time.perf_counter() - t0,
+                              "end": time.perf_counter()})
 
 
 @dataclasses.dataclass
@@ -190,7 +191,8 @@ def _lowered(arm: Arm, what: str, lower: Callable, *args, owner=None):
     if key not in _COMPILED:
         t0 = time.perf_counter()
         _COMPILED[key] = (owner, lower(*args))  # the owner held: its id stays its own while the entry lives
-        COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "lower", "s": time.perf_counter() - t0})
+        COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "lower", "s": time.perf_counter() - t0,
+                              "end": time.perf_counter()})
     return _COMPILED[key][1]
 
 
@@ -210,7 +212,8 @@ def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None, owner=None
         t0 = time.perf_counter()
         program = lowered.compile(options)
         _COMPILED[key] = (owner, program)
-        COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "compile", "s": time.perf_counter() - t0})
+        COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "compile", "s": time.perf_counter() - t0,
+                              "end": time.perf_counter()})
         return program
 
     return compile_() if pool is None else pool.submit(compile_)
@@ -285,7 +288,11 @@ def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
 
     Each program is handed to a compiling thread as soon as it is traced, so the tracing of one (Python) overlaps
     the compilation of the others (XLA, without the GIL); the arms with the largest states (the largest programs,
-    in practice) first. Programs this process compiled before are taken from its cache.
+    in practice) first. An arm's init goes before its chunk: its compile fills cores that the serial lowering of
+    the chunks leaves idle (with the chunks first and the inits after them, 2026-11-27 on one H100 of 16 cores, the
+    inits compiled beside the chunks and slowed them: 371 against 237 thread-seconds of compiling,
+    benchmarks/results/2026-11-27-h100-shared-physics/). Programs this process compiled before are taken from its
+    cache.
     """
     order = sorted(arms, key=lambda a: -getattr(a, "state_bytes", 0))
     with concurrent.futures.ThreadPoolExecutor(compile_workers()) as pool:

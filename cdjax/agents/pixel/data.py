@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from cdjax.envs import Step, make_single_env, pixels, strong_types
+from cdjax.envs import Step, physics as batched_physics, pixels, shared_env
 
 
 @struct.dataclass
@@ -45,7 +45,8 @@ class PixelWorld:
     def __init__(self, config, expert_act: Callable[[jax.Array, jax.Array | None], jax.Array], action_repeat: int = 1):
         """action_repeat: physics steps per agent step (the expert's, e.g. 4 for Brax's reacher settings)."""
         self.config, self.action_repeat = config, action_repeat
-        self.env = make_single_env(config.env)
+        self.env = shared_env(config.env)
+        self._reset_many, self._step_many = batched_physics(self.env)  # traced once per process (envs.physics)
         self.renderer = pixels.make_renderer(self.env.sys.mj_model, pixels.camera_for(config.env), config.image_size)
         self.expert_act = expert_act
         self.action_size = int(self.env.action_size)
@@ -56,17 +57,17 @@ class PixelWorld:
 
     def reset(self, key: jax.Array, n: int):
         """n fresh episodes: the task's batched state (with .obs, .reward, .done)."""
-        return strong_types(jax.vmap(self.env.reset)(jax.random.split(key, n)))
+        return self._reset_many(jax.random.split(key, n))
 
     def step(self, core, action: jax.Array):
         """One agent step: the action held for `action_repeat` physics steps; .reward is their sum."""
         def physics(carry, _):
             core, reward = carry
-            core = strong_types(jax.vmap(self.env.step)(core, action))
+            core = self._step_many(core, action)
             return (core, reward + core.reward.astype(jnp.float32)), None
 
         if self.action_repeat == 1:
-            return strong_types(jax.vmap(self.env.step)(core, action))
+            return self._step_many(core, action)
         zeros = jnp.zeros(action.shape[:1], jnp.float32)
         (core, reward), _ = jax.lax.scan(physics, (core, zeros), None, length=self.action_repeat)  # one compiled step
         return core.replace(reward=reward)
