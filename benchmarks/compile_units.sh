@@ -72,6 +72,11 @@
 #            benchmarks/results/2026-11-27-h100-tilings-learning/): 79.6 against 92.5 s, the pixel update 164.0
 #            against 162.6 ms, the compare suite at the default as on other hosts; its last part (the compare suite at
 #            XLA's own search) was stopped to leave the lease to `learn`.
+#   timers   where XLA:GPU's compile time goes (about 3 minutes): the cold 4-arm ant sweep at cdjax's defaults with
+#            XLA's own timers logged (TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1,compile_module_to_llvm_ir=1; the
+#            timer lines kept as timers.log.gz), summed per timer and kind of module by benchmarks.xla_timers (timers.md,
+#            timers.json). On 2026-11-27 at XLA's own tilings (16 cores, benchmarks/results/2026-11-27-h100x4-compile-cores/)
+#            the autotuner's Triton GEMM candidates took the largest share; this shows what is left at the defaults.
 #   learn    the learning benchmark alone (parallel's last part, about 10 minutes): cdjax's model-free arm at its defaults,
 #            5 seeds, ant, halfcheetah and reacher side by side on the one GPU; the rows to set beside Brax PPO's.
 #   parallel XLA's LLVM module compilation in parallel (about 11 minutes): the 4-arm ant sweep cold at cdjax's defaults,
@@ -354,13 +359,20 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
+    timers)
+      local vm="TF_CPP_MIN_LOG_LEVEL=0 TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1,compile_module_to_llvm_ir=1"
+      echo "$vm timeout -k 20 240 python -m benchmarks.compile_time --out $work/timers --cache-dir $work/cache-timers" \
+        "-- $sweep > $work/vlog.txt 2>&1;" \
+        "grep -E ' time: |sweep [12]:|compile [0-9.]+ s|ended at' $work/vlog.txt | gzip > $work/timers.log.gz;" \
+        "rm -f $work/vlog.txt; python -m benchmarks.xla_timers $work/timers.log.gz --top 16 --json $work/timers.json" \
+        "> $work/timers.md; zcat $work/timers.log.gz | grep -E 'sweep 1:|compile [0-9.]+ s'; cat $work/timers.md" ;;
     learn)
       for t in ant halfcheetah reacher; do
         echo "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 600 python -m benchmarks.learning --tasks $t" \
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, timers, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
@@ -371,7 +383,7 @@ ensure_wheels || exit 1
 unit_run "$work" "$cmd" "$wait_s" "$t0" "bash benchmarks/compile_units.sh $unit" || exit 0
 echo "DONE: unit $unit, exit status $(cat "$work/exit_code"), $(( $(date +%s) - $(cat "$work/started") )) s since it started"
 archive=$(cd "$out" && pwd)/$unit.tar.gz
-(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name 'results.*' -o -name 'pixel-*' -o -name '*.log' -o -name hlo.tar.gz -o -name rows.jsonl -o -name meta.json \
+(cd "$work" && find . -name compile_time.json -o -name lowered.json -o -name 'results.*' -o -name 'pixel-*' -o -name '*.log' -o -name '*.log.gz' -o -name 'timers.*' -o -name hlo.tar.gz -o -name rows.jsonl -o -name meta.json \
   | grep -v '/checkpoints/' \
   | tar -czf "$archive" -T -)
 cp "$work/unit.log" "$out/$unit.log"

@@ -540,3 +540,42 @@ def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypa
     assert runtime.compile_mode() == "fast"
     cli._configure(flags("default"))
     assert runtime.compile_mode() == "default"
+
+
+def test_xla_timers_sum_each_timer_over_modules_of_one_kind(tmp_path, capsys):
+    """benchmarks.xla_timers: seconds summed per (timer, module kind), a kind being the module's name without its
+    numeric suffixes; lines that are not timers ignored; a gzipped log read alike; no timer lines -> exit 2."""
+    import gzip
+
+    from benchmarks import xla_timers
+
+    log = [
+        "I1127 02:11:13.284036  440 gpu_compiler.cc:2345] GpuCompiler::RunHloPasses for jit_chunk time: 39.6 s "
+        "(39600000 us) (cumulative: 39.6 s, max: 39.6 s, #called: 1)",
+        "I1127 02:11:14.1  441 gpu_compiler.cc:2345] GpuCompiler::RunHloPasses for jit_chunk time: 0.4 s (400000 us)",
+        "I1127 02:11:15.2  442 compile_module_to_llvm_ir.cc:263] GpuCompiler::RunBackend - IR emission for "
+        "gemm_fusion_dot.123 time: 250 ms (250000 us) (cumulative: 250 ms)",
+        "I1127 02:11:15.3  443 compile_module_to_llvm_ir.cc:263] GpuCompiler::RunBackend - IR emission for "
+        "gemm_fusion_dot.7.1 time: 1.25 s (1250000 us)",
+        "I1127 02:11:15.4  444 nvptx_compiler.cc:1] NVPTXCompiler::CompileTargetBinary - PtxToCubin for jit_init_from "
+        "time: 3 ms (3000 us)",
+        "sweep 1: training would start 109.2 s after run_sweep was called (16 CPU cores, 8 compiling threads)",
+    ]
+    rows = xla_timers.parse(log)
+    assert rows == [
+        {"timer": "GpuCompiler::RunHloPasses", "kind": "jit_chunk", "count": 2, "s": 40.0},
+        {"timer": "GpuCompiler::RunBackend - IR emission", "kind": "gemm_fusion_dot", "count": 2, "s": 1.5},
+        {"timer": "NVPTXCompiler::CompileTargetBinary - PtxToCubin", "kind": "jit_init_from", "count": 1, "s": 0.003},
+    ]
+    path = tmp_path / "timers.log.gz"
+    with gzip.open(path, "wt") as f:
+        f.write("\n".join(log) + "\n")
+    assert xla_timers.main([str(path), "--top", "1", "--json", str(tmp_path / "t.json")]) == rows
+    printed = capsys.readouterr().out
+    assert "| GpuCompiler::RunHloPasses | `jit_chunk` | 2 | 40.0 |" in printed
+    assert "| 2 more | | 3 | 1.5 |" in printed
+    assert json.loads((tmp_path / "t.json").read_text()) == rows
+    (tmp_path / "plain.log").write_text(log[-1] + "\n")
+    with pytest.raises(SystemExit) as e:
+        xla_timers.main([str(tmp_path / "plain.log")])
+    assert e.value.code == 2
