@@ -32,7 +32,8 @@ _COMPILED: dict = {}
 # Where compile time goes: a row per program this process lowered or compiled ({"arm", "what", "step": "lower" or
 # "compile", "s", "end": time.perf_counter() when it ended}; lowering runs in the calling thread, compiling in
 # compile_all's threads, so the compile rows overlap in time), and a row per host-side step before training
-# ("step": "host", "arm": "all": planning, building the trainers, the memory checks). Read by benchmarks.compile_time; cleared by whoever reads it.
+# ("step": "host", "arm": "all": planning, building the trainers, the memory checks). Read by
+# benchmarks.compile_time; cleared by whoever reads it.
 COMPILE_TIMES: list[dict] = []
 
 
