@@ -20,6 +20,9 @@ sweep was called) and the size of its StableHLO: operations
 in all and the most frequent ones. What a program holds is a proxy for its compile time on any backend; compare
 variants of a config (e.g. `--cc-epochs 0`) to see what a feature adds. Results: DIR/lowered.json.
 
+`--first-chunk-alone` holds the other arms' chunks back until the first arm's chunk is compiled: with it and without
+(each cold) it shows whether the chunks, compiling side by side, each autotune the kernels they share.
+
 `CDJAX_COMPILE_WORKERS=N` (read by the runner) sets how many threads compile the programs at once (default: half
 the CPU cores); 1 compiles them one after the other, which shows each program's compile time alone.
 """
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import pathlib
 import re
@@ -48,10 +52,21 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--cache-dir", help="JAX's persistent compilation cache (an empty directory: a cold start)")
     p.add_argument("--lower-only", action="store_true",
                    help="lower every program without compiling it and print what each holds (any device)")
+    p.add_argument("--first-chunk-alone", action="store_true",
+                   help="the other arms' chunk programs start compiling only once the first arm's chunk is compiled "
+                        "(an experiment: whether the chunks, compiling side by side, autotune the kernels they share "
+                        "each anew; XLA keeps the autotuner's results for the rest of the process)")
     args = p.parse_args(own)
     if args.lower_only:
         return lower_only(sweep_args, pathlib.Path(args.out))
+    if args.first_chunk_alone:
+        with first_chunk_alone():
+            return measure(args, sweep_args)
+    return measure(args, sweep_args)
 
+
+def measure(args, sweep_args: list[str]) -> list[dict]:
+    """The sweep run twice in this process up to its training; the rows of compile_time.json."""
     from cdjax import runtime
     from cdjax.runner import Interrupted, arms, run_sweep
 
@@ -81,6 +96,7 @@ def main(argv=None) -> list[dict]:
         cores, workers = arms.usable_cores(), arms.compile_workers()
         rows.append({"sweep": i, "seconds_to_training": round(started["s"], 2),
                      "command": "cdjax " + " ".join(sweep_argv), "cores": cores, "compile_workers": workers,
+                     "first_chunk_alone": bool(args.first_chunk_alone),
                      "host": host, "programs": programs})
         print(f"sweep {i}: training would start {started['s']:.1f} s after run_sweep was called ({cores} CPU cores, "
               f"{workers} compiling threads); on the host before and after compiling: "
@@ -91,6 +107,35 @@ def main(argv=None) -> list[dict]:
     pathlib.Path(args.out).mkdir(parents=True, exist_ok=True)
     (pathlib.Path(args.out) / "compile_time.json").write_text(json.dumps(rows, indent=1))
     return rows
+
+
+@contextlib.contextmanager
+def first_chunk_alone():
+    """The runner's compiling (cdjax.runner.arms._compiled) with every chunk after the first arm's compiling only
+    once that one is compiled (its job waits in its compiling thread); the inits and resets as always."""
+    from cdjax.runner import arms
+
+    original, first = arms._compiled, []
+
+    def compiled(arm, what, lower, *args, pool=None, owner=None):
+        if pool is None or what != "chunk":
+            return original(arm, what, lower, *args, pool=pool, owner=owner)
+        if not first:
+            first.append(original(arm, what, lower, *args, pool=pool, owner=owner))
+            return first[0]
+        gate = first[0]
+
+        class AfterFirst:
+            def submit(self, fn):
+                return pool.submit(lambda: (gate.result() if hasattr(gate, "result") else None, fn())[1])
+
+        return original(arm, what, lower, *args, pool=AfterFirst(), owner=owner)
+
+    arms._compiled = compiled
+    try:
+        yield
+    finally:
+        arms._compiled = original
 
 
 def _spec(sweep_args: list[str], out: pathlib.Path):

@@ -77,6 +77,11 @@
 #            timer lines kept as timers.log.gz), summed per timer and kind of module by benchmarks.xla_timers (timers.md,
 #            timers.json). On 2026-11-27 at XLA's own tilings (16 cores, benchmarks/results/2026-11-27-h100x4-compile-cores/)
 #            the autotuner's Triton GEMM candidates took the largest share; this shows what is left at the defaults.
+#   sched    whether the chunks, compiling side by side, each autotune the kernels they share (about 7 minutes): the
+#            cold 4-arm ant sweep at cdjax's defaults and with `benchmarks.compile_time --first-chunk-alone` (the other
+#            chunks start compiling once the first is compiled, so XLA's in-process autotuning results can serve
+#            them), twice each, alternating. If the second is faster, sharing the autotuning is the lever for the
+#            60 s target on 16 cores.
 #   learn    the learning benchmark alone (parallel's last part, about 10 minutes): cdjax's model-free arm at its defaults,
 #            5 seeds, ant, halfcheetah and reacher side by side on the one GPU; the rows to set beside Brax PPO's.
 #   parallel XLA's LLVM module compilation in parallel (about 11 minutes): the 4-arm ant sweep cold at cdjax's defaults,
@@ -359,6 +364,16 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
+    sched)
+      local line="" i v
+      for i in 1 2; do
+        for v in default first-alone; do
+          local opt=""; [ $v = first-alone ] && opt="--first-chunk-alone"
+          line+="timeout -k 20 200 python -m benchmarks.compile_time $opt --out $work/$v$i --cache-dir $work/cache-$v$i"
+          line+=" -- $sweep > $work/$v$i.log 2>&1; "
+        done
+      done
+      echo "$line grep -H -E 'sweep 1:|compile [0-9.]+ s' $work/*.log" ;;
     timers)
       local vm="TF_CPP_MIN_LOG_LEVEL=0 TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1,compile_module_to_llvm_ir=1"
       echo "$vm timeout -k 20 240 python -m benchmarks.compile_time --out $work/timers --cache-dir $work/cache-timers" \
@@ -372,7 +387,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, timers, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

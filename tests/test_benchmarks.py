@@ -410,11 +410,62 @@ def test_compile_time_names_each_program_and_the_second_sweep_compiles_nothing(t
         for what in ("init", "chunk"):
             assert {(arm, what, "lower"), (arm, what, "compile")} <= done, done
     assert all(r["s"] >= 0 for r in first["programs"])
+    ends = {(r["arm"], r["what"], r["step"]): r["end"] for r in first["programs"]}
+    for arm, what, step in done:  # seconds after the call: a program compiles after its lowering ended
+        assert 0 <= ends[arm, what, step] - next(r["s"] for r in first["programs"]
+                                                 if (r["arm"], r["what"], r["step"]) == (arm, what, step))
+        if step == "compile":
+            assert ends[arm, what, "compile"] >= ends[arm, what, "lower"]
+    assert max(ends.values()) <= first["seconds_to_training"]
     assert second["programs"] == [] and second["seconds_to_training"] < first["seconds_to_training"]
     for sweep in rows:  # the host's steps around the compiling, each timed once per sweep
         assert list(sweep["host"]) == ["plan", "build", "memory", "programs"] and min(sweep["host"].values()) >= 0
         assert sweep["cores"] == arms.usable_cores() and sweep["compile_workers"] == arms.compile_workers()
     assert json.loads((tmp_path / "compile_time.json").read_text()) == rows
+
+
+def test_compile_time_first_chunk_alone_holds_the_other_chunks_back(monkeypatch):
+    """benchmarks.compile_time --first-chunk-alone (`first_chunk_alone`): while the first chunk compiles, an init
+    compiles beside it and the next chunk waits; it compiles once the first is done; the runner's own compiling is
+    put back afterwards. Fake programs whose compile the test holds open."""
+    import concurrent.futures
+    import threading
+    import time
+    import types
+
+    from benchmarks import compile_time
+    from cdjax.runner import arms
+
+    monkeypatch.setattr(arms, "_COMPILED", {})
+    monkeypatch.setattr(arms, "COMPILE_TIMES", [])
+    release, started = threading.Event(), []
+
+    class Lowered:
+        def __init__(self, name):
+            self.name = name
+
+        def compile(self, options=None):
+            started.append(self.name)
+            if self.name == "first":
+                assert release.wait(30)
+            return self.name
+
+    def waited(name, seconds):
+        for _ in range(int(seconds / 0.01)):
+            if name in started:
+                return True
+            time.sleep(0.01)
+        return False
+
+    compiled = arms._compiled
+    with concurrent.futures.ThreadPoolExecutor(4) as pool, compile_time.first_chunk_alone():
+        jobs = [arms._compiled(types.SimpleNamespace(name=name, sweep=object()), what, lambda n=name: Lowered(n),
+                               pool=pool) for name, what in (("first", "chunk"), ("init", "init"), ("second", "chunk"))]
+        assert waited("first", 10) and waited("init", 10)
+        assert not waited("second", 1)  # 4 threads, one free: only the gate holds it
+        release.set()
+        assert [job.result() for job in jobs] == ["first", "init", "second"]
+    assert started.index("second") > started.index("first") and arms._compiled is compiled
 
 
 def test_compile_time_lower_only_sizes_every_program_and_compiles_none(tmp_path, monkeypatch):
@@ -432,6 +483,7 @@ def test_compile_time_lower_only_sizes_every_program_and_compiles_none(tmp_path,
     compile_ = jax.stages.Lowered.compile
     rows = compile_time.main(["--lower-only", "--out", str(tmp_path), "--", *OBS, "--steps", OBS_STEPS])
     assert jax.stages.Lowered.compile is compile_
+    assert [r["lowered_at"] for r in rows] == sorted(r["lowered_at"] for r in rows)  # one after another
     assert [(r["arm"], r["what"]) for r in rows] == [("cd", "reset"), ("cd", "init"), ("cd", "chunk")]
     assert not [r for r in arms.COMPILE_TIMES if r["step"] == "compile"]
     reset, init, chunk = rows
