@@ -251,7 +251,8 @@ _SHARED_ENVS: dict[str, Any] = {}
 
 def shared_env(name: str):
     """make_single_env(name), made once per name in this process: the arms of a sweep, their phases and evaluations
-    act in one env object, so they share its jitted physics (`physics`)."""
+    act in one env object, so they share its jitted physics (`physics`). The process keeps the object and its traced
+    physics: after changing an env's code in a running notebook, restart it (or clear `_SHARED_ENVS`)."""
     if name not in _SHARED_ENVS:
         _SHARED_ENVS[name] = make_single_env(name)
     return _SHARED_ENVS[name]
