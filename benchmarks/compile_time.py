@@ -17,7 +17,8 @@ Results: DIR/compile_time.json.
 traces and lowers every program of the sweep without compiling any (so it runs on a CPU in a minute, and the
 device does not matter) and prints, per program, its lowering seconds, when it was lowered (seconds after the
 sweep was called) and the size of its StableHLO: operations
-in all and the most frequent ones. What a program holds is a proxy for its compile time on any backend; compare
+in all and the most frequent ones, and its matrix products' distinct signatures (with how many of them repeat in
+another program of the sweep: each program's GEMMs are autotuned as it compiles). What a program holds is a proxy for its compile time on any backend; compare
 variants of a config (e.g. `--cc-epochs 0`) to see what a feature adds. Results: DIR/lowered.json.
 
 `--first-chunk-alone` holds the other arms' chunks back until the first arm's chunk is compiled: with it and without
@@ -154,10 +155,22 @@ class _Lowered(Exception):
 _OP = re.compile(r"= \"?((?:stablehlo|chlo|mhlo|sdy|func|call)\.[a-z_]+)")  # an operation's name, not an attribute
 
 
+# a matrix product's operand and result types: `stablehlo.dot_general %a, %b, ... : (tensor<..>, tensor<..>) -> tensor<..>`
+_DOT = re.compile(r"stablehlo\.dot_general[^\n]*?:\s*\((tensor<[^>]*>), (tensor<[^>]*>)\) -> (tensor<[^>]*>)")
+
+
+def dot_signatures(text: str) -> set[str]:
+    """The distinct operand and result types of a StableHLO text's matrix products (what XLA:GPU autotunes a GEMM
+    for, before fusion adds its epilogues)."""
+    return {" x ".join(m.groups()) for m in _DOT.finditer(text)}
+
+
 def program_size(text: str) -> dict:
-    """What a lowered program's StableHLO text holds: its characters, operations in all and the six most frequent."""
+    """What a lowered program's StableHLO text holds: its characters, operations in all, the six most frequent, and
+    its matrix products' distinct signatures (`dot_signatures`)."""
     ops = collections.Counter(_OP.findall(text))
-    return {"chars": len(text), "ops": sum(ops.values()), "top": dict(ops.most_common(6))}
+    return {"chars": len(text), "ops": sum(ops.values()), "top": dict(ops.most_common(6)),
+            "dot_signatures": sorted(dot_signatures(text))}
 
 
 def lower_only(sweep_args: list[str], out: pathlib.Path) -> list[dict]:
@@ -190,9 +203,13 @@ def lower_only(sweep_args: list[str], out: pathlib.Path) -> list[dict]:
         top = ", ".join(f"{k.split('.')[-1]} {v}" for k, v in r["top"].items())
         print(f"{r['arm']:>12} {r['what']:<6} lowered in {r['lower_s']:5.1f} s (at {r['lowered_at']:5.1f} s): "
               f"{r['ops']:7,d} ops ({top})", flush=True)
+    dots = [set(r["dot_signatures"]) for r in rows]
+    shared = {"summed": sum(len(d) for d in dots), "distinct": len(set().union(*dots))}
+    print(f"matrix product signatures: {shared['summed']} distinct per program, summed over the programs; "
+          f"{shared['distinct']} distinct across them (the rest repeat in another program)", flush=True)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "lowered.json").write_text(json.dumps({"command": "cdjax " + " ".join(sweep_argv), "programs": rows},
-                                                 indent=1))
+    (out / "lowered.json").write_text(json.dumps({"command": "cdjax " + " ".join(sweep_argv), "programs": rows,
+                                                  "dot_signatures": shared}, indent=1))
     return rows
 
 

@@ -488,7 +488,23 @@ def test_compile_time_lower_only_sizes_every_program_and_compiles_none(tmp_path,
     assert not [r for r in arms.COMPILE_TIMES if r["step"] == "compile"]
     reset, init, chunk = rows
     assert chunk["ops"] > reset["ops"] > 0 and init["ops"] > 0 and sum(chunk["top"].values()) <= chunk["ops"]
-    assert json.loads((tmp_path / "lowered.json").read_text())["programs"] == rows
+    written = json.loads((tmp_path / "lowered.json").read_text())
+    assert written["programs"] == rows and chunk["dot_signatures"]  # the networks' products
+    assert written["dot_signatures"] == {"summed": sum(len(r["dot_signatures"]) for r in rows),
+                                         "distinct": len({d for r in rows for d in r["dot_signatures"]})}
+
+
+def test_dot_signatures_are_the_distinct_operand_and_result_types_of_the_products():
+    import jax
+    import jax.numpy as jnp
+
+    from benchmarks.compile_time import dot_signatures
+
+    a, b, c = jnp.ones((4, 3)), jnp.ones((3, 5)), jnp.ones((2, 2))
+    text = jax.jit(lambda a, b, c: (a @ b, 2 * (a @ b) + 1, c @ c)).lower(a, b, c).as_text()
+    assert text.count("stablehlo.dot_general") == 3
+    assert dot_signatures(text) == {"tensor<4x3xf32> x tensor<3x5xf32> x tensor<4x5xf32>",
+                                    "tensor<2x2xf32> x tensor<2x2xf32> x tensor<2x2xf32>"}
 
 
 def test_compile_workers_reads_its_variable(monkeypatch):
