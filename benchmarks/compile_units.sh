@@ -81,7 +81,8 @@
 #            cold 4-arm ant sweep at cdjax's defaults and with `benchmarks.compile_time --first-chunk-alone` (the other
 #            chunks start compiling once the first is compiled, so XLA's in-process autotuning results can serve
 #            them), twice each, alternating. If the second is faster, sharing the autotuning is the lever for the
-#            60 s target on 16 cores.
+#            60 s target on 16 cores. The four chunks hold 237 distinct matrix product signatures summed, 94 across
+#            them (CPU, benchmarks/results/2026-11-27-cpu-dot-signatures/).
 #   learn    the learning benchmark alone (parallel's last part, about 10 minutes): cdjax's model-free arm at its defaults,
 #            5 seeds, ant, halfcheetah and reacher side by side on the one GPU; the rows to set beside Brax PPO's.
 #   parallel XLA's LLVM module compilation in parallel (about 11 minutes): the 4-arm ant sweep cold at cdjax's defaults,
