@@ -37,6 +37,12 @@ _COMPILED: dict = {}
 COMPILE_TIMES: list[dict] = []
 
 
+def _timed(arm: str, what: str, step: str, t0: float) -> None:
+    """A COMPILE_TIMES row for a step that began at time.perf_counter() t0 and ends now."""
+    end = time.perf_counter()
+    COMPILE_TIMES.append({"arm": arm, "what": what, "step": step, "s": end - t0, "end": end})
+
+
 @contextlib.contextmanager
 def host_time(what: str):
     """Time a host-side step of a sweep's start into COMPILE_TIMES."""
@@ -44,8 +50,7 @@ def host_time(what: str):
     try:
         yield
     finally:
-        COMPILE_TIMES.append({"arm": "all", "what": what, "step": "host", "s": time.perf_counter() - t0,
-                              "end": time.perf_counter()})
+        _timed("all", what, "host", t0)
 
 
 @dataclasses.dataclass
@@ -192,8 +197,7 @@ def _lowered(arm: Arm, what: str, lower: Callable, *args, owner=None):
     if key not in _COMPILED:
         t0 = time.perf_counter()
         _COMPILED[key] = (owner, lower(*args))  # the owner held: its id stays its own while the entry lives
-        COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "lower", "s": time.perf_counter() - t0,
-                              "end": time.perf_counter()})
+        _timed(arm.name, what, "lower", t0)
     return _COMPILED[key][1]
 
 
@@ -213,8 +217,7 @@ def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None, owner=None
         t0 = time.perf_counter()
         program = lowered.compile(options)
         _COMPILED[key] = (owner, program)
-        COMPILE_TIMES.append({"arm": arm.name, "what": what, "step": "compile", "s": time.perf_counter() - t0,
-                              "end": time.perf_counter()})
+        _timed(arm.name, what, "compile", t0)
         return program
 
     return compile_() if pool is None else pool.submit(compile_)
