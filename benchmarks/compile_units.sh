@@ -53,6 +53,10 @@
 #            model-free, Mb-Mf and paper-CD cases in a process per level, and once at XLA's default level 4. A level the
 #            image's XLA refuses is skipped, saying so. Whether the cold start can come near 60 s without the 1.05-1.19x
 #            steady-state cost of Triton's GEMMs off (`--compile-mode fast`).
+#   top1     the GEMM tilings' cost model keeping its single best Triton tiling (top=1) against cdjax's default
+#            (top=2): the 4-arm ant sweep cold twice each (ABBA), then the compare suite's model-free, Mb-Mf and
+#            paper-CD cases in a process each (about 13 minutes). Whether one candidate fewer per fusion buys compile
+#            time without run time.
 #   levels   cdjax's autotuner level (level 1 since `import cdjax` adds GPU_AUTOTUNE_FLAG, cdjax/runtime.py) against
 #            XLA's own (XLA_FLAGS=--xla_gpu_autotune_level=4) in one lease: the 4-arm ant sweep cold
 #            (an empty persistent cache each) with cdjax's defaults, with level 4, and in `--compile-mode fast`
@@ -375,6 +379,17 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         done
       done
       echo "$line grep -H -E 'sweep 1:|compile [0-9.]+ s' $work/*.log" ;;
+    top1)
+      local cases="--suite compare --cases model-free mbmf cd-paper --budget-s 170" one line=""
+      one="XLA_FLAGS=--xla_gpu_experimental_cost_model_gemm_tiling_options=top=1,top_from_default=1"
+      for v in top2a top1a top1b top2b; do
+        local env=""; [ "${v:0:4}" = top1 ] && env="$one"
+        line+="$env timeout -k 20 200 python -m benchmarks.compile_time --out $work/$v --cache-dir $work/cache-$v"
+        line+=" -- $sweep > $work/$v.log 2>&1; "
+      done
+      line+="timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-top2 > $work/compare-top2.log 2>&1; "
+      line+="$one timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-top1 > $work/compare-top1.log 2>&1; "
+      echo "$line grep -H -E 'sweep 1:|compile [0-9.]+ s' $work/top*.log; grep -H ' s/update' $work/compare-*.log" ;;
     timers)
       local vm="TF_CPP_MIN_LOG_LEVEL=0 TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1,compile_module_to_llvm_ir=1"
       echo "$vm timeout -k 20 240 python -m benchmarks.compile_time --out $work/timers --cache-dir $work/cache-timers" \
@@ -388,7 +403,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, top1, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
