@@ -23,7 +23,7 @@
 #            model-free, Mb-Mf, CD on the paper's schedule; ant, 4096 envs, the matched Spec) in one process with a
 #            profile of one update per cdjax case (--trace: what remains); then, in a process of its own so that
 #            the compare suite's budget cannot skip it, the seeds suite at 10 vmapped seeds of 256 envs for Mb-Mf and
-#            the paper's CD (the 10-seed ratio); then the 4-arm ant sweep compiled cold with XLA's defaults (the
+#            the paper's CD (the 10-seed ratio, profiled); then the 4-arm ant sweep compiled cold with XLA's defaults (the
 #            README's compile figure). Each part is stopped by `timeout` so the unit ends inside 840 s.
 #   hlo      what the largest kernels of the model arms compute and cost (about 8 minutes): the compare suite's Mb-Mf,
 #            Mb-Mf with `benchmarks.variants no-loss-metrics` (the losses' diagnostics dropped, gradients unchanged),
@@ -57,6 +57,9 @@
 #            (top=2): the 4-arm ant sweep cold twice each (ABBA), then the compare suite's model-free, Mb-Mf and
 #            paper-CD cases in a process each (about 13 minutes). Whether one candidate fewer per fusion buys compile
 #            time without run time.
+#   seeds    the seeds suite's part of `accept` alone (about 4 minutes): 10 vmapped seeds of 256 envs, Mb-Mf and the
+#            paper's CD, each with an op-level profile of one update of all ten seeds (--trace): what the 10-seed ratio
+#            is made of.
 #   levels   cdjax's autotuner level (level 1 since `import cdjax` adds GPU_AUTOTUNE_FLAG, cdjax/runtime.py) against
 #            XLA's own (XLA_FLAGS=--xla_gpu_autotune_level=4) in one lease: the 4-arm ant sweep cold
 #            (an empty persistent cache each) with cdjax's defaults, with level 4, and in `--compile-mode fast`
@@ -208,7 +211,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "timeout -k 20 360 python -m benchmarks.run --suite compare --cases brax-ppo model-free mbmf cd-paper" \
         "--budget-s 330 --trace $work/trace --out $work/compare > $work/compare.log 2>&1;" \
         "timeout -k 20 240 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
-        "--seed-envs 256 --budget-s 210 --out $work/seeds > $work/seeds.log 2>&1;" \
+        "--seed-envs 256 --budget-s 210 --trace $work/trace-seeds --out $work/seeds > $work/seeds.log 2>&1;" \
         "timeout -k 20 240 python -m benchmarks.compile_time --out $work/cold --cache-dir $work/cache-cold -- $sweep" \
         "> $work/cold.log 2>&1;" \
         "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/cold.log;" \
@@ -390,6 +393,10 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       line+="timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-top2 > $work/compare-top2.log 2>&1; "
       line+="$one timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-top1 > $work/compare-top1.log 2>&1; "
       echo "$line grep -H -E 'sweep 1:|compile [0-9.]+ s' $work/top*.log; grep -H ' s/update' $work/compare-*.log" ;;
+    seeds)
+      echo "timeout -k 20 280 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
+        "--seed-envs 256 --budget-s 250 --trace $work/trace --out $work/seeds > $work/seeds.log 2>&1;" \
+        "grep -E 'env steps/s|s/update' $work/seeds.log; grep -A 30 'Op-level' $work/seeds/results.md | head -80" ;;
     timers)
       local vm="TF_CPP_MIN_LOG_LEVEL=0 TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1,compile_module_to_llvm_ir=1"
       echo "$vm timeout -k 20 240 python -m benchmarks.compile_time --out $work/timers --cache-dir $work/cache-timers" \
@@ -403,7 +410,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, top1, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, top1, seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

@@ -337,6 +337,18 @@ def meta_lines(meta: dict) -> str:
     return s
 
 
+def profiles(rows: list[dict]) -> list[str]:
+    """The op-level profile of each traced row (`--trace`), headed by what was traced."""
+    out = []
+    for row in rows:
+        if row.get("profile_md"):
+            what = f"`{row['case']}` update" + (f" of {row['seeds']} vmapped seeds" if row.get("seeds") else "")
+            out.append(f"\nOp-level profile of one {what} (`--trace`, "
+                       f"`python -m benchmarks.profile_summary {row.get('trace_dir', 'DIR')}`):\n")
+            out.append(row["profile_md"].rstrip("\n"))
+    return out
+
+
 def markdown(results: dict) -> str:
     """All tables of the parts present; the targets table (short) comes last."""
     add_ratios(results)
@@ -361,11 +373,7 @@ def markdown(results: dict) -> str:
             out.append(compare_table(parts[part]))
             out.append("\nWhere the time of one update goes (seconds):\n")
             out.append(time_table(parts[part]))
-            for row in parts[part]:
-                if row.get("profile_md"):
-                    out.append(f"\nOp-level profile of one `{row['case']}` update (`--trace`, "
-                               f"`python -m benchmarks.profile_summary {row.get('trace_dir', 'DIR')}`):\n")
-                    out.append(row["profile_md"].rstrip("\n"))
+            out.extend(profiles(parts[part]))
         elif part == "seeds":
             seed_spec = meta.get("seed_spec", spec)
             out.append(f"Per seed: {seed_spec.get('num_envs')} envs, {seed_spec.get('rollout_len')} steps/env/update, "
@@ -373,6 +381,7 @@ def markdown(results: dict) -> str:
                        f"and sharded over {meta.get('device_count')} device(s).\n")
             out.append(seeds_table(parts[part]))
             out.append("\n" + seeds_summary(parts[part], meta.get("bytes_limit")))
+            out.extend(profiles(parts[part]))
         elif part == "devices":
             out.append("The same sweep on a 1-device mesh and on all devices.\n")
             out.append(seeds_table(parts[part], devices_part=True))

@@ -67,8 +67,9 @@ def parse(argv):
                    help="persistent compilation cache dir (default off on GPU so compile times are honest; "
                         "tiny: .jax_cache)")
     p.add_argument("--trace", metavar="DIR",
-                   help="compare: write a jax.profiler trace of one update per cdjax case into DIR/<case> and "
-                        "summarise its device ops (benchmarks.profile_summary) into the results")
+                   help="compare: write a jax.profiler trace of one update per cdjax case into DIR/<case> (seeds: of "
+                        "one update of every seed, DIR/<case>-x<seeds>) and summarise its device ops "
+                        "(benchmarks.profile_summary) into the results")
     p.add_argument("--trace-top", type=int, default=25, help="--trace: ops listed per case (default 25)")
     p.add_argument("--distributed", action="store_true",
                    help="join the other processes first (cdjax.multihost.initialize: one process per host or GPU, "
@@ -206,8 +207,11 @@ def run_seeds(suite: Suite, spec: Spec, timing: Timing, args) -> None:
     from benchmarks.scaling import seed_scaling
 
     suite.part("seeds")
-    for row in seed_scaling(spec, args.scaling_cases, args.seed_counts, timing, suite.run_case):
+    for row in seed_scaling(spec, args.scaling_cases, args.seed_counts, timing, suite.run_case,
+                            trace_dir=args.trace):
         row["mesh_devices"] = row.get("mesh_devices") or suite.results["metas"][0]["device_count"]
+        if row.get("trace_dir"):
+            attach_profile(row, args.trace_top)
         suite.add("seeds", row)
 
 

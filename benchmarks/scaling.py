@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from typing import Iterator
 
 from benchmarks.common import (Spec, Timing, cleanup, compile_timed, compiled_footprint, is_oom, process_peak,
@@ -18,8 +19,10 @@ from benchmarks.common import (Spec, Timing, cleanup, compile_timed, compiled_fo
 from benchmarks.throughput import cdjax_cases
 
 
-def sweep_case(spec: Spec, case: str, runs: int, timing: Timing, mesh_devices: int | None = None) -> dict:
-    """`runs` vmapped seeds of cdjax case `case` at spec (spec.num_envs envs per seed), one update per call."""
+def sweep_case(spec: Spec, case: str, runs: int, timing: Timing, mesh_devices: int | None = None,
+               trace_dir: str | None = None) -> dict:
+    """`runs` vmapped seeds of cdjax case `case` at spec (spec.num_envs envs per seed), one update per call; with
+    `trace_dir`, a jax.profiler trace of one more call into trace_dir/<case>-x<runs> (`trace_dir` in the row)."""
     import jax
     import numpy as np
 
@@ -39,7 +42,15 @@ def sweep_case(spec: Spec, case: str, runs: int, timing: Timing, mesh_devices: i
     state = sweep.init(keys, hps)
     # Sweep.lower gives the chunk program (state, hps, num_updates) -> (state, metrics); num_updates is static.
     compiled, lower_s, compile_s = compile_timed(sweep, state, hps, 1)
-    carry, times = time_calls(lambda c: compiled(c[0], hps), (state, None), timing)
+    step = lambda c: compiled(c[0], hps)  # noqa: E731
+    carry, times = time_calls(step, (state, None), timing)
+    traced = {}
+    if trace_dir:
+        from benchmarks import profile_summary
+
+        traced["trace_dir"] = os.path.join(trace_dir, f"{case}-x{runs}")
+        with profile_summary.trace(traced["trace_dir"], compiled):
+            carry = jax.block_until_ready(step(carry))
     fetch = multihost.fetch if spans_processes else jax.device_get  # whole, on every process
     ok = bool(np.isfinite(np.asarray(fetch(carry[1]["loss/total"]))[:runs]).all())
     return {"case": case, "kind": "sweep", "env": spec.env, "num_envs": spec.num_envs, "seeds": runs,
@@ -47,13 +58,14 @@ def sweep_case(spec: Spec, case: str, runs: int, timing: Timing, mesh_devices: i
             "status": "ok", "what": what, "lower_s": lower_s, "xla_compile_s": compile_s,
             "compile_s": lower_s + compile_s, **steady(times, runs * config.env_steps_per_update),
             "mem_bytes": compiled_footprint(compiled), "mem_source": "compiled (per device)",
-            "process_peak_bytes": process_peak(), "finite": ok}
+            "process_peak_bytes": process_peak(), "finite": ok, **traced}
 
 
 def seed_scaling(spec: Spec, cases: list[str], counts: list[int], timing: Timing, run_case,
-                 mesh_devices: int | None = None) -> Iterator[dict]:
+                 mesh_devices: int | None = None, trace_dir: str | None = None) -> Iterator[dict]:
     """Yields a row per (case, count): counts in increasing order until one is out of memory.
-    `run_case(label, fn)` wraps a call with the suite's error and time-budget handling, returning a row."""
+    `run_case(label, fn)` wraps a call with the suite's error and time-budget handling, returning a row.
+    `trace_dir`: each row's call also traced (sweep_case)."""
     for case in cases:
         oom = False
         for runs in sorted(counts):
@@ -62,7 +74,7 @@ def seed_scaling(spec: Spec, cases: list[str], counts: list[int], timing: Timing
                 yield {"case": case, "kind": "sweep", "seeds": runs, "num_envs": spec.num_envs,
                        "mesh_devices": mesh_devices, "status": "not tried (smaller count was OOM)"}
                 continue
-            row = run_case(label, lambda: sweep_case(spec, case, runs, timing, mesh_devices))
+            row = run_case(label, lambda: sweep_case(spec, case, runs, timing, mesh_devices, trace_dir))
             row.update(case=case, kind="sweep", seeds=runs, num_envs=spec.num_envs)  # also for failed rows
             row.setdefault("mesh_devices", mesh_devices)
             oom = row.get("status") == "OOM"

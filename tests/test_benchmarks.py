@@ -179,6 +179,11 @@ def test_traced_cases_carry_an_op_level_profile(tiny):
         assert "gemm" in {g["group"] for g in profile["groups"]}  # the MLPs
         assert rows[case]["profile_md"].rstrip("\n") in (out / "results.md").read_text()
     assert "profile" not in rows["collect"] and "profile" not in rows["ceiling"]
+    # the seeds suite's rows are traced too: one update of all their vmapped seeds
+    for row in results["parts"]["seeds"]:
+        assert row["trace_dir"].endswith(f"model-free-x{row['seeds']}"), row
+        assert row["profile"]["device_ms"] > 0 and "gemm" in {g["group"] for g in row["profile"]["groups"]}
+        assert row["profile_md"].rstrip("\n") in (out / "results.md").read_text()
 
 
 def test_profile_summary_finds_the_matmul(tmp_path):
