@@ -23,8 +23,8 @@
 #            model-free, Mb-Mf, CD on the paper's schedule; ant, 4096 envs, the matched Spec) in one process with a
 #            profile of one update per cdjax case (--trace: what remains); then, in a process of its own so that
 #            the compare suite's budget cannot skip it, the seeds suite at 10 vmapped seeds of 256 envs for Mb-Mf and
-#            the paper's CD (the 10-seed ratio, profiled); then the 4-arm ant sweep compiled cold with XLA's defaults (the
-#            README's compile figure). Each part is stopped by `timeout` so the unit ends inside 840 s.
+#            the paper's CD (the 10-seed ratio, profiled); then the 4-arm ant sweep compiled cold with XLA's defaults
+#            (the README's compile figure). Each part is stopped by `timeout` so the unit ends inside 840 s.
 #   hlo      what the largest kernels of the model arms compute and cost (about 8 minutes): the compare suite's Mb-Mf,
 #            Mb-Mf with `benchmarks.variants no-loss-metrics` (the losses' diagnostics dropped, gradients unchanged),
 #            paper-CD and paper-CD with `benchmarks.variants bias-sum` (the chain's bias gradients as separate sums)
