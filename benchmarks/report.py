@@ -337,12 +337,13 @@ def meta_lines(meta: dict) -> str:
     return s
 
 
-def profiles(rows: list[dict]) -> list[str]:
-    """The op-level profile of each traced row (`--trace`), headed by what was traced."""
+def profiles(rows: list[dict], vmapped: bool = False) -> list[str]:
+    """The op-level profile of each traced row (`--trace`), headed by what was traced (`vmapped`: rows of the seeds
+    suite, one update of all their seeds)."""
     out = []
     for row in rows:
         if row.get("profile_md"):
-            what = f"`{row['case']}` update" + (f" of {row['seeds']} vmapped seeds" if row.get("seeds") else "")
+            what = f"`{row['case']}` update" + (f" of {row['seeds']} vmapped seeds" if vmapped else "")
             out.append(f"\nOp-level profile of one {what} (`--trace`, "
                        f"`python -m benchmarks.profile_summary {row.get('trace_dir', 'DIR')}`):\n")
             out.append(row["profile_md"].rstrip("\n"))
@@ -381,7 +382,7 @@ def markdown(results: dict) -> str:
                        f"and sharded over {meta.get('device_count')} device(s).\n")
             out.append(seeds_table(parts[part]))
             out.append("\n" + seeds_summary(parts[part], meta.get("bytes_limit")))
-            out.extend(profiles(parts[part]))
+            out.extend(profiles(parts[part], vmapped=True))
         elif part == "devices":
             out.append("The same sweep on a 1-device mesh and on all devices.\n")
             out.append(seeds_table(parts[part], devices_part=True))

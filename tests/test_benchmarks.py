@@ -184,6 +184,8 @@ def test_traced_cases_carry_an_op_level_profile(tiny):
         assert row["trace_dir"].endswith(f"model-free-x{row['seeds']}"), row
         assert row["profile"]["device_ms"] > 0 and "gemm" in {g["group"] for g in row["profile"]["groups"]}
         assert row["profile_md"].rstrip("\n") in (out / "results.md").read_text()
+        assert f"`model-free` update of {row['seeds']} vmapped seeds" in (out / "results.md").read_text()
+    assert "`model-free` update (`--trace`" in (out / "results.md").read_text()  # the compare row: one seed
 
 
 def test_profile_summary_finds_the_matmul(tmp_path):
