@@ -22,7 +22,9 @@ another program of the sweep: each program's GEMMs are autotuned as it compiles)
 variants of a config (e.g. `--cc-epochs 0`) to see what a feature adds. Results: DIR/lowered.json.
 
 `--first-chunk-alone` holds the other arms' chunks back until the first arm's chunk is compiled: with it and without
-(each cold) it shows whether the chunks, compiling side by side, each autotune the kernels they share.
+(each cold) it shows whether the chunks, compiling side by side, each autotune the kernels they share. On one H100
+of 16 cores (2026-11-27, benchmarks/results/2026-11-27-h100-compile-sched/) the later chunks then compiled in 26-35 s
+instead of 37-50 s, but the sweep reached training 18-20 s later: the runner keeps compiling them side by side.
 
 `CDJAX_COMPILE_WORKERS=N` (read by the runner) sets how many threads compile the programs at once (default: half
 the CPU cores); 1 compiles them one after the other, which shows each program's compile time alone.
