@@ -36,6 +36,11 @@
 #            On 2026-11-25 (H100) it found a one-block fusion of the losses' backward with the reward MSE's sum
 #            (67 ms of Mb-Mf's 0.528 s per update; the SGD now reduces its diagnostics once per update) and kept the
 #            chain's one-product weight gradients (bias-sum: paper-CD 0.839 s against 0.805 s).
+#   hlo-seeds  `hlo` for the seeds suite's programs (about 5 minutes): Mb-Mf and paper-CD at 10 vmapped seeds of 256
+#            envs, each in a process of its own with XLA's optimised HLO of its program dumped (module jit_run) and one
+#            update profiled, then `benchmarks.hlo_fusions --profile` and `--loops` on each. On 2026-11-27 (H100) Mb-Mf's
+#            costliest 10-seed kernel was a 3-block reduction, `input_add_multiply_negate_reduce_select...`, 18.7 ms of
+#            0.418 s per update, absent from the single-seed program (benchmarks/results/2026-11-27-h100-accept/).
 #   kernels  A/Bs for the chain's per-step kernels (about 4-6 minutes): the names of XLA GPU flags in this image's
 #            jaxlib (xla-gpu-flags.txt: candidates; jax 0.11.2 refused --xla_gpu_enable_split_k_autotuning, 2026-11-25,
 #            and --xla_gpu_experimental_enable_split_k_rewrite, listed there, 2026-11-26); the compare
@@ -286,6 +291,18 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" grep -h ' s/update' $work/compare-$case.log;"
       done
       echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
+    hlo-seeds)
+      local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_run" line="" case
+      for case in mbmf cd-paper; do
+        line+="XLA_FLAGS='--xla_dump_to=$work/dump-$case $dump' timeout -k 20 150 python -m benchmarks.run --suite seeds"
+        line+=" --scaling-cases $case --seed-counts 10 --seed-envs 256 --budget-s 130 --trace $work/trace-$case"
+        line+=" --out $work/seeds-$case > $work/seeds-$case.log 2>&1;"
+        line+=" python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top 8"
+        line+=" > $work/fusions-$case.log 2>&1; head -n 9 $work/fusions-$case.log;"
+        line+=" python -m benchmarks.hlo_fusions $work/dump-$case --loops --top 12 > $work/loops-$case.log 2>&1;"
+        line+=" grep -h 'x10:' $work/seeds-$case.log;"
+      done
+      echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
     workers)
       local line="" w
       for w in ${WORKERS:-2 4 8}; do
@@ -410,7 +427,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, top1, seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
