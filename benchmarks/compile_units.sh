@@ -38,9 +38,10 @@
 #            chain's one-product weight gradients (bias-sum: paper-CD 0.839 s against 0.805 s).
 #   hlo-seeds  `hlo` for the seeds suite's programs (about 5 minutes): Mb-Mf and paper-CD at 10 vmapped seeds of 256
 #            envs, each in a process of its own with XLA's optimised HLO of its program dumped (module jit_run) and one
-#            update profiled, then `benchmarks.hlo_fusions --profile` and `--loops` on each. On 2026-11-27 (H100) Mb-Mf's
-#            costliest 10-seed kernel was a 3-block reduction, `input_add_multiply_negate_reduce_select...`, 18.7 ms of
-#            0.418 s per update, absent from the single-seed program (benchmarks/results/2026-11-27-h100-accept/).
+#            update profiled, then `benchmarks.hlo_fusions --profile` and `--loops` on each. On 2026-11-27 (H100)
+#            Mb-Mf's costliest 10-seed kernel was a 3-block reduction, `input_add_multiply_negate_reduce_select...`,
+#            18.7 ms of 0.418 s per update, absent from the single-seed program
+#            (benchmarks/results/2026-11-27-h100-accept/).
 #   kernels  A/Bs for the chain's per-step kernels (about 4-6 minutes): the names of XLA GPU flags in this image's
 #            jaxlib (xla-gpu-flags.txt: candidates; jax 0.11.2 refused --xla_gpu_enable_split_k_autotuning, 2026-11-25,
 #            and --xla_gpu_experimental_enable_split_k_rewrite, listed there, 2026-11-26); the compare
@@ -186,6 +187,20 @@ with_flag() {  # FLAG (NAME=VALUE) COMMANDS -> a bash line: COMMANDS with XLA_FL
     "else echo 'this XLA refuses ${flag%%=*}: skipped'; fi;"
 }
 
+dumped_case() {  # CASE MODULE PART "MODULE_AND_ARGS" GREP -> a bash line: `python -m MODULE_AND_ARGS` with XLA's
+  # optimised HLO of the modules MODULE dumped into $work/dump-CASE and one update traced into $work/trace-CASE
+  # (results $work/PART-CASE), then benchmarks.hlo_fusions on them (fusions-CASE.log, loops-CASE.log) and the lines
+  # of the run's log that match GREP
+  local case=$1 module=$2 part=$3 run=$4 grep=$5
+  echo "XLA_FLAGS='--xla_dump_to=$work/dump-$case --xla_dump_hlo_as_text --xla_dump_hlo_module_re=$module'" \
+    "timeout -k 20 150 python -m $run --budget-s 130 --trace $work/trace-$case --out $work/$part-$case" \
+    "> $work/$part-$case.log 2>&1;" \
+    "python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top 8" \
+    "> $work/fusions-$case.log 2>&1; head -n 9 $work/fusions-$case.log;" \
+    "python -m benchmarks.hlo_fusions $work/dump-$case --loops --top 12 > $work/loops-$case.log 2>&1;" \
+    "head -n 3 $work/loops-$case.log; grep -h $grep $work/$part-$case.log;"
+}
+
 command_of() {  # UNIT -> the unit's commands (one bash line)
   case "$1" in
     flags)
@@ -273,34 +288,22 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       done
       echo "$line grep -H ' s/update' $work/default.log $work/xla_gpu_*.log" ;;
     hlo)
-      local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" line="" case run base
+      local line="" case run base
       for case in mbmf mbmf-nometrics cd-paper cd-paper-biassum; do
         case $case in
           *-nometrics) run="benchmarks.variants no-loss-metrics --" ;;
           *-biassum) run="benchmarks.variants bias-sum --" ;;
           *) run="benchmarks.run" ;;
         esac
-        line+="XLA_FLAGS='--xla_dump_to=$work/dump-$case $dump' timeout -k 20 150 python -m $run --suite compare"
         base=${case%-nometrics}; base=${base%-biassum}
-        line+=" --cases $base --budget-s 130 --trace $work/trace-$case --out $work/compare-$case"
-        line+=" > $work/compare-$case.log 2>&1;"
-        line+=" python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top 8"
-        line+=" > $work/fusions-$case.log 2>&1; head -n 9 $work/fusions-$case.log;"
-        line+=" python -m benchmarks.hlo_fusions $work/dump-$case --loops --top 12 > $work/loops-$case.log 2>&1;"
-        line+=" head -n 3 $work/loops-$case.log;"
-        line+=" grep -h ' s/update' $work/compare-$case.log;"
+        line+=" $(dumped_case $case jit_update compare "$run --suite compare --cases $base" "' s/update'")"
       done
       echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
     hlo-seeds)
-      local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_run" line="" case
+      local line="" case
       for case in mbmf cd-paper; do
-        line+="XLA_FLAGS='--xla_dump_to=$work/dump-$case $dump' timeout -k 20 150 python -m benchmarks.run --suite seeds"
-        line+=" --scaling-cases $case --seed-counts 10 --seed-envs 256 --budget-s 130 --trace $work/trace-$case"
-        line+=" --out $work/seeds-$case > $work/seeds-$case.log 2>&1;"
-        line+=" python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top 8"
-        line+=" > $work/fusions-$case.log 2>&1; head -n 9 $work/fusions-$case.log;"
-        line+=" python -m benchmarks.hlo_fusions $work/dump-$case --loops --top 12 > $work/loops-$case.log 2>&1;"
-        line+=" grep -h 'x10:' $work/seeds-$case.log;"
+        line+=" $(dumped_case $case jit_run seeds \
+          "benchmarks.run --suite seeds --scaling-cases $case --seed-counts 10 --seed-envs 256" "'x10:'")"
       done
       echo "$line find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
     workers)
@@ -408,7 +411,8 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         line+=" -- $sweep > $work/$v.log 2>&1; "
       done
       line+="timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-top2 > $work/compare-top2.log 2>&1; "
-      line+="$one timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-top1 > $work/compare-top1.log 2>&1; "
+      line+="$one timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-top1"
+      line+=" > $work/compare-top1.log 2>&1; "
       echo "$line grep -H -E 'sweep 1:|compile [0-9.]+ s' $work/top*.log; grep -H ' s/update' $work/compare-*.log" ;;
     seeds)
       echo "timeout -k 20 280 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
