@@ -42,6 +42,14 @@
 #            Mb-Mf's costliest 10-seed kernel was a 3-block reduction, `input_add_multiply_negate_reduce_select...`,
 #            18.7 ms of 0.418 s per update, absent from the single-seed program
 #            (benchmarks/results/2026-11-27-h100-accept/).
+#            HLO_CASES (default "mbmf mbmf-nometrics cd-paper cd-paper-biassum") names the `hlo` unit's cases: any
+#            compare case, with -nometrics or -biassum for the variant; HLO_TOP (default 8) how many of each profile's
+#            costliest fusion kernels `hlo` and `hlo-seeds` trace to their source.
+#   kcache   XLA's kernel cache file (--xla_gpu_kernel_cache_file: the kernels of a compiled program are written to a
+#            file, and a later compile reuses the kernels whose fused computation it already holds): the cold 4-arm ant
+#            sweep at cdjax's defaults and with a fresh cache file, ABBA (about 6 minutes). The chunks all hold the
+#            ant's physics (about 7,000 operations each, 35-60% of a chunk); whether the programs compiled before the
+#            chunks, or the chunks one another, spare them compiling its kernels.
 #   kernels  A/Bs for the chain's per-step kernels (about 4-6 minutes): the names of XLA GPU flags in this image's
 #            jaxlib (xla-gpu-flags.txt: candidates; jax 0.11.2 refused --xla_gpu_enable_split_k_autotuning, 2026-11-25,
 #            and --xla_gpu_experimental_enable_split_k_rewrite, listed there, 2026-11-26); the compare
@@ -195,7 +203,7 @@ dumped_case() {  # CASE MODULE PART "MODULE_AND_ARGS" GREP -> a bash line: `pyth
   echo "XLA_FLAGS='--xla_dump_to=$work/dump-$case --xla_dump_hlo_as_text --xla_dump_hlo_module_re=$module'" \
     "timeout -k 20 150 python -m $run --budget-s 130 --trace $work/trace-$case --out $work/$part-$case" \
     "> $work/$part-$case.log 2>&1;" \
-    "python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top 8" \
+    "python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top ${HLO_TOP:-8}" \
     "> $work/fusions-$case.log 2>&1; head -n 9 $work/fusions-$case.log;" \
     "python -m benchmarks.hlo_fusions $work/dump-$case --loops --top 12 > $work/loops-$case.log 2>&1;" \
     "head -n 3 $work/loops-$case.log; grep -h $grep $work/$part-$case.log;"
@@ -289,7 +297,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "$line grep -H ' s/update' $work/default.log $work/xla_gpu_*.log" ;;
     hlo)
       local line="" case run base
-      for case in mbmf mbmf-nometrics cd-paper cd-paper-biassum; do
+      for case in ${HLO_CASES:-mbmf mbmf-nometrics cd-paper cd-paper-biassum}; do
         case $case in
           *-nometrics) run="benchmarks.variants no-loss-metrics --" ;;
           *-biassum) run="benchmarks.variants bias-sum --" ;;
@@ -418,6 +426,15 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "timeout -k 20 280 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
         "--seed-envs 256 --budget-s 250 --trace $work/trace --out $work/seeds > $work/seeds.log 2>&1;" \
         "grep -E 'env steps/s|s/update' $work/seeds.log; grep -A 30 'Op-level' $work/seeds/results.md | head -80" ;;
+    kcache)
+      local line="" v
+      for v in default1 kcache1 kcache2 default2; do
+        local env=""; [ "${v:0:6}" = kcache ] && env="XLA_FLAGS=--xla_gpu_kernel_cache_file=$work/$v-kernels.bin"
+        line+="$env timeout -k 20 200 python -m benchmarks.compile_time --out $work/$v --cache-dir $work/cache-$v"
+        line+=" -- $sweep > $work/$v.log 2>&1; "
+      done
+      echo "python -m benchmarks.xla_flags --accepts xla_gpu_kernel_cache_file=$work/probe.bin || exit 3; $line" \
+        "ls -l $work/*-kernels.bin; grep -H -E 'sweep 1:|compile [0-9.]+ s' $work/*.log" ;;
     timers)
       local vm="TF_CPP_MIN_LOG_LEVEL=0 TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1,compile_module_to_llvm_ir=1"
       echo "$vm timeout -k 20 240 python -m benchmarks.compile_time --out $work/timers --cache-dir $work/cache-timers" \
@@ -431,7 +448,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
