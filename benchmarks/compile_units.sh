@@ -45,6 +45,11 @@
 #            HLO_CASES (default "mbmf mbmf-nometrics cd-paper cd-paper-biassum") names the `hlo` unit's cases: any
 #            compare case, with -nometrics or -biassum for the variant; HLO_TOP (default 8) how many of each profile's
 #            costliest fusion kernels `hlo` and `hlo-seeds` trace to their source.
+#   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars reduced
+#            in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of its own
+#            (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the compare
+#            suite's model-free, Mb-Mf and paper-CD. Under vmap two of those reductions made a 3-block kernel of the
+#            losses' backward (18.7 ms of Mb-Mf's 0.419 s update at 10 seeds; hlo-seeds, 2026-11-27).
 #   kcache   XLA's kernel cache file (--xla_gpu_kernel_cache_file: the kernels of a compiled program are written to a
 #            file, and a later compile reuses the kernels whose fused computation it already holds): the cold 4-arm ant
 #            sweep at cdjax's defaults and with a fresh cache file, ABBA (about 6 minutes). The chunks all hold the
@@ -426,6 +431,16 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "timeout -k 20 280 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
         "--seed-envs 256 --budget-s 250 --trace $work/trace --out $work/seeds > $work/seeds.log 2>&1;" \
         "grep -E 'env steps/s|s/update' $work/seeds.log; grep -A 30 'Op-level' $work/seeds/results.md | head -80" ;;
+    shares)
+      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 150"
+      local cases="--suite compare --cases model-free mbmf cd-paper --budget-s 170" v="benchmarks.variants"
+      echo "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-shares > $work/seeds-shares.log 2>&1;" \
+        "timeout -k 20 200 python -m $v scalar-loss-metrics -- $seeds --out $work/seeds-scalars" \
+        "> $work/seeds-scalars.log 2>&1;" \
+        "timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-shares > $work/compare-shares.log 2>&1;" \
+        "timeout -k 20 200 python -m $v scalar-loss-metrics -- $cases --out $work/compare-scalars" \
+        "> $work/compare-scalars.log 2>&1;" \
+        "grep -H -E 'x10:|s/update' $work/seeds-*.log $work/compare-*.log" ;;
     kcache)
       local line="" v
       for v in default1 kcache1 kcache2 default2; do
@@ -448,7 +463,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

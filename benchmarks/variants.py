@@ -15,6 +15,11 @@ Variants:
                    reduced once per update (`numerics.masked_share`), XLA fused the reward MSE's per-minibatch sum
                    with the losses' backward into a one-block kernel: 67 ms of an Mb-Mf update's 0.528 s, 0.461 s
                    with this variant (2026-11-25, H100); with the shares Mb-Mf ran 0.460 s.
+  scalar-loss-metrics  the SGD's logged loss values (loss/total, loss/ppo, loss/policy, loss/value, loss/entropy,
+                   loss/model_nll) as scalars in every step, as before 2026-11-27, instead of per-sample shares reduced
+                   once per update (`agent.SHARED_TERMS`); the same gradients and logged means. What those per-step
+                   reductions cost: under vmap XLA fused two of them with the losses' backward into a 3-block kernel
+                   (benchmarks/results/2026-11-27-h100-hlo-seeds/).
   bias-sum         the fused consistency chain's weight gradients as the kernel's matrix product and the bias's
                    separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
                    The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
@@ -49,13 +54,14 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import inspect
 from typing import Callable, Iterator
 
 import jax
 import jax.numpy as jnp
 
 from cdjax import consistency
-from cdjax.agents.obs import losses
+from cdjax.agents.obs import agent, losses
 
 # the diagnostics (not loss terms) each loss function returns, by function name
 LOSS_METRICS = {"policy_terms": ("ppo/approx_kl", "ppo/clip_fraction"),
@@ -79,7 +85,30 @@ def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
-VARIANTS = ("none", "no-loss-metrics", "bias-sum")
+# the loss values the SGD logs as per-sample shares since 2026-11-27 (`scalar-loss-metrics` undoes it), by function
+SCALAR_LOSSES = {"policy_terms": ("loss/policy", "loss/value", "loss/entropy", "loss/ppo"),
+                 "model_loss": ("loss/model_nll",)}
+
+
+def _scalar_losses(fn: Callable, names: tuple[str, ...]) -> Callable:
+    """fn whose metrics `names` are the masked means (scalars) even when it is asked for shares."""
+
+    signature = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        loss, metrics = fn(*args, **kwargs)
+        bound = signature.bind(*args, **kwargs)
+        if bound.arguments.get("shares"):
+            bound.arguments["shares"] = False
+            _, scalars = fn(*bound.args, **bound.kwargs)  # the same computation but the means: XLA shares the rest
+            metrics = {**metrics, **{k: scalars[k] for k in names}}
+        return loss, metrics
+
+    return wrapped
+
+
+VARIANTS = ("none", "no-loss-metrics", "scalar-loss-metrics", "bias-sum")
 
 
 @contextlib.contextmanager
@@ -88,10 +117,16 @@ def applied(variant: str) -> Iterator[None]:
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
-    outer = consistency._outer
+    outer, shared_terms, share_metrics = consistency._outer, dict(agent.SHARED_TERMS), agent.ObsAgent.share_metrics
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
+    if variant == "scalar-loss-metrics":
+        for name, metrics in SCALAR_LOSSES.items():
+            setattr(losses, name, _scalar_losses(saved[name], metrics))
+        agent.SHARED_TERMS.clear()  # loss/total: the scalar terms' total spread over the samples
+        scalars = {m for names in SCALAR_LOSSES.values() for m in names}
+        agent.ObsAgent.share_metrics = lambda self: tuple(n for n in share_metrics(self) if n not in scalars)
     if variant == "bias-sum":
         consistency._outer = _outer_bias_sum
     try:
@@ -100,6 +135,9 @@ def applied(variant: str) -> Iterator[None]:
         for name, fn in saved.items():
             setattr(losses, name, fn)
         consistency._outer = outer
+        agent.SHARED_TERMS.clear()
+        agent.SHARED_TERMS.update(shared_terms)
+        agent.ObsAgent.share_metrics = share_metrics
 
 
 def main(argv=None) -> dict:

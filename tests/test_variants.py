@@ -69,3 +69,30 @@ def test_bias_sum_gives_the_same_weight_gradients_as_the_one_product():
     assert consistency._outer is one_product
     assert jnp.allclose(split_kernel, kernel, atol=1e-5) and jnp.allclose(split_bias, bias, atol=1e-5)
 
+
+
+def test_scalar_loss_metrics_logs_the_same_means_with_the_same_gradient():
+    """The SGD under `scalar-loss-metrics` (its loss values reduced in every step, as before they were shares): the
+    same parameters and logged means as without it, up to the rounding of a sum's order; undone after the block."""
+    from cdjax import HParams
+    from cdjax.agents.obs import agent
+    from _shared import POINT
+
+    trainer = agent.make_agent(POINT.replace(arm="mbmf"))
+    hp = HParams(alpha=0.0).as_float32()
+    state = jax.jit(trainer.init)(jax.random.key(0), hp)
+    _, _, _, batch = jax.jit(trainer.collect)(state, hp, jax.random.key(1))
+    sgd = lambda: jax.jit(trainer.sgd)(state.params, state.opt_state, state.norms, batch, hp, jax.random.key(2))  # noqa: E731
+    (params, _), metrics = sgd()
+    shared = set(trainer.share_metrics())
+    with variants.applied("scalar-loss-metrics"):
+        assert not {"loss/policy", "loss/model_nll", "loss/ppo"} & set(trainer.share_metrics())
+        assert "loss/total" in trainer.share_metrics() and agent.SHARED_TERMS == {}
+        (params_v, _), metrics_v = sgd()
+    assert {"loss/policy", "loss/value", "loss/entropy", "loss/ppo", "loss/model_nll", "loss/total"} <= shared
+    assert set(trainer.share_metrics()) == shared and agent.SHARED_TERMS  # undone
+    assert set(metrics_v) == set(metrics)
+    for name in metrics:
+        np.testing.assert_allclose(metrics_v[name], metrics[name], rtol=1e-5, atol=1e-6, err_msg=name)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(params_v)):
+        assert jnp.array_equal(a, b)

@@ -88,6 +88,11 @@ def model_target(norms: nz.Norms, obs, next_obs, reward) -> jax.Array:
 # by at most one term besides l_cc (`rest_gradient` relies on it).
 TERM_GROUPS = {"ppo": ("policy", "value"), "model_nll": ("model",), "consistency": ("model", "encoder", "policy"),
                "encoder_aux": ("encoder",)}
+# The loss terms whose metric `loss_terms(shares=True)` gives as per-sample shares (the others are scalars there).
+# In the SGD no scalar of these terms is then used, so XLA drops their per-step reductions: under vmap (seeds) it had
+# fused two of them with the losses' backward into a 3-block kernel, 18.7 ms of Mb-Mf's 0.419 s update at 10 seeds of
+# 256 envs (one H100, 2026-11-27, benchmarks/results/2026-11-27-h100-hlo-seeds/).
+SHARED_TERMS = {"ppo": "loss/ppo", "model_nll": "loss/model_nll"}
 
 
 def _norm(tree) -> jax.Array:
@@ -225,7 +230,6 @@ class ObsAgent:
         entropy_noise = mb.noise if self.config.entropy == "squashed" else None
         ppo, metrics = losses.ppo_loss(mean, std, values, mb.raw_action, mb.log_prob, adv, returns, mb.valid,
                                        hp, entropy_noise, shares)
-        metrics["loss/ppo"] = ppo
         metrics["policy/std"] = (masked_share if shares else masked_mean)(std.mean(-1), mb.valid)
         terms = {"ppo": ppo}
         if self.model is not None:
@@ -257,7 +261,13 @@ class ObsAgent:
         terms, metrics = self.loss_terms(params, norms, mb, offsets, hp, with_consistency, taps, shares)
         weights = term_weights(hp)
         total = sum(weights[name] * term for name, term in terms.items())
-        metrics["loss/total"] = total
+        if shares:  # the terms' shares where they have them; a scalar term spread evenly over the samples
+            like = mb.valid.astype(jnp.float32)
+            metrics["loss/total"] = sum(
+                weights[name] * (metrics[SHARED_TERMS[name]] if name in SHARED_TERMS else
+                                 jnp.full_like(like, term / like.size)) for name, term in terms.items())
+        else:
+            metrics["loss/total"] = total
         return total, metrics
 
     # The gradient diagnostics: metrics "grad/<term>/<group>", the norm of each weighted loss term's gradient on
@@ -440,7 +450,8 @@ class ObsAgent:
             # one stacked vector per minibatch, not one output per metric: on a GPU each scan output is a
             # small write of its own in every one of the epochs x minibatches steps
             names[with_consistency] = list(metrics)
-            return (optax.apply_updates(params, updates), opt_state, tap, summed), jnp.stack(values)
+            stacked = jnp.stack(values) if values else jnp.zeros((0,), jnp.float32)  # every metric may be a share
+            return (optax.apply_updates(params, updates), opt_state, tap, summed), stacked
 
         def epoch(carry, key, with_consistency):
             perm, mb_keys = self.shuffle(key)
@@ -470,8 +481,9 @@ class ObsAgent:
 
     def share_metrics(self) -> tuple[str, ...]:
         """The minibatch diagnostics that `loss_terms` gives as per-sample shares when asked (`sgd` asks)."""
-        names = ("ppo/approx_kl", "ppo/clip_fraction", "policy/std")
-        return names + (("model/onestep_mse", "model/reward_mse") if self.model is not None else ())
+        names = ("loss/total", "loss/ppo", "loss/policy", "loss/value", "loss/entropy", "ppo/approx_kl",
+                 "ppo/clip_fraction", "policy/std")
+        return names + (("loss/model_nll", "model/onestep_mse", "model/reward_mse") if self.model is not None else ())
 
     def shuffle(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """One epoch's order: (the permutation of the N sequences [N], the keys of its M minibatches [M])."""

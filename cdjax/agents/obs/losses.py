@@ -50,9 +50,10 @@ def ppo_loss(mean, std, value, raw_action, log_prob_old, advantages, returns, ma
 def policy_terms(log_prob, entropy, value, log_prob_old, advantages, returns, mask, hp, shares: bool = False):
     """PPO terms given new log-probabilities/entropy/values of the executed actions. All [T, B].
 
-    The diagnostics that are not loss terms (ppo/approx_kl, ppo/clip_fraction) are masked means, or with `shares`
-    their per-sample shares [T, B] (`numerics.masked_share`: summed, the same means), for a caller that averages
-    them over minibatches and reduces once."""
+    The metrics (the loss and its parts, and the diagnostics ppo/approx_kl and ppo/clip_fraction) are masked means,
+    or with `shares` their per-sample shares [T, B] (`numerics.masked_share`: summed, the same means), for a caller
+    that averages them over minibatches and reduces once. The loss itself is the scalar either way; with `shares`
+    its value is used by nothing but a gradient, so its reductions drop out of the compiled step."""
     diagnostic = masked_share if shares else masked_mean
     mask = mask.astype(jnp.float32)
     adv_mean = masked_mean(advantages, mask)
@@ -65,10 +66,15 @@ def policy_terms(log_prob, entropy, value, log_prob_old, advantages, returns, ma
     value_loss = 0.5 * masked_mean((returns - value) ** 2, mask)
     ent = masked_mean(entropy, mask)
     loss = policy_loss + hp.vf_coef * value_loss - hp.ent_coef * ent
+    if shares:
+        policy_loss = -masked_share(surrogate, mask)
+        value_loss = 0.5 * masked_share((returns - value) ** 2, mask)
+        ent = masked_share(entropy, mask)
     metrics = {
         "loss/policy": policy_loss,
         "loss/value": value_loss,
         "loss/entropy": ent,
+        "loss/ppo": policy_loss + hp.vf_coef * value_loss - hp.ent_coef * ent,
         "ppo/approx_kl": diagnostic((ratio - 1.0) - log_ratio, mask),
         "ppo/clip_fraction": diagnostic((jnp.abs(ratio - 1.0) > hp.clip_eps).astype(jnp.float32), mask),
     }
@@ -78,9 +84,9 @@ def policy_terms(log_prob, entropy, value, log_prob_old, advantages, returns, ma
 def model_loss(pred_mean, pred_log_std, target, mask, shares: bool = False):
     """Gaussian negative log-likelihood of the normalised (delta-s, reward) targets.
 
-    pred_mean, pred_log_std, target: [..., O+1]; mask [...]. Returns (loss, metrics). The diagnostics
-    model/onestep_mse and model/reward_mse are masked means, or with `shares` per-sample shares [...] as in
-    `policy_terms`.
+    pred_mean, pred_log_std, target: [..., O+1]; mask [...]. Returns (loss, metrics). The metrics (loss/model_nll
+    and the diagnostics model/onestep_mse and model/reward_mse) are masked means, or with `shares` per-sample shares
+    [...] as in `policy_terms`.
     """
     diagnostic = masked_share if shares else masked_mean
     z = (target - pred_mean) * jnp.exp(-pred_log_std)
@@ -88,7 +94,7 @@ def model_loss(pred_mean, pred_log_std, target, mask, shares: bool = False):
     loss = masked_mean(nll, mask)
     sq = (target - pred_mean) ** 2
     metrics = {
-        "loss/model_nll": loss,
+        "loss/model_nll": diagnostic(nll, mask),
         "model/onestep_mse": diagnostic(sq[..., :-1].mean(-1), mask),
         "model/reward_mse": diagnostic(sq[..., -1], mask),
     }
