@@ -480,7 +480,8 @@ class ObsAgent:
         return carry[:2], metrics
 
     def share_metrics(self) -> tuple[str, ...]:
-        """The minibatch diagnostics that `loss_terms` gives as per-sample shares when asked (`sgd` asks)."""
+        """The minibatch metrics that `loss_terms` gives as per-sample shares when asked (`sgd` asks): the loss values
+        of the terms in SHARED_TERMS and their total, and the diagnostics."""
         names = ("loss/total", "loss/ppo", "loss/policy", "loss/value", "loss/entropy", "ppo/approx_kl",
                  "ppo/clip_fraction", "policy/std")
         return names + (("loss/model_nll", "model/onestep_mse", "model/reward_mse") if self.model is not None else ())
