@@ -49,12 +49,16 @@
 #            in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of its own
 #            (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the compare
 #            suite's model-free, Mb-Mf and paper-CD. Under vmap two of those reductions made a 3-block kernel of the
-#            losses' backward (18.7 ms of Mb-Mf's 0.419 s update at 10 seeds; hlo-seeds, 2026-11-27).
+#            losses' backward (18.7 ms of Mb-Mf's 0.419 s update at 10 seeds; hlo-seeds, 2026-11-27). On 2026-11-27
+#            (H100): 10 seeds Mb-Mf 0.4038 against 0.4242 s/update, paper-CD 0.7015 against 0.7304; one seed 1-2%
+#            (benchmarks/results/2026-11-27-h100-shares/).
 #   kcache   XLA's kernel cache file (--xla_gpu_kernel_cache_file: the kernels of a compiled program are written to a
 #            file, and a later compile reuses the kernels whose fused computation it already holds): the cold 4-arm ant
 #            sweep at cdjax's defaults and with a fresh cache file, ABBA (about 6 minutes). The chunks all hold the
 #            ant's physics (about 7,000 operations each, 35-60% of a chunk); whether the programs compiled before the
-#            chunks, or the chunks one another, spare them compiling its kernels.
+#            chunks, or the chunks one another, spare them compiling its kernels. On 2026-11-27 (H100): training after
+#            80.7 and 75.4 s at the defaults, 73.0 and 75.2 s with the file: within the spread, not adopted
+#            (benchmarks/results/2026-11-27-h100-kcache/).
 #   kernels  A/Bs for the chain's per-step kernels (about 4-6 minutes): the names of XLA GPU flags in this image's
 #            jaxlib (xla-gpu-flags.txt: candidates; jax 0.11.2 refused --xla_gpu_enable_split_k_autotuning, 2026-11-25,
 #            and --xla_gpu_experimental_enable_split_k_rewrite, listed there, 2026-11-26); the compare
