@@ -215,7 +215,8 @@ def test_diagnostic_shares_sum_to_the_scalar_diagnostics_with_the_same_gradient(
         # a float32 sum's rounding scales with its terms' magnitudes, not with the sum: the policy loss's shares
         # (advantages normalised to mean zero) nearly cancel
         scale = float(jnp.abs(shared[name]).sum())
-        np.testing.assert_allclose(shared[name].sum(), scalar[name], rtol=1e-5, atol=1e-8 + 1e-6 * scale, err_msg=name)
+        np.testing.assert_allclose(shared[name].sum(), scalar[name], rtol=1e-5, atol=1e-8 + 1e-6 * scale,
+                                   err_msg=name)
     assert float(scalar["model/reward_mse"]) > 0 and float(scalar["ppo/clip_fraction"]) >= 0
     for name in set(scalar) - set(trainer.share_metrics()):
         assert shared[name].shape == () and float(shared[name]) == float(scalar[name]), name

@@ -70,26 +70,38 @@ def test_bias_sum_gives_the_same_weight_gradients_as_the_one_product():
     assert jnp.allclose(split_kernel, kernel, atol=1e-5) and jnp.allclose(split_bias, bias, atol=1e-5)
 
 
-
 def test_scalar_loss_metrics_logs_the_same_means_with_the_same_gradient():
     """The SGD under `scalar-loss-metrics` (its loss values reduced in every step, as before they were shares): the
-    same parameters and logged means as without it, up to the rounding of a sum's order; undone after the block."""
+    loss functions give those values as scalars even when asked for shares, and the SGD, traced anew, reaches the same
+    parameters and logged means as without it, up to the rounding of a sum's order; undone after the block."""
+    from _shared import POINT
+
     from cdjax import HParams
     from cdjax.agents.obs import agent
-    from _shared import POINT
 
     trainer = agent.make_agent(POINT.replace(arm="mbmf"))
     hp = HParams(alpha=0.0).as_float32()
     state = jax.jit(trainer.init)(jax.random.key(0), hp)
     _, _, _, batch = jax.jit(trainer.collect)(state, hp, jax.random.key(1))
-    sgd = lambda: jax.jit(trainer.sgd)(state.params, state.opt_state, state.norms, batch, hp, jax.random.key(2))  # noqa: E731
+
+    def sgd():  # a new function each call, so that jit traces it again
+        return jax.jit(lambda s, b: trainer.sgd(s.params, s.opt_state, s.norms, b, hp, jax.random.key(2)))(state, batch)
+
+    def step_metrics():  # one minibatch's loss metrics, asked for shares as the SGD asks
+        mb = jax.tree.map(lambda x: agent.to_segments(x, trainer.L)[:, :POINT.minibatch_seqs], batch)
+        return trainer.loss_terms(state.params, state.norms, mb, jnp.arange(POINT.num_windows), hp, shares=True)[1]
+
     (params, _), metrics = sgd()
     shared = set(trainer.share_metrics())
+    assert {"loss/policy", "loss/value", "loss/entropy", "loss/ppo", "loss/model_nll", "loss/total"} <= shared
+    assert step_metrics()["loss/policy"].ndim == 2
     with variants.applied("scalar-loss-metrics"):
         assert not {"loss/policy", "loss/model_nll", "loss/ppo"} & set(trainer.share_metrics())
         assert "loss/total" in trainer.share_metrics() and agent.SHARED_TERMS == {}
+        inside = step_metrics()
+        assert inside["loss/policy"].ndim == inside["loss/model_nll"].ndim == 0
+        assert inside["ppo/approx_kl"].ndim == 2  # the diagnostics stay shares
         (params_v, _), metrics_v = sgd()
-    assert {"loss/policy", "loss/value", "loss/entropy", "loss/ppo", "loss/model_nll", "loss/total"} <= shared
     assert set(trainer.share_metrics()) == shared and agent.SHARED_TERMS  # undone
     assert set(metrics_v) == set(metrics)
     for name in metrics:
