@@ -278,10 +278,23 @@ def _chain_inputs(c: dict, shared: bool, s: jax.Array) -> jax.Array:
 
 
 def _gates(c: dict, gi_re, both_im, hh, h):
-    """One GRU step of the real and imagined rows (h [2, W, H]) from the real rows' input part gi_re [W, 3H], the
-    imagined rows' raw product both_im [W, 3H] (x W_i, no bias) and the raw recurrent product hh [2, W, 3H]."""
-    gi = jnp.stack([gi_re, both_im + c["b_i"]])
+    """One GRU step of the real and imagined rows (h [2W, H]: the W real rows, then the W imagined ones) from the real
+    rows' input part gi_re [W, 3H], the imagined rows' raw product both_im [W, 3H] (x W_i, no bias) and the raw
+    recurrent product hh [2W, 3H].
+
+    The two kinds of rows are stacked along the rows, not along a new leading axis: under vmap (seeds) a new leading
+    axis put the seeds' axis second, and XLA then transposed the hidden states and gates back in every step (15
+    transposes per SGD step at 10 seeds, one H100, 2026-11-27, benchmarks/results/2026-11-27-h100-hlo-seeds/)."""
+    gi = jnp.concatenate([gi_re, both_im + c["b_i"]])
     return gru_gates(gi, hh + c["gh_bias"], h)
+
+
+def _stack_steps(xs: list) -> jax.Array:
+    """The per-step arrays xs (each [...]) stacked along a new leading axis [k, ...], as jnp.stack, but written as a
+    concatenation of [1, ...] slices: under vmap jnp.stack puts the vmapped axis second ([k, seeds, ...]), and the
+    weight gradients' products then need it moved back in front, a transpose of each stacked array in every SGD step;
+    this form keeps the vmapped axis in front."""
+    return jnp.concatenate([x[None] for x in xs])
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -300,7 +313,7 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     """
     layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
     s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
-    k, O = actions.shape[0], s0.shape[-1]
+    k, (W, O) = actions.shape[0], s0.shape
     (w_1, b_1), (w_out, b_out) = layers[0], layers[-1]
     N1 = w_1.shape[1]
     if shared:  # the model and the encoder normalise alike: one input, [W1_x | W_i]
@@ -312,7 +325,7 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
     states, xin = [s0], [_chain_inputs(c, shared, s0)]
     p1 = xin[0] @ w_in[:, :N1]
-    hs = [jnp.zeros((2,) + s0.shape[:1] + (w_h.shape[0],), s0.dtype)]
+    hs = [jnp.zeros((2 * W, w_h.shape[0]), s0.dtype)]  # real rows, then imagined rows
     hidden, both_im, hh = [], [], []
     for t in range(k):
         u = jax.nn.relu(p1 + z1_actions[t])
@@ -329,7 +342,7 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
         hh.append(hs[-1] @ w_h)
         hs.append(_gates(c, gi_re[t], both_im[-1], hh[-1], hs[-1]))
     residuals = (p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs)
-    return (hs[-1][0], hs[-1][1], states[-1]), residuals
+    return (hs[-1][:W], hs[-1][W:], states[-1]), residuals
 
 
 def _chain_bwd(shared: bool, residuals, cotangents):
@@ -339,15 +352,15 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs = residuals
     layers, w_h = p["layers"], p["w_h"]
     dh_re, dh_im, ds = cotangents
-    k, O = len(hidden), ds.shape[-1]
+    k, (W, O) = len(hidden), ds.shape
     N1 = layers[0][0].shape[1]
     delta_std = c["delta"].std  # d denormalize(delta, z) / dz
-    dh, dp1 = jnp.stack([dh_re, dh_im]), None  # cotangents of h_{t+1} and of the next step's first layer
+    dh, dp1 = jnp.concatenate([dh_re, dh_im]), None  # cotangents of h_{t+1} and of the next step's first layer
     dgi, dhh, dzs = [None] * k, [None] * k, [None] * k
     for t in reversed(range(k)):
         _, gates_vjp = jax.vjp(functools.partial(_gates, c), gi_re[t], both_im[t], hh[t], hs[t])
         dgi_re, dgi_im, dhh[t], dh_direct = gates_vjp(dh)
-        dgi[t] = jnp.stack([dgi_re, dgi_im])
+        dgi[t] = jnp.concatenate([dgi_re, dgi_im])
         dh = dh_direct + dhh[t] @ w_h.T
         dboth = dgi_im if dp1 is None else jnp.concatenate([dp1, dgi_im], axis=-1)
         dxin = dboth @ (w_in[:, N1:] if dp1 is None else w_in).T
@@ -364,21 +377,21 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     ds0 = ds + inputs_vjp(dp1 @ w_in[:, :N1].T)[0]
 
     H = w_h.shape[0]
-    stack = lambda xs: jnp.stack(xs)  # noqa: E731 - [k, ...]: one copy per kind, after the loop
+    stack = _stack_steps  # [k, ...]: one copy per kind, after the loop
     dz_layers = [stack([d[i] for d in dzs]) for i in range(len(layers))]
     model_in = jnp.concatenate([stack(xin[:-1])[..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
     inputs = [model_in] + [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
     dlayers = tuple(_outer(x, dz) for x, dz in zip(inputs, dz_layers))
     dactions = dz_layers[0] @ layers[0][0][O:].T
     # the GRU's weights: real and imagined rows in one product, each kind's cotangent scaled as scale_gradient would
-    scales = jnp.stack(c["scales"])[None, :, None, None]
+    scales = jnp.repeat(jnp.stack(c["scales"]), W)[None, :, None]  # [1, 2W, 1]: each row's kind's scale
     scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
-    dgi = stack(dgi)  # [k, 2, W, 3H]
-    x_enc = jnp.stack([p["x_re"], stack(xin[1:])[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2, W, D]
+    dgi = stack(dgi)  # [k, 2W, 3H]
+    x_enc = jnp.concatenate([p["x_re"], stack(xin[1:])[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2W, D]
     dw_i, db_i = _outer(x_enc, scaled(dgi))
     dw_h, dgh_bias = _outer(stack(hs[:-1]), scaled(stack(dhh)))
     dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
-              x_re=dgi[:, 0] @ p["w_i"].T)
+              x_re=dgi[:, :W] @ p["w_i"].T)
     return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
 
 

@@ -5,6 +5,7 @@ import json
 import types
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -439,3 +440,32 @@ def test_chain_check_measures_the_fused_chain_against_the_plain_loop(tmp_path):
     for size in ("0", "-3", "two"):  # a size that is no width: one sentence from argparse, no traceback
         with pytest.raises(SystemExit, match="2"):
             chain_check.main(["--windows", size])
+
+
+def _transposes(jaxpr) -> int:
+    """How many transpose operations a jaxpr holds, its sub-jaxprs' included."""
+    return sum(e.primitive.name == "transpose" for e in jaxpr.eqns) + sum(
+        _transposes(sub) for e in jaxpr.eqns for sub in jax.extend.core.jaxprs_in_params(e.params))
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_the_fused_chain_under_vmap_moves_no_axis_in_its_steps(shared):
+    """The fused chain's gradient vmapped over runs (as a sweep's seeds are) holds the unbatched gradient's transposes
+    (its products' weights, which XLA folds into the products) and two more, not some in every step: its real and
+    imagined rows and its per-step arrays are stacked so that the runs' axis stays in front (a stack along a new
+    leading axis put it second, and XLA transposed it back in every step on a GPU)."""
+    s0, actions, real = _real_windows(seed=4)
+    model = _mlp_model()
+    enc_obs = model.obs if shared else _stats()
+    gru = cc.gru_weights(_encoder("gru")["encoder_params"])
+
+    def loss(model, gru, s0, actions, x_re):
+        h_re, h_im, s_k = cc.fused_chain(model, gru, s0, actions, x_re, enc_obs, (0.7, 0.4), shared)
+        return (h_re * h_im).sum() + (s_k ** 2).sum()
+
+    grad = jax.grad(loss, argnums=(0, 1, 2, 3, 4))
+    args = (model, gru, s0, actions, nz.normalize(enc_obs, real))
+    runs = jax.tree.map(lambda x: jnp.stack([x, x + 0.1]), args)
+    alone = _transposes(jax.make_jaxpr(grad)(*args).jaxpr)
+    assert alone >= K  # the products' transposed weights, at least one per step
+    assert _transposes(jax.make_jaxpr(jax.vmap(grad))(*runs).jaxpr) <= alone + 2
