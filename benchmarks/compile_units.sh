@@ -45,6 +45,11 @@
 #            HLO_CASES (default "mbmf mbmf-nometrics cd-paper cd-paper-biassum") names the `hlo` unit's cases: any
 #            compare case, with -nometrics or -biassum for the variant; HLO_TOP (default 8) how many of each profile's
 #            costliest fusion kernels `hlo` and `hlo-seeds` trace to their source.
+#   ab       the working tree against an earlier revision in one lease (about 10 minutes at the default): AB_RUN (default
+#            the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, `benchmarks.run ...`) four times in
+#            processes of their own, ABBA: here, then in runs/ab-base/ (the cdjax package and benchmark modules of the
+#            revision, written here by `bash benchmarks/ab_base.sh REV`; carry runs/ab-base beside .whl-site), each
+#            stopped after AB_LIMIT seconds (default 200). For a change no variant can switch off.
 #   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars reduced
 #            in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of its own
 #            (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the compare
@@ -435,6 +440,18 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "timeout -k 20 280 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
         "--seed-envs 256 --budget-s 250 --trace $work/trace --out $work/seeds > $work/seeds.log 2>&1;" \
         "grep -E 'env steps/s|s/update' $work/seeds.log; grep -A 30 'Op-level' $work/seeds/results.md | head -80" ;;
+    ab)
+      local run=${AB_RUN:-"benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 \
+--budget-s 120"} line="" v dir i=0
+      [ -f runs/ab-base/REVISION ] || { echo "runs/ab-base/ is missing: run bash benchmarks/ab_base.sh REV here" \
+        "and carry runs/ab-base" >&2; return 1; }
+      for v in head base base head; do
+        i=$((i + 1)); dir=.; [ $v = base ] && dir=runs/ab-base
+        line+="(cd $dir && timeout -k 20 ${AB_LIMIT:-200} python -m $run --out $PWD/$work/$v$i) > $work/$v$i.log 2>&1; "
+      done
+      local which="python -c 'import cdjax, os; print(os.path.dirname(cdjax.__file__))'"
+      echo "echo head imports \$($which), base \$(cd runs/ab-base && $which), revision \$(cat runs/ab-base/REVISION);" \
+        "$line grep -H -E 's/update' $work/head*.log $work/base*.log" ;;
     shares)
       local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 150"
       local cases="--suite compare --cases model-free mbmf cd-paper --budget-s 170" v="benchmarks.variants"
@@ -467,7 +484,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
