@@ -45,13 +45,20 @@
 #            HLO_CASES (default "mbmf mbmf-nometrics cd-paper cd-paper-biassum") names the `hlo` unit's cases: any
 #            compare case, with -nometrics or -biassum for the variant; HLO_TOP (default 8) how many of each profile's
 #            costliest fusion kernels `hlo` and `hlo-seeds` trace to their source.
-#   ab       the working tree against an earlier revision in one lease (about 10 minutes at the default): AB_RUN (default
-#            the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, `benchmarks.run ...`) four times in
+#   cublaslt XLA's GEMMs through the legacy cuBLAS API instead of cuBLASLt (--xla_gpu_enable_cublaslt=false), in
+#            processes of their own (about 14 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256
+#            envs, then the compare suite (Brax PPO, model-free, Mb-Mf, paper-CD), each with and without the flag. At 10
+#            seeds XLA transposes each batched weight-gradient product's [10, 672, 256] input to [10, 256, 672]
+#            before its cuBLASLt call, 14 transposes per SGD step in Mb-Mf
+#            (benchmarks/results/2026-11-27-h100-hlo-seeds/); the single-seed program calls cuBLAS with the
+#            operand transposed in place. Whether the legacy API takes the batched operands as they are.
+#   ab       the working tree against an earlier revision in one lease (about 10 minutes at the default): AB_RUN
+#            (default the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, `benchmarks.run ...`) four times in
 #            processes of their own, ABBA: here, then in runs/ab-base/ (the cdjax package and benchmark modules of the
 #            revision, written here by `bash benchmarks/ab_base.sh REV`; carry runs/ab-base beside .whl-site), each
 #            stopped after AB_LIMIT seconds (default 200). For a change no variant can switch off.
-#   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars reduced
-#            in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of its own
+#   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars
+#            reduced in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of its own
 #            (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the compare
 #            suite's model-free, Mb-Mf and paper-CD. Under vmap two of those reductions made a 3-block kernel of the
 #            losses' backward (18.7 ms of Mb-Mf's 0.419 s update at 10 seeds; hlo-seeds, 2026-11-27). On 2026-11-27
@@ -440,6 +447,19 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "timeout -k 20 280 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
         "--seed-envs 256 --budget-s 250 --trace $work/trace --out $work/seeds > $work/seeds.log 2>&1;" \
         "grep -E 'env steps/s|s/update' $work/seeds.log; grep -A 30 'Op-level' $work/seeds/results.md | head -80" ;;
+    cublaslt)
+      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 150"
+      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 250"
+      local flag=xla_gpu_enable_cublaslt=false
+      echo "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-default" \
+        "> $work/seeds-default.log 2>&1;" \
+        "$(with_flag $flag "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-legacy" \
+          "> $work/seeds-legacy.log 2>&1")" \
+        "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-default" \
+        "> $work/compare-default.log 2>&1;" \
+        "$(with_flag $flag "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-legacy" \
+          "> $work/compare-legacy.log 2>&1")" \
+        "grep -H -E 's/update' $work/seeds-*.log $work/compare-*.log" ;;
     ab)
       local run=${AB_RUN:-"benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 \
 --budget-s 120"} line="" v dir i=0
@@ -458,7 +478,8 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-shares > $work/seeds-shares.log 2>&1;" \
         "timeout -k 20 200 python -m $v scalar-loss-metrics -- $seeds --out $work/seeds-scalars" \
         "> $work/seeds-scalars.log 2>&1;" \
-        "timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-shares > $work/compare-shares.log 2>&1;" \
+        "timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-shares" \
+        "> $work/compare-shares.log 2>&1;" \
         "timeout -k 20 200 python -m $v scalar-loss-metrics -- $cases --out $work/compare-scalars" \
         "> $work/compare-scalars.log 2>&1;" \
         "grep -H -E 'x10:|s/update' $work/seeds-*.log $work/compare-*.log" ;;
@@ -484,7 +505,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
