@@ -53,15 +53,15 @@
 #            (benchmarks/results/2026-11-27-h100-hlo-seeds/); the single-seed program calls cuBLAS with the
 #            operand transposed in place. Whether the legacy API takes the batched operands as they are.
 #   ab       the working tree against an earlier revision in one lease (about 10 minutes at the default): AB_RUN
-#            (default the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, `benchmarks.run ...`) four times in
-#            processes of their own, ABBA: here, then in runs/ab-base/ (the cdjax package and benchmark modules of the
-#            revision, written here by `bash benchmarks/ab_base.sh REV`; carry runs/ab-base beside .whl-site), each
-#            stopped after AB_LIMIT seconds (default 200). For a change no variant can switch off.
+#            (default the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, `benchmarks.run ...`) four
+#            times in processes of their own, ABBA: here, then in runs/ab-base/ (the cdjax package and benchmark modules
+#            of the revision, written here by `bash benchmarks/ab_base.sh REV`; carry runs/ab-base beside .whl-site),
+#            each stopped after AB_LIMIT seconds (default 200). For a change no variant can switch off.
 #   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars
-#            reduced in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of its own
-#            (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the compare
-#            suite's model-free, Mb-Mf and paper-CD. Under vmap two of those reductions made a 3-block kernel of the
-#            losses' backward (18.7 ms of Mb-Mf's 0.419 s update at 10 seeds; hlo-seeds, 2026-11-27). On 2026-11-27
+#            reduced in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of
+#            its own (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the
+#            compare suite's model-free, Mb-Mf and paper-CD. Under vmap two of those reductions made a 3-block kernel of
+#            the losses' backward (18.7 ms of Mb-Mf's 0.419 s update at 10 seeds; hlo-seeds, 2026-11-27). On 2026-11-27
 #            (H100): 10 seeds Mb-Mf 0.4038 against 0.4242 s/update, paper-CD 0.7015 against 0.7304; one seed 1-2%
 #            (benchmarks/results/2026-11-27-h100-shares/).
 #   kcache   XLA's kernel cache file (--xla_gpu_kernel_cache_file: the kernels of a compiled program are written to a
