@@ -45,6 +45,7 @@ import numpy as np
 from flax import struct
 
 from cdjax import normalize as nz
+from cdjax.kernels import chain as chain_kernel
 from cdjax.numerics import masked_mean
 
 KINDS = ("grounded-gru", "gru", "frozen-gru", "l2")
@@ -297,12 +298,12 @@ def _stack_steps(xs: list) -> jax.Array:
     return jnp.concatenate([x[None] for x in xs])
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _chain(shared: bool, p: dict, c: dict):
-    return _chain_fwd(shared, p, c)[0]
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
+def _chain(shared: bool, kernel: bool, p: dict, c: dict):
+    return _chain_fwd(shared, kernel, p, c)[0]
 
 
-def _chain_fwd(shared: bool, p: dict, c: dict):
+def _chain_fwd(shared: bool, kernel: bool, p: dict, c: dict):
     """The k imagined steps and both encodings, unrolled: -> ((h_re [W, H], h_im [W, H], s_k [W, O]), residuals).
 
     Per step, three matrix products: the model's hidden layer(s) and output, then one product of the new
@@ -310,6 +311,7 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     imagined GRU input at once), and one of [h_re; h_im] with W_h. The real rows' GRU inputs and the actions'
     share of the first layer do not depend on the chain: one product each, before it. The residuals are the
     per-step arrays as they are (a list per kind), never written into stacked buffers step by step.
+    `kernel`: the k steps as one CUDA kernel (`cdjax.kernels.chain`), its residuals stacked [k or k+1, ...].
     """
     layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
     s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
@@ -323,6 +325,11 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
     gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
     z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
+    if kernel:
+        stats = _kernel_stats(c)
+        u, states, xin, both_im, hh, hs = chain_kernel.forward(nz.CLIP, s0, z1_actions, gi_re, w_in, w_out, b_out, w_h,
+                                                               p["b_i"], p["b_hn"], stats)
+        return (hs[k, :W], hs[k, W:], states[k]), (p, c, w_in, gi_re, stats, xin, [u], both_im, hh, hs)
     states, xin = [s0], [_chain_inputs(c, shared, s0)]
     p1 = xin[0] @ w_in[:, :N1]
     hs = [jnp.zeros((2 * W, w_h.shape[0]), s0.dtype)]  # real rows, then imagined rows
@@ -330,8 +337,8 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     for t in range(k):
         u = jax.nn.relu(p1 + z1_actions[t])
         us = [u]
-        for kernel, bias in layers[1:-1]:
-            u = jax.nn.relu(u @ kernel + bias)
+        for kernel_t, bias in layers[1:-1]:
+            u = jax.nn.relu(u @ kernel_t + bias)
             us.append(u)
         states.append(states[-1] + nz.denormalize(c["delta"], u @ w_out + b_out))
         xin.append(_chain_inputs(c, shared, states[-1]))
@@ -345,14 +352,27 @@ def _chain_fwd(shared: bool, p: dict, c: dict):
     return (hs[-1][:W], hs[-1][W:], states[-1]), residuals
 
 
-def _chain_bwd(shared: bool, residuals, cotangents):
+def _kernel_stats(c: dict) -> jax.Array:
+    """[6, O]: mean and std of the model's input, the encoder's input and the model's output (the kernels' stats)."""
+    return jnp.stack([c["model_obs"].mean, c["model_obs"].std, c["enc_obs"].mean, c["enc_obs"].std, c["delta"].mean,
+                      c["delta"].std])
+
+
+def _chain_bwd(shared: bool, kernel: bool, residuals, cotangents):
     """The chain's backward, unrolled: per step only the cotangents of the states and hidden states (three
     matrix products); every weight's gradient afterwards, one product over all k steps and both row kinds each
-    (the bias as the product's last row)."""
+    (the bias as the product's last row). `kernel`: the per-step cotangents as one CUDA kernel."""
+    dh_re, dh_im, ds = cotangents
+    if kernel:
+        p, c, w_in, gi_re, stats, xin, hidden, both_im, hh, hs = residuals
+        (_, _), (w_out, _) = p["layers"]
+        dgi, dhh, dz, dz1, ds0 = chain_kernel.backward(nz.CLIP, hidden[0], xin, both_im, hh, hs, gi_re, w_in, w_out,
+                                                       p["w_h"], p["b_i"], p["b_hn"], stats,
+                                                       jnp.concatenate([dh_re, dh_im]), ds)
+        return _chain_weight_grads(p, c, xin[:-1], xin[1:], hidden, [dz1, dz], dgi, dhh, hs[:-1], ds0)
     p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs = residuals
     layers, w_h = p["layers"], p["w_h"]
-    dh_re, dh_im, ds = cotangents
-    k, (W, O) = len(hidden), ds.shape
+    k = len(hidden)
     N1 = layers[0][0].shape[1]
     delta_std = c["delta"].std  # d denormalize(delta, z) / dz
     dh, dp1 = jnp.concatenate([dh_re, dh_im]), None  # cotangents of h_{t+1} and of the next step's first layer
@@ -368,28 +388,39 @@ def _chain_bwd(shared: bool, residuals, cotangents):
         ds = ds + inputs_vjp(dxin)[0]  # every path into s_{t+1}
         dz = ds * delta_std  # the output layer's
         dzs[t] = [dz]
-        for (kernel, _), u in zip(layers[:0:-1], hidden[t][::-1]):
-            dz = jnp.where(u > 0, dz @ kernel.T, 0.0)
+        for (kernel_t, _), u in zip(layers[:0:-1], hidden[t][::-1]):
+            dz = jnp.where(u > 0, dz @ kernel_t.T, 0.0)
             dzs[t].append(dz)
         dzs[t] = dzs[t][::-1]
         dp1 = dz
     _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[0])
     ds0 = ds + inputs_vjp(dp1 @ w_in[:, :N1].T)[0]
 
-    H = w_h.shape[0]
     stack = _stack_steps  # [k, ...]: one copy per kind, after the loop
     dz_layers = [stack([d[i] for d in dzs]) for i in range(len(layers))]
-    model_in = jnp.concatenate([stack(xin[:-1])[..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
-    inputs = [model_in] + [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
-    dlayers = tuple(_outer(x, dz) for x, dz in zip(inputs, dz_layers))
+    hidden = [stack([us[i] for us in hidden]) for i in range(len(layers) - 1)]
+    return _chain_weight_grads(p, c, stack(xin[:-1]), stack(xin[1:]), hidden, dz_layers, stack(dgi), stack(dhh),
+                               stack(hs[:-1]), ds0)
+
+
+def _chain_weight_grads(p: dict, c: dict, xin_prev, xin_next, hidden: list, dz_layers: list, dgi, dhh, hs_prev, ds0):
+    """Every weight's gradient from the chain's per-step arrays, stacked [k, ...]: one product over all k steps and
+    both row kinds each (the bias as the product's last row), and the inputs' cotangents.
+
+    xin_prev, xin_next [k, W, X]: the normalised inputs of steps 0..k-1 and 1..k; hidden: each hidden layer's
+    outputs [k, W, N]; dz_layers: each layer's output cotangents; dgi, dhh [k, 2W, 3H]: the GRU's input and
+    recurrent parts' cotangents; hs_prev [k, 2W, H]: the hidden states entering each step; ds0 [W, O]."""
+    layers = p["layers"]
+    O, W, H = ds0.shape[-1], ds0.shape[0], p["w_h"].shape[0]
+    model_in = jnp.concatenate([xin_prev[..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
+    dlayers = tuple(_outer(x, dz) for x, dz in zip([model_in] + list(hidden), dz_layers))
     dactions = dz_layers[0] @ layers[0][0][O:].T
     # the GRU's weights: real and imagined rows in one product, each kind's cotangent scaled as scale_gradient would
     scales = jnp.repeat(jnp.stack(c["scales"]), W)[None, :, None]  # [1, 2W, 1]: each row's kind's scale
     scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
-    dgi = stack(dgi)  # [k, 2W, 3H]
-    x_enc = jnp.concatenate([p["x_re"], stack(xin[1:])[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2W, D]
+    x_enc = jnp.concatenate([p["x_re"], xin_next[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2W, D]
     dw_i, db_i = _outer(x_enc, scaled(dgi))
-    dw_h, dgh_bias = _outer(stack(hs[:-1]), scaled(stack(dhh)))
+    dw_h, dgh_bias = _outer(hs_prev, scaled(dhh))
     dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
               x_re=dgi[:, :W] @ p["w_i"].T)
     return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
@@ -399,7 +430,7 @@ _chain.defvjp(_chain_fwd, _chain_bwd)
 
 
 def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.RunningStats, scales: tuple,
-                shared: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
+                shared: bool = False, kernel: bool | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The k imagined steps of an MLPModel from s0 [W, O] under actions [k, W, A] and the GRU encodings of the real
     (normalised) states x_re [k, W, D] and of the imagined ones (normalised by enc_obs): (h_re, h_im [W, H], s_k).
 
@@ -409,13 +440,18 @@ def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.Runn
     gradient from the real rows is scaled by scales[0] and from the imagined rows by scales[1] (as
     `scale_gradient` would on the encoder's parameters of each); the running statistics are constants.
     `shared`: enc_obs is the model's own obs statistics (one normalised input serves both).
+    `kernel`: run the steps as the CUDA kernels of `cdjax.kernels.chain` (the same function, float32 products
+    without TF32 rounding); None: where `chain_kernel.usable` says they fit and $CDJAX_CHAIN_KERNEL is 1.
     """
     w_i, b_i, w_h, b_hn = gru
     layers = tuple(tuple(layer) for layer in model.layers)
+    if kernel is None:
+        O, N1, H = s0.shape[-1], layers[0][0].shape[1], w_h.shape[0]
+        kernel = chain_kernel.usable(len(layers), O, O if shared else 2 * O, N1, H, s0.dtype)
     p = dict(layers=layers, w_i=w_i, b_i=b_i, w_h=w_h, b_hn=b_hn, s0=s0, actions=actions, x_re=x_re)
     c = jax.lax.stop_gradient(dict(model_obs=model.obs, delta=model.delta, enc_obs=enc_obs,
                                    scales=tuple(jnp.asarray(x, jnp.float32) for x in scales)))
-    return _chain(shared, p, c)
+    return _chain(shared, bool(kernel), p, c)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -1,0 +1,555 @@
+// The consistency term's k-step chain (cdjax.consistency.fused_chain) as two CUDA kernels called through XLA's FFI:
+// the forward runs all k imagined steps of a one-hidden-layer MLP model and the GRU over the real and imagined rows,
+// the backward all k steps of the per-row cotangents. Rows (windows) are independent through the chain, so each thread
+// block takes kRows of them (and, for the GRU, their kRows imagined twins) through every step, holding what a step
+// makes in shared memory and streaming the weights from L2. The weight gradients are not computed here: they sum over
+// rows and steps, and stay one XLA product each after the backward (cdjax/kernels/chain.py).
+//
+// Every array may carry leading batch axes (vmap over seeds: XLA's FFI broadcasts all inputs); the product of s0's
+// leading axes is the batch, the grid's y axis. Shapes, per batch entry (W rows, k steps, O state dims, X = O or 2O
+// normalised-input dims, N1 hidden units, H GRU units, G = N1 + 3H):
+//
+//   forward  in:  s0 [W, O], z1a [k, W, N1] (the actions' share of layer 1 plus its bias), gi_re [k, W, 3H] (the real
+//                 rows' GRU input part with b_i), w_in [X, G] ([layer 1's state rows | W_i], block-diagonal unless
+//                 shared), w_out [N1, O], b_out [O], w_h [H, 3H], b_i [3H], b_hn [H], stats [6, O] (mean and std of
+//                 the model's input, the encoder's input and the model's output)
+//            out: u [k, W, N1] (hidden layer after relu), states [k+1, W, O], xin [k+1, W, X], both_im [k, W, 3H]
+//                 (imagined rows' x W_i, no bias), hh [k, 2W, 3H] (h W_h, no bias), hs [k+1, 2W, H]
+//   backward in:  u, xin, both_im, hh, hs, gi_re, w_in, w_out, w_h, b_i, b_hn, stats, dh [2W, H], ds [W, O]
+//            out: dgi [k, 2W, 3H], dhh [k, 2W, 3H], dz [k, W, O] (output layer), dz1 [k, W, N1] (hidden layer),
+//                 ds0 [W, O]
+//
+// Products run on the tensor cores (mma.sync m16n8k8, TF32 inputs rounded to nearest, float32 sums), as XLA's default
+// precision runs float32 matrix products on this GPU; the rest is float32. O and X must be at most kSplitCols.
+#include <cuda_runtime.h>
+
+#include <cstdint>
+#include <string>
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+constexpr int kRows = 16;  // rows (windows) per thread block: one m16 tile of the model's rows, two of the GRU's
+constexpr int kThreads = 512;
+constexpr int kWarps = kThreads / 32;
+#ifndef CDJAX_CHAIN_PROBE
+#define CDJAX_CHAIN_PROBE 0
+#endif
+// Timing probes only (benchmarks.chain_kernel --probe; wrong results): the forward skips its layer-1/GRU-input product
+// (1), its recurrent product (2), its output layer (4), its stores of residuals (8), its elementwise steps (16).
+constexpr int kProbe = CDJAX_CHAIN_PROBE;
+constexpr int kSplitCols = 56;  // the split-K products' widest output (columns, a multiple of 8)
+
+struct Dims {
+  int64_t B, W, k, O, X, N1, H;
+  __host__ __device__ int64_t G() const { return N1 + 3 * H; }
+};
+
+// The row stride of a matrix product's A operand in shared memory: its width padded to 4 mod 32 floats, so that the
+// eight rows an m16n8k8 fragment load reads at once fall in distinct banks (a stride of 0 mod 32, as H = 128 is, put
+// them all in one bank: 8-way conflicts, the recurrent product's cost four times over).
+__host__ __device__ __forceinline__ int64_t padded(int64_t x) { return x + ((4 - x % 32) % 32 + 32) % 32; }
+
+__device__ __forceinline__ float sigmoidf(float x) { return 1.0f / (1.0f + expf(-x)); }
+
+__device__ __forceinline__ uint32_t tf32(float x) {
+  uint32_t r;
+  asm("cvt.rna.tf32.f32 %0, %1;" : "=r"(r) : "f"(x));
+  return r;
+}
+
+// One warp: c[m] += A[16m.., kb:ke] B[kb:ke, n0:n0+8] with TF32 tensor-core products (mma m16n8k8) and float32 sums,
+// for MT tiles of 16 rows. A in shared memory (element (m, k) at A[m * lda + k]); B's element (k, n) at
+// B[k * sbk + n * sbn] in global memory; columns n >= N and k >= ke count as zero. Fragments as the PTX ISA lays out
+// m16n8k8 .tf32: lane l holds A's (l/4 + 8 (r%2), l%4 + 4 (r/2)), B's (k = l%4 + 4r, n = l/4) and C's
+// (l/4 + 8 (r/2), 2 (l%4) + r%2).
+template <int MT>
+__device__ __forceinline__ void mma_tile(const float* A, int lda, const float* __restrict__ B, int64_t sbk,
+                                         int64_t sbn, int kb, int ke, int n0, int N, float (&c)[MT][4]) {
+  constexpr int KC = 8;  // k-steps whose B fragments are all loaded (from L2) before their products
+  const int lane = threadIdx.x & 31, g = lane >> 2, q = lane & 3;
+  const bool n_ok = n0 + g < N;
+  const float* Bn = B + (n_ok ? (n0 + g) * sbn : 0);
+  for (int kc = kb; kc < ke; kc += 8 * KC) {
+    uint32_t bf[KC][2];
+#pragma unroll
+    for (int i = 0; i < KC; ++i) {
+      const int k1 = kc + 8 * i + q, k2 = k1 + 4;
+      bf[i][0] = tf32(n_ok && k1 < ke ? __ldg(Bn + k1 * sbk) : 0.0f);
+      bf[i][1] = tf32(n_ok && k2 < ke ? __ldg(Bn + k2 * sbk) : 0.0f);
+    }
+#pragma unroll
+    for (int i = 0; i < KC; ++i) {
+      const int k0 = kc + 8 * i;
+      if (k0 >= ke) break;
+      const int k1 = k0 + q, k2 = k1 + 4;
+      const bool ok1 = k1 < ke, ok2 = k2 < ke;
+#pragma unroll
+      for (int m = 0; m < MT; ++m) {
+        const float* a = A + (16 * m + g) * lda;
+        const uint32_t a0 = tf32(ok1 ? a[k1] : 0.0f), a1 = tf32(ok1 ? a[8 * lda + k1] : 0.0f);
+        const uint32_t a2 = tf32(ok2 ? a[k2] : 0.0f), a3 = tf32(ok2 ? a[8 * lda + k2] : 0.0f);
+        asm volatile(
+            "mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32 {%0,%1,%2,%3}, {%4,%5,%6,%7}, {%8,%9}, "
+            "{%0,%1,%2,%3};\n"
+            : "+f"(c[m][0]), "+f"(c[m][1]), "+f"(c[m][2]), "+f"(c[m][3])
+            : "r"(a0), "r"(a1), "r"(a2), "r"(a3), "r"(bf[i][0]), "r"(bf[i][1]));
+      }
+    }
+  }
+}
+
+// f(i, load(i)) for every i < n, each thread's loads issued kBatch at a time before their uses, so that their
+// latencies overlap (a loop of one global load and its use per pass waits out each load alone).
+template <int kBatch, typename Load, typename F>
+__device__ __forceinline__ void batched(int n, Load load, F f) {
+  for (int base = threadIdx.x; base < n; base += kBatch * kThreads) {
+    float v[kBatch];
+#pragma unroll
+    for (int j = 0; j < kBatch; ++j) {
+      const int i = base + j * kThreads;
+      v[j] = i < n ? load(i) : 0.0f;
+    }
+#pragma unroll
+    for (int j = 0; j < kBatch; ++j) {
+      const int i = base + j * kThreads;
+      if (i < n) f(i, v[j]);
+    }
+  }
+}
+
+// The block: out = A [16 MT, K] B [K, N], each warp taking whole 8-column tiles over all of K; epi(row, n, value) for
+// n < N. For products with many columns.
+template <int MT, typename Epi>
+__device__ __forceinline__ void gemm_tiles(const float* A, int lda, const float* __restrict__ B, int64_t sbk,
+                                           int64_t sbn, int K, int N, Epi epi) {
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, g = lane >> 2, q = lane & 3;
+  for (int n0 = 8 * warp; n0 < N; n0 += 8 * kWarps) {
+    float c[MT][4] = {};
+    mma_tile<MT>(A, lda, B, sbk, sbn, 0, K, n0, N, c);
+#pragma unroll
+    for (int m = 0; m < MT; ++m)
+#pragma unroll
+      for (int r = 0; r < 4; ++r) {
+        const int n = n0 + 2 * q + (r & 1);
+        if (n < N) epi(16 * m + g + 8 * (r >> 1), n, c[m][r]);
+      }
+  }
+}
+
+// The block: out = A [16, K] B [K, N] for few columns (N <= kSplitCols), each warp taking a slice of K for every
+// column tile; the slices' sums meet in `scratch` ([kWarps, 16, kSplitCols]) and are added in slice order. Holds
+// __syncthreads(): every thread must call it. epi(row, n, value) for n < N.
+template <typename Epi>
+__device__ __forceinline__ void gemm_split(const float* A, int lda, const float* __restrict__ B, int64_t sbk,
+                                           int64_t sbn, int K, int N, float* scratch, Epi epi) {
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, g = lane >> 2, q = lane & 3;
+  const int slice = ((K + kWarps - 1) / kWarps + 7) / 8 * 8;
+  const int kb = warp * slice, ke = min(K, kb + slice);
+  float* mine = scratch + warp * 16 * kSplitCols;
+  for (int n0 = 0; n0 < N; n0 += 8) {
+    float c[1][4] = {};
+    if (kb < ke) mma_tile<1>(A, lda, B, sbk, sbn, kb, ke, n0, N, c);
+#pragma unroll
+    for (int r = 0; r < 4; ++r) mine[(g + 8 * (r >> 1)) * kSplitCols + n0 + 2 * q + (r & 1)] = c[0][r];
+  }
+  __syncthreads();
+  for (int i = threadIdx.x; i < 16 * N; i += kThreads) {
+    const int row = i / N, n = i - row * N;
+    float v = 0.0f;
+    for (int w = 0; w < kWarps; ++w) v += scratch[(w * 16 + row) * kSplitCols + n];
+    epi(row, n, v);
+  }
+}
+
+// The normalised inputs of the states s [R, O] into xin [R, X] (row stride xs; clip((s - mean) / std)); the encoder's
+// beside the model's unless shared (X == O).
+__device__ __forceinline__ void normalise(const Dims& d, const float* st, float clip, const float* s, float* xin,
+                                          int xs) {
+  const int O = d.O, X = d.X;
+  for (int i = threadIdx.x; i < kRows * O; i += kThreads) {
+    const int r = i / O, c = i - r * O;
+    xin[r * xs + c] = fminf(fmaxf((s[i] - st[c]) / st[O + c], -clip), clip);
+    if (X != O) xin[r * xs + O + c] = fminf(fmaxf((s[i] - st[2 * O + c]) / st[3 * O + c], -clip), clip);
+  }
+}
+
+// The cotangent of the states from that of their normalised inputs dxin [R, X] (xin: the inputs, for clip's mask).
+__device__ __forceinline__ float normalise_vjp(const Dims& d, const float* st, float clip, const float* xin_row,
+                                               const float* dxin_row, int c) {
+  const int O = d.O;
+  float g = fabsf(xin_row[c]) < clip ? dxin_row[c] / st[O + c] : 0.0f;
+  if (d.X != O && fabsf(xin_row[O + c]) < clip) g += dxin_row[O + c] / st[3 * O + c];
+  return g;
+}
+
+__global__ void __launch_bounds__(kThreads) chain_fwd_kernel(
+    Dims d, float clip, const float* __restrict__ s0, const float* __restrict__ z1a, const float* __restrict__ gi_re,
+    const float* __restrict__ w_in, const float* __restrict__ w_out, const float* __restrict__ b_out,
+    const float* __restrict__ w_h, const float* __restrict__ b_i, const float* __restrict__ b_hn,
+    const float* __restrict__ stats, float* __restrict__ u_out, float* __restrict__ states,
+    float* __restrict__ xin_out, float* __restrict__ both_im, float* __restrict__ hh_out, float* __restrict__ hs) {
+  constexpr int R = kRows;
+  const int64_t W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, G = d.G(), H3 = 3 * H;
+  const int64_t b = blockIdx.y, row0 = int64_t(blockIdx.x) * R;
+  const int nr = int(W - row0 < R ? W - row0 : R);
+  s0 += b * W * O; z1a += b * k * W * N1; gi_re += b * k * W * H3; w_in += b * X * G; w_out += b * N1 * O;
+  b_out += b * O; w_h += b * H * H3; b_i += b * H3; b_hn += b * H; stats += b * 6 * O;
+  u_out += b * k * W * N1; states += b * (k + 1) * W * O; xin_out += b * (k + 1) * W * X; both_im += b * k * W * H3;
+  hh_out += b * k * 2 * W * H3; hs += b * (k + 1) * 2 * W * H;
+
+  extern __shared__ float smem[];
+  float* scratch = smem;                     // [kWarps, 16, kSplitCols]
+  float* st = scratch + kWarps * 16 * kSplitCols;  // [6, O]
+  const int64_t Xs = padded(X), N1s = padded(N1), Hs = padded(H);  // row strides of the products' A operands
+  float* s = st + 6 * O;                     // [R, O]
+  float* xin = s + R * O;                    // [R, Xs]
+  float* pu = xin + R * Xs;                  // [R, N1s]: layer 1's state part, then (in place) its relu output
+  float* gim = pu + R * N1s;                 // [R, 3H]: the imagined rows' x W_i
+  float* gre = gim + R * H3;                 // [R, 3H]: the real rows' GRU input part of this step
+  float* h = gre + R * H3;                   // [2R, Hs]: real rows, then imagined
+  float* hh = h + 2 * R * Hs;                // [2R, 3H]
+  // a GRU row of the block (q < 2R) as a row of the [2W, ...] arrays; valid when its window is
+  auto grow = [&](int q) { return q < R ? row0 + q : W + row0 + (q - R); };
+
+  for (int i = threadIdx.x; i < 6 * O; i += kThreads) st[i] = stats[i];
+  for (int i = threadIdx.x; i < R * O; i += kThreads) s[i] = i / O < nr ? s0[row0 * O + i] : 0.0f;
+  for (int i = threadIdx.x; i < 2 * R * Hs; i += kThreads) h[i] = 0.0f;
+  __syncthreads();
+  normalise(d, st, clip, s, xin, Xs);
+  __syncthreads();
+  for (int i = threadIdx.x; i < nr * O; i += kThreads) states[row0 * O + i] = s[i];
+  for (int i = threadIdx.x; i < nr * X; i += kThreads) xin_out[row0 * X + i] = xin[(i / X) * Xs + i % X];
+  for (int i = threadIdx.x; i < 2 * R * H; i += kThreads) {
+    const int q = i / H;
+    if (q % R < nr) hs[grow(q) * H + i % H] = 0.0f;
+  }
+  gemm_tiles<1>(xin, Xs, w_in, G, 1, X, N1, [&](int r, int n, float v) { pu[r * N1s + n] = v; });
+  __syncthreads();
+
+  for (int64_t t = 0; t < k; ++t) {
+    const float* z1a_t = z1a + (t * W + row0) * N1;
+    if (!(kProbe & 16)) batched<16>(
+        int(R * N1), [&](int i) { return i / N1 < nr ? z1a_t[i] : 0.0f; },
+        [&](int i, float z) {
+          const int r = i / N1;
+          float* p = pu + r * N1s + (i - r * N1);
+          const float v = r < nr ? fmaxf(*p + z, 0.0f) : 0.0f;
+          *p = v;
+          if (r < nr && !(kProbe & 8)) u_out[(t * W + row0) * N1 + i] = v;
+        });
+    __syncthreads();
+    // the model's output layer and the new states: s + (z * std + mean)
+    if (!(kProbe & 4)) gemm_split(pu, N1s, w_out, O, 1, N1, O, scratch, [&](int r, int c, float z) {
+      s[r * O + c] = r < nr ? s[r * O + c] + ((z + b_out[c]) * st[5 * O + c] + st[4 * O + c]) : 0.0f;
+    });
+    __syncthreads();
+    normalise(d, st, clip, s, xin, Xs);
+    __syncthreads();
+    if (!(kProbe & 8)) {
+      for (int i = threadIdx.x; i < nr * O; i += kThreads) states[((t + 1) * W + row0) * O + i] = s[i];
+      for (int i = threadIdx.x; i < nr * X; i += kThreads)
+        xin_out[((t + 1) * W + row0) * X + i] = xin[(i / X) * Xs + i % X];
+    }
+    // [next step's layer 1 (state part) | this step's imagined GRU input], and the recurrent products
+    if (!(kProbe & 1)) gemm_tiles<1>(xin, Xs, w_in, G, 1, X, G, [&](int r, int n, float v) {
+      if (n < N1) {
+        pu[r * N1s + n] = v;
+      } else {
+        gim[r * H3 + n - N1] = v;
+        if (r < nr && !(kProbe & 8)) both_im[(t * W + row0 + r) * H3 + n - N1] = v;
+      }
+    });
+    if (!(kProbe & 2)) gemm_tiles<2>(h, Hs, w_h, H3, 1, H, H3, [&](int q, int n, float v) {
+      hh[q * H3 + n] = v;
+      if (q % R < nr && !(kProbe & 8)) hh_out[(t * 2 * W + grow(q)) * H3 + n] = v;
+    });
+    const float* gi_re_t = gi_re + (t * W + row0) * H3;
+    if (!(kProbe & 16)) batched<16>(
+        int(R * H3), [&](int i) { return i / H3 < nr ? gi_re_t[i] : 0.0f; }, [&](int i, float v) { gre[i] = v; });
+    __syncthreads();
+    for (int i = threadIdx.x; i < (kProbe & 16 ? 0 : 2 * R * H); i += kThreads) {
+      const int q = i / H, j = i - q * H;
+      const bool valid = q % R < nr;
+      float gr, gz, gn;
+      if (q < R) {
+        const float* g = gre + q * H3;
+        gr = g[j]; gz = g[H + j]; gn = g[2 * H + j];
+      } else {
+        const float* g = gim + (q - R) * H3;
+        gr = g[j] + b_i[j]; gz = g[H + j] + b_i[H + j]; gn = g[2 * H + j] + b_i[2 * H + j];
+      }
+      const float* a = hh + q * H3;
+      const float rg = sigmoidf(gr + a[j]);
+      const float zg = sigmoidf(gz + a[H + j]);
+      const float ng = tanhf(gn + rg * (a[2 * H + j] + b_hn[j]));
+      const float hn = (1.0f - zg) * ng + zg * h[q * Hs + j];
+      h[q * Hs + j] = hn;
+      if (valid && !(kProbe & 8)) hs[((t + 1) * 2 * W + grow(q)) * H + j] = hn;
+    }
+    __syncthreads();
+  }
+}
+
+__global__ void __launch_bounds__(kThreads) chain_bwd_kernel(
+    Dims d, float clip, const float* __restrict__ u_in, const float* __restrict__ xin_in,
+    const float* __restrict__ both_im, const float* __restrict__ hh_in, const float* __restrict__ hs,
+    const float* __restrict__ gi_re, const float* __restrict__ w_in, const float* __restrict__ w_out,
+    const float* __restrict__ w_h, const float* __restrict__ b_i, const float* __restrict__ b_hn,
+    const float* __restrict__ stats, const float* __restrict__ dh_in, const float* __restrict__ ds_in,
+    float* __restrict__ dgi, float* __restrict__ dhh_out, float* __restrict__ dz_out, float* __restrict__ dz1_out,
+    float* __restrict__ ds0) {
+  constexpr int R = kRows;
+  const int64_t W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, G = d.G(), H3 = 3 * H;
+  const int64_t b = blockIdx.y, row0 = int64_t(blockIdx.x) * R;
+  const int nr = int(W - row0 < R ? W - row0 : R);
+  u_in += b * k * W * N1; xin_in += b * (k + 1) * W * X; both_im += b * k * W * H3; hh_in += b * k * 2 * W * H3;
+  hs += b * (k + 1) * 2 * W * H; gi_re += b * k * W * H3; w_in += b * X * G; w_out += b * N1 * O;
+  w_h += b * H * H3; b_i += b * H3; b_hn += b * H; stats += b * 6 * O; dh_in += b * 2 * W * H; ds_in += b * W * O;
+  dgi += b * k * 2 * W * H3; dhh_out += b * k * 2 * W * H3; dz_out += b * k * W * O; dz1_out += b * k * W * N1;
+  ds0 += b * W * O;
+
+  extern __shared__ float smem[];
+  float* scratch = smem;                     // [kWarps, 16, kSplitCols]
+  float* st = scratch + kWarps * 16 * kSplitCols;  // [6, O]
+  const int64_t Os = padded(O), Gs = padded(G), H3s = padded(H3);  // row strides of the products' A operands
+  float* ds = st + 6 * O;                    // [R, O]: the cotangent of the current state
+  float* dz = ds + R * O;                    // [R, Os]: of the output layer
+  float* dxin = dz + R * Os;                 // [R, X]
+  float* xin = dxin + R * X;                 // [R, X]: the step's normalised inputs (clip's mask)
+  float* dboth = xin + R * X;                // [R, Gs]: [next step's layer 1 | this step's imagined GRU input]
+  float* dh = dboth + R * Gs;                // [2R, H]
+  float* dhd = dh + 2 * R * H;               // [2R, H]: the direct part
+  float* dhh = dhd + 2 * R * H;              // [2R, H3s]
+  auto grow = [&](int q) { return q < R ? row0 + q : W + row0 + (q - R); };
+
+  for (int i = threadIdx.x; i < 6 * O; i += kThreads) st[i] = stats[i];
+  for (int i = threadIdx.x; i < R * O; i += kThreads) ds[i] = i / O < nr ? ds_in[row0 * O + i] : 0.0f;
+  for (int i = threadIdx.x; i < R * Gs; i += kThreads) dboth[i] = 0.0f;
+  for (int i = threadIdx.x; i < 2 * R * H; i += kThreads) {
+    const int q = i / H;
+    dh[i] = q % R < nr ? dh_in[grow(q) * H + i % H] : 0.0f;
+  }
+  __syncthreads();
+
+  for (int64_t t = k - 1; t >= 0; --t) {
+    // the GRU step's backward, elementwise
+    const float* gi_re_t = gi_re + t * W * H3;
+    constexpr int kB = 4;  // elements per thread whose seven loads are issued together
+    for (int base = threadIdx.x; base < 2 * R * H; base += kB * kThreads) {
+      float in[kB][7];
+  #pragma unroll
+      for (int e = 0; e < kB; ++e) {
+        const int i = base + e * kThreads, q = i / H, j = i - q * H;
+        const bool valid = i < 2 * R * H && q % R < nr;
+        float* v = in[e];
+        if (valid) {
+          const int64_t gq = grow(q);
+          const float* g = q < R ? gi_re_t + (row0 + q) * H3 : both_im + (t * W + row0 + q - R) * H3;
+          const float* a = hh_in + (t * 2 * W + gq) * H3;
+          v[0] = g[j]; v[1] = g[H + j]; v[2] = g[2 * H + j]; v[3] = a[j]; v[4] = a[H + j]; v[5] = a[2 * H + j];
+          v[6] = hs[(t * 2 * W + gq) * H + j];
+        } else {
+          for (int m = 0; m < 7; ++m) v[m] = 0.0f;
+        }
+      }
+  #pragma unroll
+      for (int e = 0; e < kB; ++e) {
+        const int i = base + e * kThreads, q = i / H, j = i - q * H;
+        if (i >= 2 * R * H) break;
+        const bool valid = q % R < nr;
+        const float bias = valid && q >= R ? 1.0f : 0.0f;
+        const float* v = in[e];
+        const float gr = v[0] + bias * b_i[j], gz = v[1] + bias * b_i[H + j], gn = v[2] + bias * b_i[2 * H + j];
+        const float ar = v[3], az = v[4], an = v[5] + (valid ? b_hn[j] : 0.0f), hv = v[6];
+        const float rg = sigmoidf(gr + ar), zg = sigmoidf(gz + az), ng = tanhf(gn + rg * an);
+        const float g = dh[i];
+        const float dn = g * (1.0f - zg), dzg = g * (hv - ng);
+        dhd[i] = g * zg;
+        const float dan = dn * (1.0f - ng * ng);
+        const float dar = dan * an * rg * (1.0f - rg);
+        const float daz = dzg * zg * (1.0f - zg);
+        float* o = dhh + q * H3s;
+        o[j] = dar; o[H + j] = daz; o[2 * H + j] = dan * rg;
+        if (valid) {
+          const int64_t base = (t * 2 * W + grow(q)) * H3;
+          dgi[base + j] = dar; dgi[base + H + j] = daz; dgi[base + 2 * H + j] = dan;
+          dhh_out[base + j] = dar; dhh_out[base + H + j] = daz; dhh_out[base + 2 * H + j] = dan * rg;
+        }
+        if (q >= R) {
+          float* o2 = dboth + (q - R) * Gs + N1;
+          o2[j] = dar; o2[H + j] = daz; o2[2 * H + j] = dan;
+        }
+      }
+    }
+    batched<4>(
+        int(R * X), [&](int i) { return i / X < nr ? xin_in[((t + 1) * W + row0) * X + i] : 0.0f; },
+        [&](int i, float v) { xin[i] = v; });
+    __syncthreads();
+    // the hidden state's cotangent for step t (h W_h's transpose), and the normalised inputs' of s_{t+1}
+    gemm_tiles<2>(dhh, H3s, w_h, 1, H3, H3, H, [&](int q, int j, float v) { dh[q * H + j] = dhd[q * H + j] + v; });
+    gemm_split(dboth, Gs, w_in, 1, G, G, X, scratch, [&](int r, int c, float v) { dxin[r * X + c] = v; });
+    __syncthreads();
+    for (int i = threadIdx.x; i < R * O; i += kThreads) {
+      const int r = i / O, c = i - r * O;
+      ds[i] += normalise_vjp(d, st, clip, xin + r * X, dxin + r * X, c);
+      dz[r * Os + c] = ds[i] * st[5 * O + c];
+      if (r < nr) dz_out[(t * W + row0) * O + i] = ds[i] * st[5 * O + c];
+    }
+    // the hidden layer's outputs of step t (relu's mask) where the next step's layer-1 cotangent was
+    const float* u_t = u_in + (t * W + row0) * N1;
+    batched<16>(
+        int(R * N1), [&](int i) { return i / N1 < nr ? u_t[i] : 0.0f; },
+        [&](int i, float v) { dboth[(i / N1) * Gs + i % N1] = v; });
+    __syncthreads();
+    gemm_tiles<1>(dz, Os, w_out, 1, O, O, N1, [&](int r, int n, float v) {
+      const float g = r < nr && dboth[r * Gs + n] > 0.0f ? v : 0.0f;
+      dboth[r * Gs + n] = g;
+      if (r < nr) dz1_out[(t * W + row0 + r) * N1 + n] = g;
+    });
+    __syncthreads();
+  }
+  // s_0's cotangent: the carried one and that through layer 1 of step 0
+  for (int i = threadIdx.x; i < R * X; i += kThreads) xin[i] = i / X < nr ? xin_in[row0 * X + i] : 0.0f;
+  gemm_split(dboth, Gs, w_in, 1, G, N1, X, scratch, [&](int r, int c, float v) { dxin[r * X + c] = v; });
+  __syncthreads();
+  for (int i = threadIdx.x; i < nr * O; i += kThreads) {
+    const int r = i / O, c = i - r * O;
+    ds0[row0 * O + i] = ds[i] + normalise_vjp(d, st, clip, xin + r * X, dxin + r * X, c);
+  }
+}
+
+size_t fwd_smem(const Dims& d) {
+  const int64_t R = kRows, H3 = 3 * d.H;
+  return sizeof(float) * (kWarps * 16 * kSplitCols + 6 * d.O + R * (d.O + padded(d.X) + padded(d.N1) + 2 * H3) +
+                          2 * R * padded(d.H) + 2 * R * H3);
+}
+
+size_t bwd_smem(const Dims& d) {
+  const int64_t R = kRows;
+  return sizeof(float) * (kWarps * 16 * kSplitCols + 6 * d.O + R * (d.O + padded(d.O) + 2 * d.X + padded(d.G())) +
+                          4 * R * d.H + 2 * R * padded(3 * d.H));
+}
+
+// Trailing dims of a buffer, checked against `want` (its last want.size() axes); its leading axes' product must be B.
+template <typename Buf>
+bool shaped(const Buf& buf, std::initializer_list<int64_t> want, int64_t B) {
+  auto dims = buf.dimensions();
+  const int64_t n = int64_t(want.size());
+  if (int64_t(dims.size()) < n) return false;
+  int64_t lead = 1;
+  for (int64_t i = 0; i < int64_t(dims.size()) - n; ++i) lead *= dims[i];
+  int64_t i = int64_t(dims.size()) - n;
+  for (int64_t w : want)
+    if (dims[i++] != w) return false;
+  return lead == B;
+}
+
+ffi::Error launched(const char* what) {
+  const cudaError_t err = cudaGetLastError();
+  if (err != cudaSuccess) return ffi::Error::Internal(std::string(what) + ": " + cudaGetErrorString(err));
+  return ffi::Error::Success();
+}
+
+using F32 = ffi::Buffer<ffi::F32>;
+using F32Out = ffi::ResultBuffer<ffi::F32>;
+
+// The batch and sizes from s0 [..., W, O], z1a [..., k, W, N1], gi_re [..., k, W, 3H] and w_in [..., X, G].
+bool dims_of(const F32& s0, const F32& z1a, const F32& gi_re, const F32& w_in, Dims* d) {
+  auto s = s0.dimensions(), z = z1a.dimensions(), g = gi_re.dimensions(), w = w_in.dimensions();
+  if (s.size() < 2 || z.size() < 3 || g.size() < 3 || w.size() < 2) return false;
+  d->W = s[s.size() - 2]; d->O = s[s.size() - 1];
+  d->k = z[z.size() - 3]; d->N1 = z[z.size() - 1];
+  d->H = g[g.size() - 1] / 3; d->X = w[w.size() - 2];
+  d->B = 1;
+  for (size_t i = 0; i + 2 < s.size(); ++i) d->B *= s[i];
+  return g[g.size() - 1] == 3 * d->H && (d->X == d->O || d->X == 2 * d->O) && w[w.size() - 1] == d->G() &&
+         d->X <= kSplitCols;
+}
+
+ffi::Error ChainFwd(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re, F32 w_in, F32 w_out, F32 b_out,
+                    F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32Out u, F32Out states, F32Out xin, F32Out both_im,
+                    F32Out hh, F32Out hs) {
+  Dims d;
+  if (!dims_of(s0, z1a, gi_re, w_in, &d)) return ffi::Error::InvalidArgument("cdjax_chain_fwd: inconsistent shapes");
+  const int64_t B = d.B, W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, H3 = 3 * H;
+  const bool ok = shaped(z1a, {k, W, N1}, B) && shaped(gi_re, {k, W, H3}, B) && shaped(w_in, {X, d.G()}, B) &&
+                  shaped(w_out, {N1, O}, B) && shaped(b_out, {O}, B) && shaped(w_h, {H, H3}, B) &&
+                  shaped(b_i, {H3}, B) && shaped(b_hn, {H}, B) && shaped(stats, {6, O}, B) &&
+                  shaped(*u, {k, W, N1}, B) && shaped(*states, {k + 1, W, O}, B) && shaped(*xin, {k + 1, W, X}, B) &&
+                  shaped(*both_im, {k, W, H3}, B) && shaped(*hh, {k, 2 * W, H3}, B) &&
+                  shaped(*hs, {k + 1, 2 * W, H}, B);
+  if (!ok) return ffi::Error::InvalidArgument("cdjax_chain_fwd: a buffer's shape does not match s0, z1a, gi_re, w_in");
+  if (B == 0 || W == 0) return ffi::Error::Success();
+  const size_t smem = fwd_smem(d);
+  cudaFuncSetAttribute(chain_fwd_kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
+  const dim3 grid(unsigned((W + kRows - 1) / kRows), unsigned(B));
+  chain_fwd_kernel<<<grid, kThreads, smem, stream>>>(
+      d, clip, s0.typed_data(), z1a.typed_data(), gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(),
+      b_out.typed_data(), w_h.typed_data(), b_i.typed_data(), b_hn.typed_data(), stats.typed_data(),
+      u->typed_data(), states->typed_data(), xin->typed_data(), both_im->typed_data(), hh->typed_data(),
+      hs->typed_data());
+  return launched("cdjax_chain_fwd");
+}
+
+ffi::Error ChainBwd(cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im, F32 hh, F32 hs, F32 gi_re,
+                    F32 w_in, F32 w_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32 dh, F32 ds, F32Out dgi,
+                    F32Out dhh, F32Out dz, F32Out dz1, F32Out ds0) {
+  auto sd = ds.dimensions(), ud = u.dimensions(), hd = hs.dimensions(), wd = w_in.dimensions();
+  if (sd.size() < 2 || ud.size() < 3 || hd.size() < 3 || wd.size() < 2)
+    return ffi::Error::InvalidArgument("cdjax_chain_bwd: inconsistent shapes");
+  Dims d;
+  d.W = sd[sd.size() - 2]; d.O = sd[sd.size() - 1]; d.k = ud[ud.size() - 3]; d.N1 = ud[ud.size() - 1];
+  d.H = hd[hd.size() - 1]; d.X = wd[wd.size() - 2];
+  d.B = 1;
+  for (size_t i = 0; i + 2 < sd.size(); ++i) d.B *= sd[i];
+  const int64_t B = d.B, W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, H3 = 3 * H;
+  const bool ok = (X == O || X == 2 * O) && X <= kSplitCols && shaped(u, {k, W, N1}, B) &&
+                  shaped(xin, {k + 1, W, X}, B) &&
+                  shaped(both_im, {k, W, H3}, B) && shaped(hh, {k, 2 * W, H3}, B) &&
+                  shaped(hs, {k + 1, 2 * W, H}, B) && shaped(gi_re, {k, W, H3}, B) && shaped(w_in, {X, d.G()}, B) &&
+                  shaped(w_out, {N1, O}, B) && shaped(w_h, {H, H3}, B) && shaped(b_i, {H3}, B) &&
+                  shaped(b_hn, {H}, B) && shaped(stats, {6, O}, B) && shaped(dh, {2 * W, H}, B) &&
+                  shaped(*dgi, {k, 2 * W, H3}, B) && shaped(*dhh, {k, 2 * W, H3}, B) && shaped(*dz, {k, W, O}, B) &&
+                  shaped(*dz1, {k, W, N1}, B) && shaped(*ds0, {W, O}, B);
+  if (!ok) return ffi::Error::InvalidArgument("cdjax_chain_bwd: a buffer's shape does not match ds, u, hs, w_in");
+  if (B == 0 || W == 0) return ffi::Error::Success();
+  const size_t smem = bwd_smem(d);
+  cudaFuncSetAttribute(chain_bwd_kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
+  const dim3 grid(unsigned((W + kRows - 1) / kRows), unsigned(B));
+  chain_bwd_kernel<<<grid, kThreads, smem, stream>>>(
+      d, clip, u.typed_data(), xin.typed_data(), both_im.typed_data(), hh.typed_data(), hs.typed_data(),
+      gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(), w_h.typed_data(), b_i.typed_data(),
+      b_hn.typed_data(), stats.typed_data(), dh.typed_data(), ds.typed_data(), dgi->typed_data(), dhh->typed_data(),
+      dz->typed_data(), dz1->typed_data(), ds0->typed_data());
+  return launched("cdjax_chain_bwd");
+}
+
+}  // namespace
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainFwd, ChainFwd,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::PlatformStream<cudaStream_t>>()
+                                  .Attr<float>("clip")
+                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
+                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
+                                  .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainBwd, ChainBwd,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::PlatformStream<cudaStream_t>>()
+                                  .Attr<float>("clip")
+                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
+                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
+                                  .Arg<F32>().Arg<F32>()
+                                  .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
+
+// The shared memory (bytes) of the forward's (which = 0) and the backward's (1) thread block at these widths, for the
+// Python side to decide whether a chain fits before it calls the kernels.
+extern "C" int64_t CdjaxChainSmem(int64_t O, int64_t X, int64_t N1, int64_t H, int64_t which) {
+  Dims d{1, 1, 1, O, X, N1, H};
+  return int64_t(which == 0 ? fwd_smem(d) : bwd_smem(d));
+}
