@@ -20,7 +20,7 @@
 //                 ds0 [W, O]
 //
 // Products run on the tensor cores (mma.sync m16n8k8, TF32 inputs rounded to nearest, float32 sums), as XLA's default
-// precision runs float32 matrix products on this GPU; the rest is float32. O and X must be at most kSplitCols.
+// precision runs float32 matrix products on this GPU; the rest is float32. O must be at most kSplitCols.
 #include <cuda_runtime.h>
 
 #include <cstdint>
@@ -41,7 +41,7 @@ constexpr int kWarps = kThreads / 32;
 // Timing probes only (benchmarks.chain_kernel --probe; wrong results): the forward skips its layer-1/GRU-input product
 // (1), its recurrent product (2), its output layer (4), its stores of residuals (8), its elementwise steps (16).
 constexpr int kProbe = CDJAX_CHAIN_PROBE;
-constexpr int kSplitCols = 56;  // the split-K products' widest output (columns, a multiple of 8)
+constexpr int kSplitCols = 32;  // the split-K products' widest output (columns, a multiple of 8)
 
 struct Dims {
   int64_t B, W, k, O, X, N1, H;
@@ -61,42 +61,58 @@ __device__ __forceinline__ uint32_t tf32(float x) {
   return r;
 }
 
-// One warp: c[m] += A[16m.., kb:ke] B[kb:ke, n0:n0+8] with TF32 tensor-core products (mma m16n8k8) and float32 sums,
-// for MT tiles of 16 rows. A in shared memory (element (m, k) at A[m * lda + k]); B's element (k, n) at
-// B[k * sbk + n * sbn] in global memory; columns n >= N and k >= ke count as zero. Fragments as the PTX ISA lays out
-// m16n8k8 .tf32: lane l holds A's (l/4 + 8 (r%2), l%4 + 4 (r/2)), B's (k = l%4 + 4r, n = l/4) and C's
-// (l/4 + 8 (r/2), 2 (l%4) + r%2).
-template <int MT>
-__device__ __forceinline__ void mma_tile(const float* A, int lda, const float* __restrict__ B, int64_t sbk,
-                                         int64_t sbn, int kb, int ke, int n0, int N, float (&c)[MT][4]) {
-  constexpr int KC = 8;  // k-steps whose B fragments are all loaded (from L2) before their products
+// One warp: c[j][m] += A[16m.., 0:K] B[0:K, n0_j:n0_j+8] for its NT column tiles n0_j = 8 (tile0 + j step) (tiles
+// at or past N skipped) and MT tiles of 16 rows, with TF32 tensor-core products (mma m16n8k8) and float32 sums. A in
+// shared memory (element (m, k) at A[m * lda + k]); B's element (k, n) at B[k * sbk + n * sbn] in global memory;
+// columns n >= N and k >= K count as zero. Per chunk of KC k-steps every tile's B fragments are loaded (their L2 round
+// trips overlap) before the products, and each k-step's A fragments are loaded once for all NT tiles. Fragments as the
+// PTX ISA lays out m16n8k8 .tf32: lane l holds A's (l/4 + 8 (r%2), l%4 + 4 (r/2)), B's (k = l%4 + 4r, n = l/4) and
+// C's (l/4 + 8 (r/2), 2 (l%4) + r%2).
+template <int MT, int NT, int KC>
+__device__ __forceinline__ void mma_tiles(const float* A, int lda, const float* __restrict__ B, int64_t sbk,
+                                          int64_t sbn, int K, int tile0, int step, int N, float (&c)[NT][MT][4]) {
   const int lane = threadIdx.x & 31, g = lane >> 2, q = lane & 3;
-  const bool n_ok = n0 + g < N;
-  const float* Bn = B + (n_ok ? (n0 + g) * sbn : 0);
-  for (int kc = kb; kc < ke; kc += 8 * KC) {
-    uint32_t bf[KC][2];
+  const float* Bn[NT];
+  bool n_ok[NT];
 #pragma unroll
-    for (int i = 0; i < KC; ++i) {
-      const int k1 = kc + 8 * i + q, k2 = k1 + 4;
-      bf[i][0] = tf32(n_ok && k1 < ke ? __ldg(Bn + k1 * sbk) : 0.0f);
-      bf[i][1] = tf32(n_ok && k2 < ke ? __ldg(Bn + k2 * sbk) : 0.0f);
-    }
+  for (int j = 0; j < NT; ++j) {
+    const int n = 8 * (tile0 + j * step) + g;
+    n_ok[j] = n < N;
+    Bn[j] = B + (n_ok[j] ? n * sbn : 0);
+  }
+  for (int kc = 0; kc < K; kc += 8 * KC) {
+    uint32_t bf[NT][KC][2];
+#pragma unroll
+    for (int j = 0; j < NT; ++j)
+#pragma unroll
+      for (int i = 0; i < KC; ++i) {
+        const int k1 = kc + 8 * i + q, k2 = k1 + 4;
+        bf[j][i][0] = tf32(n_ok[j] && k1 < K ? __ldg(Bn[j] + k1 * sbk) : 0.0f);
+        bf[j][i][1] = tf32(n_ok[j] && k2 < K ? __ldg(Bn[j] + k2 * sbk) : 0.0f);
+      }
 #pragma unroll
     for (int i = 0; i < KC; ++i) {
       const int k0 = kc + 8 * i;
-      if (k0 >= ke) break;
+      if (k0 >= K) break;
       const int k1 = k0 + q, k2 = k1 + 4;
-      const bool ok1 = k1 < ke, ok2 = k2 < ke;
+      const bool ok1 = k1 < K, ok2 = k2 < K;
+      uint32_t af[MT][4];
 #pragma unroll
       for (int m = 0; m < MT; ++m) {
         const float* a = A + (16 * m + g) * lda;
-        const uint32_t a0 = tf32(ok1 ? a[k1] : 0.0f), a1 = tf32(ok1 ? a[8 * lda + k1] : 0.0f);
-        const uint32_t a2 = tf32(ok2 ? a[k2] : 0.0f), a3 = tf32(ok2 ? a[8 * lda + k2] : 0.0f);
-        asm volatile(
-            "mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32 {%0,%1,%2,%3}, {%4,%5,%6,%7}, {%8,%9}, "
-            "{%0,%1,%2,%3};\n"
-            : "+f"(c[m][0]), "+f"(c[m][1]), "+f"(c[m][2]), "+f"(c[m][3])
-            : "r"(a0), "r"(a1), "r"(a2), "r"(a3), "r"(bf[i][0]), "r"(bf[i][1]));
+        af[m][0] = tf32(ok1 ? a[k1] : 0.0f); af[m][1] = tf32(ok1 ? a[8 * lda + k1] : 0.0f);
+        af[m][2] = tf32(ok2 ? a[k2] : 0.0f); af[m][3] = tf32(ok2 ? a[8 * lda + k2] : 0.0f);
+      }
+#pragma unroll
+      for (int j = 0; j < NT; ++j) {
+        if (8 * (tile0 + j * step) >= N) continue;  // the same for the whole warp
+#pragma unroll
+        for (int m = 0; m < MT; ++m)
+          asm volatile(
+              "mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32 {%0,%1,%2,%3}, {%4,%5,%6,%7}, {%8,%9}, "
+              "{%0,%1,%2,%3};\n"
+              : "+f"(c[j][m][0]), "+f"(c[j][m][1]), "+f"(c[j][m][2]), "+f"(c[j][m][3])
+              : "r"(af[m][0]), "r"(af[m][1]), "r"(af[m][2]), "r"(af[m][3]), "r"(bf[j][i][0]), "r"(bf[j][i][1]));
       }
     }
   }
@@ -121,41 +137,46 @@ __device__ __forceinline__ void batched(int n, Load load, F f) {
   }
 }
 
-// The block: out = A [16 MT, K] B [K, N], each warp taking whole 8-column tiles over all of K; epi(row, n, value) for
-// n < N. For products with many columns.
-template <int MT, typename Epi>
+// The block: out = A [16 MT, K] B [K, N], the warps taking 8-column tiles round-robin, NT at a time over all of K;
+// epi(row, n, value) for n < N. For products with many columns.
+template <int MT, int NT, int KC, typename Epi>
 __device__ __forceinline__ void gemm_tiles(const float* A, int lda, const float* __restrict__ B, int64_t sbk,
                                            int64_t sbn, int K, int N, Epi epi) {
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, g = lane >> 2, q = lane & 3;
-  for (int n0 = 8 * warp; n0 < N; n0 += 8 * kWarps) {
-    float c[MT][4] = {};
-    mma_tile<MT>(A, lda, B, sbk, sbn, 0, K, n0, N, c);
+  for (int tile0 = warp; 8 * tile0 < N; tile0 += NT * kWarps) {
+    float c[NT][MT][4] = {};
+    mma_tiles<MT, NT, KC>(A, lda, B, sbk, sbn, K, tile0, kWarps, N, c);
 #pragma unroll
-    for (int m = 0; m < MT; ++m)
+    for (int j = 0; j < NT; ++j)
 #pragma unroll
-      for (int r = 0; r < 4; ++r) {
-        const int n = n0 + 2 * q + (r & 1);
-        if (n < N) epi(16 * m + g + 8 * (r >> 1), n, c[m][r]);
-      }
+      for (int m = 0; m < MT; ++m)
+#pragma unroll
+        for (int r = 0; r < 4; ++r) {
+          const int n = 8 * (tile0 + j * kWarps) + 2 * q + (r & 1);
+          if (n < N) epi(16 * m + g + 8 * (r >> 1), n, c[j][m][r]);
+        }
   }
 }
 
 // The block: out = A [16, K] B [K, N] for few columns (N <= kSplitCols), each warp taking a slice of K for every
 // column tile; the slices' sums meet in `scratch` ([kWarps, 16, kSplitCols]) and are added in slice order. Holds
-// __syncthreads(): every thread must call it. epi(row, n, value) for n < N.
+// __syncthreads() (one on entry, so that a previous call's sums have been read): every thread must call it.
+// epi(row, n, value) for n < N.
 template <typename Epi>
 __device__ __forceinline__ void gemm_split(const float* A, int lda, const float* __restrict__ B, int64_t sbk,
                                            int64_t sbn, int K, int N, float* scratch, Epi epi) {
+  constexpr int NT = kSplitCols / 8;
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, g = lane >> 2, q = lane & 3;
   const int slice = ((K + kWarps - 1) / kWarps + 7) / 8 * 8;
-  const int kb = warp * slice, ke = min(K, kb + slice);
+  const int kb = min(K, warp * slice), ke = min(K, kb + slice);
+  float c[NT][1][4] = {};
+  if (kb < ke) mma_tiles<1, NT, 4>(A + kb, lda, B + kb * sbk, sbk, sbn, ke - kb, 0, 1, N, c);
+  __syncthreads();
   float* mine = scratch + warp * 16 * kSplitCols;
-  for (int n0 = 0; n0 < N; n0 += 8) {
-    float c[1][4] = {};
-    if (kb < ke) mma_tile<1>(A, lda, B, sbk, sbn, kb, ke, n0, N, c);
 #pragma unroll
-    for (int r = 0; r < 4; ++r) mine[(g + 8 * (r >> 1)) * kSplitCols + n0 + 2 * q + (r & 1)] = c[0][r];
-  }
+  for (int j = 0; j < NT; ++j)
+#pragma unroll
+    for (int r = 0; r < 4; ++r) mine[(g + 8 * (r >> 1)) * kSplitCols + 8 * j + 2 * q + (r & 1)] = c[j][0][r];
   __syncthreads();
   for (int i = threadIdx.x; i < 16 * N; i += kThreads) {
     const int row = i / N, n = i - row * N;
@@ -227,7 +248,10 @@ __global__ void __launch_bounds__(kThreads) chain_fwd_kernel(
     const int q = i / H;
     if (q % R < nr) hs[grow(q) * H + i % H] = 0.0f;
   }
-  gemm_tiles<1>(xin, Xs, w_in, G, 1, X, N1, [&](int r, int n, float v) { pu[r * N1s + n] = v; });
+  // w_in = [W1_x | W_i] (shared) or [[W1_x, 0], [0, W_i]]: layer 1's state part reads the model's input (columns
+  // 0..O-1 of xin), the GRU's input part the encoder's (enc0..enc0+O-1); the zero blocks are never multiplied
+  const int64_t enc0 = X == O ? 0 : O;
+  gemm_tiles<1, 4, 4>(xin, Xs, w_in, G, 1, O, N1, [&](int r, int n, float v) { pu[r * N1s + n] = v; });
   __syncthreads();
 
   for (int64_t t = 0; t < k; ++t) {
@@ -255,15 +279,14 @@ __global__ void __launch_bounds__(kThreads) chain_fwd_kernel(
         xin_out[((t + 1) * W + row0) * X + i] = xin[(i / X) * Xs + i % X];
     }
     // [next step's layer 1 (state part) | this step's imagined GRU input], and the recurrent products
-    if (!(kProbe & 1)) gemm_tiles<1>(xin, Xs, w_in, G, 1, X, G, [&](int r, int n, float v) {
-      if (n < N1) {
-        pu[r * N1s + n] = v;
-      } else {
-        gim[r * H3 + n - N1] = v;
-        if (r < nr && !(kProbe & 8)) both_im[(t * W + row0 + r) * H3 + n - N1] = v;
-      }
-    });
-    if (!(kProbe & 2)) gemm_tiles<2>(h, Hs, w_h, H3, 1, H, H3, [&](int q, int n, float v) {
+    if (!(kProbe & 1)) {
+      gemm_tiles<1, 4, 4>(xin, Xs, w_in, G, 1, O, N1, [&](int r, int n, float v) { pu[r * N1s + n] = v; });
+      gemm_tiles<1, 3, 4>(xin + enc0, Xs, w_in + enc0 * G + N1, G, 1, O, H3, [&](int r, int n, float v) {
+        gim[r * H3 + n] = v;
+        if (r < nr && !(kProbe & 8)) both_im[(t * W + row0 + r) * H3 + n] = v;
+      });
+    }
+    if (!(kProbe & 2)) gemm_tiles<2, 3, 8>(h, Hs, w_h, H3, 1, H, H3, [&](int q, int n, float v) {
       hh[q * H3 + n] = v;
       if (q % R < nr && !(kProbe & 8)) hh_out[(t * 2 * W + grow(q)) * H3 + n] = v;
     });
@@ -304,6 +327,7 @@ __global__ void __launch_bounds__(kThreads) chain_bwd_kernel(
     float* __restrict__ ds0) {
   constexpr int R = kRows;
   const int64_t W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, G = d.G(), H3 = 3 * H;
+  const int64_t enc0 = X == O ? 0 : O;  // where the encoder's input starts in xin (w_in's second block's rows)
   const int64_t b = blockIdx.y, row0 = int64_t(blockIdx.x) * R;
   const int nr = int(W - row0 < R ? W - row0 : R);
   u_in += b * k * W * N1; xin_in += b * (k + 1) * W * X; both_im += b * k * W * H3; hh_in += b * k * 2 * W * H3;
@@ -390,8 +414,13 @@ __global__ void __launch_bounds__(kThreads) chain_bwd_kernel(
         [&](int i, float v) { xin[i] = v; });
     __syncthreads();
     // the hidden state's cotangent for step t (h W_h's transpose), and the normalised inputs' of s_{t+1}
-    gemm_tiles<2>(dhh, H3s, w_h, 1, H3, H3, H, [&](int q, int j, float v) { dh[q * H + j] = dhd[q * H + j] + v; });
-    gemm_split(dboth, Gs, w_in, 1, G, G, X, scratch, [&](int r, int c, float v) { dxin[r * X + c] = v; });
+    gemm_tiles<2, 1, 16>(dhh, H3s, w_h, 1, H3, H3, H,
+                         [&](int q, int j, float v) { dh[q * H + j] = dhd[q * H + j] + v; });
+    // the normalised inputs' cotangents through w_in's two blocks (their sum where the input is shared)
+    gemm_split(dboth, Gs, w_in, 1, G, N1, O, scratch, [&](int r, int c, float v) { dxin[r * X + c] = v; });
+    gemm_split(dboth + N1, Gs, w_in + enc0 * G + N1, 1, G, H3, O, scratch, [&](int r, int c, float v) {
+      dxin[r * X + enc0 + c] = enc0 ? v : dxin[r * X + c] + v;
+    });
     __syncthreads();
     for (int i = threadIdx.x; i < R * O; i += kThreads) {
       const int r = i / O, c = i - r * O;
@@ -405,7 +434,7 @@ __global__ void __launch_bounds__(kThreads) chain_bwd_kernel(
         int(R * N1), [&](int i) { return i / N1 < nr ? u_t[i] : 0.0f; },
         [&](int i, float v) { dboth[(i / N1) * Gs + i % N1] = v; });
     __syncthreads();
-    gemm_tiles<1>(dz, Os, w_out, 1, O, O, N1, [&](int r, int n, float v) {
+    gemm_tiles<1, 4, 4>(dz, Os, w_out, 1, O, O, N1, [&](int r, int n, float v) {
       const float g = r < nr && dboth[r * Gs + n] > 0.0f ? v : 0.0f;
       dboth[r * Gs + n] = g;
       if (r < nr) dz1_out[(t * W + row0 + r) * N1 + n] = g;
@@ -414,7 +443,8 @@ __global__ void __launch_bounds__(kThreads) chain_bwd_kernel(
   }
   // s_0's cotangent: the carried one and that through layer 1 of step 0
   for (int i = threadIdx.x; i < R * X; i += kThreads) xin[i] = i / X < nr ? xin_in[row0 * X + i] : 0.0f;
-  gemm_split(dboth, Gs, w_in, 1, G, N1, X, scratch, [&](int r, int c, float v) { dxin[r * X + c] = v; });
+  for (int i = threadIdx.x; i < R * X; i += kThreads) dxin[i] = 0.0f;  // the encoder's part: no path from s_0
+  gemm_split(dboth, Gs, w_in, 1, G, N1, O, scratch, [&](int r, int c, float v) { dxin[r * X + c] = v; });
   __syncthreads();
   for (int i = threadIdx.x; i < nr * O; i += kThreads) {
     const int r = i / O, c = i - r * O;
@@ -467,7 +497,7 @@ bool dims_of(const F32& s0, const F32& z1a, const F32& gi_re, const F32& w_in, D
   d->B = 1;
   for (size_t i = 0; i + 2 < s.size(); ++i) d->B *= s[i];
   return g[g.size() - 1] == 3 * d->H && (d->X == d->O || d->X == 2 * d->O) && w[w.size() - 1] == d->G() &&
-         d->X <= kSplitCols;
+         d->O <= kSplitCols;
 }
 
 ffi::Error ChainFwd(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re, F32 w_in, F32 w_out, F32 b_out,
@@ -507,7 +537,7 @@ ffi::Error ChainBwd(cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im
   d.B = 1;
   for (size_t i = 0; i + 2 < sd.size(); ++i) d.B *= sd[i];
   const int64_t B = d.B, W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, H3 = 3 * H;
-  const bool ok = (X == O || X == 2 * O) && X <= kSplitCols && shaped(u, {k, W, N1}, B) &&
+  const bool ok = (X == O || X == 2 * O) && O <= kSplitCols && shaped(u, {k, W, N1}, B) &&
                   shaped(xin, {k + 1, W, X}, B) &&
                   shaped(both_im, {k, W, H3}, B) && shaped(hh, {k, 2 * W, H3}, B) &&
                   shaped(hs, {k + 1, 2 * W, H}, B) && shaped(gi_re, {k, W, H3}, B) && shaped(w_in, {X, d.G()}, B) &&
