@@ -117,15 +117,25 @@ def main(argv=None) -> dict:
     result = check(a.windows, a.horizon, a.obs, a.act, a.hidden, a.enc, a.seed)
     print(f"{result['device']} ({result['backend']}), {result['sizes']}: relative error against the plain loop at "
           "the highest precision")
+    print_errors(result["relative_error"])
+    write_results(a.out, result)
+    return result
+
+
+def print_errors(rows: dict) -> None:
+    """A markdown table of rows {name: {"value": e, input: e, ...}} (relative errors, as `check` gives them)."""
     print("| | value | " + " | ".join(ARGS) + " |")
     print("| --- | ---: | " + " | ".join("---:" for _ in ARGS) + " |")
-    for name, row in result["relative_error"].items():
+    for name, row in rows.items():
         print(f"| {name} | {row['value']:.2e} | " + " | ".join(f"{row[k]:.2e}" for k in ARGS) + " |")
-    if a.out:
-        out = pathlib.Path(a.out)
+
+
+def write_results(directory: str | None, result: dict) -> None:
+    """DIR/results.json, when a directory is given."""
+    if directory:
+        out = pathlib.Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         (out / "results.json").write_text(json.dumps(result, indent=1))
-    return result
 
 
 if __name__ == "__main__":

@@ -164,10 +164,7 @@ def main(argv=None) -> dict:
     result["accuracy"] = accuracy(a.windows, sizes)
     print(f"{result['device']}, {sizes}, {a.windows} rows: relative error against the plain loop at the highest "
           "precision")
-    print("| | value | " + " | ".join(cc_check.ARGS) + " |")
-    print("| --- | ---: | " + " | ".join("---:" for _ in cc_check.ARGS) + " |")
-    for name, row in result["accuracy"].items():
-        print(f"| {name} | {row['value']:.2e} | " + " | ".join(f"{row[k]:.2e}" for k in cc_check.ARGS) + " |")
+    cc_check.print_errors(result["accuracy"])
     result["vmapped"] = vmapped_accuracy(3, a.seed_windows, sizes)
     print(f"vmapped (3 seeds x {a.seed_windows} rows, two inputs), kernels against XLA's fused chain at the highest "
           "precision: " + ", ".join(f"{k} {v:.2e}" for k, v in result["vmapped"].items()))
@@ -175,10 +172,7 @@ def main(argv=None) -> dict:
     print("| value and gradient of the chain | ms per call |\n| --- | ---: |")
     for name, s in result["seconds"].items():
         print(f"| {name} | {1e3 * s:.3f} |")
-    if a.out:
-        out = pathlib.Path(a.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "results.json").write_text(json.dumps(result, indent=1))
+    cc_check.write_results(a.out, result)
     return result
 
 
