@@ -6,6 +6,10 @@ Everything else goes through `configure`, which the CLI (--cache-dir, --compile-
 --disable-jit), the tests, the benchmarks and the examples call:
 
     cdjax.runtime.configure(cache_dir=cdjax.runtime.default_cache_dir())
+
+One switch lives beside the code it switches: $CDJAX_CHAIN_KERNEL=1 runs the consistency chain as hand-written CUDA
+kernels where they fit (`cdjax.kernels.chain`, read when a chain is traced; off by default, slower than XLA's chain as
+measured on 2026-11-27).
 """
 
 from __future__ import annotations
