@@ -7,16 +7,20 @@ import pytest
 
 from benchmarks import chain_kernel as ck
 from cdjax.kernels import chain as chain_kernel
+from cdjax.protocol import ConfigError
 
 SIZES = dict(horizon=4, obs=5, act=2, hidden=12, enc=8)
 
 
-def test_the_kernels_are_off_unless_switched_on_and_never_on_a_cpu(monkeypatch):
+def test_the_kernels_are_off_unless_switched_on_never_on_a_cpu_and_a_bad_switch_is_one_sentence(monkeypatch):
     monkeypatch.delenv(chain_kernel.SWITCH_ENV, raising=False)
     assert not chain_kernel.usable(2, 5, 10, 12, 8, jnp.float32)
     monkeypatch.setenv(chain_kernel.SWITCH_ENV, "1")
     assert jax.default_backend() == "cpu"
     assert not chain_kernel.usable(2, 5, 10, 12, 8, jnp.float32)  # no GPU: XLA's chain, no build attempted
+    monkeypatch.setenv(chain_kernel.SWITCH_ENV, "yes")
+    with pytest.raises(ConfigError, match="CDJAX_CHAIN_KERNEL is 'yes'"):
+        chain_kernel.usable(2, 5, 10, 12, 8, jnp.float32)
 
 
 @pytest.mark.parametrize("shared", [True, False])

@@ -29,6 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cdjax.protocol import ConfigError
+
 SOURCE = pathlib.Path(__file__).with_name("chain.cu")
 SWITCH_ENV = "CDJAX_CHAIN_KERNEL"  # "1": use the kernels where they fit; anything else (the default): XLA's chain
 CACHE_ENV = "CDJAX_KERNEL_CACHE"  # where the compiled library goes (default ~/.cache/cdjax/kernels)
@@ -111,7 +113,12 @@ def block_smem(O: int, X: int, N1: int, H: int) -> int:
 
 
 def switched_on() -> bool:
-    return os.environ.get(SWITCH_ENV, "") == "1"
+    """$CDJAX_CHAIN_KERNEL: "1" on, unset, empty or "0" off; ConfigError (one sentence) for anything else."""
+    text = os.environ.get(SWITCH_ENV, "").strip()
+    if text not in ("", "0", "1"):
+        raise ConfigError(f"${SWITCH_ENV} is {text!r}: set it to 1 (the CUDA chain kernels where they fit) or 0 "
+                          "(XLA's chain, the default)")
+    return text == "1"
 
 
 def usable(n_layers: int, O: int, X: int, N1: int, H: int, dtype) -> bool:
