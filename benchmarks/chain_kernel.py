@@ -17,6 +17,7 @@ writes DIR/results.json.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import pathlib
@@ -47,7 +48,30 @@ def _problem(windows: int, seed: int, shared: bool, sizes: dict):
     return (model, gru, s0, actions, x_re), enc_obs, weights
 
 
-def accuracy(windows: int, sizes: dict, seed: int = 0) -> dict:
+# (row name, $CDJAX_CHAIN_KERNEL while the row's programs are traced; None: XLA's chain); main adds the cluster forward
+KERNELS = (("kernels", "1"),)
+
+
+@contextlib.contextmanager
+def _mode(mode: str | None):
+    """$CDJAX_CHAIN_KERNEL = mode while the block traces (restored after); None leaves it."""
+    before = os.environ.get(chain_kernel.SWITCH_ENV)
+    if mode is not None:
+        os.environ[chain_kernel.SWITCH_ENV] = mode
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(chain_kernel.SWITCH_ENV, None)
+        else:
+            os.environ[chain_kernel.SWITCH_ENV] = before
+
+
+def _cases(xla: str, kernels: tuple) -> tuple:
+    return ((xla, None),) + tuple(kernels)
+
+
+def accuracy(windows: int, sizes: dict, seed: int = 0, kernels: tuple = KERNELS) -> dict:
     scales = (1.0, 0.5)
     grad = lambda f: jax.jit(jax.value_and_grad(f, argnums=tuple(range(5))))  # noqa: E731
     rows = {}
@@ -56,15 +80,17 @@ def accuracy(windows: int, sizes: dict, seed: int = 0) -> dict:
         plain = lambda *a: cc_check._plain(enc_obs, weights, scales, *a)  # noqa: E731
         with jax.default_matmul_precision("highest"):
             v_ref, g_ref = grad(plain)(*args)
-        for name, kernel in (("XLA's fused chain", False), ("kernels", True)):
-            v, g = grad(_objective_fn(enc_obs, weights, scales, shared, kernel))(*args)
+        for name, mode in _cases("XLA's fused chain", kernels):
+            with _mode(mode):
+                v, g = grad(_objective_fn(enc_obs, weights, scales, shared, mode is not None))(*args)
             rows[f"{name}, shared={shared}"] = {"value": abs(float(v) - float(v_ref)) / abs(float(v_ref)),
                                                 **cc_check._errors(g, g_ref)}
     return rows
 
 
-def vmapped_accuracy(seeds: int, windows: int, sizes: dict, shared: bool = False) -> dict:
-    """Per input, the largest over seeds of max |g_kernel - g_xla| / max |g_xla| (XLA at the highest precision)."""
+def vmapped_accuracy(seeds: int, windows: int, sizes: dict, shared: bool = False, kernels: tuple = KERNELS) -> dict:
+    """Per kernel row and input, the largest over seeds of max |g_kernel - g_xla| / max |g_xla| (XLA at the highest
+    precision)."""
     scales = (1.0, 0.5)
     problems = [_problem(windows, s, shared, sizes) for s in range(seeds)]
     stack = lambda *xs: jax.tree.map(lambda *l: jnp.stack(l), *xs)  # noqa: E731
@@ -75,15 +101,18 @@ def vmapped_accuracy(seeds: int, windows: int, sizes: dict, shared: bool = False
         f = jax.value_and_grad(_objective_fn(enc_obs, weights, scales, shared, kernel), argnums=tuple(range(5)))
         return jax.jit(jax.vmap(f))
 
-    _, g_k = batched(True)(*args)
     with jax.default_matmul_precision("highest"):
         _, g_x = batched(False)(*args)
-    worst = {}
-    for i in range(seeds):
-        pick = lambda t: jax.tree.map(lambda x: x[i], t)  # noqa: E731
-        for name, e in cc_check._errors(pick(g_k), pick(g_x)).items():
-            worst[name] = max(worst.get(name, 0.0), e)
-    return worst
+    out = {}
+    for row, mode in kernels:
+        with _mode(mode):
+            _, g_k = batched(True)(*args)
+        worst = out[row] = {}
+        for i in range(seeds):
+            pick = lambda t: jax.tree.map(lambda x: x[i], t)  # noqa: E731
+            for name, e in cc_check._errors(pick(g_k), pick(g_x)).items():
+                worst[name] = max(worst.get(name, 0.0), e)
+    return out
 
 
 def _median_s(f, args, calls: int) -> float:
@@ -96,23 +125,26 @@ def _median_s(f, args, calls: int) -> float:
     return float(np.median(times))
 
 
-def timing(windows: int, seeds: int, seed_windows: int, calls: int, sizes: dict, shared: bool = False) -> dict:
+def timing(windows: int, seeds: int, seed_windows: int, calls: int, sizes: dict, shared: bool = False,
+           kernels: tuple = KERNELS) -> dict:
     scales = (1.0, 0.5)
     out = {}
     args, enc_obs, weights = _problem(windows, 0, shared, sizes)
-    for name, kernel in (("xla", False), ("kernels", True)):
-        f = jax.jit(jax.value_and_grad(_objective_fn(enc_obs, weights, scales, shared, kernel),
-                                       argnums=tuple(range(5))))
-        out[f"1 x {windows}, {name}"] = _median_s(f, args, calls)
-        f = jax.jit(_objective_fn(enc_obs, weights, scales, shared, kernel))
-        out[f"1 x {windows}, {name}, forward only"] = _median_s(f, args, calls)
+    for name, mode in _cases("xla", kernels):
+        with _mode(mode):
+            f = jax.jit(jax.value_and_grad(_objective_fn(enc_obs, weights, scales, shared, mode is not None),
+                                           argnums=tuple(range(5))))
+            out[f"1 x {windows}, {name}"] = _median_s(f, args, calls)
+            f = jax.jit(_objective_fn(enc_obs, weights, scales, shared, mode is not None))
+            out[f"1 x {windows}, {name}, forward only"] = _median_s(f, args, calls)
     problems = [_problem(seed_windows, s, shared, sizes) for s in range(seeds)]
     bargs = jax.tree.map(lambda *l: jnp.stack(l), *[p[0] for p in problems])
     w = weights[:, :seed_windows]
-    for name, kernel in (("xla", False), ("kernels", True)):
-        f = jax.jit(jax.vmap(jax.value_and_grad(_objective_fn(enc_obs, w, scales, shared, kernel),
-                                                argnums=tuple(range(5)))))
-        out[f"{seeds} x {seed_windows}, {name}"] = _median_s(f, bargs, calls)
+    for name, mode in _cases("xla", kernels):
+        with _mode(mode):
+            f = jax.jit(jax.vmap(jax.value_and_grad(_objective_fn(enc_obs, w, scales, shared, mode is not None),
+                                                    argnums=tuple(range(5)))))
+            out[f"{seeds} x {seed_windows}, {name}"] = _median_s(f, bargs, calls)
     return out
 
 
@@ -140,10 +172,13 @@ def main(argv=None) -> dict:
     p.add_argument("--horizon", type=int, default=20)
     p.add_argument("--trace", help="also profile 5 calls of each single-seed value-and-gradient into this directory")
     p.add_argument("--skip-accuracy", action="store_true", help="time (and trace) only")
+    p.add_argument("--cluster", action="store_true",
+                   help="also the kernels with the cluster forward (CDJAX_CHAIN_KERNEL=cluster), beside the plain ones")
     p.add_argument("--forward-probe", action="store_true",
                    help="time only the kernels' single-seed forward (with $CDJAX_CHAIN_PROBE: phases skipped)")
     a = p.parse_args(argv)
     os.environ[chain_kernel.SWITCH_ENV] = "1"
+    kernels = KERNELS + ((("kernels, cluster forward", "cluster"),) if a.cluster else ())
     t0 = time.perf_counter()
     lib = chain_kernel.build(verbose=True)
     print(f"built {lib} in {time.perf_counter() - t0:.1f} s")
@@ -158,17 +193,18 @@ def main(argv=None) -> dict:
     if a.trace:
         trace(a.trace, a.windows, sizes)
     if a.skip_accuracy:
-        result["seconds"] = timing(a.windows, a.seeds, a.seed_windows, a.calls, sizes)
+        result["seconds"] = timing(a.windows, a.seeds, a.seed_windows, a.calls, sizes, kernels=kernels)
         print(json.dumps(result["seconds"], indent=1))
         return result
-    result["accuracy"] = accuracy(a.windows, sizes)
+    result["accuracy"] = accuracy(a.windows, sizes, kernels=kernels)
     print(f"{result['device']}, {sizes}, {a.windows} rows: relative error against the plain loop at the highest "
           "precision")
     cc_check.print_errors(result["accuracy"])
-    result["vmapped"] = vmapped_accuracy(3, a.seed_windows, sizes)
-    print(f"vmapped (3 seeds x {a.seed_windows} rows, two inputs), kernels against XLA's fused chain at the highest "
-          "precision: " + ", ".join(f"{k} {v:.2e}" for k, v in result["vmapped"].items()))
-    result["seconds"] = timing(a.windows, a.seeds, a.seed_windows, a.calls, sizes)
+    result["vmapped"] = vmapped_accuracy(3, a.seed_windows, sizes, kernels=kernels)
+    for row, errors in result["vmapped"].items():
+        print(f"vmapped (3 seeds x {a.seed_windows} rows, two inputs), {row} against XLA's fused chain at the highest "
+              "precision: " + ", ".join(f"{k} {v:.2e}" for k, v in errors.items()))
+    result["seconds"] = timing(a.windows, a.seeds, a.seed_windows, a.calls, sizes, kernels=kernels)
     print("| value and gradient of the chain | ms per call |\n| --- | ---: |")
     for name, s in result["seconds"].items():
         print(f"| {name} | {1e3 * s:.3f} |")

@@ -21,6 +21,7 @@
 //
 // Products run on the tensor cores (mma.sync m16n8k8, TF32 inputs rounded to nearest, float32 sums), as XLA's default
 // precision runs float32 matrix products on this GPU; the rest is float32. O must be at most kSplitCols.
+#include <cooperative_groups.h>
 #include <cuda_runtime.h>
 
 #include <cstdint>
@@ -28,6 +29,7 @@
 
 #include "xla/ffi/api/ffi.h"
 
+namespace cg = cooperative_groups;
 namespace ffi = xla::ffi;
 
 namespace {
@@ -68,7 +70,7 @@ __device__ __forceinline__ uint32_t tf32(float x) {
 // trips overlap) before the products, and each k-step's A fragments are loaded once for all NT tiles. Fragments as the
 // PTX ISA lays out m16n8k8 .tf32: lane l holds A's (l/4 + 8 (r%2), l%4 + 4 (r/2)), B's (k = l%4 + 4r, n = l/4) and
 // C's (l/4 + 8 (r/2), 2 (l%4) + r%2).
-template <int MT, int NT, int KC>
+template <int MT, int NT, int KC, bool kSharedB = false>
 __device__ __forceinline__ void mma_tiles(const float* A, int lda, const float* __restrict__ B, int64_t sbk,
                                           int64_t sbn, int K, int tile0, int step, int N, float (&c)[NT][MT][4]) {
   const int lane = threadIdx.x & 31, g = lane >> 2, q = lane & 3;
@@ -87,8 +89,10 @@ __device__ __forceinline__ void mma_tiles(const float* A, int lda, const float* 
 #pragma unroll
       for (int i = 0; i < KC; ++i) {
         const int k1 = kc + 8 * i + q, k2 = k1 + 4;
-        bf[j][i][0] = tf32(n_ok[j] && k1 < K ? __ldg(Bn[j] + k1 * sbk) : 0.0f);
-        bf[j][i][1] = tf32(n_ok[j] && k2 < K ? __ldg(Bn[j] + k2 * sbk) : 0.0f);
+        const float* p1 = Bn[j] + k1 * sbk;
+        const float* p2 = Bn[j] + k2 * sbk;
+        bf[j][i][0] = tf32(n_ok[j] && k1 < K ? (kSharedB ? *p1 : __ldg(p1)) : 0.0f);
+        bf[j][i][1] = tf32(n_ok[j] && k2 < K ? (kSharedB ? *p2 : __ldg(p2)) : 0.0f);
       }
 #pragma unroll
     for (int i = 0; i < KC; ++i) {
@@ -139,13 +143,13 @@ __device__ __forceinline__ void batched(int n, Load load, F f) {
 
 // The block: out = A [16 MT, K] B [K, N], the warps taking 8-column tiles round-robin, NT at a time over all of K;
 // epi(row, n, value) for n < N. For products with many columns.
-template <int MT, int NT, int KC, typename Epi>
+template <int MT, int NT, int KC, bool kSharedB = false, typename Epi>
 __device__ __forceinline__ void gemm_tiles(const float* A, int lda, const float* __restrict__ B, int64_t sbk,
                                            int64_t sbn, int K, int N, Epi epi) {
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, g = lane >> 2, q = lane & 3;
   for (int tile0 = warp; 8 * tile0 < N; tile0 += NT * kWarps) {
     float c[NT][MT][4] = {};
-    mma_tiles<MT, NT, KC>(A, lda, B, sbk, sbn, K, tile0, kWarps, N, c);
+    mma_tiles<MT, NT, KC, kSharedB>(A, lda, B, sbk, sbn, K, tile0, kWarps, N, c);
 #pragma unroll
     for (int j = 0; j < NT; ++j)
 #pragma unroll
@@ -452,6 +456,191 @@ __global__ void __launch_bounds__(kThreads) chain_bwd_kernel(
   }
 }
 
+// ---------------------------------------------------------------------------------------------------------------
+// The forward as a cluster of kCluster thread blocks per 16 rows (untested on a GPU as of 2026-11-27). Each block of a
+// cluster holds a 1/kCluster column share of every weight in shared memory for all k steps (no L2 round trip in the
+// step loop) and 4x as many SMs work on a minibatch. Block c owns hidden units [c n1c, (c+1) n1c) of the model's layer
+// and GRU units [c hc, (c+1) hc) (their r, z and n gate columns). The model's path stays in the block but for the
+// output layer, whose partial sums over the blocks' units are all-reduced; the GRU's new hidden-state slices are
+// all-gathered. Both go through distributed shared memory, each followed by one cluster barrier, double-buffered by
+// the step's parity. Same inputs and outputs as chain_fwd_kernel.
+
+constexpr int kCluster = 4;
+
+struct ClusterDims {
+  int64_t n1c, hc;     // hidden units and GRU units per block
+  int64_t l1, li, lo;  // row strides of the weight shares (8 mod 32: conflict-free B-fragment loads)
+  int64_t Xs, n1s, Hs; // row strides of the A operands (4 mod 32)
+};
+
+__host__ __device__ __forceinline__ int64_t padded8(int64_t x) { return x + ((8 - x % 32) % 32 + 32) % 32; }
+
+__host__ __device__ __forceinline__ ClusterDims cluster_dims(const Dims& d) {
+  ClusterDims c;
+  c.n1c = ((d.N1 + kCluster - 1) / kCluster + 7) / 8 * 8;
+  c.hc = d.H / kCluster;
+  c.l1 = padded8(c.n1c); c.li = padded8(3 * c.hc); c.lo = padded8(d.O);
+  c.Xs = padded(d.X); c.n1s = padded(c.n1c); c.Hs = padded(d.H);
+  return c;
+}
+
+size_t fwd_cluster_smem(const Dims& d) {
+  const ClusterDims c = cluster_dims(d);
+  const int64_t R = kRows, O = d.O;
+  const int64_t weights = O * c.l1 + O * c.li + d.H * c.li + c.n1c * c.lo;
+  const int64_t acts = 6 * O + R * O + R * c.Xs + R * c.n1s + 2 * R * 3 * c.hc + 2 * R * 3 * c.hc +
+                       2 * 2 * R * c.Hs + 2 * kCluster * R * O;
+  return sizeof(float) * (weights + acts);
+}
+
+__global__ void __launch_bounds__(kThreads) chain_fwd_cluster_kernel(
+    Dims d, float clip, const float* __restrict__ s0, const float* __restrict__ z1a, const float* __restrict__ gi_re,
+    const float* __restrict__ w_in, const float* __restrict__ w_out, const float* __restrict__ b_out,
+    const float* __restrict__ w_h, const float* __restrict__ b_i, const float* __restrict__ b_hn,
+    const float* __restrict__ stats, float* __restrict__ u_out, float* __restrict__ states,
+    float* __restrict__ xin_out, float* __restrict__ both_im, float* __restrict__ hh_out, float* __restrict__ hs) {
+  constexpr int R = kRows, CS = kCluster;
+  cg::cluster_group cluster = cg::this_cluster();
+  const int c = int(cluster.block_rank());
+  const ClusterDims cd = cluster_dims(d);
+  const int64_t W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, G = d.G(), H3 = 3 * H;
+  const int64_t n1c = cd.n1c, hc = cd.hc, hc3 = 3 * hc, l1 = cd.l1, li = cd.li, lo = cd.lo;
+  const int64_t Xs = cd.Xs, n1s = cd.n1s, Hs = cd.Hs, enc0 = X == O ? 0 : O;
+  const int64_t u0 = c * n1c, n1v = N1 - u0 < 0 ? 0 : (N1 - u0 < n1c ? N1 - u0 : n1c);  // this block's hidden units
+  const int64_t b = blockIdx.y, row0 = int64_t(blockIdx.x / CS) * R;
+  const int nr = int(W - row0 < R ? W - row0 : R);
+  s0 += b * W * O; z1a += b * k * W * N1; gi_re += b * k * W * H3; w_in += b * X * G; w_out += b * N1 * O;
+  b_out += b * O; w_h += b * H * H3; b_i += b * H3; b_hn += b * H; stats += b * 6 * O;
+  u_out += b * k * W * N1; states += b * (k + 1) * W * O; xin_out += b * (k + 1) * W * X; both_im += b * k * W * H3;
+  hh_out += b * k * 2 * W * H3; hs += b * (k + 1) * 2 * W * H;
+  // this block's gate column j < 3hc as a column of the [.., 3H] arrays: gate j / hc, unit c hc + j % hc
+  auto gcol = [&](int64_t j) { return (j / hc) * H + c * hc + j % hc; };
+
+  extern __shared__ float smem[];
+  float* W1s = smem;               // [O, l1]: layer 1's state rows, this block's units
+  float* Wis = W1s + O * l1;       // [O, li]: W_i, this block's gate columns
+  float* Whs = Wis + O * li;       // [H, li]: W_h, this block's gate columns
+  float* Wos = Whs + H * li;       // [n1c, lo]: the output layer's rows of this block's units
+  float* st = Wos + n1c * lo;      // [6, O]
+  float* s = st + 6 * O;           // [R, O]
+  float* xin = s + R * O;          // [R, Xs]
+  float* pu = xin + R * Xs;        // [R, n1s]
+  float* gim = pu + R * n1s;       // [R, 3hc]
+  float* gre = gim + R * hc3;      // [R, 3hc]
+  float* hh = gre + R * hc3;       // [2R, 3hc]
+  float* hf = hh + 2 * R * hc3;    // [2, 2R, Hs]: every unit's hidden state, by the step's parity
+  float* zx = hf + 2 * 2 * R * Hs; // [2, CS, R, O]: the blocks' output-layer partial sums, by parity
+  auto grow = [&](int q) { return q < R ? row0 + q : W + row0 + (q - R); };
+
+  for (int64_t i = threadIdx.x; i < O * l1; i += kThreads) {
+    const int64_t r = i / l1, n = i % l1;
+    W1s[i] = n < n1v ? w_in[r * G + u0 + n] : 0.0f;
+  }
+  for (int64_t i = threadIdx.x; i < O * li; i += kThreads) {
+    const int64_t r = i / li, j = i % li;
+    Wis[i] = j < hc3 ? w_in[(enc0 + r) * G + N1 + gcol(j)] : 0.0f;
+  }
+  for (int64_t i = threadIdx.x; i < H * li; i += kThreads) {
+    const int64_t r = i / li, j = i % li;
+    Whs[i] = j < hc3 ? w_h[r * H3 + gcol(j)] : 0.0f;
+  }
+  for (int64_t i = threadIdx.x; i < n1c * lo; i += kThreads) {
+    const int64_t r = i / lo, n = i % lo;
+    Wos[i] = r < n1v && n < O ? w_out[(u0 + r) * O + n] : 0.0f;
+  }
+  for (int i = threadIdx.x; i < 6 * O; i += kThreads) st[i] = stats[i];
+  for (int i = threadIdx.x; i < R * O; i += kThreads) s[i] = i / O < nr ? s0[row0 * O + i] : 0.0f;
+  for (int i = threadIdx.x; i < 2 * R * Hs; i += kThreads) hf[i] = 0.0f;
+  __syncthreads();
+  normalise(d, st, clip, s, xin, int(Xs));
+  __syncthreads();
+  if (c == 0) {
+    for (int i = threadIdx.x; i < nr * O; i += kThreads) states[row0 * O + i] = s[i];
+    for (int i = threadIdx.x; i < nr * X; i += kThreads) xin_out[row0 * X + i] = xin[(i / X) * Xs + i % X];
+  }
+  for (int i = threadIdx.x; i < 2 * R * hc; i += kThreads) {
+    const int q = i / int(hc);
+    if (q % R < nr) hs[grow(q) * H + c * hc + i % hc] = 0.0f;
+  }
+  gemm_tiles<1, 1, 4, true>(xin, int(Xs), W1s, l1, 1, int(O), int(n1v), [&](int r, int n, float v) {
+    pu[r * n1s + n] = v;
+  });
+  cluster.sync();  // every block of the cluster runs before any writes into another's shared memory
+
+  for (int64_t t = 0; t < k; ++t) {
+    const int par = int(t & 1);
+    const float* z1a_t = z1a + (t * W + row0) * N1 + u0;
+    batched<8>(
+        int(R * n1v), [&](int i) { return i / n1v < nr ? z1a_t[(i / n1v) * N1 + i % n1v] : 0.0f; },
+        [&](int i, float z) {
+          const int r = int(i / n1v), n = int(i % n1v);
+          const float v = r < nr ? fmaxf(pu[r * n1s + n] + z, 0.0f) : 0.0f;
+          pu[r * n1s + n] = v;
+          if (r < nr) u_out[(t * W + row0 + r) * N1 + u0 + n] = v;
+        });
+    __syncthreads();
+    // this block's share of the output layer, into every block's zx[par][c] (zeros where it holds no units: K = 0)
+    gemm_tiles<1, 1, 8, true>(pu, int(n1s), Wos, lo, 1, int(n1v), int(O), [&](int r, int n, float v) {
+      for (int rank = 0; rank < CS; ++rank)
+        cluster.map_shared_rank(zx, rank)[((par * CS + c) * R + r) * O + n] = v;
+    });
+    cluster.sync();
+    for (int i = threadIdx.x; i < R * O; i += kThreads) {
+      const int r = i / int(O), col = i - r * int(O);
+      float z = 0.0f;
+      for (int rank = 0; rank < CS; ++rank) z += zx[(par * CS + rank) * R * O + i];
+      s[i] = r < nr ? s[i] + ((z + b_out[col]) * st[5 * O + col] + st[4 * O + col]) : 0.0f;
+    }
+    __syncthreads();
+    normalise(d, st, clip, s, xin, int(Xs));
+    __syncthreads();
+    if (c == 0) {
+      for (int i = threadIdx.x; i < nr * O; i += kThreads) states[((t + 1) * W + row0) * O + i] = s[i];
+      for (int i = threadIdx.x; i < nr * X; i += kThreads)
+        xin_out[((t + 1) * W + row0) * X + i] = xin[(i / X) * Xs + i % X];
+    }
+    gemm_tiles<1, 1, 4, true>(xin, int(Xs), W1s, l1, 1, int(O), int(n1v), [&](int r, int n, float v) {
+      pu[r * n1s + n] = v;
+    });
+    gemm_tiles<1, 1, 4, true>(xin + enc0, int(Xs), Wis, li, 1, int(O), int(hc3), [&](int r, int j, float v) {
+      gim[r * hc3 + j] = v;
+      if (r < nr) both_im[(t * W + row0 + r) * H3 + gcol(j)] = v;
+    });
+    const float* hprev = hf + par * 2 * R * Hs;
+    gemm_tiles<2, 1, 8, true>(hprev, int(Hs), Whs, li, 1, int(H), int(hc3), [&](int q, int j, float v) {
+      hh[q * hc3 + j] = v;
+      if (q % R < nr) hh_out[(t * 2 * W + grow(q)) * H3 + gcol(j)] = v;
+    });
+    const float* gi_re_t = gi_re + (t * W + row0) * H3;
+    batched<4>(
+        int(R * hc3), [&](int i) { return i / hc3 < nr ? gi_re_t[(i / hc3) * H3 + gcol(i % hc3)] : 0.0f; },
+        [&](int i, float v) { gre[i] = v; });
+    __syncthreads();
+    float* hnext = hf + (1 - par) * 2 * R * Hs;
+    for (int i = threadIdx.x; i < 2 * R * hc; i += kThreads) {
+      const int q = i / int(hc), j = i - q * int(hc);
+      const int64_t unit = c * hc + j;
+      const bool valid = q % R < nr;
+      float gr, gz, gn;
+      if (q < R) {
+        const float* g = gre + q * hc3;
+        gr = g[j]; gz = g[hc + j]; gn = g[2 * hc + j];
+      } else {
+        const float* g = gim + (q - R) * hc3;
+        gr = g[j] + b_i[unit]; gz = g[hc + j] + b_i[H + unit]; gn = g[2 * hc + j] + b_i[2 * H + unit];
+      }
+      const float* a = hh + q * hc3;
+      const float rg = sigmoidf(gr + a[j]);
+      const float zg = sigmoidf(gz + a[hc + j]);
+      const float ng = tanhf(gn + rg * (a[2 * hc + j] + b_hn[unit]));
+      const float hn = (1.0f - zg) * ng + zg * hprev[q * Hs + unit];
+      for (int rank = 0; rank < CS; ++rank) cluster.map_shared_rank(hnext, rank)[q * Hs + unit] = hn;
+      if (valid) hs[((t + 1) * 2 * W + grow(q)) * H + unit] = hn;
+    }
+    cluster.sync();  // also keeps every block alive while others still write into its shared memory
+  }
+}
+
 size_t fwd_smem(const Dims& d) {
   const int64_t R = kRows, H3 = 3 * d.H;
   return sizeof(float) * (kWarps * 16 * kSplitCols + 6 * d.O + R * (d.O + padded(d.X) + padded(d.N1) + 2 * H3) +
@@ -525,6 +714,42 @@ ffi::Error ChainFwd(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re,
   return launched("cdjax_chain_fwd");
 }
 
+ffi::Error ChainFwdCluster(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re, F32 w_in, F32 w_out,
+                           F32 b_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32Out u, F32Out states, F32Out xin,
+                           F32Out both_im, F32Out hh, F32Out hs) {
+  Dims d;
+  if (!dims_of(s0, z1a, gi_re, w_in, &d) || d.H % (8 * kCluster) != 0)
+    return ffi::Error::InvalidArgument("cdjax_chain_fwd_cluster: inconsistent shapes, or H not a multiple of 32");
+  const int64_t B = d.B, W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, H3 = 3 * H;
+  const bool ok = shaped(z1a, {k, W, N1}, B) && shaped(gi_re, {k, W, H3}, B) && shaped(w_in, {X, d.G()}, B) &&
+                  shaped(w_out, {N1, O}, B) && shaped(b_out, {O}, B) && shaped(w_h, {H, H3}, B) &&
+                  shaped(b_i, {H3}, B) && shaped(b_hn, {H}, B) && shaped(stats, {6, O}, B) &&
+                  shaped(*u, {k, W, N1}, B) && shaped(*states, {k + 1, W, O}, B) && shaped(*xin, {k + 1, W, X}, B) &&
+                  shaped(*both_im, {k, W, H3}, B) && shaped(*hh, {k, 2 * W, H3}, B) &&
+                  shaped(*hs, {k + 1, 2 * W, H}, B);
+  if (!ok) return ffi::Error::InvalidArgument("cdjax_chain_fwd_cluster: a buffer's shape does not match s0, z1a");
+  if (B == 0 || W == 0) return ffi::Error::Success();
+  const size_t smem = fwd_cluster_smem(d);
+  cudaFuncSetAttribute(chain_fwd_cluster_kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
+  cudaLaunchConfig_t config = {};
+  config.gridDim = dim3(unsigned((W + kRows - 1) / kRows * kCluster), unsigned(B));
+  config.blockDim = dim3(kThreads);
+  config.dynamicSmemBytes = smem;
+  config.stream = stream;
+  cudaLaunchAttribute attribute[1];
+  attribute[0].id = cudaLaunchAttributeClusterDimension;
+  attribute[0].val.clusterDim.x = kCluster;
+  attribute[0].val.clusterDim.y = 1;
+  attribute[0].val.clusterDim.z = 1;
+  config.attrs = attribute;
+  config.numAttrs = 1;
+  cudaLaunchKernelEx(&config, chain_fwd_cluster_kernel, d, clip, s0.typed_data(), z1a.typed_data(),
+                     gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(), b_out.typed_data(), w_h.typed_data(),
+                     b_i.typed_data(), b_hn.typed_data(), stats.typed_data(), u->typed_data(), states->typed_data(),
+                     xin->typed_data(), both_im->typed_data(), hh->typed_data(), hs->typed_data());
+  return launched("cdjax_chain_fwd_cluster");
+}
+
 ffi::Error ChainBwd(cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im, F32 hh, F32 hs, F32 gi_re,
                     F32 w_in, F32 w_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32 dh, F32 ds, F32Out dgi,
                     F32Out dhh, F32Out dz, F32Out dz1, F32Out ds0) {
@@ -568,6 +793,14 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainFwd, ChainFwd,
                                   .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
                                   .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
 
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainFwdCluster, ChainFwdCluster,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::PlatformStream<cudaStream_t>>()
+                                  .Attr<float>("clip")
+                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
+                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
+                                  .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
+
 XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainBwd, ChainBwd,
                               ffi::Ffi::Bind()
                                   .Ctx<ffi::PlatformStream<cudaStream_t>>()
@@ -577,9 +810,9 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainBwd, ChainBwd,
                                   .Arg<F32>().Arg<F32>()
                                   .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
 
-// The shared memory (bytes) of the forward's (which = 0) and the backward's (1) thread block at these widths, for the
-// Python side to decide whether a chain fits before it calls the kernels.
+// The shared memory (bytes) of the forward's (which = 0), the backward's (1) and the cluster forward's (2) thread block
+// at these widths, for the Python side to decide whether a chain fits before it calls the kernels.
 extern "C" int64_t CdjaxChainSmem(int64_t O, int64_t X, int64_t N1, int64_t H, int64_t which) {
   Dims d{1, 1, 1, O, X, N1, H};
-  return int64_t(which == 0 ? fwd_smem(d) : bwd_smem(d));
+  return int64_t(which == 0 ? fwd_smem(d) : which == 1 ? bwd_smem(d) : fwd_cluster_smem(d));
 }

@@ -32,7 +32,8 @@ import numpy as np
 from cdjax.protocol import ConfigError
 
 SOURCE = pathlib.Path(__file__).with_name("chain.cu")
-SWITCH_ENV = "CDJAX_CHAIN_KERNEL"  # "1": use the kernels where they fit; anything else (the default): XLA's chain
+# "1": the kernels where they fit; "cluster": the same with the cluster forward; unset or "0": XLA's chain
+SWITCH_ENV = "CDJAX_CHAIN_KERNEL"
 CACHE_ENV = "CDJAX_KERNEL_CACHE"  # where the compiled library goes (default ~/.cache/cdjax/kernels)
 PROBE_ENV = "CDJAX_CHAIN_PROBE"  # timing probes of benchmarks.chain_kernel only: phases the forward skips (chain.cu)
 SPLIT_COLS = 32  # the widest state the kernels take (kSplitCols)
@@ -93,7 +94,8 @@ def build(verbose: bool = False) -> pathlib.Path:
 def load() -> ctypes.CDLL:
     """Build and load the library and register its two FFI targets with XLA (once per process)."""
     lib = ctypes.cdll.LoadLibrary(str(build()))
-    for name, symbol in (("cdjax_chain_fwd", lib.CdjaxChainFwd), ("cdjax_chain_bwd", lib.CdjaxChainBwd)):
+    for name, symbol in (("cdjax_chain_fwd", lib.CdjaxChainFwd), ("cdjax_chain_bwd", lib.CdjaxChainBwd),
+                         ("cdjax_chain_fwd_cluster", lib.CdjaxChainFwdCluster)):
         jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(symbol), platform="CUDA")
     return lib
 
@@ -106,19 +108,30 @@ def _register() -> None:
 
 
 def block_smem(O: int, X: int, N1: int, H: int) -> int:
-    """The larger shared memory (bytes) of the forward's and the backward's thread block, as the library computes it."""
+    """The larger shared memory (bytes) of the forward's (the cluster forward's when it is switched on) and the
+    backward's thread block, as the library computes it."""
     f = load().CdjaxChainSmem
     f.restype, f.argtypes = ctypes.c_int64, [ctypes.c_int64] * 5
-    return max(f(O, X, N1, H, 0), f(O, X, N1, H, 1))
+    return max(f(O, X, N1, H, 2 if cluster_forward() else 0), f(O, X, N1, H, 1))
 
 
 def switched_on() -> bool:
-    """$CDJAX_CHAIN_KERNEL: "1" on, unset, empty or "0" off; ConfigError (one sentence) for anything else."""
+    """$CDJAX_CHAIN_KERNEL: "1" or "cluster" on, unset, empty or "0" off; ConfigError (one sentence) otherwise."""
+    return _switch() in ("1", "cluster")
+
+
+def cluster_forward() -> bool:
+    """Whether the forward runs as clusters of blocks ($CDJAX_CHAIN_KERNEL=cluster; not yet run on a GPU as of
+    2026-11-27: `python -m benchmarks.chain_kernel --cluster` checks and times it)."""
+    return _switch() == "cluster"
+
+
+def _switch() -> str:
     text = os.environ.get(SWITCH_ENV, "").strip()
-    if text not in ("", "0", "1"):
-        raise ConfigError(f"${SWITCH_ENV} is {text!r}: set it to 1 (the CUDA chain kernels where they fit) or 0 "
-                          "(XLA's chain, the default)")
-    return text == "1"
+    if text not in ("", "0", "1", "cluster"):
+        raise ConfigError(f"${SWITCH_ENV} is {text!r}: set it to 1 (the CUDA chain kernels where they fit), cluster "
+                          "(the same with the cluster forward) or 0 (XLA's chain, the default)")
+    return text
 
 
 def usable(n_layers: int, O: int, X: int, N1: int, H: int, dtype) -> bool:
@@ -126,6 +139,8 @@ def usable(n_layers: int, O: int, X: int, N1: int, H: int, dtype) -> bool:
     state of at most SPLIT_COLS dimensions, blocks within shared memory, and the library built and loaded (a build
     failure says why once, then XLA's chain runs)."""
     if not switched_on() or jax.default_backend() != "gpu" or n_layers != 2 or dtype != jnp.float32 or O > SPLIT_COLS:
+        return False
+    if cluster_forward() and H % 32:  # the cluster forward splits the GRU's units over 4 blocks in tiles of 8
         return False
     try:
         return block_smem(O, X, N1, H) <= SMEM_LIMIT
@@ -152,7 +167,8 @@ def forward(clip: float, s0, z1a, gi_re, w_in, w_out, b_out, w_h, b_i, b_hn, sta
     (W, O), (k, _, N1), H, X = s0.shape, z1a.shape, w_h.shape[0], w_in.shape[0]
     out = (_shape(k, W, N1), _shape(k + 1, W, O), _shape(k + 1, W, X), _shape(k, W, 3 * H), _shape(k, 2 * W, 3 * H),
            _shape(k + 1, 2 * W, H))
-    call = jax.ffi.ffi_call("cdjax_chain_fwd", out, vmap_method="broadcast_all")
+    name = "cdjax_chain_fwd_cluster" if cluster_forward() else "cdjax_chain_fwd"
+    call = jax.ffi.ffi_call(name, out, vmap_method="broadcast_all")
     return call(s0, z1a, gi_re, w_in, w_out, b_out, w_h, b_i, b_hn, stats, clip=np.float32(clip))
 
 
