@@ -48,7 +48,7 @@ def _problem(windows: int, seed: int, shared: bool, sizes: dict):
     return (model, gru, s0, actions, x_re), enc_obs, weights
 
 
-# (row name, $CDJAX_CHAIN_KERNEL while the row's programs are traced; None: XLA's chain); main adds the cluster forward
+# (row name, $CDJAX_CHAIN_KERNEL while the row's programs are traced; None: XLA's chain); main adds the cluster kernels
 KERNELS = (("kernels", "1"),)
 
 
@@ -173,12 +173,12 @@ def main(argv=None) -> dict:
     p.add_argument("--trace", help="also profile 5 calls of each single-seed value-and-gradient into this directory")
     p.add_argument("--skip-accuracy", action="store_true", help="time (and trace) only")
     p.add_argument("--cluster", action="store_true",
-                   help="also the kernels with the cluster forward (CDJAX_CHAIN_KERNEL=cluster), beside the plain ones")
+                   help="also the cluster kernels (CDJAX_CHAIN_KERNEL=cluster), beside the plain ones")
     p.add_argument("--forward-probe", action="store_true",
                    help="time only the kernels' single-seed forward (with $CDJAX_CHAIN_PROBE: phases skipped)")
     a = p.parse_args(argv)
     os.environ[chain_kernel.SWITCH_ENV] = "1"
-    kernels = KERNELS + ((("kernels, cluster forward", "cluster"),) if a.cluster else ())
+    kernels = KERNELS + ((("kernels, clusters", "cluster"),) if a.cluster else ())
     t0 = time.perf_counter()
     lib = chain_kernel.build(verbose=True)
     print(f"built {lib} in {time.perf_counter() - t0:.1f} s")

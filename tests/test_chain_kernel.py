@@ -38,6 +38,6 @@ def test_the_kernel_path_has_the_xla_chains_shapes_alone_and_under_vmap(shared):
                                                                                          *batched))
     lowered = jax.jit(grad(True)).lower(*args).as_text()
     assert lowered.count("cdjax_chain_fwd(") == 1 and lowered.count("cdjax_chain_bwd(") == 1
-    with ck._mode("cluster"):  # the cluster forward: its own target, the same backward
+    with ck._mode("cluster"):  # the cluster kernels: their own targets
         lowered = jax.jit(grad(True)).lower(*args).as_text()
-    assert lowered.count("cdjax_chain_fwd_cluster(") == 1 and lowered.count("cdjax_chain_bwd(") == 1
+    assert lowered.count("cdjax_chain_fwd_cluster(") == 1 and lowered.count("cdjax_chain_bwd_cluster(") == 1

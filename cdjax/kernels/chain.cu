@@ -641,6 +641,209 @@ __global__ void __launch_bounds__(kThreads) chain_fwd_cluster_kernel(
   }
 }
 
+// The backward as a cluster of kCluster blocks per 16 rows (untested on a GPU as of 2026-11-27), the cluster forward's
+// counterpart: block c holds the transposed shares of the weights for its hidden units and GRU units and computes the
+// cotangents of its own units; the hidden state's cotangent (each block's partial over its gate columns) is
+// reduce-scattered to the blocks that own the units, and the normalised inputs' cotangent (partials over units and
+// gate columns) all-reduced, both through distributed shared memory and one cluster barrier a step, double-buffered
+// by parity. Same inputs and outputs as chain_bwd_kernel.
+
+size_t bwd_cluster_smem(const Dims& d) {
+  const ClusterDims c = cluster_dims(d);
+  const int64_t R = kRows, O = d.O, X = d.X, hc3 = 3 * c.hc, lx = padded8(d.O), lh = padded8(d.H);
+  const int64_t weights = hc3 * lh + c.n1c * lx + hc3 * lx + O * c.l1;
+  const int64_t acts = 6 * O + R * O + R * padded(O) + 2 * R * X + R * c.n1s + R * padded(hc3) + 2 * 2 * R * c.hc +
+                       2 * R * padded(hc3) + 2 * kCluster * 2 * R * c.hc + 2 * kCluster * 2 * R * O;
+  return sizeof(float) * (weights + acts);
+}
+
+__global__ void __launch_bounds__(kThreads) chain_bwd_cluster_kernel(
+    Dims d, float clip, const float* __restrict__ u_in, const float* __restrict__ xin_in,
+    const float* __restrict__ both_im, const float* __restrict__ hh_in, const float* __restrict__ hs,
+    const float* __restrict__ gi_re, const float* __restrict__ w_in, const float* __restrict__ w_out,
+    const float* __restrict__ w_h, const float* __restrict__ b_i, const float* __restrict__ b_hn,
+    const float* __restrict__ stats, const float* __restrict__ dh_in, const float* __restrict__ ds_in,
+    float* __restrict__ dgi, float* __restrict__ dhh_out, float* __restrict__ dz_out, float* __restrict__ dz1_out,
+    float* __restrict__ ds0) {
+  constexpr int R = kRows, CS = kCluster;
+  cg::cluster_group cluster = cg::this_cluster();
+  const int c = int(cluster.block_rank());
+  const ClusterDims cd = cluster_dims(d);
+  const int64_t W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, G = d.G(), H3 = 3 * H;
+  const int64_t n1c = cd.n1c, hc = cd.hc, hc3 = 3 * hc, l1 = cd.l1, n1s = cd.n1s, enc0 = X == O ? 0 : O;
+  const int64_t lx = padded8(O), lh = padded8(H), Os = padded(O), hcs = padded(hc3);
+  const int64_t u0 = c * n1c, n1v = N1 - u0 < 0 ? 0 : (N1 - u0 < n1c ? N1 - u0 : n1c);
+  const int64_t b = blockIdx.y, row0 = int64_t(blockIdx.x / CS) * R;
+  const int nr = int(W - row0 < R ? W - row0 : R);
+  u_in += b * k * W * N1; xin_in += b * (k + 1) * W * X; both_im += b * k * W * H3; hh_in += b * k * 2 * W * H3;
+  hs += b * (k + 1) * 2 * W * H; gi_re += b * k * W * H3; w_in += b * X * G; w_out += b * N1 * O;
+  w_h += b * H * H3; b_i += b * H3; b_hn += b * H; stats += b * 6 * O; dh_in += b * 2 * W * H; ds_in += b * W * O;
+  dgi += b * k * 2 * W * H3; dhh_out += b * k * 2 * W * H3; dz_out += b * k * W * O; dz1_out += b * k * W * N1;
+  ds0 += b * W * O;
+  auto gcol = [&](int64_t j) { return (j / hc) * H + c * hc + j % hc; };
+  auto grow = [&](int q) { return q < R ? row0 + q : W + row0 + (q - R); };
+
+  extern __shared__ float smem[];
+  float* WhT = smem;               // [3hc, lh]: W_h's rows of this block's gate columns (WhT[j][u] = W_h[u][gcol j])
+  float* W1T = WhT + hc3 * lh;     // [n1c, lx]: layer 1's state rows for this block's units, transposed
+  float* WiT = W1T + n1c * lx;     // [3hc, lx]: W_i's columns of this block's gates, transposed
+  float* WoT = WiT + hc3 * lx;     // [O, l1]: the output layer's rows of this block's units, transposed
+  float* st = WoT + O * l1;        // [6, O]
+  float* ds = st + 6 * O;          // [R, O]: the current state's cotangent (the same in every block)
+  float* dz = ds + R * O;          // [R, Os]
+  float* dxin = dz + R * Os;       // [R, X]
+  float* xin = dxin + R * X;       // [R, X]
+  float* dp1 = xin + R * X;        // [R, n1s]: the next step's layer-1 cotangent, this block's units
+  float* dbim = dp1 + R * n1s;     // [R, hcs]: the imagined rows' GRU-input cotangent, this block's gate columns
+  float* dhl = dbim + R * hcs;     // [2R, hc]: h's cotangent, this block's units
+  float* dhd = dhl + 2 * R * hc;   // [2R, hc]: its direct part
+  float* dhh = dhd + 2 * R * hc;   // [2R, hcs]: the recurrent product's cotangent, this block's gate columns
+  float* dhx = dhh + 2 * R * hcs;  // [2, CS, 2R, hc]: the blocks' partials of h's cotangent for this block's units
+  float* dxx = dhx + 2 * CS * 2 * R * hc;  // [2, CS, 2, R, O]: the blocks' partials of dxin (model part, encoder part)
+
+  for (int64_t i = threadIdx.x; i < hc3 * lh; i += kThreads) {
+    const int64_t j = i / lh, u = i % lh;
+    WhT[i] = u < H ? w_h[u * H3 + gcol(j)] : 0.0f;
+  }
+  for (int64_t i = threadIdx.x; i < n1c * lx; i += kThreads) {
+    const int64_t n = i / lx, x = i % lx;
+    W1T[i] = n < n1v && x < O ? w_in[x * G + u0 + n] : 0.0f;
+  }
+  for (int64_t i = threadIdx.x; i < hc3 * lx; i += kThreads) {
+    const int64_t j = i / lx, x = i % lx;
+    WiT[i] = x < O ? w_in[(enc0 + x) * G + N1 + gcol(j)] : 0.0f;
+  }
+  for (int64_t i = threadIdx.x; i < O * l1; i += kThreads) {
+    const int64_t x = i / l1, n = i % l1;
+    WoT[i] = n < n1v ? w_out[(u0 + n) * O + x] : 0.0f;
+  }
+  for (int i = threadIdx.x; i < 6 * O; i += kThreads) st[i] = stats[i];
+  for (int i = threadIdx.x; i < R * O; i += kThreads) ds[i] = i / O < nr ? ds_in[row0 * O + i] : 0.0f;
+  for (int i = threadIdx.x; i < R * n1s; i += kThreads) dp1[i] = 0.0f;
+  for (int i = threadIdx.x; i < 2 * R * hc; i += kThreads) {
+    const int q = i / int(hc);
+    dhl[i] = q % R < nr ? dh_in[grow(q) * H + c * hc + i % hc] : 0.0f;
+  }
+  cluster.sync();
+
+  for (int64_t sidx = 0; sidx < k; ++sidx) {
+    const int64_t t = k - 1 - sidx;
+    const int par = int(sidx & 1);
+    const float* gi_re_t = gi_re + t * W * H3;
+    for (int i = threadIdx.x; i < 2 * R * hc; i += kThreads) {
+      const int q = i / int(hc), j = i - q * int(hc);
+      const int64_t unit = c * hc + j;
+      const bool valid = q % R < nr;
+      float gr = 0.0f, gz = 0.0f, gn = 0.0f, ar = 0.0f, az = 0.0f, an = 0.0f, hv = 0.0f;
+      if (valid) {
+        const int64_t gq = grow(q);
+        const float* g = q < R ? gi_re_t + (row0 + q) * H3 : both_im + (t * W + row0 + q - R) * H3;
+        const float bias = q < R ? 0.0f : 1.0f;
+        gr = g[unit] + bias * b_i[unit]; gz = g[H + unit] + bias * b_i[H + unit];
+        gn = g[2 * H + unit] + bias * b_i[2 * H + unit];
+        const float* a = hh_in + (t * 2 * W + gq) * H3;
+        ar = a[unit]; az = a[H + unit]; an = a[2 * H + unit] + b_hn[unit];
+        hv = hs[(t * 2 * W + gq) * H + unit];
+      }
+      const float rg = sigmoidf(gr + ar), zg = sigmoidf(gz + az), ng = tanhf(gn + rg * an);
+      const float g = dhl[i];
+      const float dn = g * (1.0f - zg), dzg = g * (hv - ng);
+      dhd[i] = g * zg;
+      const float dan = dn * (1.0f - ng * ng);
+      const float dar = dan * an * rg * (1.0f - rg);
+      const float daz = dzg * zg * (1.0f - zg);
+      float* o = dhh + q * hcs;
+      o[j] = dar; o[hc + j] = daz; o[2 * hc + j] = dan * rg;
+      if (valid) {
+        const int64_t base = (t * 2 * W + grow(q)) * H3;
+        dgi[base + unit] = dar; dgi[base + H + unit] = daz; dgi[base + 2 * H + unit] = dan;
+        dhh_out[base + unit] = dar; dhh_out[base + H + unit] = daz; dhh_out[base + 2 * H + unit] = dan * rg;
+      }
+      if (q >= R) {
+        float* e = dbim + (q - R) * hcs;
+        e[j] = dar; e[hc + j] = daz; e[2 * hc + j] = dan;
+      }
+    }
+    batched<2>(
+        int(R * X), [&](int i) { return i / X < nr ? xin_in[((t + 1) * W + row0) * X + i] : 0.0f; },
+        [&](int i, float v) { xin[i] = v; });
+    __syncthreads();
+    // partials: h's cotangent over this block's gate columns, to the blocks owning the units; the normalised inputs'
+    gemm_tiles<2, 1, 8, true>(dhh, int(hcs), WhT, lh, 1, int(hc3), int(H), [&](int q, int u, float v) {
+      const int owner = u / int(hc);
+      cluster.map_shared_rank(dhx, owner)[((par * CS + c) * 2 * R + q) * hc + u % hc] = v;
+    });
+    gemm_tiles<1, 1, 8, true>(dp1, int(n1s), W1T, lx, 1, int(n1v), int(O), [&](int r, int x, float v) {
+      for (int rank = 0; rank < CS; ++rank)
+        cluster.map_shared_rank(dxx, rank)[(((par * CS + c) * 2 + 0) * R + r) * O + x] = v;
+    });
+    gemm_tiles<1, 1, 8, true>(dbim, int(hcs), WiT, lx, 1, int(hc3), int(O), [&](int r, int x, float v) {
+      for (int rank = 0; rank < CS; ++rank)
+        cluster.map_shared_rank(dxx, rank)[(((par * CS + c) * 2 + 1) * R + r) * O + x] = v;
+    });
+    cluster.sync();
+    for (int i = threadIdx.x; i < 2 * R * hc; i += kThreads) {
+      float v = dhd[i];
+      for (int rank = 0; rank < CS; ++rank) v += dhx[(par * CS + rank) * 2 * R * hc + i];
+      dhl[i] = v;
+    }
+    for (int i = threadIdx.x; i < R * O; i += kThreads) {
+      const int r = i / int(O), x = i - r * int(O);
+      float m = 0.0f, e = 0.0f;
+      for (int rank = 0; rank < CS; ++rank) {
+        m += dxx[(((par * CS + rank) * 2 + 0) * R + r) * O + x];
+        e += dxx[(((par * CS + rank) * 2 + 1) * R + r) * O + x];
+      }
+      if (enc0) {
+        dxin[r * X + x] = m; dxin[r * X + O + x] = e;
+      } else {
+        dxin[r * X + x] = m + e;
+      }
+    }
+    __syncthreads();
+    for (int i = threadIdx.x; i < R * O; i += kThreads) {
+      const int r = i / int(O), x = i - r * int(O);
+      ds[i] += normalise_vjp(d, st, clip, xin + r * X, dxin + r * X, x);
+      dz[r * Os + x] = ds[i] * st[5 * O + x];
+      if (c == 0 && r < nr) dz_out[(t * W + row0) * O + i] = ds[i] * st[5 * O + x];
+    }
+    const float* u_t = u_in + (t * W + row0) * N1 + u0;  // relu's mask, where dp1 was
+    batched<8>(
+        int(R * n1v), [&](int i) { return i / n1v < nr ? u_t[(i / n1v) * N1 + i % n1v] : 0.0f; },
+        [&](int i, float v) { dp1[(i / n1v) * n1s + i % n1v] = v; });
+    __syncthreads();
+    gemm_tiles<1, 1, 4, true>(dz, int(Os), WoT, l1, 1, int(O), int(n1v), [&](int r, int n, float v) {
+      const float g = r < nr && dp1[r * n1s + n] > 0.0f ? v : 0.0f;
+      dp1[r * n1s + n] = g;
+      if (r < nr) dz1_out[(t * W + row0 + r) * N1 + u0 + n] = g;
+    });
+    __syncthreads();
+  }
+  // s_0's cotangent: the carried one and that through layer 1 of step 0 (the model's part of the inputs only)
+  const int par = int(k & 1);
+  gemm_tiles<1, 1, 8, true>(dp1, int(n1s), W1T, lx, 1, int(n1v), int(O), [&](int r, int x, float v) {
+    for (int rank = 0; rank < CS; ++rank)
+      cluster.map_shared_rank(dxx, rank)[(((par * CS + c) * 2 + 0) * R + r) * O + x] = v;
+  });
+  for (int i = threadIdx.x; i < R * X; i += kThreads) {
+    xin[i] = i / X < nr ? xin_in[row0 * X + i] : 0.0f;
+    dxin[i] = 0.0f;
+  }
+  cluster.sync();
+  for (int i = threadIdx.x; i < R * O; i += kThreads) {
+    const int r = i / int(O), x = i - r * int(O);
+    float m = 0.0f;
+    for (int rank = 0; rank < CS; ++rank) m += dxx[(((par * CS + rank) * 2 + 0) * R + r) * O + x];
+    dxin[r * X + x] = m;
+  }
+  __syncthreads();
+  if (c == 0)
+    for (int i = threadIdx.x; i < nr * O; i += kThreads) {
+      const int r = i / int(O), x = i - r * int(O);
+      ds0[row0 * O + i] = ds[i] + normalise_vjp(d, st, clip, xin + r * X, dxin + r * X, x);
+    }
+}
+
 size_t fwd_smem(const Dims& d) {
   const int64_t R = kRows, H3 = 3 * d.H;
   return sizeof(float) * (kWarps * 16 * kSplitCols + 6 * d.O + R * (d.O + padded(d.X) + padded(d.N1) + 2 * H3) +
@@ -750,9 +953,9 @@ ffi::Error ChainFwdCluster(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32
   return launched("cdjax_chain_fwd_cluster");
 }
 
-ffi::Error ChainBwd(cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im, F32 hh, F32 hs, F32 gi_re,
-                    F32 w_in, F32 w_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32 dh, F32 ds, F32Out dgi,
-                    F32Out dhh, F32Out dz, F32Out dz1, F32Out ds0) {
+ffi::Error ChainBwdImpl(bool cluster, cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im, F32 hh, F32 hs,
+                        F32 gi_re, F32 w_in, F32 w_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32 dh, F32 ds,
+                        F32Out dgi, F32Out dhh, F32Out dz, F32Out dz1, F32Out ds0) {
   auto sd = ds.dimensions(), ud = u.dimensions(), hd = hs.dimensions(), wd = w_in.dimensions();
   if (sd.size() < 2 || ud.size() < 3 || hd.size() < 3 || wd.size() < 2)
     return ffi::Error::InvalidArgument("cdjax_chain_bwd: inconsistent shapes");
@@ -762,9 +965,9 @@ ffi::Error ChainBwd(cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im
   d.B = 1;
   for (size_t i = 0; i + 2 < sd.size(); ++i) d.B *= sd[i];
   const int64_t B = d.B, W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, H3 = 3 * H;
-  const bool ok = (X == O || X == 2 * O) && O <= kSplitCols && shaped(u, {k, W, N1}, B) &&
-                  shaped(xin, {k + 1, W, X}, B) &&
-                  shaped(both_im, {k, W, H3}, B) && shaped(hh, {k, 2 * W, H3}, B) &&
+  const bool ok = (X == O || X == 2 * O) && O <= kSplitCols && (!cluster || H % (8 * kCluster) == 0) &&
+                  shaped(u, {k, W, N1}, B) && shaped(xin, {k + 1, W, X}, B) && shaped(both_im, {k, W, H3}, B) &&
+                  shaped(hh, {k, 2 * W, H3}, B) &&
                   shaped(hs, {k + 1, 2 * W, H}, B) && shaped(gi_re, {k, W, H3}, B) && shaped(w_in, {X, d.G()}, B) &&
                   shaped(w_out, {N1, O}, B) && shaped(w_h, {H, H3}, B) && shaped(b_i, {H3}, B) &&
                   shaped(b_hn, {H}, B) && shaped(stats, {6, O}, B) && shaped(dh, {2 * W, H}, B) &&
@@ -772,15 +975,41 @@ ffi::Error ChainBwd(cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im
                   shaped(*dz1, {k, W, N1}, B) && shaped(*ds0, {W, O}, B);
   if (!ok) return ffi::Error::InvalidArgument("cdjax_chain_bwd: a buffer's shape does not match ds, u, hs, w_in");
   if (B == 0 || W == 0) return ffi::Error::Success();
-  const size_t smem = bwd_smem(d);
-  cudaFuncSetAttribute(chain_bwd_kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
-  const dim3 grid(unsigned((W + kRows - 1) / kRows), unsigned(B));
-  chain_bwd_kernel<<<grid, kThreads, smem, stream>>>(
-      d, clip, u.typed_data(), xin.typed_data(), both_im.typed_data(), hh.typed_data(), hs.typed_data(),
-      gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(), w_h.typed_data(), b_i.typed_data(),
-      b_hn.typed_data(), stats.typed_data(), dh.typed_data(), ds.typed_data(), dgi->typed_data(), dhh->typed_data(),
-      dz->typed_data(), dz1->typed_data(), ds0->typed_data());
-  return launched("cdjax_chain_bwd");
+  const size_t smem = cluster ? bwd_cluster_smem(d) : bwd_smem(d);
+  auto kernel = cluster ? chain_bwd_cluster_kernel : chain_bwd_kernel;
+  cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
+  cudaLaunchConfig_t config = {};
+  config.gridDim = dim3(unsigned((W + kRows - 1) / kRows * (cluster ? kCluster : 1)), unsigned(B));
+  config.blockDim = dim3(kThreads);
+  config.dynamicSmemBytes = smem;
+  config.stream = stream;
+  cudaLaunchAttribute attribute[1];
+  attribute[0].id = cudaLaunchAttributeClusterDimension;
+  attribute[0].val.clusterDim.x = cluster ? kCluster : 1;
+  attribute[0].val.clusterDim.y = 1;
+  attribute[0].val.clusterDim.z = 1;
+  config.attrs = attribute;
+  config.numAttrs = cluster ? 1 : 0;
+  cudaLaunchKernelEx(&config, kernel, d, clip, u.typed_data(), xin.typed_data(), both_im.typed_data(),
+                     hh.typed_data(), hs.typed_data(), gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(),
+                     w_h.typed_data(), b_i.typed_data(), b_hn.typed_data(), stats.typed_data(), dh.typed_data(),
+                     ds.typed_data(), dgi->typed_data(), dhh->typed_data(), dz->typed_data(), dz1->typed_data(),
+                     ds0->typed_data());
+  return launched(cluster ? "cdjax_chain_bwd_cluster" : "cdjax_chain_bwd");
+}
+
+ffi::Error ChainBwd(cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im, F32 hh, F32 hs, F32 gi_re,
+                    F32 w_in, F32 w_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32 dh, F32 ds, F32Out dgi,
+                    F32Out dhh, F32Out dz, F32Out dz1, F32Out ds0) {
+  return ChainBwdImpl(false, stream, clip, u, xin, both_im, hh, hs, gi_re, w_in, w_out, w_h, b_i, b_hn, stats, dh, ds,
+                      dgi, dhh, dz, dz1, ds0);
+}
+
+ffi::Error ChainBwdCluster(cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im, F32 hh, F32 hs, F32 gi_re,
+                           F32 w_in, F32 w_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32 dh, F32 ds, F32Out dgi,
+                           F32Out dhh, F32Out dz, F32Out dz1, F32Out ds0) {
+  return ChainBwdImpl(true, stream, clip, u, xin, both_im, hh, hs, gi_re, w_in, w_out, w_h, b_i, b_hn, stats, dh, ds,
+                      dgi, dhh, dz, dz1, ds0);
 }
 
 }  // namespace
@@ -810,9 +1039,20 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainBwd, ChainBwd,
                                   .Arg<F32>().Arg<F32>()
                                   .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
 
-// The shared memory (bytes) of the forward's (which = 0), the backward's (1) and the cluster forward's (2) thread block
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainBwdCluster, ChainBwdCluster,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::PlatformStream<cudaStream_t>>()
+                                  .Attr<float>("clip")
+                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
+                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
+                                  .Arg<F32>().Arg<F32>()
+                                  .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
+
+// The shared memory (bytes) of the forward's (which = 0), the backward's (1), the cluster forward's (2) and the
+// cluster backward's (3) thread block
 // at these widths, for the Python side to decide whether a chain fits before it calls the kernels.
 extern "C" int64_t CdjaxChainSmem(int64_t O, int64_t X, int64_t N1, int64_t H, int64_t which) {
   Dims d{1, 1, 1, O, X, N1, H};
-  return int64_t(which == 0 ? fwd_smem(d) : which == 1 ? bwd_smem(d) : fwd_cluster_smem(d));
+  return int64_t(which == 0 ? fwd_smem(d) : which == 1 ? bwd_smem(d) : which == 2 ? fwd_cluster_smem(d)
+                                                                                : bwd_cluster_smem(d));
 }

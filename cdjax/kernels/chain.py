@@ -32,7 +32,7 @@ import numpy as np
 from cdjax.protocol import ConfigError
 
 SOURCE = pathlib.Path(__file__).with_name("chain.cu")
-# "1": the kernels where they fit; "cluster": the same with the cluster forward; unset or "0": XLA's chain
+# "1": the kernels where they fit; "cluster": the cluster kernels (untested); unset or "0": XLA's chain
 SWITCH_ENV = "CDJAX_CHAIN_KERNEL"
 CACHE_ENV = "CDJAX_KERNEL_CACHE"  # where the compiled library goes (default ~/.cache/cdjax/kernels)
 PROBE_ENV = "CDJAX_CHAIN_PROBE"  # timing probes of benchmarks.chain_kernel only: phases the forward skips (chain.cu)
@@ -95,7 +95,8 @@ def load() -> ctypes.CDLL:
     """Build and load the library and register its two FFI targets with XLA (once per process)."""
     lib = ctypes.cdll.LoadLibrary(str(build()))
     for name, symbol in (("cdjax_chain_fwd", lib.CdjaxChainFwd), ("cdjax_chain_bwd", lib.CdjaxChainBwd),
-                         ("cdjax_chain_fwd_cluster", lib.CdjaxChainFwdCluster)):
+                         ("cdjax_chain_fwd_cluster", lib.CdjaxChainFwdCluster),
+                         ("cdjax_chain_bwd_cluster", lib.CdjaxChainBwdCluster)):
         jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(symbol), platform="CUDA")
     return lib
 
@@ -108,11 +109,11 @@ def _register() -> None:
 
 
 def block_smem(O: int, X: int, N1: int, H: int) -> int:
-    """The larger shared memory (bytes) of the forward's (the cluster forward's when it is switched on) and the
-    backward's thread block, as the library computes it."""
+    """The larger shared memory (bytes) of the forward's and the backward's thread block (the cluster kernels' when
+    they are switched on), as the library computes it."""
     f = load().CdjaxChainSmem
     f.restype, f.argtypes = ctypes.c_int64, [ctypes.c_int64] * 5
-    return max(f(O, X, N1, H, 2 if cluster_forward() else 0), f(O, X, N1, H, 1))
+    return max(f(O, X, N1, H, 2), f(O, X, N1, H, 3)) if cluster_kernels() else max(f(O, X, N1, H, 0), f(O, X, N1, H, 1))
 
 
 def switched_on() -> bool:
@@ -120,9 +121,10 @@ def switched_on() -> bool:
     return _switch() in ("1", "cluster")
 
 
-def cluster_forward() -> bool:
-    """Whether the forward runs as clusters of blocks ($CDJAX_CHAIN_KERNEL=cluster; not yet run on a GPU as of
-    2026-11-27: `python -m benchmarks.chain_kernel --cluster` checks and times it)."""
+def cluster_kernels() -> bool:
+    """Whether the forward and backward run as clusters of 4 blocks per 16 rows, each block holding a quarter of the
+    weights in shared memory ($CDJAX_CHAIN_KERNEL=cluster; not yet run on a GPU as of 2026-11-27:
+    `python -m benchmarks.chain_kernel --cluster` checks and times them)."""
     return _switch() == "cluster"
 
 
@@ -130,7 +132,7 @@ def _switch() -> str:
     text = os.environ.get(SWITCH_ENV, "").strip()
     if text not in ("", "0", "1", "cluster"):
         raise ConfigError(f"${SWITCH_ENV} is {text!r}: set it to 1 (the CUDA chain kernels where they fit), cluster "
-                          "(the same with the cluster forward) or 0 (XLA's chain, the default)")
+                          "(the kernels as clusters of blocks) or 0 (XLA's chain, the default)")
     return text
 
 
@@ -140,7 +142,7 @@ def usable(n_layers: int, O: int, X: int, N1: int, H: int, dtype) -> bool:
     failure says why once, then XLA's chain runs)."""
     if not switched_on() or jax.default_backend() != "gpu" or n_layers != 2 or dtype != jnp.float32 or O > SPLIT_COLS:
         return False
-    if cluster_forward() and H % 32:  # the cluster forward splits the GRU's units over 4 blocks in tiles of 8
+    if cluster_kernels() and H % 32:  # the cluster kernels split the GRU's units over 4 blocks in tiles of 8
         return False
     try:
         return block_smem(O, X, N1, H) <= SMEM_LIMIT
@@ -167,7 +169,7 @@ def forward(clip: float, s0, z1a, gi_re, w_in, w_out, b_out, w_h, b_i, b_hn, sta
     (W, O), (k, _, N1), H, X = s0.shape, z1a.shape, w_h.shape[0], w_in.shape[0]
     out = (_shape(k, W, N1), _shape(k + 1, W, O), _shape(k + 1, W, X), _shape(k, W, 3 * H), _shape(k, 2 * W, 3 * H),
            _shape(k + 1, 2 * W, H))
-    name = "cdjax_chain_fwd_cluster" if cluster_forward() else "cdjax_chain_fwd"
+    name = "cdjax_chain_fwd_cluster" if cluster_kernels() else "cdjax_chain_fwd"
     call = jax.ffi.ffi_call(name, out, vmap_method="broadcast_all")
     return call(s0, z1a, gi_re, w_in, w_out, b_out, w_h, b_i, b_hn, stats, clip=np.float32(clip))
 
@@ -177,5 +179,6 @@ def backward(clip: float, u, xin, both_im, hh, hs, gi_re, w_in, w_out, w_h, b_i,
     _register()
     (W, O), (k, _, N1), H = ds.shape, u.shape, w_h.shape[0]
     out = (_shape(k, 2 * W, 3 * H), _shape(k, 2 * W, 3 * H), _shape(k, W, O), _shape(k, W, N1), _shape(W, O))
-    call = jax.ffi.ffi_call("cdjax_chain_bwd", out, vmap_method="broadcast_all")
+    name = "cdjax_chain_bwd_cluster" if cluster_kernels() else "cdjax_chain_bwd"
+    call = jax.ffi.ffi_call(name, out, vmap_method="broadcast_all")
     return call(u, xin, both_im, hh, hs, gi_re, w_in, w_out, w_h, b_i, b_hn, stats, dh, ds, clip=np.float32(clip))
