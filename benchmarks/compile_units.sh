@@ -57,6 +57,14 @@
 #            times in processes of their own, ABBA: here, then in runs/ab-base/ (the cdjax package and benchmark modules
 #            of the revision, written here by `bash benchmarks/ab_base.sh REV`; carry runs/ab-base beside .whl-site),
 #            each stopped after AB_LIMIT seconds (default 200). For a change no variant can switch off.
+#   chain    the consistency chain's CUDA kernels (cdjax/kernels/chain.cu) against XLA's fused chain, about 3
+#            minutes: `python -m benchmarks.chain_kernel --cluster`, the gradients' accuracy (alone and vmapped) and
+#            the time of the chain's value and gradient for XLA's chain, the plain kernels and the cluster kernels
+#            (CDJAX_CHAIN_KERNEL=cluster: 4 blocks per 16 rows, the weights in shared memory; written 2026-11-27,
+#            not yet run then).
+#   chain-e2e  what the kernels do to whole updates, about 10 minutes: the seeds suite's Mb-Mf and paper-CD at 10
+#            vmapped seeds of 256 envs, then the compare suite's Mb-Mf and paper-CD (ant, 4096 envs), each in a
+#            process with XLA's chain and one with CDJAX_CHAIN_KERNEL=${CHAIN_MODE:-cluster} (1: the plain kernels).
 #   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars
 #            reduced in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of
 #            its own (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the
@@ -472,6 +480,19 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       local which="python -c 'import cdjax, os; print(os.path.dirname(cdjax.__file__))'"
       echo "echo head imports \$($which), base \$(cd runs/ab-base && $which), revision \$(cat runs/ab-base/REVISION);" \
         "$line grep -H -E 's/update' $work/head*.log $work/base*.log" ;;
+    chain)
+      echo "timeout -k 20 400 python -m benchmarks.chain_kernel --cluster --out $work/chain > $work/chain.log 2>&1;" \
+        "grep -v -i warn $work/chain.log | tail -n 30" ;;
+    chain-e2e)
+      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 120"
+      local cases="--suite compare --cases mbmf cd-paper --budget-s 150" mode=${CHAIN_MODE:-cluster}
+      echo "timeout -k 20 170 python -m benchmarks.run $seeds --out $work/seeds-xla > $work/seeds-xla.log 2>&1;" \
+        "CDJAX_CHAIN_KERNEL=$mode timeout -k 20 170 python -m benchmarks.run $seeds --out $work/seeds-kernels" \
+        "> $work/seeds-kernels.log 2>&1;" \
+        "timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-xla > $work/compare-xla.log 2>&1;" \
+        "CDJAX_CHAIN_KERNEL=$mode timeout -k 20 200 python -m benchmarks.run $cases --out $work/compare-kernels" \
+        "> $work/compare-kernels.log 2>&1;" \
+        "grep -H -E 's/update|Error|error' $work/seeds-*.log $work/compare-*.log | grep -v -i warn" ;;
     shares)
       local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 150"
       local cases="--suite compare --cases model-free mbmf cd-paper --budget-s 170" v="benchmarks.variants"
@@ -505,7 +526,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
