@@ -148,6 +148,53 @@ def timing(windows: int, seeds: int, seed_windows: int, calls: int, sizes: dict,
     return out
 
 
+FORWARD_OUTPUTS = ("u", "states", "xin", "both_im", "hh", "hs")
+BACKWARD_OUTPUTS = ("dgi", "dhh", "dz", "dz1", "ds0")
+
+
+def kernel_inputs(windows: int, sizes: dict, shared: bool, seed: int = 0) -> tuple:
+    """The kernels' own inputs (`cdjax.kernels.chain.forward`'s arguments after `clip`) for `_problem`'s chain, as
+    `consistency._chain_fwd` builds them."""
+    (model, gru, s0, actions, x_re), enc_obs, _ = _problem(windows, seed, shared, sizes)
+    (w_1, b_1), (w_out, b_out) = model.layers
+    w_i, b_i, w_h, b_hn = gru
+    O, N1 = s0.shape[-1], w_1.shape[1]
+    if shared:
+        w_in = jnp.concatenate([w_1[:O], w_i], axis=1)
+    else:
+        w_in = jnp.zeros((2 * O, N1 + w_i.shape[1])).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
+    stats = jnp.stack([model.obs.mean, model.obs.std, enc_obs.mean, enc_obs.std, model.delta.mean, model.delta.std])
+    return (s0, actions @ w_1[O:] + b_1, x_re @ w_i + b_i, w_in, w_out, b_out, w_h, b_i, b_hn, stats)
+
+
+def compare_modes(windows: int, sizes: dict, modes=("1", "cluster")) -> dict:
+    """The kernels' forward, then their backward on the first mode's residuals and a fixed cotangent, in each mode:
+    per output, max |x - x_first| / max |x_first| against the first mode (which output a wrong index spoils)."""
+    out = {}
+    for shared in (True, False):
+        args = kernel_inputs(windows, sizes, shared)
+        s0, w_in, w_out, w_h, b_i, b_hn, stats = args[0], args[3], args[4], args[6], args[7], args[8], args[9]
+        key_h, key_s = jax.random.split(jax.random.key(7))
+        W, H = s0.shape[0], w_h.shape[0]
+        dh, ds = jax.random.normal(key_h, (2 * W, H)), jax.random.normal(key_s, s0.shape)
+        results = {}
+        for mode in modes:
+            with _mode(mode):
+                fwd = jax.jit(lambda *a: chain_kernel.forward(nz.CLIP, *a))(*args)
+                if mode == modes[0]:
+                    residuals = fwd
+                u, _, xin, both_im, hh, hs = residuals
+                bwd = jax.jit(lambda *a: chain_kernel.backward(nz.CLIP, *a))(u, xin, both_im, hh, hs, args[2], w_in,
+                                                                             w_out, w_h, b_i, b_hn, stats, dh, ds)
+            results[mode] = dict(zip(FORWARD_OUTPUTS + BACKWARD_OUTPUTS, tuple(fwd) + tuple(bwd)))
+        first = results[modes[0]]
+        for mode in modes[1:]:
+            out[f"{mode} vs {modes[0]}, shared={shared}"] = {
+                name: float(jnp.abs(x - first[name]).max() / jnp.maximum(jnp.abs(first[name]).max(), 1e-30))
+                for name, x in results[mode].items()}
+    return out
+
+
 def trace(directory: str, windows: int, sizes: dict, shared: bool = False) -> None:
     """jax.profiler traces of 5 calls of the single-seed value-and-gradient, XLA's chain (DIR/xla) and the kernels'
     (DIR/kernels), for `benchmarks.profile_summary`."""
@@ -174,6 +221,8 @@ def main(argv=None) -> dict:
     p.add_argument("--skip-accuracy", action="store_true", help="time (and trace) only")
     p.add_argument("--cluster", action="store_true",
                    help="also the cluster kernels (CDJAX_CHAIN_KERNEL=cluster), beside the plain ones")
+    p.add_argument("--compare-modes", action="store_true",
+                   help="only the plain and the cluster kernels' outputs on the same inputs, output by output")
     p.add_argument("--forward-probe", action="store_true",
                    help="time only the kernels' single-seed forward (with $CDJAX_CHAIN_PROBE: phases skipped)")
     a = p.parse_args(argv)
@@ -184,6 +233,12 @@ def main(argv=None) -> dict:
     print(f"built {lib} in {time.perf_counter() - t0:.1f} s")
     sizes = dict(horizon=a.horizon, obs=27, act=8, hidden=500, enc=128)
     result = {"device": str(jax.devices()[0].device_kind), "sizes": sizes}
+    if a.compare_modes:
+        result["modes"] = compare_modes(a.windows, sizes)
+        for row, errors in result["modes"].items():
+            print(f"{row}: " + ", ".join(f"{k} {v:.2e}" for k, v in errors.items()))
+        cc_check.write_results(a.out, result)
+        return result
     if a.forward_probe:
         args, enc_obs, weights = _problem(a.windows, 0, False, sizes)
         f = jax.jit(_objective_fn(enc_obs, weights, (1.0, 0.5), False, True))

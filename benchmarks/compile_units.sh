@@ -57,9 +57,11 @@
 #            times in processes of their own, ABBA: here, then in runs/ab-base/ (the cdjax package and benchmark modules
 #            of the revision, written here by `bash benchmarks/ab_base.sh REV`; carry runs/ab-base beside .whl-site),
 #            each stopped after AB_LIMIT seconds (default 200). For a change no variant can switch off.
-#   chain    the consistency chain's CUDA kernels (cdjax/kernels/chain.cu) against XLA's fused chain, about 3
-#            minutes: `python -m benchmarks.chain_kernel --cluster`, the gradients' accuracy (alone and vmapped) and
-#            the time of the chain's value and gradient for XLA's chain, the plain kernels and the cluster kernels
+#   chain    the consistency chain's CUDA kernels (cdjax/kernels/chain.cu) against XLA's fused chain, about 4
+#            minutes: first `--compare-modes` (the cluster kernels' outputs against the plain kernels', output by
+#            output), then `python -m benchmarks.chain_kernel --cluster`, the gradients' accuracy (alone and
+#            vmapped) and the time of the chain's value and gradient for XLA's chain, the plain kernels and the cluster
+#            kernels
 #            (CDJAX_CHAIN_KERNEL=cluster: 4 blocks per 16 rows, the weights in shared memory; written 2026-11-27,
 #            not yet run then).
 #   chain-e2e  what the kernels do to whole updates, about 10 minutes: the seeds suite's Mb-Mf and paper-CD at 10
@@ -481,7 +483,9 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "echo head imports \$($which), base \$(cd runs/ab-base && $which), revision \$(cat runs/ab-base/REVISION);" \
         "$line grep -H -E 's/update' $work/head*.log $work/base*.log" ;;
     chain)
-      echo "timeout -k 20 400 python -m benchmarks.chain_kernel --cluster --out $work/chain > $work/chain.log 2>&1;" \
+      echo "timeout -k 20 200 python -m benchmarks.chain_kernel --compare-modes --out $work/modes" \
+        "> $work/modes.log 2>&1; grep -v -i warn $work/modes.log | tail -n 6;" \
+        "timeout -k 20 400 python -m benchmarks.chain_kernel --cluster --out $work/chain > $work/chain.log 2>&1;" \
         "grep -v -i warn $work/chain.log | tail -n 30" ;;
     chain-e2e)
       local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 120"
