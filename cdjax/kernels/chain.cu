@@ -57,6 +57,63 @@ __host__ __device__ __forceinline__ int64_t padded(int64_t x) { return x + ((4 -
 
 __device__ __forceinline__ float sigmoidf(float x) { return 1.0f / (1.0f + expf(-x)); }
 
+// One GRU unit as flax.linen.GRUCell computes it, from its gates' input parts (ir, iz, in: x W_i + b_i) and recurrent
+// parts (hr, hz: h W_h; hn: h W_hn + b_hn).
+struct Gru {
+  float r, z, n;
+};
+
+__device__ __forceinline__ Gru gru_gates(float ir, float iz, float in, float hr, float hz, float hn) {
+  Gru u;
+  u.r = sigmoidf(ir + hr);
+  u.z = sigmoidf(iz + hz);
+  u.n = tanhf(in + u.r * hn);
+  return u;
+}
+
+__device__ __forceinline__ float gru_new(const Gru& u, float h) { return (1.0f - u.z) * u.n + u.z * h; }
+
+// Its backward from the new state's cotangent g (hn and h as in the forward): the gates' pre-activation cotangents
+// r, z, n (the recurrent part's n is n * gates.r) and the old state's direct part h.
+struct GruGrad {
+  float r, z, n, h;
+};
+
+// The new state of GRU row q (< 2R) of a block for one unit: a real row's gate input parts from gre (b_i included), an
+// imagined row's from gim plus b_i, the recurrent parts from hh; the unit's gate columns are j, j + cs, j + 2 cs of
+// rows of ld floats; its biases b_i[unit + g H] and b_hn[unit]; h its old state.
+__device__ __forceinline__ float gru_row(int q, const float* gre, const float* gim, const float* hh, int64_t ld,
+                                         int64_t j, int64_t cs, const float* b_i, const float* b_hn, int64_t unit,
+                                         int64_t H, float h) {
+  float gr, gz, gn;
+  if (q < kRows) {
+    const float* g = gre + q * ld;
+    gr = g[j]; gz = g[cs + j]; gn = g[2 * cs + j];
+  } else {
+    const float* g = gim + (q - kRows) * ld;
+    gr = g[j] + b_i[unit]; gz = g[cs + j] + b_i[H + unit]; gn = g[2 * cs + j] + b_i[2 * H + unit];
+  }
+  const float* a = hh + q * ld;
+  return gru_new(gru_gates(gr, gz, gn, a[j], a[cs + j], a[2 * cs + j] + b_hn[unit]), h);
+}
+
+// p[0], p[stride], p[2 stride] = a, b, c: one unit's three gate columns
+__device__ __forceinline__ void put3(float* p, int64_t stride, float a, float b, float c) {
+  p[0] = a;
+  p[stride] = b;
+  p[2 * stride] = c;
+}
+
+__device__ __forceinline__ GruGrad gru_vjp(const Gru& u, float hn, float h, float g) {
+  const float dn = g * (1.0f - u.z), dz = g * (h - u.n);
+  GruGrad d;
+  d.h = g * u.z;
+  d.n = dn * (1.0f - u.n * u.n);
+  d.r = d.n * hn * u.r * (1.0f - u.r);
+  d.z = dz * u.z * (1.0f - u.z);
+  return d;
+}
+
 __device__ __forceinline__ uint32_t tf32(float x) {
   uint32_t r;
   asm("cvt.rna.tf32.f32 %0, %1;" : "=r"(r) : "f"(x));
@@ -301,19 +358,7 @@ __global__ void __launch_bounds__(kThreads) chain_fwd_kernel(
     for (int i = threadIdx.x; i < (kProbe & 16 ? 0 : 2 * R * H); i += kThreads) {
       const int q = i / H, j = i - q * H;
       const bool valid = q % R < nr;
-      float gr, gz, gn;
-      if (q < R) {
-        const float* g = gre + q * H3;
-        gr = g[j]; gz = g[H + j]; gn = g[2 * H + j];
-      } else {
-        const float* g = gim + (q - R) * H3;
-        gr = g[j] + b_i[j]; gz = g[H + j] + b_i[H + j]; gn = g[2 * H + j] + b_i[2 * H + j];
-      }
-      const float* a = hh + q * H3;
-      const float rg = sigmoidf(gr + a[j]);
-      const float zg = sigmoidf(gz + a[H + j]);
-      const float ng = tanhf(gn + rg * (a[2 * H + j] + b_hn[j]));
-      const float hn = (1.0f - zg) * ng + zg * h[q * Hs + j];
+      const float hn = gru_row(q, gre, gim, hh, H3, j, H, b_i, b_hn, j, H, h[q * Hs + j]);
       h[q * Hs + j] = hn;
       if (valid && !(kProbe & 8)) hs[((t + 1) * 2 * W + grow(q)) * H + j] = hn;
     }
@@ -393,24 +438,16 @@ __global__ void __launch_bounds__(kThreads) chain_bwd_kernel(
         const float* v = in[e];
         const float gr = v[0] + bias * b_i[j], gz = v[1] + bias * b_i[H + j], gn = v[2] + bias * b_i[2 * H + j];
         const float ar = v[3], az = v[4], an = v[5] + (valid ? b_hn[j] : 0.0f), hv = v[6];
-        const float rg = sigmoidf(gr + ar), zg = sigmoidf(gz + az), ng = tanhf(gn + rg * an);
-        const float g = dh[i];
-        const float dn = g * (1.0f - zg), dzg = g * (hv - ng);
-        dhd[i] = g * zg;
-        const float dan = dn * (1.0f - ng * ng);
-        const float dar = dan * an * rg * (1.0f - rg);
-        const float daz = dzg * zg * (1.0f - zg);
-        float* o = dhh + q * H3s;
-        o[j] = dar; o[H + j] = daz; o[2 * H + j] = dan * rg;
+        const Gru gates = gru_gates(gr, gz, gn, ar, az, an);
+        const GruGrad dg = gru_vjp(gates, an, hv, dh[i]);
+        dhd[i] = dg.h;
+        put3(dhh + q * H3s + j, H, dg.r, dg.z, dg.n * gates.r);
         if (valid) {
-          const int64_t base = (t * 2 * W + grow(q)) * H3;
-          dgi[base + j] = dar; dgi[base + H + j] = daz; dgi[base + 2 * H + j] = dan;
-          dhh_out[base + j] = dar; dhh_out[base + H + j] = daz; dhh_out[base + 2 * H + j] = dan * rg;
+          const int64_t base = (t * 2 * W + grow(q)) * H3 + j;
+          put3(dgi + base, H, dg.r, dg.z, dg.n);
+          put3(dhh_out + base, H, dg.r, dg.z, dg.n * gates.r);
         }
-        if (q >= R) {
-          float* o2 = dboth + (q - R) * Gs + N1;
-          o2[j] = dar; o2[H + j] = daz; o2[2 * H + j] = dan;
-        }
+        if (q >= R) put3(dboth + (q - R) * Gs + N1 + j, H, dg.r, dg.z, dg.n);
       }
     }
     batched<4>(
@@ -621,19 +658,7 @@ __global__ void __launch_bounds__(kThreads) chain_fwd_cluster_kernel(
       const int q = i / int(hc), j = i - q * int(hc);
       const int64_t unit = c * hc + j;
       const bool valid = q % R < nr;
-      float gr, gz, gn;
-      if (q < R) {
-        const float* g = gre + q * hc3;
-        gr = g[j]; gz = g[hc + j]; gn = g[2 * hc + j];
-      } else {
-        const float* g = gim + (q - R) * hc3;
-        gr = g[j] + b_i[unit]; gz = g[hc + j] + b_i[H + unit]; gn = g[2 * hc + j] + b_i[2 * H + unit];
-      }
-      const float* a = hh + q * hc3;
-      const float rg = sigmoidf(gr + a[j]);
-      const float zg = sigmoidf(gz + a[hc + j]);
-      const float ng = tanhf(gn + rg * (a[2 * hc + j] + b_hn[unit]));
-      const float hn = (1.0f - zg) * ng + zg * hprev[q * Hs + unit];
+      const float hn = gru_row(q, gre, gim, hh, hc3, j, hc, b_i, b_hn, unit, H, hprev[q * Hs + unit]);
       for (int rank = 0; rank < CS; ++rank) cluster.map_shared_rank(hnext, rank)[q * Hs + unit] = hn;
       if (valid) hs[((t + 1) * 2 * W + grow(q)) * H + unit] = hn;
     }
@@ -745,24 +770,16 @@ __global__ void __launch_bounds__(kThreads) chain_bwd_cluster_kernel(
         ar = a[unit]; az = a[H + unit]; an = a[2 * H + unit] + b_hn[unit];
         hv = hs[(t * 2 * W + gq) * H + unit];
       }
-      const float rg = sigmoidf(gr + ar), zg = sigmoidf(gz + az), ng = tanhf(gn + rg * an);
-      const float g = dhl[i];
-      const float dn = g * (1.0f - zg), dzg = g * (hv - ng);
-      dhd[i] = g * zg;
-      const float dan = dn * (1.0f - ng * ng);
-      const float dar = dan * an * rg * (1.0f - rg);
-      const float daz = dzg * zg * (1.0f - zg);
-      float* o = dhh + q * hcs;
-      o[j] = dar; o[hc + j] = daz; o[2 * hc + j] = dan * rg;
+      const Gru gates = gru_gates(gr, gz, gn, ar, az, an);
+      const GruGrad dg = gru_vjp(gates, an, hv, dhl[i]);
+      dhd[i] = dg.h;
+      put3(dhh + q * hcs + j, hc, dg.r, dg.z, dg.n * gates.r);
       if (valid) {
-        const int64_t base = (t * 2 * W + grow(q)) * H3;
-        dgi[base + unit] = dar; dgi[base + H + unit] = daz; dgi[base + 2 * H + unit] = dan;
-        dhh_out[base + unit] = dar; dhh_out[base + H + unit] = daz; dhh_out[base + 2 * H + unit] = dan * rg;
+        const int64_t base = (t * 2 * W + grow(q)) * H3 + unit;
+        put3(dgi + base, H, dg.r, dg.z, dg.n);
+        put3(dhh_out + base, H, dg.r, dg.z, dg.n * gates.r);
       }
-      if (q >= R) {
-        float* e = dbim + (q - R) * hcs;
-        e[j] = dar; e[hc + j] = daz; e[2 * hc + j] = dan;
-      }
+      if (q >= R) put3(dbim + (q - R) * hcs + j, hc, dg.r, dg.z, dg.n);
     }
     batched<2>(
         int(R * X), [&](int i) { return i / X < nr ? xin_in[((t + 1) * W + row0) * X + i] : 0.0f; },
@@ -892,11 +909,30 @@ bool dims_of(const F32& s0, const F32& z1a, const F32& gi_re, const F32& w_in, D
          d->O <= kSplitCols;
 }
 
-ffi::Error ChainFwd(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re, F32 w_in, F32 w_out, F32 b_out,
-                    F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32Out u, F32Out states, F32Out xin, F32Out both_im,
-                    F32Out hh, F32Out hs) {
+// The launch of `rows` row tiles (kCluster blocks each when `cluster`) over B batch entries; `attribute` holds the
+// cluster's shape while the config is in use.
+cudaLaunchConfig_t launch_config(bool cluster, int64_t rows, int64_t B, size_t smem, cudaStream_t stream,
+                                 cudaLaunchAttribute (&attribute)[1]) {
+  cudaLaunchConfig_t config = {};
+  config.gridDim = dim3(unsigned(rows * (cluster ? kCluster : 1)), unsigned(B));
+  config.blockDim = dim3(kThreads);
+  config.dynamicSmemBytes = smem;
+  config.stream = stream;
+  attribute[0].id = cudaLaunchAttributeClusterDimension;
+  attribute[0].val.clusterDim.x = cluster ? kCluster : 1;
+  attribute[0].val.clusterDim.y = 1;
+  attribute[0].val.clusterDim.z = 1;
+  config.attrs = attribute;
+  config.numAttrs = cluster ? 1 : 0;
+  return config;
+}
+
+ffi::Error ChainFwdImpl(bool cluster, cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re, F32 w_in,
+                        F32 w_out, F32 b_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32Out u, F32Out states,
+                        F32Out xin, F32Out both_im, F32Out hh, F32Out hs) {
   Dims d;
-  if (!dims_of(s0, z1a, gi_re, w_in, &d)) return ffi::Error::InvalidArgument("cdjax_chain_fwd: inconsistent shapes");
+  if (!dims_of(s0, z1a, gi_re, w_in, &d) || (cluster && d.H % (8 * kCluster) != 0))
+    return ffi::Error::InvalidArgument("cdjax_chain_fwd: inconsistent shapes (or for clusters H not a multiple of 32)");
   const int64_t B = d.B, W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, H3 = 3 * H;
   const bool ok = shaped(z1a, {k, W, N1}, B) && shaped(gi_re, {k, W, H3}, B) && shaped(w_in, {X, d.G()}, B) &&
                   shaped(w_out, {N1, O}, B) && shaped(b_out, {O}, B) && shaped(w_h, {H, H3}, B) &&
@@ -906,51 +942,30 @@ ffi::Error ChainFwd(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re,
                   shaped(*hs, {k + 1, 2 * W, H}, B);
   if (!ok) return ffi::Error::InvalidArgument("cdjax_chain_fwd: a buffer's shape does not match s0, z1a, gi_re, w_in");
   if (B == 0 || W == 0) return ffi::Error::Success();
-  const size_t smem = fwd_smem(d);
-  cudaFuncSetAttribute(chain_fwd_kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
-  const dim3 grid(unsigned((W + kRows - 1) / kRows), unsigned(B));
-  chain_fwd_kernel<<<grid, kThreads, smem, stream>>>(
-      d, clip, s0.typed_data(), z1a.typed_data(), gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(),
-      b_out.typed_data(), w_h.typed_data(), b_i.typed_data(), b_hn.typed_data(), stats.typed_data(),
-      u->typed_data(), states->typed_data(), xin->typed_data(), both_im->typed_data(), hh->typed_data(),
-      hs->typed_data());
-  return launched("cdjax_chain_fwd");
+  const size_t smem = cluster ? fwd_cluster_smem(d) : fwd_smem(d);
+  auto kernel = cluster ? chain_fwd_cluster_kernel : chain_fwd_kernel;
+  cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
+  cudaLaunchAttribute attribute[1];
+  const cudaLaunchConfig_t config = launch_config(cluster, (W + kRows - 1) / kRows, B, smem, stream, attribute);
+  cudaLaunchKernelEx(&config, kernel, d, clip, s0.typed_data(), z1a.typed_data(), gi_re.typed_data(),
+                     w_in.typed_data(), w_out.typed_data(), b_out.typed_data(), w_h.typed_data(), b_i.typed_data(),
+                     b_hn.typed_data(), stats.typed_data(), u->typed_data(), states->typed_data(), xin->typed_data(),
+                     both_im->typed_data(), hh->typed_data(), hs->typed_data());
+  return launched(cluster ? "cdjax_chain_fwd_cluster" : "cdjax_chain_fwd");
+}
+
+ffi::Error ChainFwd(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re, F32 w_in, F32 w_out, F32 b_out,
+                    F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32Out u, F32Out states, F32Out xin, F32Out both_im,
+                    F32Out hh, F32Out hs) {
+  return ChainFwdImpl(false, stream, clip, s0, z1a, gi_re, w_in, w_out, b_out, w_h, b_i, b_hn, stats, u, states, xin,
+                      both_im, hh, hs);
 }
 
 ffi::Error ChainFwdCluster(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re, F32 w_in, F32 w_out,
                            F32 b_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32Out u, F32Out states, F32Out xin,
                            F32Out both_im, F32Out hh, F32Out hs) {
-  Dims d;
-  if (!dims_of(s0, z1a, gi_re, w_in, &d) || d.H % (8 * kCluster) != 0)
-    return ffi::Error::InvalidArgument("cdjax_chain_fwd_cluster: inconsistent shapes, or H not a multiple of 32");
-  const int64_t B = d.B, W = d.W, k = d.k, O = d.O, X = d.X, N1 = d.N1, H = d.H, H3 = 3 * H;
-  const bool ok = shaped(z1a, {k, W, N1}, B) && shaped(gi_re, {k, W, H3}, B) && shaped(w_in, {X, d.G()}, B) &&
-                  shaped(w_out, {N1, O}, B) && shaped(b_out, {O}, B) && shaped(w_h, {H, H3}, B) &&
-                  shaped(b_i, {H3}, B) && shaped(b_hn, {H}, B) && shaped(stats, {6, O}, B) &&
-                  shaped(*u, {k, W, N1}, B) && shaped(*states, {k + 1, W, O}, B) && shaped(*xin, {k + 1, W, X}, B) &&
-                  shaped(*both_im, {k, W, H3}, B) && shaped(*hh, {k, 2 * W, H3}, B) &&
-                  shaped(*hs, {k + 1, 2 * W, H}, B);
-  if (!ok) return ffi::Error::InvalidArgument("cdjax_chain_fwd_cluster: a buffer's shape does not match s0, z1a");
-  if (B == 0 || W == 0) return ffi::Error::Success();
-  const size_t smem = fwd_cluster_smem(d);
-  cudaFuncSetAttribute(chain_fwd_cluster_kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
-  cudaLaunchConfig_t config = {};
-  config.gridDim = dim3(unsigned((W + kRows - 1) / kRows * kCluster), unsigned(B));
-  config.blockDim = dim3(kThreads);
-  config.dynamicSmemBytes = smem;
-  config.stream = stream;
-  cudaLaunchAttribute attribute[1];
-  attribute[0].id = cudaLaunchAttributeClusterDimension;
-  attribute[0].val.clusterDim.x = kCluster;
-  attribute[0].val.clusterDim.y = 1;
-  attribute[0].val.clusterDim.z = 1;
-  config.attrs = attribute;
-  config.numAttrs = 1;
-  cudaLaunchKernelEx(&config, chain_fwd_cluster_kernel, d, clip, s0.typed_data(), z1a.typed_data(),
-                     gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(), b_out.typed_data(), w_h.typed_data(),
-                     b_i.typed_data(), b_hn.typed_data(), stats.typed_data(), u->typed_data(), states->typed_data(),
-                     xin->typed_data(), both_im->typed_data(), hh->typed_data(), hs->typed_data());
-  return launched("cdjax_chain_fwd_cluster");
+  return ChainFwdImpl(true, stream, clip, s0, z1a, gi_re, w_in, w_out, b_out, w_h, b_i, b_hn, stats, u, states, xin,
+                      both_im, hh, hs);
 }
 
 ffi::Error ChainBwdImpl(bool cluster, cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im, F32 hh, F32 hs,
@@ -978,18 +993,8 @@ ffi::Error ChainBwdImpl(bool cluster, cudaStream_t stream, float clip, F32 u, F3
   const size_t smem = cluster ? bwd_cluster_smem(d) : bwd_smem(d);
   auto kernel = cluster ? chain_bwd_cluster_kernel : chain_bwd_kernel;
   cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
-  cudaLaunchConfig_t config = {};
-  config.gridDim = dim3(unsigned((W + kRows - 1) / kRows * (cluster ? kCluster : 1)), unsigned(B));
-  config.blockDim = dim3(kThreads);
-  config.dynamicSmemBytes = smem;
-  config.stream = stream;
   cudaLaunchAttribute attribute[1];
-  attribute[0].id = cudaLaunchAttributeClusterDimension;
-  attribute[0].val.clusterDim.x = cluster ? kCluster : 1;
-  attribute[0].val.clusterDim.y = 1;
-  attribute[0].val.clusterDim.z = 1;
-  config.attrs = attribute;
-  config.numAttrs = cluster ? 1 : 0;
+  const cudaLaunchConfig_t config = launch_config(cluster, (W + kRows - 1) / kRows, B, smem, stream, attribute);
   cudaLaunchKernelEx(&config, kernel, d, clip, u.typed_data(), xin.typed_data(), both_im.typed_data(),
                      hh.typed_data(), hs.typed_data(), gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(),
                      w_h.typed_data(), b_i.typed_data(), b_hn.typed_data(), stats.typed_data(), dh.typed_data(),
@@ -1014,39 +1019,29 @@ ffi::Error ChainBwdCluster(cudaStream_t stream, float clip, F32 u, F32 xin, F32 
 
 }  // namespace
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainFwd, ChainFwd,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::PlatformStream<cudaStream_t>>()
-                                  .Attr<float>("clip")
-                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
-                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
-                                  .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
+// The forward's attribute, ten operands and six results, and the backward's attribute, 14 operands and five results.
+#define CDJAX_FWD_BINDING                                                                                  \
+  ffi::Ffi::Bind()                                                                                       \
+      .Ctx<ffi::PlatformStream<cudaStream_t>>()                                                          \
+      .Attr<float>("clip")                                                                               \
+      .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>() \
+      .Arg<F32>()                                                                                        \
+      .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>()
+#define CDJAX_BWD_BINDING                                                                                  \
+  ffi::Ffi::Bind()                                                                                       \
+      .Ctx<ffi::PlatformStream<cudaStream_t>>()                                                          \
+      .Attr<float>("clip")                                                                               \
+      .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>() \
+      .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()                                            \
+      .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>()
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainFwdCluster, ChainFwdCluster,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::PlatformStream<cudaStream_t>>()
-                                  .Attr<float>("clip")
-                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
-                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
-                                  .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainFwd, ChainFwd, CDJAX_FWD_BINDING);
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainBwd, ChainBwd,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::PlatformStream<cudaStream_t>>()
-                                  .Attr<float>("clip")
-                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
-                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
-                                  .Arg<F32>().Arg<F32>()
-                                  .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainFwdCluster, ChainFwdCluster, CDJAX_FWD_BINDING);
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainBwdCluster, ChainBwdCluster,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::PlatformStream<cudaStream_t>>()
-                                  .Attr<float>("clip")
-                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
-                                  .Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>().Arg<F32>()
-                                  .Arg<F32>().Arg<F32>()
-                                  .Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>().Ret<F32>());
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainBwd, ChainBwd, CDJAX_BWD_BINDING);
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(CdjaxChainBwdCluster, ChainBwdCluster, CDJAX_BWD_BINDING);
 
 // The shared memory (bytes) of the forward's (which = 0), the backward's (1), the cluster forward's (2) and the
 // cluster backward's (3) thread block
