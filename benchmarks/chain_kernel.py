@@ -158,12 +158,9 @@ def kernel_inputs(windows: int, sizes: dict, shared: bool, seed: int = 0) -> tup
     (model, gru, s0, actions, x_re), enc_obs, _ = _problem(windows, seed, shared, sizes)
     (w_1, b_1), (w_out, b_out) = model.layers
     w_i, b_i, w_h, b_hn = gru
-    O, N1 = s0.shape[-1], w_1.shape[1]
-    if shared:
-        w_in = jnp.concatenate([w_1[:O], w_i], axis=1)
-    else:
-        w_in = jnp.zeros((2 * O, N1 + w_i.shape[1])).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
-    stats = jnp.stack([model.obs.mean, model.obs.std, enc_obs.mean, enc_obs.std, model.delta.mean, model.delta.std])
+    O = s0.shape[-1]
+    w_in = cc._input_weights(w_1, w_i, O, shared)
+    stats = cc._kernel_stats(dict(model_obs=model.obs, enc_obs=enc_obs, delta=model.delta))
     return (s0, actions @ w_1[O:] + b_1, x_re @ w_i + b_i, w_in, w_out, b_out, w_h, b_i, b_hn, stats)
 
 

@@ -318,10 +318,7 @@ def _chain_fwd(shared: bool, kernel: bool, p: dict, c: dict):
     k, (W, O) = actions.shape[0], s0.shape
     (w_1, b_1), (w_out, b_out) = layers[0], layers[-1]
     N1 = w_1.shape[1]
-    if shared:  # the model and the encoder normalise alike: one input, [W1_x | W_i]
-        w_in = jnp.concatenate([w_1[:O], w_i], axis=1)
-    else:  # [model input | encoder input] times the block-diagonal [[W1_x, 0], [0, W_i]]
-        w_in = jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
+    w_in = _input_weights(w_1, w_i, O, shared)
     c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
     gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
     z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
@@ -350,6 +347,15 @@ def _chain_fwd(shared: bool, kernel: bool, p: dict, c: dict):
         hs.append(_gates(c, gi_re[t], both_im[-1], hh[-1], hs[-1]))
     residuals = (p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs)
     return (hs[-1][:W], hs[-1][W:], states[-1]), residuals
+
+
+def _input_weights(w_1: jax.Array, w_i: jax.Array, O: int, shared: bool) -> jax.Array:
+    """[layer 1's state rows | W_i] for one normalised input (shared), else the block-diagonal [[W1_x, 0], [0, W_i]]
+    for [model input | encoder input]: [X, N1 + 3H]."""
+    if shared:
+        return jnp.concatenate([w_1[:O], w_i], axis=1)
+    N1 = w_1.shape[1]
+    return jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
 
 
 def _kernel_stats(c: dict) -> jax.Array:
