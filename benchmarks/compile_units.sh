@@ -62,11 +62,19 @@
 #            output), then `python -m benchmarks.chain_kernel --cluster`, the gradients' accuracy (alone and
 #            vmapped) and the time of the chain's value and gradient for XLA's chain, the plain kernels and the cluster
 #            kernels
-#            (CDJAX_CHAIN_KERNEL=cluster: 4 blocks per 16 rows, the weights in shared memory; written 2026-11-27,
-#            not yet run then).
+#            (CDJAX_CHAIN_KERNEL=cluster: 4 blocks per 16 rows, the weights in shared memory). On 2026-11-27 (H100)
+#            both kinds were correct and slower than XLA's chain at 512 rows (cluster 2.40 ms, plain 2.18, XLA 1.44)
+#            (benchmarks/results/2026-11-27-h100-chain-cluster/).
 #   chain-e2e  what the kernels do to whole updates, about 10 minutes: the seeds suite's Mb-Mf and paper-CD at 10
 #            vmapped seeds of 256 envs, then the compare suite's Mb-Mf and paper-CD (ant, 4096 envs), each in a
 #            process with XLA's chain and one with CDJAX_CHAIN_KERNEL=${CHAIN_MODE:-cluster} (1: the plain kernels).
+#            On 2026-11-27 (H100) the cluster kernels: paper-CD 0.6802 against 0.6727 s/update at 10 seeds, 0.9401
+#            against 0.7364 at 4096 envs (benchmarks/results/2026-11-27-h100-chain-cluster/).
+#   cmdbuf   XLA's while loops and conditionals inside CUDA graphs (--xla_gpu_enable_command_buffer=... plus WHILE and
+#            CONDITIONAL: no host round trip for a loop's predicate, no launch per pass), about 10 minutes: the compare
+#            suite (Brax PPO, model-free, Mb-Mf, paper-CD) and the seeds suite's Mb-Mf and paper-CD at 10 seeds, each
+#            at XLA's defaults and with the flag. On 2026-11-27 (H100) 0.7-3.2% slower in every case, not adopted
+#            (benchmarks/results/2026-11-27-h100-cmdbuf/).
 #   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars
 #            reduced in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of
 #            its own (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the
@@ -470,6 +478,18 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "$(with_flag $flag "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-legacy" \
           "> $work/compare-legacy.log 2>&1")" \
         "grep -H -E 's/update' $work/seeds-*.log $work/compare-*.log" ;;
+    cmdbuf)
+      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 250"
+      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 120"
+      local flag=xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL
+      echo "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-default" \
+        "> $work/compare-default.log 2>&1;" \
+        "$(with_flag $flag "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-while" \
+          "> $work/compare-while.log 2>&1")" \
+        "timeout -k 20 170 python -m benchmarks.run $seeds --out $work/seeds-default > $work/seeds-default.log 2>&1;" \
+        "$(with_flag $flag "timeout -k 20 170 python -m benchmarks.run $seeds --out $work/seeds-while" \
+          "> $work/seeds-while.log 2>&1")" \
+        "grep -H -E 's/update|rror' $work/seeds-*.log $work/compare-*.log | grep -v -i warn" ;;
     ab)
       local run=${AB_RUN:-"benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 \
 --budget-s 120"} line="" v dir i=0
@@ -530,7 +550,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

@@ -123,8 +123,8 @@ def switched_on() -> bool:
 
 def cluster_kernels() -> bool:
     """Whether the forward and backward run as clusters of 4 blocks per 16 rows, each block holding a quarter of the
-    weights in shared memory ($CDJAX_CHAIN_KERNEL=cluster; not yet run on a GPU as of 2026-11-27:
-    `python -m benchmarks.chain_kernel --cluster` checks and times them)."""
+    weights in shared memory ($CDJAX_CHAIN_KERNEL=cluster; correct on an H100 on 2026-11-27 but slower than XLA's chain
+    at one seed: benchmarks/results/2026-11-27-h100-chain-cluster/)."""
     return _switch() == "cluster"
 
 
