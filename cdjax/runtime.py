@@ -41,7 +41,19 @@ GPU_AUTOTUNE_FLAG = "--xla_gpu_autotune_level=1"
 # An experimental XLA option: jax is pinned (pyproject.toml), and XLA aborts on an option it does not know, so a
 # jax upgrade must keep it or drop it here.
 GPU_GEMM_TILINGS_FLAG = "--xla_gpu_experimental_cost_model_gemm_tiling_options=top=2,top_from_default=1"
-XLA_DEFAULTS = (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG)  # what `import cdjax` adds to XLA_FLAGS
+# XLA:GPU's CUDA graphs (command buffers) scheduled by data flow: each kernel of a graph waits only on the kernels whose
+# buffers it reads or overwrites, so independent ones run side by side (XLA's default, LHS, runs them in program
+# order). cdjax's updates are chains of small kernels that leave most of the GPU idle, and many of them are
+# independent: the policy's and the value network's passes, a layer's bias sum beside its weight product, the
+# consistency term's model rollout beside its GRU passes. One H100, one lease (2026-11-27,
+# benchmarks/results/2026-11-27-h100-concurrent/): per update model-free 0.359 against 0.408 s, Mb-Mf 0.410 against
+# 0.453, the paper's CD 0.618 against 0.735, at 10 vmapped seeds Mb-Mf 0.342 and the paper's CD 0.529 (0.403 and 0.675
+# at the default); Brax PPO, given the flag, 0.449 against 0.512. XLA's compiled footprint about doubles (buffers no
+# longer reused between kernels that may run at once): 1.44 against 0.72 GiB for the paper's CD at 4096 envs. A user
+# who names the option in XLA_FLAGS (--xla_gpu_command_buffer_scheduling_mode=LHS: XLA's own) keeps theirs.
+GPU_SCHEDULING_FLAG = "--xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
+XLA_DEFAULTS = (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG,
+                GPU_SCHEDULING_FLAG)  # what `import cdjax` adds to XLA_FLAGS
 CACHE_ENV = "CDJAX_JAX_CACHE"  # environment variable naming the persistent compilation cache
 MODE_ENV = "CDJAX_COMPILE_MODE"  # environment variable naming the compile mode (configure's compile_mode wins)
 
@@ -60,7 +72,8 @@ _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "d
 
 
 def apply_xla_defaults() -> None:
-    """Add cdjax's XLA flags (XLA_DEFAULTS: CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG) to
+    """Add cdjax's XLA flags (XLA_DEFAULTS: CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG,
+    GPU_SCHEDULING_FLAG) to
     XLA_FLAGS, each unless the user set that option already. XLA reads XLA_FLAGS when a backend starts: `import
     cdjax` calls this, so it takes effect unless a JAX backend was started before cdjax was imported."""
     flags = os.environ.get("XLA_FLAGS", "")

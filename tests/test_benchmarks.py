@@ -535,7 +535,8 @@ def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch)
     from cdjax import runtime
 
     monkeypatch.delenv("XLA_FLAGS", raising=False)
-    ours = [runtime.CPU_SCHEDULER_FLAG, runtime.GPU_AUTOTUNE_FLAG, runtime.GPU_GEMM_TILINGS_FLAG]
+    ours = [runtime.CPU_SCHEDULER_FLAG, runtime.GPU_AUTOTUNE_FLAG, runtime.GPU_GEMM_TILINGS_FLAG,
+            runtime.GPU_SCHEDULING_FLAG]
     runtime.apply_xla_defaults()
     assert os.environ["XLA_FLAGS"].split() == ours
     runtime.apply_xla_defaults()  # a second import (a reload) adds nothing twice
@@ -544,14 +545,19 @@ def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch)
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2 --xla_gpu_autotune_level=4")
     runtime.apply_xla_defaults()
     assert os.environ["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2",
-                                               "--xla_gpu_autotune_level=4", ours[0], ours[2]]
+                                               "--xla_gpu_autotune_level=4", ours[0], *ours[2:]]
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_concurrency_optimized_scheduler=true")
     runtime.apply_xla_defaults()
     assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_enable_concurrency_optimized_scheduler=true", *ours[1:]]
     # the tilings option named empty (XLA's own search) is the user's: it stays, and cdjax adds no value of its own
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_experimental_cost_model_gemm_tiling_options=")
     runtime.apply_xla_defaults()
-    assert os.environ["XLA_FLAGS"].split() == ["--xla_gpu_experimental_cost_model_gemm_tiling_options=", *ours[:2]]
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_gpu_experimental_cost_model_gemm_tiling_options=", *ours[:2],
+                                               ours[3]]
+    # XLA's own graph scheduling, named by the user, stays theirs
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_command_buffer_scheduling_mode=LHS")
+    runtime.apply_xla_defaults()
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_gpu_command_buffer_scheduling_mode=LHS", *ours[:3]]
     # a fresh process: importing cdjax sets them before JAX starts, and XLA:CPU accepts the GPU flags (it aborts on
     # a flag it does not know)
     flags = subprocess.run(
@@ -559,7 +565,7 @@ def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch)
                                "print(os.environ['XLA_FLAGS'])"],
         env={k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}, capture_output=True, text=True,
         check=True).stdout
-    assert runtime.GPU_AUTOTUNE_FLAG in flags and runtime.GPU_GEMM_TILINGS_FLAG in flags
+    assert all(flag in flags for flag in ours[1:])
 
 
 def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypatch):
