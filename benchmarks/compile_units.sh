@@ -95,6 +95,9 @@
 #            compare suite at XLA's own scheduling (LHS; name it in XLA_FLAGS since cdjax's default is CONCURRENT). On
 #            2026-11-27 (H100) every case 9.5-22% faster, Brax PPO's too; cdjax's default since
 #            (benchmarks/results/2026-11-27-h100-concurrent/).
+#   identity whether cdjax's graph scheduling (CONCURRENT) computes what XLA's own (LHS) does, bit for bit, about 4
+#            minutes: `python -m benchmarks.same_results` on the compare suite's model-free, Mb-Mf and paper-CD cases,
+#            3 updates each from key 0 in a process per mode, every array of the state and every metric compared.
 #   kernels  A/Bs for the chain's per-step kernels (about 4-6 minutes): the names of XLA GPU flags in this image's
 #            jaxlib (xla-gpu-flags.txt: candidates; jax 0.11.2 refused --xla_gpu_enable_split_k_autotuning, 2026-11-25,
 #            and --xla_gpu_experimental_enable_split_k_rewrite, listed there, 2026-11-26); the compare
@@ -509,6 +512,10 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "$(with_flag xla_gpu_command_buffer_scheduling_mode=LHS "timeout -k 20 280 python -m benchmarks.run $cases" \
           "--out $work/compare-default > $work/compare-default.log 2>&1")" \
         "grep -H -E 's/update|rror' $work/*.log | grep -v -i warn" ;;
+    identity)
+      local modes="xla_gpu_command_buffer_scheduling_mode=LHS xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
+      echo "timeout -k 20 500 python -m benchmarks.same_results --flags $modes --cases model-free mbmf cd-paper" \
+        "--updates 3 --out $work/same > $work/same.log 2>&1; grep -v -i warn $work/same.log | tail -n 12" ;;
     ab)
       local run=${AB_RUN:-"benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 \
 --budget-s 120"} line="" v dir i=0
@@ -569,7 +576,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, identity, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

@@ -660,3 +660,23 @@ def test_xla_timers_sum_each_timer_over_modules_of_one_kind(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         xla_timers.main([str(tmp_path / "plain.log")])
     assert e.value.code == 2
+
+
+def test_same_results_compares_bit_for_bit_and_puts_the_setting_first():
+    import numpy as np
+
+    from benchmarks import same_results
+
+    a = {"x/w": np.array([1.0, np.nan, 3.0], np.float32), "x/k": np.array([7, 8], np.uint32)}
+    same = same_results.compare(a, {name: value.copy() for name, value in a.items()})
+    assert same["identical"] == 2 and same["n_differing"] == 0 and same["max_abs_diff"] == 0.0  # NaNs in place match
+    nudged = dict(a, **{"x/w": np.nextafter(a["x/w"], np.float32(np.inf))})  # one ulp up, NaN stays NaN
+    result = same_results.compare(a, nudged)
+    assert result["identical"] == 1 and result["differing"] == ["x/w"]
+    assert 0 < result["max_abs_diff"] <= 5e-7 and 0 < result["max_rel_diff"] < 2e-7
+    result = same_results.compare(a, {"x/w": a["x/w"][:2], "x/extra": a["x/k"]})
+    assert result["max_abs_diff"] == float("inf") and result["only_one_side"] == ["x/extra", "x/k"]
+    env = same_results.child_env("xla_gpu_command_buffer_scheduling_mode=LHS",
+                                 {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "HOME": "/h"})
+    assert env["XLA_FLAGS"].split() == ["--xla_gpu_command_buffer_scheduling_mode=LHS",
+                                        "--xla_force_host_platform_device_count=2"] and env["HOME"] == "/h"

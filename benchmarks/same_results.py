@@ -1,0 +1,149 @@
+"""Whether an XLA setting changes what cdjax computes: the same updates in one process per setting, every array of the
+trainer's state and every metric compared bit for bit.
+
+    python -m benchmarks.same_results --flags xla_gpu_command_buffer_scheduling_mode=LHS \\
+        xla_gpu_command_buffer_scheduling_mode=CONCURRENT --cases model-free cd-paper --updates 3 --out DIR
+
+Each setting runs in a child process whose XLA_FLAGS start with `--SETTING` (an option named there is the user's,
+so cdjax's own default for it steps aside: cdjax.runtime.apply_xla_defaults). The child builds each case of the
+compare suite at the matched Spec (`--tiny`: the CPU smoke sizes), initialises it from key 0, runs `--updates`
+jitted updates and saves the state's arrays (PRNG keys as their data) and the last update's metrics. The parent
+compares each setting's arrays with the first setting's: per case, how many arrays are bit-identical, and the largest
+absolute and relative difference among those that are not. A scheduling option that only reorders independent
+kernels must leave every array identical; a difference means it changed an order of arithmetic or broke a
+dependency. Writes results.json and results.md under --out; exit status 1 when any array differs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+
+from benchmarks.common import FULL, TINY
+from benchmarks.throughput import cdjax_cases
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
+
+
+def child_env(setting: str, environ: dict | None = None) -> dict:
+    """The environment of a child for `setting` (NAME=VALUE): XLA_FLAGS led by --NAME=VALUE, the rest kept."""
+    env = dict(os.environ if environ is None else environ)
+    env["XLA_FLAGS"] = f"--{setting} {env.get('XLA_FLAGS', '')}".strip()
+    return env
+
+
+def compare(reference: dict[str, np.ndarray], other: dict[str, np.ndarray]) -> dict:
+    """Arrays of the same names, compared: counts of identical ones (NaNs in the same places count as equal) and the
+    largest absolute and relative differences of the others; names present on one side only are listed."""
+    only = sorted(set(reference) ^ set(other))
+    names = sorted(set(reference) & set(other))
+    identical, worst_abs, worst_rel, differing = 0, 0.0, 0.0, []
+    for name in names:
+        a, b = np.asarray(reference[name]), np.asarray(other[name])
+        if a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"):
+            identical += 1
+            continue
+        differing.append(name)
+        if a.shape != b.shape:
+            worst_abs = worst_rel = float("inf")
+            continue
+        a64, b64 = a.astype(np.float64), b.astype(np.float64)
+        diff = np.abs(a64 - b64)
+        diff = np.where(np.isnan(a64) & np.isnan(b64), 0.0, diff)
+        worst_abs = max(worst_abs, float(np.nanmax(diff)) if diff.size else 0.0)
+        scale = np.maximum(np.abs(a64), np.abs(b64))
+        rel = np.where(scale > 0, diff / np.where(scale > 0, scale, 1.0), 0.0)
+        worst_rel = max(worst_rel, float(np.nanmax(rel)) if rel.size else 0.0)
+    return {"arrays": len(names), "identical": identical, "differing": differing[:20], "n_differing": len(differing),
+            "max_abs_diff": worst_abs, "max_rel_diff": worst_rel, "only_one_side": only}
+
+
+def _arrays(tree, prefix: str) -> dict[str, np.ndarray]:
+    import jax
+
+    out = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+        if isinstance(leaf, jax.Array) and jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+            leaf = jax.random.key_data(leaf)
+        out[prefix + jax.tree_util.keystr(path)] = np.asarray(leaf)
+    return out
+
+
+def run_child(cases: list[str], updates: int, tiny: bool, path: str) -> None:
+    """Run each case's updates in this process and save its arrays to `path` (.npz)."""
+    from cdjax import make_agent  # first: cdjax adds its XLA defaults before JAX starts a backend
+
+    import jax
+
+    spec = TINY if tiny else FULL
+    saved = {}
+    for case in cases:
+        _, overrides, hp_overrides = cdjax_cases(spec)[case]
+        trainer = make_agent(spec.config(**overrides))
+        hp = spec.hparams(**hp_overrides).as_float32()
+        state = jax.jit(trainer.init)(jax.random.key(0), hp)
+        update = jax.jit(trainer.update)
+        metrics = {}
+        for _ in range(updates):
+            state, metrics = update(state, hp)
+        jax.block_until_ready(state)
+        saved.update(_arrays(state, f"{case}/state"))
+        saved.update(_arrays(dict(metrics), f"{case}/metrics"))
+    np.savez(path, **saved)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.same_results", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--flags", nargs="+", required=True, metavar="NAME=VALUE",
+                   help="XLA settings, one child process each; the first is the reference")
+    p.add_argument("--cases", nargs="+", default=["model-free", "cd-paper"], choices=list(cdjax_cases(FULL)))
+    p.add_argument("--updates", type=int, default=3, help="updates per case (default 3)")
+    p.add_argument("--tiny", action="store_true", help="the CPU smoke sizes (point env, 16 envs)")
+    p.add_argument("--out", required=True, help="directory for the arrays and results.json, results.md")
+    p.add_argument("--child", help=argparse.SUPPRESS)  # internal: save this process's arrays to CHILD (.npz)
+    args = p.parse_args(argv)
+    if args.child:
+        run_child(args.cases, args.updates, args.tiny, args.child)
+        return 0
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    for i, setting in enumerate(args.flags):
+        path = str(out / f"arrays-{i}.npz")
+        cmd = [sys.executable, "-m", "benchmarks.same_results", "--flags", setting, "--cases", *args.cases,
+               "--updates", str(args.updates), "--out", str(out), "--child", path] + (["--tiny"] if args.tiny else [])
+        subprocess.run(cmd, env=child_env(setting), cwd=REPO, check=True)
+        files.append(path)
+    reference = dict(np.load(files[0]))
+    rows = []
+    for setting, path in zip(args.flags[1:], files[1:]):
+        other = dict(np.load(path))
+        for case in args.cases:
+            pick = lambda arrays: {k: v for k, v in arrays.items() if k.startswith(case + "/")}  # noqa: E731
+            rows.append({"case": case, "reference": args.flags[0], "setting": setting,
+                         **compare(pick(reference), pick(other))})
+    lines = [f"`python -m benchmarks.same_results {' '.join(argv if argv is not None else sys.argv[1:])}`", "",
+             "| case | reference | setting | arrays | identical | max abs diff | max rel diff |",
+             "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
+    lines += [f"| {r['case']} | {r['reference']} | {r['setting']} | {r['arrays']} | {r['identical']} | "
+              f"{r['max_abs_diff']:.3g} | {r['max_rel_diff']:.3g} |" for r in rows]
+    (out / "results.json").write_text(json.dumps(rows, indent=1))
+    (out / "results.md").write_text("\n".join(lines) + "\n")
+    for path in files:
+        os.remove(path)
+    print("\n".join(lines))
+    same = all(r["n_differing"] == 0 and not r["only_one_side"] for r in rows)
+    print("every array identical" if same else "some arrays differ: " +
+          "; ".join(f"{r['case']}: {', '.join(r['differing'][:5])}" for r in rows if r["n_differing"]))
+    return 0 if same else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
