@@ -46,8 +46,9 @@
 #            compare case, with -nometrics or -biassum for the variant; HLO_TOP (default 8) how many of each profile's
 #            costliest fusion kernels `hlo` and `hlo-seeds` trace to their source.
 #   cublaslt XLA's GEMMs through the legacy cuBLAS API instead of cuBLASLt (--xla_gpu_enable_cublaslt=false), in
-#            processes of their own (about 14 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256
-#            envs, then the compare suite (Brax PPO, model-free, Mb-Mf, paper-CD), each with and without the flag. At 10
+#            processes of their own (about 12 minutes; flag_ab): the compare suite (Brax PPO, model-free, Mb-Mf,
+#            paper-CD), then the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, each with and without
+#            the flag. At 10
 #            seeds XLA transposes each batched weight-gradient product's [10, 672, 256] input to [10, 256, 672]
 #            before its cuBLASLt call, 14 transposes per SGD step in Mb-Mf
 #            (benchmarks/results/2026-11-27-h100-hlo-seeds/); the single-seed program calls cuBLAS with the
@@ -71,9 +72,8 @@
 #            On 2026-11-27 (H100) the cluster kernels: paper-CD 0.6802 against 0.6727 s/update at 10 seeds, 0.9401
 #            against 0.7364 at 4096 envs (benchmarks/results/2026-11-27-h100-chain-cluster/).
 #   cmdbuf   XLA's while loops and conditionals inside CUDA graphs (--xla_gpu_enable_command_buffer=... plus WHILE and
-#            CONDITIONAL: no host round trip for a loop's predicate, no launch per pass), about 10 minutes: the compare
-#            suite (Brax PPO, model-free, Mb-Mf, paper-CD) and the seeds suite's Mb-Mf and paper-CD at 10 seeds, each
-#            at XLA's defaults and with the flag. On 2026-11-27 (H100) 0.7-3.2% slower in every case, not adopted
+#            CONDITIONAL: no host round trip for a loop's predicate, no launch per pass), as `cublaslt` does its flag
+#            (flag_ab). On 2026-11-27 (H100) 0.7-3.2% slower in every case, not adopted
 #            (benchmarks/results/2026-11-27-h100-cmdbuf/).
 #   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars
 #            reduced in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of
@@ -90,10 +90,9 @@
 #            80.7 and 75.4 s at the defaults, 73.0 and 75.2 s with the file: within the spread, not adopted
 #            (benchmarks/results/2026-11-27-h100-kcache/).
 #   concurrent  XLA's CUDA graphs scheduled by data flow (--xla_gpu_command_buffer_scheduling_mode=CONCURRENT: a
-#            graph's kernels wait only on those whose buffers they use), about 7 minutes: the compare suite (Brax PPO,
-#            model-free, Mb-Mf, paper-CD) and the seeds suite's Mb-Mf and paper-CD at 10 seeds with the flag, then the
-#            compare suite at XLA's own scheduling (LHS; name it in XLA_FLAGS since cdjax's default is CONCURRENT). On
-#            2026-11-27 (H100) every case 9.5-22% faster, Brax PPO's too; cdjax's default since
+#            graph's kernels wait only on those whose buffers they use; cdjax's default since 2026-11-27) against
+#            XLA's own program order (LHS), as `cmdbuf` does its flag (about 10 minutes). On 2026-11-27 (H100, run
+#            then as CONCURRENT against the default) every case 9.5-22% faster with CONCURRENT, Brax PPO's too
 #            (benchmarks/results/2026-11-27-h100-concurrent/).
 #   identity whether cdjax's graph scheduling (CONCURRENT) computes what XLA's own (LHS) does, bit for bit, about 4
 #            minutes: `python -m benchmarks.same_results` on the compare suite's model-free, Mb-Mf and paper-CD cases,
@@ -243,6 +242,23 @@ with_flag() {  # FLAG (NAME=VALUE) COMMANDS -> a bash line: COMMANDS with XLA_FL
   local flag=$1; shift
   echo "if python -m benchmarks.xla_flags --accepts $flag > /dev/null; then (export XLA_FLAGS=--$flag; $*);" \
     "else echo 'this XLA refuses ${flag%%=*}: skipped'; fi;"
+}
+
+flag_ab() {  # FLAG NAME -> a bash line: the compare suite (Brax PPO, model-free, Mb-Mf, paper-CD; ant, 4096 envs) and
+  # the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, each in a process at cdjax's defaults
+  # ($work/compare-default, seeds-default) and in one with XLA_FLAGS=--FLAG (compare-NAME, seeds-NAME), about 10 minutes
+  local flag=$1 name=$2
+  local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 250"
+  local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 150"
+  echo "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-default > $work/compare-default.log 2>&1;" \
+    "grep -H 's/update' $work/compare-default.log;" \
+    "$(with_flag $flag "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-$name" \
+      "> $work/compare-$name.log 2>&1")" \
+    "grep -H 's/update' $work/compare-$name.log;" \
+    "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-default > $work/seeds-default.log 2>&1;" \
+    "$(with_flag $flag "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-$name" \
+      "> $work/seeds-$name.log 2>&1")" \
+    "grep -H -E 's/update|rror' $work/seeds-*.log $work/compare-*.log | grep -v -i warn"
 }
 
 dumped_case() {  # CASE MODULE PART "MODULE_AND_ARGS" GREP -> a bash line: `python -m MODULE_AND_ARGS` with XLA's
@@ -476,44 +492,9 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "timeout -k 20 280 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
         "--seed-envs 256 --budget-s 250 --trace $work/trace --out $work/seeds > $work/seeds.log 2>&1;" \
         "grep -E 'env steps/s|s/update' $work/seeds.log; grep -A 30 'Op-level' $work/seeds/results.md | head -80" ;;
-    cublaslt)
-      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 150"
-      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 250"
-      local flag=xla_gpu_enable_cublaslt=false
-      echo "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-default" \
-        "> $work/seeds-default.log 2>&1;" \
-        "$(with_flag $flag "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-legacy" \
-          "> $work/seeds-legacy.log 2>&1")" \
-        "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-default" \
-        "> $work/compare-default.log 2>&1;" \
-        "$(with_flag $flag "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-legacy" \
-          "> $work/compare-legacy.log 2>&1")" \
-        "grep -H -E 's/update' $work/seeds-*.log $work/compare-*.log" ;;
-    cmdbuf)
-      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 250"
-      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 120"
-      local flag=xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL
-      echo "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-default" \
-        "> $work/compare-default.log 2>&1;" \
-        "$(with_flag $flag "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-while" \
-          "> $work/compare-while.log 2>&1")" \
-        "timeout -k 20 170 python -m benchmarks.run $seeds --out $work/seeds-default > $work/seeds-default.log 2>&1;" \
-        "$(with_flag $flag "timeout -k 20 170 python -m benchmarks.run $seeds --out $work/seeds-while" \
-          "> $work/seeds-while.log 2>&1")" \
-        "grep -H -E 's/update|rror' $work/seeds-*.log $work/compare-*.log | grep -v -i warn" ;;
-    concurrent)
-      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 250"
-      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 120"
-      local flag=xla_gpu_command_buffer_scheduling_mode=CONCURRENT
-      echo "$(with_flag $flag "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-concurrent" \
-          "> $work/compare-concurrent.log 2>&1")" \
-        "grep -H 's/update' $work/compare-concurrent.log;" \
-        "$(with_flag $flag "timeout -k 20 170 python -m benchmarks.run $seeds --out $work/seeds-concurrent" \
-          "> $work/seeds-concurrent.log 2>&1")" \
-        "grep -H 's/update' $work/seeds-concurrent.log;" \
-        "$(with_flag xla_gpu_command_buffer_scheduling_mode=LHS "timeout -k 20 280 python -m benchmarks.run $cases" \
-          "--out $work/compare-default > $work/compare-default.log 2>&1")" \
-        "grep -H -E 's/update|rror' $work/*.log | grep -v -i warn" ;;
+    cublaslt) flag_ab xla_gpu_enable_cublaslt=false legacy ;;
+    cmdbuf) flag_ab xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL while ;;
+    concurrent) flag_ab xla_gpu_command_buffer_scheduling_mode=LHS lhs ;;
     identity)
       local modes="xla_gpu_command_buffer_scheduling_mode=LHS xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
       local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
