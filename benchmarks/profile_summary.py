@@ -12,8 +12,11 @@ Which events count as device ops:
   lines (not the derived "XLA Ops" / "XLA Modules" lines, which span the same time again);
 - otherwise (CPU): the host events that carry an `hlo_op` (XLA:CPU runs one thunk per HLO op).
 
-Times are self times (a CPU `while` op encloses its body's ops; only its own share counts), so the
-percentages of all ops add up to 100 % of the traced device time (the sum of the self times).
+Times are self times on a CPU (a `while` op encloses its body's ops; only its own share counts) and the kernels'
+durations on a GPU (kernels do not nest; with XLA's CUDA graphs scheduled by data flow, cdjax's default, kernels of
+one stream line run side by side and overlap), so the percentages of all ops add up to 100 % of the traced device
+time (the sum of those times). Beside it the timeline: the span from the first op's start to the last one's end, the
+time some op was running (busy), and the mean number running at once while busy (concurrency: summed time / busy).
 
 A GPU kernel's launch shape (blocks x threads per block, and the occupancy the profiler computed) is read from the
 `grid:X,Y,Z block:X,Y,Z ... occ_pct:P` text the profiler attaches to each kernel event (its kernel details): a
@@ -272,7 +275,8 @@ def summarize(path: str | pathlib.Path, top: int = 25) -> dict:
     source, events = device_events(load_events(trace_file))
     hlo = load_hlo(trace_root(trace_file))
     ops: dict[tuple, dict] = {}
-    for e, t in zip(events, self_times(events)):
+    times = [float(e["dur"]) for e in events] if source == "GPU kernels" else self_times(events)
+    for e, t in zip(events, times):
         args = e.get("args", {})
         module, hlo_op, kernel = args.get("hlo_module", ""), args.get("hlo_op", ""), e["name"]
         info = hlo.get(module, {}).get(hlo_op) if hlo_op else None
@@ -296,13 +300,26 @@ def summarize(path: str | pathlib.Path, top: int = 25) -> dict:
         groups[o["group"]]["us"] += o["us"]
     return {
         "trace": str(trace_file), "source": source, "hlo_grouping": bool(hlo), "events": len(events),
-        "distinct_ops": len(rows), "device_ms": total_us / 1e3,
+        "distinct_ops": len(rows), "device_ms": total_us / 1e3, **timeline(events, total_us),
         "ops": [{"name": o["name"], "group": o["group"], "source": o["source"], "launch": o["launch"],
                  "kernel": o["kernel"], "count": o["count"], "total_ms": o["us"] / 1e3, "pct": pct(o["us"])}
                 for o in rows[:top]],
         "groups": [{"group": g, "count": groups[g]["count"], "total_ms": groups[g]["us"] / 1e3,
                     "pct": pct(groups[g]["us"])} for g in sorted(groups, key=lambda g: -groups[g]["us"])],
     }
+
+
+def timeline(events: list[dict], summed_us: float) -> dict:
+    """span_ms (first start to last end), busy_ms (the union of the events' intervals: some op running) and
+    concurrency (summed_us / busy: how many ran at once on average while any ran)."""
+    intervals = sorted((float(e["ts"]), float(e["ts"]) + float(e["dur"])) for e in events)
+    busy, end = 0.0, float("-inf")
+    for start, stop in intervals:
+        if stop > end:
+            busy += stop - max(start, end)
+            end = stop
+    span = intervals[-1][1] - intervals[0][0] if intervals else 0.0
+    return {"span_ms": span / 1e3, "busy_ms": busy / 1e3, "concurrency": summed_us / busy if busy > 0 else 0.0}
 
 
 def _cell(text: str) -> str:
@@ -314,7 +331,9 @@ def markdown(summary: dict) -> str:
     shown = sum(o["pct"] for o in summary["ops"])
     lines = [f"{summary['source']}: {summary['device_ms']:.3f} ms of device time in {summary['events']:,} events, "
              f"{summary['distinct_ops']} distinct ops; the top {len(summary['ops'])} hold {shown:.1f} % "
-             f"(grouped by {'HLO' if summary['hlo_grouping'] else 'name'}).", "",
+             f"(grouped by {'HLO' if summary['hlo_grouping'] else 'name'}). Timeline: {summary['span_ms']:.3f} ms "
+             f"from the first op to the last, ops running {summary['busy_ms']:.3f} ms of it, "
+             f"{summary['concurrency']:.2f} at once on average while any ran.", "",
              "| # | op | group | JAX op | launch (blocks x threads) | count | total ms | % |",
              "| ---: | --- | --- | --- | --- | ---: | ---: | ---: |"]
     for i, o in enumerate(summary["ops"], 1):

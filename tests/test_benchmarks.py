@@ -248,6 +248,16 @@ def test_profile_summary_of_a_gpu_trace_reads_stream_kernels(tmp_path):
     # the launch shape of a kernel, from the profiler's kernel details: 3 x 2 blocks of 128 x 2 threads
     assert [o["launch"] for o in summary["ops"]] == ["", "6 x 256 (50%)", ""]
     assert "| 6 x 256 (50%) |" in profile_summary.markdown(summary)
+    assert (summary["span_ms"], summary["busy_ms"]) == pytest.approx((0.11, 0.1)) and summary["concurrency"] == 1.0
+    # kernels of one CUDA graph that run side by side overlap on their stream's line: each keeps its whole duration
+    events[5] = dict(events[5], ts=40.0)  # the fusion from 40 to 70 us, beside the gemm's last 20
+    with profile_summary.gzip.open(run / "perfetto_trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    summary = profile_summary.summarize(tmp_path)
+    assert summary["device_ms"] == pytest.approx(0.1) and round(summary["ops"][1]["pct"]) == 30
+    assert (summary["span_ms"], summary["busy_ms"]) == pytest.approx((0.11, 0.08))
+    assert summary["concurrency"] == pytest.approx(100 / 80)
+    assert "0.080 ms of it, 1.25 at once" in profile_summary.markdown(summary)
 
 
 def test_ratios_follow_from_raw_numbers(tiny):
