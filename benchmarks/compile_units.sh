@@ -96,7 +96,8 @@
 #            (benchmarks/results/2026-11-27-h100-concurrent/).
 #   identity whether cdjax's graph scheduling (CONCURRENT) computes what XLA's own (LHS) does, bit for bit, about 4
 #            minutes: `python -m benchmarks.same_results` on the compare suite's model-free, Mb-Mf and paper-CD cases,
-#            3 updates each from key 0 in a process per mode, every array of the state and every metric compared;
+#            3 updates each from key 0 in a process per mode (LHS twice: what two processes differ by anyway),
+#            every array of the state and every metric compared;
 #            then the pixel presets' update (experiments.pixel.roofline, as in `levels`) at each mode (about 9
 #            minutes in all).
 #   kernels  A/Bs for the chain's per-step kernels (about 4-6 minutes): the names of XLA GPU flags in this image's
@@ -496,9 +497,10 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
     cmdbuf) flag_ab xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL while ;;
     concurrent) flag_ab xla_gpu_command_buffer_scheduling_mode=LHS lhs ;;
     identity)
-      local modes="xla_gpu_command_buffer_scheduling_mode=LHS xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
+      local lhs=xla_gpu_command_buffer_scheduling_mode=LHS
+      local modes="$lhs $lhs xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
       local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
-      echo "timeout -k 20 300 python -m benchmarks.same_results --flags $modes --cases model-free mbmf cd-paper" \
+      echo "timeout -k 20 420 python -m benchmarks.same_results --flags $modes --cases model-free mbmf cd-paper" \
         "--updates 3 --out $work/same > $work/same.log 2>&1; grep -v -i warn $work/same.log | tail -n 12;" \
         "timeout -k 20 150 $rf --out $work/pixel-concurrent.json > $work/pixel-concurrent.log 2>&1;" \
         "XLA_FLAGS=--xla_gpu_command_buffer_scheduling_mode=LHS timeout -k 20 150 $rf --out $work/pixel-lhs.json" \

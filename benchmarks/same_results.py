@@ -11,7 +11,8 @@ jitted updates and saves the state's arrays (PRNG keys as their data) and the la
 compares each setting's arrays with the first setting's: per case, how many arrays are bit-identical, and the largest
 absolute and relative difference among those that are not. A scheduling option that only reorders independent
 kernels must leave every array identical; a difference means it changed an order of arithmetic or broke a
-dependency. Writes results.json and results.md under --out; exit status 1 when any array differs.
+dependency. Name the reference setting twice to see what two processes at one setting differ by (kernels that
+sum with atomics differ from run to run whatever the setting). Writes results.json and results.md under --out; exit status 1 when any array differs.
 """
 
 from __future__ import annotations
@@ -123,11 +124,11 @@ def main(argv=None) -> int:
         files.append(path)
     reference = dict(np.load(files[0]))
     rows = []
-    for setting, path in zip(args.flags[1:], files[1:]):
+    for i, (setting, path) in enumerate(zip(args.flags[1:], files[1:]), 1):
         other = dict(np.load(path))
         for case in args.cases:
             pick = lambda arrays: {k: v for k, v in arrays.items() if k.startswith(case + "/")}  # noqa: E731
-            rows.append({"case": case, "reference": args.flags[0], "setting": setting,
+            rows.append({"case": case, "reference": args.flags[0], "setting": f"{setting} (process {i})",
                          **compare(pick(reference), pick(other))})
     lines = [f"`python -m benchmarks.same_results {' '.join(argv if argv is not None else sys.argv[1:])}`", "",
              "| case | reference | setting | arrays | identical | max abs diff | max rel diff |",
