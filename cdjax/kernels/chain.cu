@@ -928,6 +928,18 @@ cudaLaunchConfig_t launch_config(bool cluster, int64_t rows, int64_t B, size_t s
   return config;
 }
 
+// `kernel` (of `d` and then `args`) launched over d's row tiles and batch (kCluster blocks a tile when `cluster`) with
+// `smem` bytes of dynamic shared memory; the error, named `name`, when the launch failed.
+template <typename Kernel, typename... Args>
+ffi::Error launch_chain(Kernel kernel, bool cluster, const Dims& d, size_t smem, cudaStream_t stream, const char* name,
+                        Args... args) {
+  cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
+  cudaLaunchAttribute attribute[1];
+  const cudaLaunchConfig_t config = launch_config(cluster, (d.W + kRows - 1) / kRows, d.B, smem, stream, attribute);
+  cudaLaunchKernelEx(&config, kernel, d, args...);
+  return launched(name);
+}
+
 ffi::Error ChainFwdImpl(bool cluster, cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re, F32 w_in,
                         F32 w_out, F32 b_out, F32 w_h, F32 b_i, F32 b_hn, F32 stats, F32Out u, F32Out states,
                         F32Out xin, F32Out both_im, F32Out hh, F32Out hs) {
@@ -943,16 +955,12 @@ ffi::Error ChainFwdImpl(bool cluster, cudaStream_t stream, float clip, F32 s0, F
                   shaped(*hs, {k + 1, 2 * W, H}, B);
   if (!ok) return ffi::Error::InvalidArgument("cdjax_chain_fwd: a buffer's shape does not match s0, z1a, gi_re, w_in");
   if (B == 0 || W == 0) return ffi::Error::Success();
-  const size_t smem = cluster ? fwd_cluster_smem(d) : fwd_smem(d);
-  auto kernel = cluster ? chain_fwd_cluster_kernel : chain_fwd_kernel;
-  cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
-  cudaLaunchAttribute attribute[1];
-  const cudaLaunchConfig_t config = launch_config(cluster, (W + kRows - 1) / kRows, B, smem, stream, attribute);
-  cudaLaunchKernelEx(&config, kernel, d, clip, s0.typed_data(), z1a.typed_data(), gi_re.typed_data(),
-                     w_in.typed_data(), w_out.typed_data(), b_out.typed_data(), w_h.typed_data(), b_i.typed_data(),
-                     b_hn.typed_data(), stats.typed_data(), u->typed_data(), states->typed_data(), xin->typed_data(),
-                     both_im->typed_data(), hh->typed_data(), hs->typed_data());
-  return launched(cluster ? "cdjax_chain_fwd_cluster" : "cdjax_chain_fwd");
+  return launch_chain(cluster ? chain_fwd_cluster_kernel : chain_fwd_kernel, cluster, d,
+                      cluster ? fwd_cluster_smem(d) : fwd_smem(d), stream,
+                      cluster ? "cdjax_chain_fwd_cluster" : "cdjax_chain_fwd", clip, s0.typed_data(), z1a.typed_data(),
+                      gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(), b_out.typed_data(), w_h.typed_data(),
+                      b_i.typed_data(), b_hn.typed_data(), stats.typed_data(), u->typed_data(), states->typed_data(),
+                      xin->typed_data(), both_im->typed_data(), hh->typed_data(), hs->typed_data());
 }
 
 ffi::Error ChainFwd(cudaStream_t stream, float clip, F32 s0, F32 z1a, F32 gi_re, F32 w_in, F32 w_out, F32 b_out,
@@ -991,17 +999,13 @@ ffi::Error ChainBwdImpl(bool cluster, cudaStream_t stream, float clip, F32 u, F3
                   shaped(*dz1, {k, W, N1}, B) && shaped(*ds0, {W, O}, B);
   if (!ok) return ffi::Error::InvalidArgument("cdjax_chain_bwd: a buffer's shape does not match ds, u, hs, w_in");
   if (B == 0 || W == 0) return ffi::Error::Success();
-  const size_t smem = cluster ? bwd_cluster_smem(d) : bwd_smem(d);
-  auto kernel = cluster ? chain_bwd_cluster_kernel : chain_bwd_kernel;
-  cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem));
-  cudaLaunchAttribute attribute[1];
-  const cudaLaunchConfig_t config = launch_config(cluster, (W + kRows - 1) / kRows, B, smem, stream, attribute);
-  cudaLaunchKernelEx(&config, kernel, d, clip, u.typed_data(), xin.typed_data(), both_im.typed_data(),
-                     hh.typed_data(), hs.typed_data(), gi_re.typed_data(), w_in.typed_data(), w_out.typed_data(),
-                     w_h.typed_data(), b_i.typed_data(), b_hn.typed_data(), stats.typed_data(), dh.typed_data(),
-                     ds.typed_data(), dgi->typed_data(), dhh->typed_data(), dz->typed_data(), dz1->typed_data(),
-                     ds0->typed_data());
-  return launched(cluster ? "cdjax_chain_bwd_cluster" : "cdjax_chain_bwd");
+  return launch_chain(cluster ? chain_bwd_cluster_kernel : chain_bwd_kernel, cluster, d,
+                      cluster ? bwd_cluster_smem(d) : bwd_smem(d), stream,
+                      cluster ? "cdjax_chain_bwd_cluster" : "cdjax_chain_bwd", clip, u.typed_data(), xin.typed_data(),
+                      both_im.typed_data(), hh.typed_data(), hs.typed_data(), gi_re.typed_data(), w_in.typed_data(),
+                      w_out.typed_data(), w_h.typed_data(), b_i.typed_data(), b_hn.typed_data(), stats.typed_data(),
+                      dh.typed_data(), ds.typed_data(), dgi->typed_data(), dhh->typed_data(), dz->typed_data(),
+                      dz1->typed_data(), ds0->typed_data());
 }
 
 ffi::Error ChainBwd(cudaStream_t stream, float clip, F32 u, F32 xin, F32 both_im, F32 hh, F32 hs, F32 gi_re,
