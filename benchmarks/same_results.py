@@ -66,14 +66,15 @@ def compare(reference: dict[str, np.ndarray], other: dict[str, np.ndarray]) -> d
 
 
 def _arrays(tree, prefix: str) -> dict[str, np.ndarray]:
+    """The leaves of `tree` by their checkpoint names (`cdjax.io.checkpoints.named_leaves`) under `prefix`, PRNG keys
+    as their key data."""
     import jax
 
-    out = {}
-    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
-        if isinstance(leaf, jax.Array) and jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
-            leaf = jax.random.key_data(leaf)
-        out[prefix + jax.tree_util.keystr(path)] = np.asarray(leaf)
-    return out
+    from cdjax.io.checkpoints import named_leaves
+
+    is_key = lambda x: jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)  # noqa: E731
+    return {f"{prefix}.{name}": np.asarray(jax.random.key_data(x) if is_key(x) else x)
+            for name, x in named_leaves(tree)}
 
 
 def run_child(cases: list[str], updates: int, tiny: bool, path: str) -> None:
