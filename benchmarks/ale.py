@@ -139,6 +139,7 @@ def cdjax_sweep(config, hp, seeds: int, chunk: int, seconds: float) -> dict:
     import jax.numpy as jnp
 
     from cdjax.agents.atari import make_trainer
+    from cdjax.runner import budget
     from cdjax.sweep import make_sweep
 
     sweep = make_sweep(make_trainer(config))
@@ -147,7 +148,7 @@ def cdjax_sweep(config, hp, seeds: int, chunk: int, seconds: float) -> dict:
     state = jax.block_until_ready(sweep.init(keys, hps))
     init_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    program = sweep.lower_chunk(state, hps, chunk).compile()
+    program, _ = budget.compile_fitting(sweep.lower_chunk(state, hps, chunk))  # as a sweep compiles it
     compile_s = time.perf_counter() - t0
     n = jnp.int32(chunk)
     box = [jax.block_until_ready(program(state, hps, n))]  # warm-up chunk

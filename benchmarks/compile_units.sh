@@ -90,16 +90,20 @@
 #            80.7 and 75.4 s at the defaults, 73.0 and 75.2 s with the file: within the spread, not adopted
 #            (benchmarks/results/2026-11-27-h100-kcache/).
 #   concurrent  XLA's CUDA graphs scheduled by data flow (--xla_gpu_command_buffer_scheduling_mode=CONCURRENT: a
-#            graph's kernels wait only on those whose buffers they use; cdjax's default since 2026-11-27) against
+#            graph's kernels wait only on those whose buffers they use; cdjax's default for its own programs,
+#            cdjax.runtime.compiler_options) against
 #            XLA's own program order (LHS), as `cmdbuf` does its flag (about 10 minutes). On 2026-11-27 (H100, run
 #            then as CONCURRENT against the default) every case 9.5-22% faster with CONCURRENT, Brax PPO's too
 #            (benchmarks/results/2026-11-27-h100-concurrent/).
-#   identity whether cdjax's graph scheduling (CONCURRENT) computes what XLA's own (LHS) does, bit for bit, about 4
-#            minutes: `python -m benchmarks.same_results` on the compare suite's model-free, Mb-Mf and paper-CD cases,
-#            3 updates each from key 0 in a process per mode (LHS twice: what two processes differ by anyway),
-#            every array of the state and every metric compared;
-#            then the pixel presets' update (experiments.pixel.roofline, as in `levels`) at each mode (about 9
-#            minutes in all).
+#   identity whether cdjax's graph scheduling (CONCURRENT) computes what XLA's own (LHS) does, bit for bit (about 9
+#            minutes): `python -m benchmarks.same_results` on the compare suite's model-free, Mb-Mf and paper-CD cases,
+#            3 updates each from key 0 in a process per mode (LHS twice: what two processes differ by anyway), every
+#            array of the state and every metric compared, with the GPU's atomics and the autotuner's choices out of
+#            the way (--base xla_gpu_deterministic_ops=true xla_gpu_autotune_level=0: without them, on 2026-11-27,
+#            two LHS processes already differed in half the arrays, benchmarks/results/2026-11-27-h100-identity/);
+#            then the pixel presets' update of 30 runs (experiments.pixel.roofline, as in `levels`) as cdjax compiles
+#            it (CONCURRENT, in program order where it would not fit: it asked for 49.5 GiB at once when CONCURRENT was
+#            process-wide) and at LHS.
 #   kernels  A/Bs for the chain's per-step kernels (about 4-6 minutes): the names of XLA GPU flags in this image's
 #            jaxlib (xla-gpu-flags.txt: candidates; jax 0.11.2 refused --xla_gpu_enable_split_k_autotuning, 2026-11-25,
 #            and --xla_gpu_experimental_enable_split_k_rewrite, listed there, 2026-11-26); the compare
@@ -501,6 +505,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       local modes="$lhs $lhs xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
       local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
       echo "timeout -k 20 420 python -m benchmarks.same_results --flags $modes --cases model-free mbmf cd-paper" \
+        "--base xla_gpu_deterministic_ops=true xla_gpu_autotune_level=0" \
         "--updates 3 --out $work/same > $work/same.log 2>&1; grep -v -i warn $work/same.log | tail -n 12;" \
         "timeout -k 20 150 $rf --out $work/pixel-concurrent.json > $work/pixel-concurrent.log 2>&1;" \
         "XLA_FLAGS=--xla_gpu_command_buffer_scheduling_mode=LHS timeout -k 20 150 $rf --out $work/pixel-lhs.json" \

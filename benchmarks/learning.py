@@ -128,6 +128,7 @@ def run_cdjax(name: str, task: Task, variant: str, seeds: int, rows: Rows, seed:
 
     from cdjax.agents import obs
     from cdjax.evaluate import make_evaluator
+    from cdjax.runner import budget
     from cdjax.sweep import make_sweep, unpad
 
     hp_over = VARIANTS[variant][1]
@@ -139,7 +140,7 @@ def run_cdjax(name: str, task: Task, variant: str, seeds: int, rows: Rows, seed:
     state = sweep.init(keys, hps)
     evaluator = make_evaluator(trainer, episodes=task.eval_episodes, deterministic=True)
     t0 = time.perf_counter()
-    program = sweep.lower(state, hps, task.updates_per_eval).compile()
+    program, _ = budget.compile_fitting(sweep.lower(state, hps, task.updates_per_eval))  # as a sweep compiles it
     compile_s = time.perf_counter() - t0
     train_s = 0.0
 

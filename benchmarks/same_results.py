@@ -11,8 +11,11 @@ jitted updates and saves the state's arrays (PRNG keys as their data) and the la
 compares each setting's arrays with the first setting's: per case, how many arrays are bit-identical, and the largest
 absolute and relative difference among those that are not. A scheduling option that only reorders independent
 kernels must leave every array identical; a difference means it changed an order of arithmetic or broke a
-dependency. Name the reference setting twice to see what two processes at one setting differ by (kernels that
-sum with atomics differ from run to run whatever the setting). Writes results.json and results.md under --out; exit status 1 when any array differs.
+dependency. Name the reference setting twice to see what two processes at one setting differ by: on an H100
+(2026-11-27, benchmarks/results/2026-11-27-h100-identity/) two processes at one setting already differed in about
+half the arrays after 3 updates (the GPU's atomic sums and the autotuner's choices of kernel differ from run to run),
+so compare there with --base xla_gpu_deterministic_ops=true xla_gpu_autotune_level=0. Writes results.json and
+results.md under --out; exit status 1 when any array differs.
 """
 
 from __future__ import annotations
@@ -32,10 +35,11 @@ from benchmarks.throughput import cdjax_cases
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
 
-def child_env(setting: str, environ: dict | None = None) -> dict:
-    """The environment of a child for `setting` (NAME=VALUE): XLA_FLAGS led by --NAME=VALUE, the rest kept."""
+def child_env(setting: str, environ: dict | None = None, base: tuple[str, ...] = ()) -> dict:
+    """The environment of a child for `setting` (NAME=VALUE): XLA_FLAGS led by --NAME=VALUE, then each of `base`
+    (the settings every child shares), the rest kept."""
     env = dict(os.environ if environ is None else environ)
-    env["XLA_FLAGS"] = f"--{setting} {env.get('XLA_FLAGS', '')}".strip()
+    env["XLA_FLAGS"] = " ".join([f"--{setting}", *(f"--{b}" for b in base), env.get("XLA_FLAGS", "")]).strip()
     return env
 
 
@@ -79,7 +83,7 @@ def _arrays(tree, prefix: str) -> dict[str, np.ndarray]:
 
 def run_child(cases: list[str], updates: int, tiny: bool, path: str) -> None:
     """Run each case's updates in this process and save its arrays to `path` (.npz)."""
-    from cdjax import make_agent  # first: cdjax adds its XLA defaults before JAX starts a backend
+    from cdjax import make_agent, runtime  # first: cdjax adds its XLA defaults before JAX starts a backend
 
     import jax
 
@@ -90,7 +94,7 @@ def run_child(cases: list[str], updates: int, tiny: bool, path: str) -> None:
         trainer = make_agent(spec.config(**overrides))
         hp = spec.hparams(**hp_overrides).as_float32()
         state = jax.jit(trainer.init)(jax.random.key(0), hp)
-        update = jax.jit(trainer.update)
+        update = jax.jit(trainer.update, compiler_options=runtime.compiler_options())  # as cdjax compiles it
         metrics = {}
         for _ in range(updates):
             state, metrics = update(state, hp)
@@ -105,6 +109,10 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--flags", nargs="+", required=True, metavar="NAME=VALUE",
                    help="XLA settings, one child process each; the first is the reference")
+    p.add_argument("--base", nargs="+", default=[], metavar="NAME=VALUE",
+                   help="XLA settings every child shares, after its own (e.g. xla_gpu_deterministic_ops=true "
+                        "xla_gpu_autotune_level=0: the GPU's atomics and the autotuner's timing-dependent choices "
+                        "out of the way, so that a scheduling option's own effect shows)")
     p.add_argument("--cases", nargs="+", default=["model-free", "cd-paper"], choices=list(cdjax_cases(FULL)))
     p.add_argument("--updates", type=int, default=3, help="updates per case (default 3)")
     p.add_argument("--tiny", action="store_true", help="the CPU smoke sizes (point env, 16 envs)")
@@ -121,7 +129,7 @@ def main(argv=None) -> int:
         path = str(out / f"arrays-{i}.npz")
         cmd = [sys.executable, "-m", "benchmarks.same_results", "--flags", setting, "--cases", *args.cases,
                "--updates", str(args.updates), "--out", str(out), "--child", path] + (["--tiny"] if args.tiny else [])
-        subprocess.run(cmd, env=child_env(setting), cwd=REPO, check=True)
+        subprocess.run(cmd, env=child_env(setting, base=tuple(args.base)), cwd=REPO, check=True)
         files.append(path)
     reference = dict(np.load(files[0]))
     rows = []

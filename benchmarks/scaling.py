@@ -41,7 +41,7 @@ def sweep_case(spec: Spec, case: str, runs: int, timing: Timing, mesh_devices: i
     keys, hps = sweep.grid(seed=0, num_seeds=runs, hps=[spec.hparams(**hp_overrides)])
     state = sweep.init(keys, hps)
     # Sweep.lower gives the chunk program (state, hps, num_updates) -> (state, metrics); num_updates is static.
-    compiled, lower_s, compile_s = compile_timed(sweep, state, hps, 1)
+    compiled, lower_s, compile_s, in_order = compile_timed(sweep, state, hps, 1)
     step = lambda c: compiled(c[0], hps)  # noqa: E731
     carry, times = time_calls(step, (state, None), timing)
     traced = {}
@@ -55,7 +55,7 @@ def sweep_case(spec: Spec, case: str, runs: int, timing: Timing, mesh_devices: i
     ok = bool(np.isfinite(np.asarray(fetch(carry[1]["loss/total"]))[:runs]).all())
     return {"case": case, "kind": "sweep", "env": spec.env, "num_envs": spec.num_envs, "seeds": runs,
             "padded_runs": int(keys.shape[0]), "mesh_devices": len(devices), "rollout_len": spec.rollout_len,
-            "status": "ok", "what": what, "lower_s": lower_s, "xla_compile_s": compile_s,
+            "status": "ok", "what": what, "in_order": in_order, "lower_s": lower_s, "xla_compile_s": compile_s,
             "compile_s": lower_s + compile_s, **steady(times, runs * config.env_steps_per_update),
             "mem_bytes": compiled_footprint(compiled), "mem_source": "compiled (per device)",
             "process_peak_bytes": process_peak(), "finite": ok, **traced}

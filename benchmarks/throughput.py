@@ -69,7 +69,8 @@ def ceiling(spec: Spec, timing: Timing, length: int = 200) -> dict:
 
         return jax.lax.scan(body, state, jax.random.split(key_scan, length))[0], key
 
-    compiled, lower_s, compile_s = compile_timed(jax.jit(roll, donate_argnums=0), state, jax.random.key(1))
+    compiled, lower_s, compile_s, _ = compile_timed(jax.jit(roll, donate_argnums=0), state, jax.random.key(1),
+                                                   ours=False)  # the physics as XLA compiles it
     _, times = time_calls(lambda c: compiled(*c), (state, jax.random.key(1)), timing)
     return _row("ceiling", "ceiling", spec, what=f"raw MJX env.step, random actions, {length}-step scan",
                 lower_s=lower_s, xla_compile_s=compile_s, compile_s=lower_s + compile_s,
@@ -94,10 +95,10 @@ def collect(spec: Spec, timing: Timing) -> dict:
         env_state, episodes, _, batch = trainer.collect(state, hp, key_roll)
         return state.replace(env_state=env_state, episodes=episodes, key=key), batch
 
-    compiled, lower_s, compile_s = compile_timed(jax.jit(f, donate_argnums=0), state, hp)
+    compiled, lower_s, compile_s, in_order = compile_timed(jax.jit(f, donate_argnums=0), state, hp)
     _, times = time_calls(lambda c: compiled(c[0], hp), (state, None), timing)
     return _row("collect", "collect", spec, what=f"cdjax rollout of {config.rollout_len} steps + GAE, no learning",
-                lower_s=lower_s, xla_compile_s=compile_s, compile_s=lower_s + compile_s,
+                in_order=in_order, lower_s=lower_s, xla_compile_s=compile_s, compile_s=lower_s + compile_s,
                 **steady(times, config.env_steps_per_update), mem_bytes=compiled_footprint(compiled),
                 mem_source="compiled", process_peak_bytes=process_peak())
 
@@ -114,7 +115,7 @@ def cdjax_update(spec: Spec, case: str, timing: Timing, trace_dir: str | None = 
     trainer = make_agent(config)
     hp = spec.hparams(**hp_overrides).as_float32()
     state = jax.jit(trainer.init)(jax.random.key(0), hp)
-    compiled, lower_s, compile_s = compile_timed(jax.jit(trainer.update, donate_argnums=0), state, hp)
+    compiled, lower_s, compile_s, in_order = compile_timed(jax.jit(trainer.update, donate_argnums=0), state, hp)
     step: Callable = lambda c: compiled(c[0], hp)  # noqa: E731
     carry, times = time_calls(step, (state, None), timing)
     traced = {}
@@ -129,6 +130,7 @@ def cdjax_update(spec: Spec, case: str, timing: Timing, trace_dir: str | None = 
     return _row("cdjax", case, spec, what=what, arm=config.arm, overrides=overrides, alpha=hp_overrides.get("alpha"),
                 num_windows=config.num_windows if config.use_consistency else 0,
                 sgd_steps=config.num_epochs * config.num_minibatches,
+                in_order=in_order,
                 lower_s=lower_s, xla_compile_s=compile_s, compile_s=lower_s + compile_s,
                 **steady(times, config.env_steps_per_update), mem_bytes=compiled_footprint(compiled),
                 mem_source="compiled", process_peak_bytes=process_peak(), finite=ok, **traced)

@@ -1,7 +1,9 @@
 """The one place for runtime switches: XLA's flags, the compilation cache, the compile mode, NaN checks,
 disabling jit.
 
-`cdjax` adds its XLA flags when it is imported (`apply_xla_defaults`, before JAX starts its backends).
+`cdjax` adds its XLA flags when it is imported (`apply_xla_defaults`, before JAX starts its backends), and compiles
+its own programs with per-program options (`compiler_options`: the compile mode's, and the GPU's data-flow scheduling
+of CUDA graphs, which the sweep runner drops for a program that would not fit in memory).
 Everything else goes through `configure`, which the CLI (--cache-dir, --compile-mode, --debug-nans,
 --disable-jit), the tests, the benchmarks and the examples call:
 
@@ -41,19 +43,23 @@ GPU_AUTOTUNE_FLAG = "--xla_gpu_autotune_level=1"
 # An experimental XLA option: jax is pinned (pyproject.toml), and XLA aborts on an option it does not know, so a
 # jax upgrade must keep it or drop it here.
 GPU_GEMM_TILINGS_FLAG = "--xla_gpu_experimental_cost_model_gemm_tiling_options=top=2,top_from_default=1"
-# XLA:GPU's CUDA graphs (command buffers) scheduled by data flow: each kernel of a graph waits only on the kernels whose
-# buffers it reads or overwrites, so independent ones run side by side (XLA's default, LHS, runs them in program
-# order). cdjax's updates are chains of small kernels that leave most of the GPU idle, and many of them are
-# independent: the policy's and the value network's passes, a layer's bias sum beside its weight product, the
-# consistency term's model rollout beside its GRU passes. One H100, one lease (2026-11-27,
-# benchmarks/results/2026-11-27-h100-concurrent/): per update model-free 0.359 against 0.408 s, Mb-Mf 0.410 against
-# 0.453, the paper's CD 0.618 against 0.735, at 10 vmapped seeds Mb-Mf 0.342 and the paper's CD 0.529 (0.403 and 0.675
-# at the default); Brax PPO, given the flag, 0.449 against 0.512. XLA's compiled footprint about doubles (buffers no
-# longer reused between kernels that may run at once): 1.44 against 0.72 GiB for the paper's CD at 4096 envs. A user
-# who names the option in XLA_FLAGS (--xla_gpu_command_buffer_scheduling_mode=LHS: XLA's own) keeps theirs.
-GPU_SCHEDULING_FLAG = "--xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
-XLA_DEFAULTS = (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG,
-                GPU_SCHEDULING_FLAG)  # what `import cdjax` adds to XLA_FLAGS
+XLA_DEFAULTS = (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG)  # what `import cdjax` adds to XLA_FLAGS
+# XLA:GPU's CUDA graphs (command buffers) scheduled by data flow, asked for per program (compiler_options), not in
+# XLA_FLAGS: each kernel of a graph waits only on the kernels whose buffers it reads or overwrites, so independent ones
+# run side by side (XLA's default, LHS, runs them in program order). cdjax's updates are chains of small kernels that
+# leave most of the GPU idle, and many of them are independent: the policy's and the value network's passes, a layer's
+# bias sum beside its weight product, the consistency term's model rollout beside its GRU passes. One H100, one lease
+# (2026-11-27, benchmarks/results/2026-11-27-h100-concurrent/, then process-wide): per update model-free 0.359 against
+# 0.408 s, Mb-Mf 0.410 against 0.453, the paper's CD 0.618 against 0.735, at 10 vmapped seeds Mb-Mf 0.342 and the
+# paper's CD 0.529 (0.403 and 0.675 in program order). The price is memory: buffers are no longer reused between
+# kernels that may run at once, so XLA's compiled footprint about doubles (1.44 against 0.72 GiB for the paper's CD at
+# 4096 envs), and the pixel presets' update of 30 runs no longer fits an H100 (it asked for 49.5 GiB at once;
+# benchmarks/results/2026-11-27-h100-identity/). Hence per program, where cdjax can fall back: the sweep runner
+# compiles a program again in program order when it would not fit beside the states (`compile_fitting`), and the
+# process's other programs (Brax's, a user's own) keep XLA's scheduling. A user who names the option in XLA_FLAGS
+# (--xla_gpu_command_buffer_scheduling_mode=LHS: XLA's own) keeps theirs for every program.
+SCHEDULING_OPTION = "xla_gpu_command_buffer_scheduling_mode"
+SCHEDULING = {SCHEDULING_OPTION: "CONCURRENT"}
 CACHE_ENV = "CDJAX_JAX_CACHE"  # environment variable naming the persistent compilation cache
 MODE_ENV = "CDJAX_COMPILE_MODE"  # environment variable naming the compile mode (configure's compile_mode wins)
 
@@ -71,16 +77,41 @@ COMPILE_MODES: dict[str, dict] = {
 _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "default"
 
 
+def _named(option: str, flags: str) -> bool:
+    """Whether XLA_FLAGS text `flags` sets `option` (a name without dashes)."""
+    return any(word.lstrip("-").split("=")[0] == option for word in flags.split())
+
+
 def apply_xla_defaults() -> None:
-    """Add cdjax's XLA flags (XLA_DEFAULTS: CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG,
-    GPU_SCHEDULING_FLAG) to
-    XLA_FLAGS, each unless the user set that option already. XLA reads XLA_FLAGS when a backend starts: `import
-    cdjax` calls this, so it takes effect unless a JAX backend was started before cdjax was imported."""
+    """Add cdjax's XLA flags (XLA_DEFAULTS: CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG) to XLA_FLAGS,
+    each unless the user set that option already. XLA reads XLA_FLAGS when a backend starts: `import cdjax` calls this
+    first thing, and warns (once) when a JAX backend had started before, so that the flags it adds cannot apply in
+    this process."""
     flags = os.environ.get("XLA_FLAGS", "")
+    added = []
     for flag in XLA_DEFAULTS:
-        if flag.split("=")[0].lstrip("-") not in flags:  # the option's name
+        if not _named(flag.split("=")[0].lstrip("-"), flags):
             flags = f"{flags} {flag}".strip()
+            added.append(flag)
     os.environ["XLA_FLAGS"] = flags
+    if added and _backends_started():
+        warnings.warn(f"A JAX backend started before cdjax was imported, so the XLA flags cdjax adds ({' '.join(added)}) "
+                      "do not apply in this process (XLA reads XLA_FLAGS when a backend starts): import cdjax before "
+                      "anything that calls JAX, or put them in XLA_FLAGS yourself.", RuntimeWarning, stacklevel=3)
+
+
+def _backends_started() -> bool:
+    """Whether this process has started a JAX backend (False when JAX is not imported yet, or cannot say)."""
+    import sys
+
+    if "jax" not in sys.modules:
+        return False
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except Exception:  # noqa: BLE001 - a JAX without this private function: say nothing rather than guess
+        return False
 
 
 def default_cache_dir() -> str:
@@ -130,9 +161,20 @@ def compile_mode() -> str:
     return _mode if _mode is not None else environment_compile_mode()
 
 
-def compiler_options(mode: str | None = None) -> dict:
-    """The XLA options of `mode` (default: the compile mode in force), for `jax.stages.Lowered.compile`."""
-    return dict(COMPILE_MODES[compile_mode() if mode is None else check_compile_mode(mode)])
+def compiler_options(mode: str | None = None, *, in_order: bool = False) -> dict:
+    """The XLA options cdjax compiles its programs with, for `jax.stages.Lowered.compile` or `jax.jit(...,
+    compiler_options=...)`: those of `mode` (COMPILE_MODES; default: the compile mode in force) and, unless `in_order`
+    or XLA_FLAGS names the option, the GPU kernels of each CUDA graph scheduled by data flow (SCHEDULING; no effect on
+    a CPU)."""
+    options = dict(COMPILE_MODES[compile_mode() if mode is None else check_compile_mode(mode)])
+    if not in_order and not _named(SCHEDULING_OPTION, os.environ.get("XLA_FLAGS", "")):
+        options.update(SCHEDULING)
+    return options
+
+
+def concurrent(options: dict) -> bool:
+    """Whether compiler options `options` ask for cdjax's data-flow scheduling (SCHEDULING)."""
+    return all(options.get(k) == v for k, v in SCHEDULING.items())
 
 
 def configure(*, cache_dir: str | os.PathLike | None = None, debug_nans: bool = False, disable_jit: bool = False,

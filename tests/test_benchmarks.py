@@ -545,8 +545,8 @@ def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch)
     from cdjax import runtime
 
     monkeypatch.delenv("XLA_FLAGS", raising=False)
-    ours = [runtime.CPU_SCHEDULER_FLAG, runtime.GPU_AUTOTUNE_FLAG, runtime.GPU_GEMM_TILINGS_FLAG,
-            runtime.GPU_SCHEDULING_FLAG]
+    monkeypatch.setattr(runtime, "_backends_started", lambda: False)  # as at a fresh `import cdjax`
+    ours = [runtime.CPU_SCHEDULER_FLAG, runtime.GPU_AUTOTUNE_FLAG, runtime.GPU_GEMM_TILINGS_FLAG]
     runtime.apply_xla_defaults()
     assert os.environ["XLA_FLAGS"].split() == ours
     runtime.apply_xla_defaults()  # a second import (a reload) adds nothing twice
@@ -562,20 +562,37 @@ def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch)
     # the tilings option named empty (XLA's own search) is the user's: it stays, and cdjax adds no value of its own
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_experimental_cost_model_gemm_tiling_options=")
     runtime.apply_xla_defaults()
-    assert os.environ["XLA_FLAGS"].split() == ["--xla_gpu_experimental_cost_model_gemm_tiling_options=", *ours[:2],
-                                               ours[3]]
-    # XLA's own graph scheduling, named by the user, stays theirs
-    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_command_buffer_scheduling_mode=LHS")
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_gpu_experimental_cost_model_gemm_tiling_options=", *ours[:2]]
+    # an option is the user's only when named as such: a longer option that contains its name is not it
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level_extra=3")
     runtime.apply_xla_defaults()
-    assert os.environ["XLA_FLAGS"].split() == ["--xla_gpu_command_buffer_scheduling_mode=LHS", *ours[:3]]
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_gpu_autotune_level_extra=3", *ours]
+    # the graph scheduling is per program (runtime.compiler_options), never in XLA_FLAGS, so Brax's programs or a
+    # user's own in the same process keep XLA's
+    assert runtime.SCHEDULING_OPTION not in os.environ["XLA_FLAGS"]
+    # with a backend already started, adding a flag is told of (naming it), adding none is not
+    monkeypatch.setattr(runtime, "_backends_started", lambda: True)
+    monkeypatch.setenv("XLA_FLAGS", " ".join(ours[1:]))
+    with pytest.warns(RuntimeWarning, match="started before cdjax was imported.*concurrency_optimized_scheduler=false"
+                                           r"\) do not apply"):
+        runtime.apply_xla_defaults()
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        runtime.apply_xla_defaults()
     # a fresh process: importing cdjax sets them before JAX starts, and XLA:CPU accepts the GPU flags (it aborts on
-    # a flag it does not know)
+    # a flag it does not know); `import benchmarks` imports cdjax first (the suites start a backend to name the
+    # device); a backend started before cdjax is imported is told of, naming the flags that cannot apply
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     flags = subprocess.run(
-        [sys.executable, "-c", "import os, cdjax, jax; jax.numpy.ones(2).block_until_ready(); "
+        [sys.executable, "-c", "import os, benchmarks, jax; jax.numpy.ones(2).block_until_ready(); "
                                "print(os.environ['XLA_FLAGS'])"],
-        env={k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}, capture_output=True, text=True,
-        check=True).stdout
-    assert all(flag in flags for flag in ours[1:])
+        env=env, capture_output=True, text=True, check=True, cwd=pathlib.Path(__file__).parents[1]).stdout
+    assert all(flag in flags for flag in ours)
+    late = subprocess.run([sys.executable, "-c", "import jax; jax.devices(); import cdjax"], env=env,
+                          capture_output=True, text=True, check=True).stderr
+    assert "A JAX backend started before cdjax was imported" in late and runtime.GPU_AUTOTUNE_FLAG in late
 
 
 def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypatch):
@@ -605,7 +622,7 @@ def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypa
     fast = arms._compiled(arm, "t", f.lower, x, owner=owner)  # another mode, another program: XLA takes its options
     runtime.configure(compile_mode="default")  # configure's mode wins over the variable's
     assert arms._compiled(arm, "t", f.lower, x, owner=owner) is default and fast is not default
-    assert seen == [{}, {"xla_gpu_enable_triton_gemm": False}]
+    assert seen == [runtime.SCHEDULING, {"xla_gpu_enable_triton_gemm": False, **runtime.SCHEDULING}]
     np.testing.assert_array_equal(default(x), fast(x))  # on a CPU the GPU option changes nothing
     with pytest.raises(ConfigError, match="compile_mode must be one of default, fast, got 'turbo'"):
         runtime.configure(compile_mode="turbo")
@@ -631,6 +648,60 @@ def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypa
     assert runtime.compile_mode() == "fast"
     cli._configure(flags("default"))
     assert runtime.compile_mode() == "default"
+
+
+def test_a_program_scheduled_by_data_flow_that_would_not_fit_is_compiled_in_program_order(monkeypatch):
+    """cdjax compiles its programs with the GPU's kernels scheduled by data flow (runtime.SCHEDULING, per program), and
+    again in XLA's program order where the program's outputs and temporaries exceed the room beside the states: in a
+    sweep (arms._compiled, noted on the arm; init and reset, whose outputs are the states, are never held to it; both
+    programs cached, each picked by the room) and outside one (budget.compile_fitting). A user who names the option in
+    XLA_FLAGS keeps it for every program, and nothing is compiled twice."""
+    import types
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from cdjax import runtime
+    from cdjax.runner import arms, budget
+
+    seen = []
+    original = jax.stages.Lowered.compile
+
+    def spy(self, compiler_options=None, **kwargs):
+        seen.append(dict(compiler_options or {}))
+        return original(self, compiler_options, **kwargs)
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", spy)
+    monkeypatch.setattr(runtime, "_mode", None)
+    monkeypatch.delenv(runtime.MODE_ENV, raising=False)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    f, x = jax.jit(lambda x: jnp.tanh(x @ x.T) + 1.0), jnp.eye(64) * 0.5
+    need = budget.program_bytes(original(f.lower(x)))  # on a CPU both schedulings take the same bytes
+    assert need > 0 and budget.fits(original(f.lower(x)), need) and not budget.fits(original(f.lower(x)), need - 1)
+    owner = object()
+    roomy = types.SimpleNamespace(name="a", room=None, in_order={})
+    wide = arms._compiled(roomy, "chunk", f.lower, x, owner=owner)
+    assert seen == [runtime.SCHEDULING] and roomy.in_order == {}
+    tight = types.SimpleNamespace(name="a", room=need - 1, in_order={})
+    narrow = arms._compiled(tight, "chunk", f.lower, x, owner=owner)
+    assert narrow is not wide and seen[1:] == [{}] and tight.in_order == {"chunk": (need, need)}
+    again = types.SimpleNamespace(name="a", room=need - 1, in_order={})
+    assert arms._compiled(again, "chunk", f.lower, x, owner=owner) is narrow and again.in_order == tight.in_order
+    assert arms._compiled(roomy, "chunk", f.lower, x, owner=owner) is wide and len(seen) == 2  # both from the cache
+    arms._compiled(tight, "init", f.lower, x, owner=owner)  # the states themselves: no room to keep to
+    assert seen[2:] == [runtime.SCHEDULING] and "init" not in tight.in_order
+    np.testing.assert_array_equal(wide(x), narrow(x))
+    assert budget.compile_fitting(f.lower(x), room=need - 1)[1] and seen[3:] == [runtime.SCHEDULING, {}]
+    assert not budget.compile_fitting(f.lower(x), room=need)[1] and seen[5:] == [runtime.SCHEDULING]
+    # the user's choice in XLA_FLAGS: no per-program option, so no second program either
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1 --xla_gpu_command_buffer_scheduling_mode=LHS")
+    assert runtime.compiler_options() == {} and runtime.compiler_options("fast") == {"xla_gpu_enable_triton_gemm": False}
+    program, in_order = budget.compile_fitting(f.lower(x), room=0)
+    assert not in_order and seen[6:] == [{}]
+    user = types.SimpleNamespace(name="a", room=0, in_order={})
+    assert arms._compiled(user, "chunk", f.lower, x, owner=owner) is not wide and user.in_order == {}
+    assert seen[7:] == [{}]
 
 
 def test_xla_timers_sum_each_timer_over_modules_of_one_kind(tmp_path, capsys):
@@ -690,3 +761,5 @@ def test_same_results_compares_bit_for_bit_and_puts_the_setting_first():
                                  {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "HOME": "/h"})
     assert env["XLA_FLAGS"].split() == ["--xla_gpu_command_buffer_scheduling_mode=LHS",
                                         "--xla_force_host_platform_device_count=2"] and env["HOME"] == "/h"
+    env = same_results.child_env("a=1", {"XLA_FLAGS": "--c=3"}, base=("b=2", "d=4"))  # shared settings after its own
+    assert env["XLA_FLAGS"].split() == ["--a=1", "--b=2", "--d=4", "--c=3"]

@@ -151,6 +151,23 @@ def test_a_second_sweep_in_the_process_builds_traces_and_compiles_nothing(uninte
     _assert_same_states(_states(out), _states(uninterrupted))
 
 
+def test_a_sweep_whose_programs_would_not_fit_runs_them_in_program_order_and_says_so(uninterrupted, tmp_path,
+                                                                                     monkeypatch, capsys):
+    """Where a program scheduled by data flow (cdjax's default on a GPU) would not fit beside the states, the sweep
+    compiles it in XLA's program order, says so per arm and program, and trains the same run."""
+    from cdjax.runner import budget
+
+    monkeypatch.setattr(budget, "fits", lambda program, room: room is None)  # nothing fits a room
+    capsys.readouterr()
+    out = tmp_path / "in-order"
+    run_sweep(dataclasses.replace(SPEC, out=out))
+    said = [line for line in capsys.readouterr().err.splitlines() if "XLA's program order" in line]
+    assert sorted(line.split("'s ")[0].split()[-1] for line in said) == sorted(SPEC.arms), said
+    assert all(" chunk program runs" in line and "beside the states'" in line for line in said)
+    assert _rows(out) == _rows(uninterrupted)
+    _assert_same_states(_states(out), _states(uninterrupted))
+
+
 def test_time_limit_stops_before_the_round_that_would_end_past_it():
     now = [100.0]
     limit = TimeLimit(60, clock=lambda: now[0])

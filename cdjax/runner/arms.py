@@ -80,6 +80,8 @@ class Arm:
     identity: dict = dataclasses.field(default_factory=dict)  # the runs as run.json records them (in checkpoints)
     skipped: Any = None  # [R] optimiser steps each run skipped for a non-finite loss or gradient, so far
     skipped_said: int = 0  # how many runs the last sentence about skipped steps named
+    room: int | None = None  # bytes a program may take beside every arm's states (None: no limit; _compiled)
+    in_order: dict = dataclasses.field(default_factory=dict)  # program -> (bytes scheduled by data flow, in order)
 
     @property
     def name(self) -> str:
@@ -100,8 +102,7 @@ class Arm:
     def phase_program(self):
         """The compiled phase (compiled now if it was not in advance, e.g. every checkpoint was unreadable)."""
         if "phase" not in self.programs:
-            lowered = self.sweep.lower_phase(self.abstract, self.hps)
-            self.programs["phase"] = lowered.compile(runtime.compiler_options())
+            self.programs["phase"] = _compiled(self, "phase", self.sweep.lower_phase, self.abstract, self.hps)
         return self.programs.pop("phase")
 
     def chunk_program(self):
@@ -204,23 +205,53 @@ def _lowered(arm: Arm, what: str, lower: Callable, *args, owner=None):
 def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None, owner=None):
     """The compiled program `what` of arm's sweep (or of `owner`, as _lowered) for these inputs (static ints
     included): from this process's cache, else lowered now and compiled (in `pool`, returning a future, when
-    given)."""
+    given). Compiled with runtime.compiler_options; where those schedule the GPU's kernels by data flow and the
+    program would not fit in `arm.room` bytes, in XLA's program order instead (as budget.compile_fitting; noted in
+    `arm.in_order`)."""
     owner = arm.sweep if owner is None else owner
     mode = runtime.compile_mode()  # read once per call: a notebook may change it between sweeps
-    key = (id(owner), what, _avals(args), mode)
-    if key in _COMPILED:
-        return _COMPILED[key][1]
-    lowered = _lowered(arm, what, lower, *args, owner=owner)
     options = runtime.compiler_options(mode)
+    key = (id(owner), what, _avals(args), mode, tuple(sorted(options.items())))
+    # init's and reset's outputs are the states themselves (budget.check_programs leaves them out alike)
+    room = None if what in ("init", "reset") else getattr(arm, "room", None)
+
+    def cached():  # the program held for these inputs that fits `room` (the in-order one when the other does not)
+        first = _COMPILED.get(key)
+        if first is None:
+            return None
+        if not runtime.concurrent(options) or budget.fits(first[1], room):
+            return first[1]
+        second = _COMPILED.get(key + ("in order",))
+        if second is not None:
+            _note_in_order(arm, what, first[1], second[1])
+        return None if second is None else second[1]
+
+    if (program := cached()) is not None:
+        return program
+    lowered = _lowered(arm, what, lower, *args, owner=owner)
 
     def compile_():
         t0 = time.perf_counter()
-        program = lowered.compile(options)
-        _COMPILED[key] = (owner, program)
-        _timed(arm.name, what, "compile", t0)
-        return program
+        if key not in _COMPILED:
+            _COMPILED[key] = (owner, lowered.compile(options))
+            _timed(arm.name, what, "compile", t0)
+        if (program := cached()) is not None:
+            return program
+        t0 = time.perf_counter()
+        second = lowered.compile(runtime.compiler_options(mode, in_order=True))
+        _COMPILED[key + ("in order",)] = (owner, second)
+        _timed(arm.name, what, "compile in order", t0)
+        _note_in_order(arm, what, _COMPILED[key][1], second)
+        return second
 
     return compile_() if pool is None else pool.submit(compile_)
+
+
+def _note_in_order(arm, what: str, first, second) -> None:
+    """Record on `arm` (where it keeps such notes) that `what` runs in program order: the bytes of both programs."""
+    notes = getattr(arm, "in_order", None)
+    if notes is not None:
+        notes[what] = (budget.program_bytes(first), budget.program_bytes(second))
 
 
 def _shared_shape(trainer: Trainer, what: tuple, make: Callable):

@@ -20,6 +20,7 @@ from typing import Sequence
 import jax
 import numpy as np
 
+from cdjax import runtime
 from cdjax.protocol import ConfigError
 
 
@@ -86,6 +87,27 @@ def program_bytes(compiled) -> int | None:
     if m is None:
         return None
     return int(m.output_size_in_bytes) - int(m.alias_size_in_bytes) + int(m.temp_size_in_bytes)
+
+
+def fits(program, room: int | None) -> bool:
+    """Whether a compiled program's outputs and temporaries (program_bytes) fit in `room` bytes (None, or a size the
+    backend does not report: yes)."""
+    need = program_bytes(program)
+    return room is None or need is None or need <= room
+
+
+def compile_fitting(lowered, room: int | None = None, mode: str | None = None) -> tuple[object, bool]:
+    """(compiled program, whether in program order): `lowered` compiled with runtime.compiler_options(mode) and, where
+    those schedule the GPU's kernels by data flow (runtime.SCHEDULING) and the program's outputs and temporaries
+    exceed `room` bytes (default: what is free on the device now, beside the arrays it holds), compiled again in
+    XLA's program order, which reuses buffers between kernels (about half the bytes, updates 10-20% slower on an
+    H100). For a program compiled outside a sweep (a benchmark's, a notebook's); a sweep does the same per program
+    (cdjax.runner.arms._compiled)."""
+    options = runtime.compiler_options(mode)
+    program = lowered.compile(options)
+    if not runtime.concurrent(options) or fits(program, available()[0] if room is None else room):
+        return program, False
+    return lowered.compile(runtime.compiler_options(mode, in_order=True)), True
 
 
 def check_programs(states: int, programs: dict[str, object], have: tuple[int, str] | None = None) -> int:

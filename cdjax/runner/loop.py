@@ -195,8 +195,17 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             progress.say(f"Compiling the programs of {', '.join(a.name for a in arms)} (nothing is written before "
                          "they are compiled and fit in memory).")
             t_compile = time.perf_counter()
+            have, where = budget.available()
+            for arm in arms:  # a program scheduled by data flow that would not fit is compiled in order instead
+                arm.room = have - states
             compile_all(arms, record["chunk_updates"], done)
             t_compile = time.perf_counter() - t_compile
+            for arm in arms:
+                for what, (wide, narrow) in arm.in_order.items():
+                    progress.say(f"{arm.name}'s {what} program runs its GPU kernels in XLA's program order: with them "
+                                 f"scheduled by data flow (cdjax's default, 10-20% faster) it needs "
+                                 f"{budget.gb(wide or 0)} beside the states' {budget.gb(states)}, and there are "
+                                 f"{budget.gb(have)} {where}; in order it needs {budget.gb(narrow or 0)}.")
             # init's output is the state, already counted; the phase and chunk programs donate it and return it
             with host_time("programs"):
                 spare = budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms

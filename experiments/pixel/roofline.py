@@ -138,13 +138,15 @@ def program_flops(fn, *args) -> tuple[float, int]:
 def roofline(fn, args, frames: int, peak: float, repeats: int = 3) -> dict:
     """The roofline figures of fn(*args) (jit-able; `frames` trained per call) against a measured `peak`."""
     flops, whiles = program_flops(fn, *args)
-    compiled = jax.jit(fn).lower(*args).compile()
+    from cdjax.runner import budget
+
+    compiled, in_order = budget.compile_fitting(jax.jit(fn).lower(*args))  # as a sweep compiles it
     xla = xla_costs(compiled)
     first, seconds = timed(compiled, *args, repeats=repeats)
     achieved = flops / seconds / 1e12
     return {"flops_per_frame": flops / frames, "xla_flops_per_frame": xla["flops"] / frames,
             "xla_bytes_per_frame": xla["bytes"] / frames, "while_loops_counted_once": whiles,
-            "compile_and_first_s": round(first, 3), "update_s": seconds, "frames_per_s": frames / seconds,
+            "in_order": in_order, "compile_and_first_s": round(first, 3), "update_s": seconds, "frames_per_s": frames / seconds,
             "achieved_tflops": achieved, "measured_peak_tflops": peak, "of_peak": achieved / peak}
 
 
@@ -190,7 +192,9 @@ def profiled(update, states, hps, where: pathlib.Path) -> dict:
     """Where the time of two steady-state updates goes (benchmarks.profile_summary's groups); DIR.md its tables."""
     from benchmarks import profile_summary
 
-    compiled = jax.jit(update).lower(states, hps).compile()
+    from cdjax.runner import budget
+
+    compiled, _ = budget.compile_fitting(jax.jit(update).lower(states, hps))
     jax.block_until_ready(compiled(states, hps))
     with profile_summary.trace(where, compiled):
         for _ in range(2):

@@ -67,6 +67,7 @@ def measure(config, runs: int, modes: list[str], trace: str = "") -> dict:
 
 def measure_devices(config, runs: int, counts: list[int], chunk: int) -> dict:
     """frames/s of the pixel sweep's chunk of `chunk` updates of `runs` runs on the first N devices, per N."""
+    from cdjax.runner import budget
     from cdjax.sweep import make_sweep, runs_mesh
 
     setting = agents.get("pixel")
@@ -77,7 +78,7 @@ def measure_devices(config, runs: int, counts: list[int], chunk: int) -> dict:
         sweep = make_sweep(trainer, mesh=runs_mesh(jax.devices()[:n]))
         keys, hps = sweep.grid(seed=0, num_seeds=runs, hps=[setting.hparams_type()])
         state = sweep.init(keys, hps)
-        program = sweep.lower_chunk(state, hps, chunk).compile()
+        program, _ = budget.compile_fitting(sweep.lower_chunk(state, hps, chunk))  # as a sweep compiles it
         length = jnp.int32(chunk)
 
         def call(carry, program=program, hps=hps, length=length):
@@ -99,6 +100,7 @@ def measure_devices(config, runs: int, counts: list[int], chunk: int) -> dict:
 def measure_loops(config, runs: int, chunk: int, trace: str = "") -> dict:
     """ms per update and frames/s of `chunk` updates of `runs` runs as the vmapped update called `chunk` times, the
     sweep's plain scan and its chunk program (the scan with a cond per update), all on one device."""
+    from cdjax.runner import budget
     from cdjax.sweep import make_sweep, runs_mesh
 
     setting = agents.get("pixel")
@@ -109,9 +111,9 @@ def measure_loops(config, runs: int, chunk: int, trace: str = "") -> dict:
     out = {"env": config.env, "arm": config.arm, "runs": runs, "chunk_updates": chunk,
            "device": jax.devices()[0].device_kind, "frames_per_update_per_run": config.batch_size * config.seq_len}
     state = sweep.init(keys, hps)
-    update = jax.jit(jax.vmap(trainer.update), donate_argnums=0).lower(state, hps).compile()
-    scan = sweep.lower(state, hps, chunk).compile()
-    chunked = sweep.lower_chunk(state, hps, chunk).compile()
+    update, _ = budget.compile_fitting(jax.jit(jax.vmap(trainer.update), donate_argnums=0).lower(state, hps))
+    scan, _ = budget.compile_fitting(sweep.lower(state, hps, chunk))
+    chunked, _ = budget.compile_fitting(sweep.lower_chunk(state, hps, chunk))
     programs = {"update": (update, lambda c: _updates(update, c[0], hps, chunk)),
                 "scan": (scan, lambda c: scan(c[0], hps)),
                 "chunk": (chunked, lambda c: chunked(c[0], hps, jnp.int32(chunk)))}
