@@ -504,12 +504,15 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       local lhs=xla_gpu_command_buffer_scheduling_mode=LHS
       local modes="$lhs $lhs xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
       local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
-      echo "timeout -k 20 420 python -m benchmarks.same_results --flags $modes --cases model-free mbmf cd-paper" \
-        "--base xla_gpu_deterministic_ops=true xla_gpu_autotune_level=0" \
-        "--updates 3 --out $work/same > $work/same.log 2>&1; grep -v -i warn $work/same.log | tail -n 12;" \
+      local base="xla_gpu_deterministic_ops=true xla_gpu_autotune_level=0"
+      echo "base='$base'; python -m benchmarks.xla_flags --accepts \$base || base='xla_gpu_autotune_level=0';" \
+        "echo \"base settings: \$base\";" \
+        "timeout -k 20 420 python -m benchmarks.same_results --flags $modes --cases model-free mbmf cd-paper" \
+        "--base \$base --updates 3 --out $work/same > $work/same.log 2>&1; grep -v -i warn $work/same.log | tail -n 12;" \
         "timeout -k 20 150 $rf --out $work/pixel-concurrent.json > $work/pixel-concurrent.log 2>&1;" \
         "XLA_FLAGS=--xla_gpu_command_buffer_scheduling_mode=LHS timeout -k 20 150 $rf --out $work/pixel-lhs.json" \
-        "> $work/pixel-lhs.log 2>&1; cat $work/pixel-concurrent.md $work/pixel-lhs.md" ;;
+        "> $work/pixel-lhs.log 2>&1; cat $work/pixel-concurrent.md $work/pixel-lhs.md;" \
+        "grep -H -o '\"in_order\": [a-z]*' $work/pixel-*.json" ;;
     ab)
       local run=${AB_RUN:-"benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 \
 --budget-s 120"} line="" v dir i=0
