@@ -95,12 +95,14 @@
 #            XLA's own program order (LHS), as `cmdbuf` does its flag (about 10 minutes). On 2026-11-27 (H100, run
 #            then as CONCURRENT against the default) every case 9.5-22% faster with CONCURRENT, Brax PPO's too
 #            (benchmarks/results/2026-11-27-h100-concurrent/).
-#   identity whether cdjax's graph scheduling (CONCURRENT) computes what XLA's own (LHS) does, bit for bit (about 9
-#            minutes): `python -m benchmarks.same_results` on the compare suite's model-free, Mb-Mf and paper-CD cases,
-#            3 updates each from key 0 in a process per mode (LHS twice: what two processes differ by anyway), every
-#            array of the state and every metric compared, with the GPU's atomics and the autotuner's choices out of
+#   identity whether cdjax's graph scheduling (CONCURRENT) computes what XLA's own (LHS) does, bit for bit (about
+#            12 minutes in all): `python -m benchmarks.same_results` on the compare suite's model-free, Mb-Mf and
+#            paper-CD cases, 3 updates each from key 0 in a process per mode (LHS twice: what two processes differ
+#            by anyway), every array of the state and every metric compared, with the GPU's atomics and the autotuner's choices out of
 #            the way (--base xla_gpu_deterministic_ops=true xla_gpu_autotune_level=0: without them, on 2026-11-27,
 #            two LHS processes already differed in half the arrays, benchmarks/results/2026-11-27-h100-identity/);
+#            then two processes in cdjax's `deterministic` compile mode (CDJAX_COMPILE_MODE; model-free and paper-CD):
+#            whether the mode makes a GPU run repeat bit for bit (about 3 minutes);
 #            then the pixel presets' update of 30 runs (experiments.pixel.roofline, as in `levels`) as cdjax compiles
 #            it (CONCURRENT, in program order where it would not fit: it asked for 49.5 GiB at once when CONCURRENT was
 #            process-wide) and at LHS.
@@ -509,6 +511,9 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "echo \"base settings: \$base\";" \
         "timeout -k 20 420 python -m benchmarks.same_results --flags $modes --cases model-free mbmf cd-paper" \
         "--base \$base --updates 3 --out $work/same > $work/same.log 2>&1; grep -v -i warn $work/same.log | tail -n 12;" \
+        "CDJAX_COMPILE_MODE=deterministic timeout -k 20 240 python -m benchmarks.same_results --flags $lhs $lhs" \
+        "--cases model-free cd-paper --updates 3 --out $work/same-det > $work/same-det.log 2>&1;" \
+        "grep -v -i warn $work/same-det.log | tail -n 6;" \
         "timeout -k 20 150 $rf --out $work/pixel-concurrent.json > $work/pixel-concurrent.log 2>&1;" \
         "XLA_FLAGS=--xla_gpu_command_buffer_scheduling_mode=LHS timeout -k 20 150 $rf --out $work/pixel-lhs.json" \
         "> $work/pixel-lhs.log 2>&1; cat $work/pixel-concurrent.md $work/pixel-lhs.md;" \

@@ -58,9 +58,11 @@ def _runtime_options() -> argparse.ArgumentParser:
     group.add_argument("--cache-dir", metavar="DIR", help="JAX's persistent compilation cache (default "
                        f"${runtime.CACHE_ENV}, else ~/.cache/cdjax/jax)")
     group.add_argument("--compile-mode", choices=list(runtime.COMPILE_MODES),
-                       help="what cdjax asks of XLA for its programs: default (XLA's settings) or fast (on a GPU, "
+                       help="what cdjax asks of XLA for its programs: default (XLA's settings), fast (on a GPU, "
                             "Triton's GEMM fusions off: a quarter to half less cold compile time, each update 5-19%% "
-                            f"slower as measured: for short runs); default ${runtime.MODE_ENV}, else default")
+                            "slower as measured: for short runs) or deterministic (on a GPU, no atomic sums and no "
+                            "autotuning, so that another process repeats the run bit for bit; its cost not yet "
+                            f"measured); default ${runtime.MODE_ENV}, else default")
     group.add_argument("--debug-nans", action="store_true", help="stop at the first operation that makes a NaN")
     group.add_argument("--disable-jit", action="store_true", help="run op by op (slow; for debugging)")
     return parent

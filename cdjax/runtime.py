@@ -73,6 +73,13 @@ COMPILE_MODES: dict[str, dict] = {
     # update then runs 1.05-1.19x longer (1.19x: the paper's CD schedule), so it is not the default: it is for
     # notebook iteration and short checks. No effect on a CPU.
     "fast": {"xla_gpu_enable_triton_gemm": False},
+    # For a GPU run that another process can repeat bit for bit (a CPU's already is): XLA's deterministic
+    # implementations of the ops that otherwise sum with atomics (scatter-adds, in the physics among others), and no
+    # autotuning, whose choice of GEMM kernel depends on timings. On one H100 (2026-11-27,
+    # benchmarks/results/2026-11-27-h100-identity/) two processes at XLA's settings differed in about half the arrays of
+    # the ant's state after 3 updates. Whether this mode makes them equal, and what it costs per update, is not yet
+    # measured (the `identity` unit of benchmarks/compile_units.sh). No effect on a CPU.
+    "deterministic": {"xla_gpu_deterministic_ops": True, "xla_gpu_autotune_level": 0},
 }
 _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "default"
 
@@ -85,7 +92,7 @@ def _named(option: str, flags: str) -> bool:
 def apply_xla_defaults() -> None:
     """Add cdjax's XLA flags (XLA_DEFAULTS: CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG) to XLA_FLAGS,
     each unless the user set that option already. XLA reads XLA_FLAGS when a backend starts: `import cdjax` calls this
-    first thing, and warns (once) when a JAX backend had started before, so that the flags it adds cannot apply in
+    first thing, and warns when a JAX backend had started before, so that the flags it adds cannot apply in
     this process."""
     flags = os.environ.get("XLA_FLAGS", "")
     added = []

@@ -623,8 +623,13 @@ def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypa
     runtime.configure(compile_mode="default")  # configure's mode wins over the variable's
     assert arms._compiled(arm, "t", f.lower, x, owner=owner) is default and fast is not default
     assert seen == [runtime.SCHEDULING, {"xla_gpu_enable_triton_gemm": False, **runtime.SCHEDULING}]
+    # the deterministic mode's options are XLA's own names: XLA takes them for a program (an unknown one it refuses)
+    assert runtime.COMPILE_MODES["deterministic"] == {"xla_gpu_deterministic_ops": True, "xla_gpu_autotune_level": 0}
+    np.testing.assert_array_equal(f.lower(x).compile(runtime.compiler_options("deterministic"))(x), default(x))
+    with pytest.raises(Exception, match="xla_gpu_no_such_option"):
+        f.lower(x).compile({"xla_gpu_no_such_option": True})
     np.testing.assert_array_equal(default(x), fast(x))  # on a CPU the GPU option changes nothing
-    with pytest.raises(ConfigError, match="compile_mode must be one of default, fast, got 'turbo'"):
+    with pytest.raises(ConfigError, match="compile_mode must be one of default, fast, deterministic, got 'turbo'"):
         runtime.configure(compile_mode="turbo")
     monkeypatch.setattr(runtime, "_mode", None)
     monkeypatch.setenv(runtime.MODE_ENV, "turbo")
