@@ -95,6 +95,19 @@
 #            XLA's own program order (LHS), as `cmdbuf` does its flag (about 10 minutes). On 2026-11-27 (H100, run
 #            then as CONCURRENT against the default) every case 9.5-22% faster with CONCURRENT, Brax PPO's too
 #            (benchmarks/results/2026-11-27-h100-concurrent/).
+#   xla-own  cdjax's autotuner level and GEMM tilings (level 1, the cost model's top 2: cdjax.runtime.XLA_DEFAULTS)
+#            against XLA's own (XLA_FLAGS=--xla_gpu_autotune_level=4 --xla_gpu_experimental_cost_model_gemm_tiling_options=),
+#            as `concurrent` does its flag (flag_ab; about 10 minutes). Their cost at run time was measured only with the
+#            benchmarks running at XLA's own flags by mistake (the harness bug found on 2026-11-27,
+#            benchmarks/results/2026-11-27-h100-rerun/), and on 2026-11-27 (H100) the 10-seed paper-CD update took 0.582 s
+#            at cdjax's defaults against 0.529 s at XLA's level and search in an earlier lease
+#            (benchmarks/results/2026-11-27-h100-per-program/).
+#   determinism  the `deterministic` compile mode (CDJAX_COMPILE_MODE) in two processes, model-free and paper-CD, both
+#            programs (init and update) compiled in the mode; then XLA's deterministic ops alone, at cdjax's autotuner
+#            level, two processes of paper-CD (--base xla_gpu_deterministic_ops=true), and what they cost per update: the
+#            compare suite's model-free, Mb-Mf and paper-CD with XLA_FLAGS=--xla_gpu_deterministic_ops=true (about 9
+#            minutes). On 2026-11-27 (H100) the mode cost 1.71-1.87x per update, and the deterministic ops alone made two
+#            model-free processes identical (benchmarks/results/2026-11-27-h100-per-program/).
 #   identity whether cdjax's graph scheduling (CONCURRENT) computes what XLA's own (LHS) does, bit for bit (about
 #            12 minutes in all): `python -m benchmarks.same_results` on the compare suite's model-free, Mb-Mf and
 #            paper-CD cases, 3 updates each from key 0 in a process per mode (LHS twice: what two processes differ
@@ -244,10 +257,13 @@ export PYTHONUNBUFFERED=1
 sweep="--env ant --arms model-free mbmf cd-k5 cd --seeds 3"
 cd_run="--env ant --arms cd --seeds 3 --steps 8000000 --no-final-eval --no-progress"
 
-with_flag() {  # FLAG (NAME=VALUE) COMMANDS -> a bash line: COMMANDS with XLA_FLAGS=--FLAG where this image's XLA
-  # takes the flag (it aborts on one it does not know), else a sentence saying they were skipped
+with_flag() {  # FLAGS ("NAME=VALUE", or several separated by spaces) COMMANDS -> a bash line: COMMANDS with
+  # XLA_FLAGS=--FLAG ... where this image's XLA takes every one (it aborts on one it does not know), else a sentence
+  # saying they were skipped
   local flag=$1; shift
-  echo "if python -m benchmarks.xla_flags --accepts $flag > /dev/null; then (export XLA_FLAGS=--$flag; $*);" \
+  local exported
+  exported=$(printf -- '--%s ' $flag)
+  echo "if python -m benchmarks.xla_flags --accepts $flag > /dev/null; then (export XLA_FLAGS='${exported% }'; $*);" \
     "else echo 'this XLA refuses ${flag%%=*}: skipped'; fi;"
 }
 
@@ -259,11 +275,11 @@ flag_ab() {  # FLAG NAME -> a bash line: the compare suite (Brax PPO, model-free
   local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 150"
   echo "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-default > $work/compare-default.log 2>&1;" \
     "grep -H 's/update' $work/compare-default.log;" \
-    "$(with_flag $flag "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-$name" \
+    "$(with_flag "$flag" "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-$name" \
       "> $work/compare-$name.log 2>&1")" \
     "grep -H 's/update' $work/compare-$name.log;" \
     "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-default > $work/seeds-default.log 2>&1;" \
-    "$(with_flag $flag "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-$name" \
+    "$(with_flag "$flag" "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-$name" \
       "> $work/seeds-$name.log 2>&1")" \
     "grep -H -E 's/update|rror' $work/seeds-*.log $work/compare-*.log | grep -v -i warn"
 }
@@ -502,6 +518,18 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
     cublaslt) flag_ab xla_gpu_enable_cublaslt=false legacy ;;
     cmdbuf) flag_ab xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL while ;;
     concurrent) flag_ab xla_gpu_command_buffer_scheduling_mode=LHS lhs ;;
+    xla-own) flag_ab "xla_gpu_autotune_level=4 xla_gpu_experimental_cost_model_gemm_tiling_options=" xla-own ;;
+    determinism)
+      local lhs=xla_gpu_command_buffer_scheduling_mode=LHS
+      echo "CDJAX_COMPILE_MODE=deterministic timeout -k 20 300 python -m benchmarks.same_results --flags $lhs $lhs" \
+        "--cases model-free cd-paper --updates 3 --out $work/same-det > $work/same-det.log 2>&1;" \
+        "grep -v -i warn $work/same-det.log | tail -n 6;" \
+        "timeout -k 20 300 python -m benchmarks.same_results --flags $lhs $lhs --cases cd-paper" \
+        "--base xla_gpu_deterministic_ops=true --updates 3 --out $work/same-ops > $work/same-ops.log 2>&1;" \
+        "grep -v -i warn $work/same-ops.log | tail -n 5;" \
+        "$(with_flag xla_gpu_deterministic_ops=true "timeout -k 20 240 python -m benchmarks.run --suite compare" \
+          "--cases model-free mbmf cd-paper --budget-s 210 --out $work/compare-ops > $work/compare-ops.log 2>&1")" \
+        "grep -H ' s/update\|rror' $work/compare-ops.log | grep -v -i warn" ;;
     identity)
       local lhs=xla_gpu_command_buffer_scheduling_mode=LHS
       local modes="$lhs $lhs xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
@@ -578,7 +606,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, identity, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, identity, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

@@ -14,8 +14,11 @@ kernels must leave every array identical; a difference means it changed an order
 dependency. Name the reference setting twice to see what two processes at one setting differ by: on an H100
 (2026-11-27, benchmarks/results/2026-11-27-h100-identity/) two processes at one setting already differed in about
 half the arrays after 3 updates (the GPU's atomic sums and the autotuner's choices of kernel differ from run to run),
-so compare there with --base xla_gpu_deterministic_ops=true xla_gpu_autotune_level=0. Writes results.json and
-results.md under --out; exit status 1 when any array differs.
+so compare there with --base xla_gpu_deterministic_ops=true xla_gpu_autotune_level=0: with those, on 2026-11-27, LHS,
+LHS and CONCURRENT gave identical arrays (benchmarks/results/2026-11-27-h100-per-program/). Both programs (init and
+update) are compiled with cdjax.runtime.compiler_options, so a compile mode (CDJAX_COMPILE_MODE) reaches both; until
+2026-11-27 the init was not, and in the `deterministic` mode the physics arrays of its reset then differed between
+two processes. Writes results.json and results.md under --out; exit status 1 when any array differs.
 """
 
 from __future__ import annotations
@@ -93,8 +96,9 @@ def run_child(cases: list[str], updates: int, tiny: bool, path: str) -> None:
         _, overrides, hp_overrides = cdjax_cases(spec)[case]
         trainer = make_agent(spec.config(**overrides))
         hp = spec.hparams(**hp_overrides).as_float32()
-        state = jax.jit(trainer.init)(jax.random.key(0), hp)
-        update = jax.jit(trainer.update, compiler_options=runtime.compiler_options())  # as cdjax compiles it
+        options = runtime.compiler_options()  # both programs as cdjax compiles them (the runner compiles init so too)
+        state = jax.jit(trainer.init, compiler_options=options)(jax.random.key(0), hp)
+        update = jax.jit(trainer.update, compiler_options=options)
         metrics = {}
         for _ in range(updates):
             state, metrics = update(state, hp)

@@ -51,7 +51,9 @@ XLA_DEFAULTS = (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG)  #
 # bias sum beside its weight product, the consistency term's model rollout beside its GRU passes. One H100, one lease
 # (2026-11-27, benchmarks/results/2026-11-27-h100-concurrent/, then process-wide): per update model-free 0.359 against
 # 0.408 s, Mb-Mf 0.410 against 0.453, the paper's CD 0.618 against 0.735, at 10 vmapped seeds Mb-Mf 0.342 and the
-# paper's CD 0.529 (0.403 and 0.675 in program order). The price is memory: buffers are no longer reused between
+# paper's CD 0.529 (0.403 and 0.675 in program order). Per program, on another H100 (2026-11-27,
+# benchmarks/results/2026-11-27-h100-per-program/): model-free 0.373, Mb-Mf 0.388, the paper's CD 0.618 s, and with
+# XLA's deterministic ops and no autotuning the same arrays as program order, bit for bit. The price is memory: buffers are no longer reused between
 # kernels that may run at once, so XLA's compiled footprint about doubles (1.44 against 0.72 GiB for the paper's CD at
 # 4096 envs), and the pixel presets' update of 30 runs no longer fits an H100 (it asked for 49.5 GiB at once;
 # benchmarks/results/2026-11-27-h100-identity/). Hence per program, where cdjax can fall back: the sweep runner
@@ -77,8 +79,10 @@ COMPILE_MODES: dict[str, dict] = {
     # implementations of the ops that otherwise sum with atomics (scatter-adds, in the physics among others), and no
     # autotuning, whose choice of GEMM kernel depends on timings. On one H100 (2026-11-27,
     # benchmarks/results/2026-11-27-h100-identity/) two processes at XLA's settings differed in about half the arrays of
-    # the ant's state after 3 updates. Whether this mode makes them equal, and what it costs per update, is not yet
-    # measured (the `identity` unit of benchmarks/compile_units.sh). No effect on a CPU.
+    # the ant's state after 3 updates; with these two settings in XLA_FLAGS, model-free, Mb-Mf and the paper's CD gave
+    # identical arrays (benchmarks/results/2026-11-27-h100-per-program/). The price: 1.71-1.87x the time per update
+    # there. The mode's own two-process check is to be repeated (its init was compiled outside the mode; the
+    # `determinism` unit of benchmarks/compile_units.sh). No effect on a CPU.
     "deterministic": {"xla_gpu_deterministic_ops": True, "xla_gpu_autotune_level": 0},
 }
 _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "default"
