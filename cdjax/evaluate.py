@@ -110,14 +110,35 @@ def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool,
                    max_steps: int | None = None) -> Callable[..., dict[str, jax.Array]]:
     """jit(vmap(evaluate)) over runs: fn(policy [R], keys [R], hps [R]) -> results [R, ...].
 
-    Feed it `trainer.policy(state)` of a sweep's state and the stacked HParams of the same runs.
+    Feed it `trainer.policy(state)` of a sweep's state and the stacked HParams of the same runs. Compiled as cdjax
+    compiles its other programs, once per kind of input (`cdjax.runner.budget.compile_fitting`): with the compile
+    mode in force when it was made (so `--compile-mode deterministic` reaches the evaluations too) and the GPU's
+    data-flow scheduling, in program order where that would not fit in the device's free memory. Called inside
+    a trace (under your own jit), it is the plain jit(vmap(evaluate)).
     """
+    from cdjax import runtime
 
     def one(policy, key, hp):
         return evaluate(trainer, policy, key, episodes=episodes, hp=hp, deterministic=deterministic,
                         max_steps=max_steps)
 
-    return jax.jit(jax.vmap(one))
+    program = jax.jit(jax.vmap(one))
+    mode = runtime.compile_mode()
+    compiled: dict = {}
+
+    def evaluator(policy, keys, hps):
+        args = (policy, keys, hps)
+        leaves, treedef = jax.tree.flatten(args)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return program(*args)
+        signature = (treedef, tuple((jnp.shape(x), jnp.result_type(x), getattr(x, "sharding", None)) for x in leaves))
+        if signature not in compiled:
+            from cdjax.runner.budget import compile_fitting  # here: the runner imports this module
+
+            compiled[signature] = compile_fitting(program.lower(*args), mode=mode)[0]
+        return compiled[signature](*args)
+
+    return evaluator
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -131,6 +131,42 @@ def test_make_evaluator_vmaps_over_runs_and_records_round_trip(tmp_path):
     np.testing.assert_allclose(loaded["return"], np.asarray(results["return"]).mean(1), rtol=1e-6)
 
 
+def test_make_evaluator_compiles_once_per_input_kind_in_the_compile_mode_it_was_made_in(monkeypatch):
+    """The evaluator compiles as cdjax's other programs do (compile_fitting, the mode in force when it was made), once
+    per kind of input, and computes what the plain jit(vmap) does; inside a trace it is that jit."""
+    from cdjax import runtime
+    from cdjax.runner import budget
+
+    trainer = host_trainer(POINT)
+    _, init, _ = compiled(POINT)
+    policy = jax.tree.map(lambda x: jnp.stack([x, x]), trainer.policy(init(jax.random.key(1), HParams())))
+    hps = jax.tree.map(lambda x: jnp.stack([x, x]), HParams().as_float32())
+    keys = jax.random.split(jax.random.key(2), 2)
+    calls = []
+    real = budget.compile_fitting
+    monkeypatch.setattr(budget, "compile_fitting", lambda lowered, room=None, mode=None: calls.append(mode) or real(
+        lowered, room, mode))
+    monkeypatch.setattr(runtime, "_mode", "deterministic")
+    evaluator = make_evaluator(trainer, episodes=2, deterministic=True)
+    monkeypatch.setattr(runtime, "_mode", "fast")  # a later change of mode does not reach an evaluator made before
+    first = evaluator(policy, keys, hps)
+    second = evaluator(policy, jax.random.split(jax.random.key(3), 2), hps)
+    assert calls == ["deterministic"]  # one compile for both calls, in the mode of its making
+    evaluator(jax.tree.map(lambda x: x[:1], policy), keys[:1], jax.tree.map(lambda x: x[:1], hps))
+    assert calls == ["deterministic", "deterministic"]  # another run count: another program
+
+    def one(p, k, hp):
+        return evaluate(trainer, p, k, episodes=2, hp=hp, deterministic=True)
+
+    plain = jax.jit(jax.vmap(one))(policy, keys, hps)
+    for name in ("return", "discounted_return", "length"):
+        np.testing.assert_array_equal(first[name], plain[name])
+    assert not np.array_equal(first["initial_obs"], second["initial_obs"])  # the keys were used
+    traced = jax.jit(lambda p, k, h: evaluator(p, k, h)["return"])(policy, keys, hps)
+    np.testing.assert_array_equal(traced, plain["return"])
+    assert len(calls) == 2
+
+
 def test_render_video_without_a_model_says_why(tmp_path, capsys):
     _, init, _ = compiled(POINT)
     trainer = host_trainer(POINT)
