@@ -82,6 +82,13 @@
 #            the losses' backward (18.7 ms of Mb-Mf's 0.419 s update at 10 seeds; hlo-seeds, 2026-11-27). On 2026-11-27
 #            (H100): 10 seeds Mb-Mf 0.4038 against 0.4242 s/update, paper-CD 0.7015 against 0.7304; one seed 1-2%
 #            (benchmarks/results/2026-11-27-h100-shares/).
+#   outer    the `outer-dense` variant (benchmarks.variants: every dense layer of the agent's MLPs with its kernel's and
+#            bias's gradients as one product of [inputs, 1] with the cotangents) against the agent as it is, each in a
+#            process of its own (about 12 minutes): the compare suite (Brax PPO, model-free, Mb-Mf, paper-CD; Brax PPO's
+#            own layers are not changed), then the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs.
+#            Whether the bias and split-K reductions of the dense layers' backward (about 35 of model-free's 104 kernels
+#            per SGD step, benchmarks/results/2026-11-27-h100-hlo-model-free/) cost what issue 21's model-free target
+#            lacks (0.373 s per update against the 0.345 s that 1.5x Brax PPO's 0.518 s needs, 2026-11-27).
 #   kcache   XLA's kernel cache file (--xla_gpu_kernel_cache_file: the kernels of a compiled program are written to a
 #            file, and a later compile reuses the kernels whose fused computation it already holds): the cold 4-arm ant
 #            sweep at cdjax's defaults and with a fresh cache file, ABBA (about 6 minutes). The chunks all hold the
@@ -584,6 +591,15 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "timeout -k 20 200 python -m $v scalar-loss-metrics -- $cases --out $work/compare-scalars" \
         "> $work/compare-scalars.log 2>&1;" \
         "grep -H -E 'x10:|s/update' $work/seeds-*.log $work/compare-*.log" ;;
+    outer)
+      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 130"
+      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 200" v="benchmarks.variants"
+      echo "timeout -k 20 230 python -m benchmarks.run $cases --out $work/compare-plain > $work/compare-plain.log 2>&1;" \
+        "timeout -k 20 230 python -m $v outer-dense -- $cases --out $work/compare-outer" \
+        "> $work/compare-outer.log 2>&1;" \
+        "timeout -k 20 160 python -m benchmarks.run $seeds --out $work/seeds-plain > $work/seeds-plain.log 2>&1;" \
+        "timeout -k 20 160 python -m $v outer-dense -- $seeds --out $work/seeds-outer > $work/seeds-outer.log 2>&1;" \
+        "grep -H -E 'x10:|s/update' $work/compare-*.log $work/seeds-*.log" ;;
     kcache)
       local line="" v
       for v in default1 kcache1 kcache2 default2; do
@@ -606,7 +622,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, identity, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, outer, identity, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

@@ -24,6 +24,12 @@ Variants:
                    separate sum, instead of one product of [inputs, 1] with the cotangents (`consistency._outer`).
                    The same gradients up to rounding; on an H100 (2026-11-25) paper-CD's update took 0.839 s with
                    it against 0.805 s without.
+  outer-dense      every dense layer of the agent's MLPs (policy, value, dynamics model; not Brax PPO's) with a
+                   backward that gives its kernel's and bias's gradients as one product of [inputs, 1] with the
+                   outputs' cotangents (`consistency._outer`, as the fused chain does), instead of XLA's product and a
+                   two-stage bias sum. The same parameters and, up to rounding, the same gradients. On an H100
+                   (2026-11-27, benchmarks/results/2026-11-27-h100-hlo-model-free/) about 35 of model-free's 104
+                   kernels per SGD step were the dense layers' bias and split-K reductions.
   (pad-hidden, the fused chain's hidden widths zero-padded to a multiple of 128 once per minibatch, was removed
   after its A/B: paper-CD 0.7306 s/update with it against 0.7304 s without, one H100, 2026-11-25,
   benchmarks/results/2026-11-25-h100-probes/.)
@@ -60,8 +66,10 @@ from typing import Callable, Iterator
 import jax
 import jax.numpy as jnp
 
+import flax.linen as nn
+
 from cdjax import consistency
-from cdjax.agents.obs import agent, losses
+from cdjax.agents.obs import agent, losses, networks
 
 # the diagnostics (not loss terms) each loss function returns, by function name
 LOSS_METRICS = {"policy_terms": ("ppo/approx_kl", "ppo/clip_fraction"),
@@ -108,7 +116,38 @@ def _scalar_losses(fn: Callable, names: tuple[str, ...]) -> Callable:
     return wrapped
 
 
-VARIANTS = ("none", "no-loss-metrics", "scalar-loss-metrics", "bias-sum")
+@jax.custom_vjp
+def _affine(x: jax.Array, kernel: jax.Array, bias: jax.Array) -> jax.Array:
+    return x @ kernel + bias
+
+
+def _affine_fwd(x, kernel, bias):
+    return x @ kernel + bias, (x, kernel)
+
+
+def _affine_bwd(residuals, g):
+    x, kernel = residuals
+    dkernel, dbias = consistency._outer(x, g)  # summed over every leading axis, the bias as the product's last row
+    return g @ kernel.T, dkernel, dbias
+
+
+_affine.defvjp(_affine_fwd, _affine_bwd)
+
+
+class _OuterDense(nn.Dense):
+    """flax's Dense (the same parameters, initialisers and outputs) whose kernel and bias gradients are one product."""
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        kernel = self.param("kernel", self.kernel_init, (jnp.shape(x)[-1], self.features), self.param_dtype)
+        bias = self.param("bias", self.bias_init, (self.features,), self.param_dtype)
+        return _affine(x, kernel, bias)
+
+
+_OuterDense.__name__ = "Dense"  # flax names a submodule by its class: Dense_0, ... as with flax's own
+
+
+VARIANTS = ("none", "no-loss-metrics", "scalar-loss-metrics", "bias-sum", "outer-dense")
 
 
 @contextlib.contextmanager
@@ -118,6 +157,7 @@ def applied(variant: str) -> Iterator[None]:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
     outer, shared_terms, share_metrics = consistency._outer, dict(agent.SHARED_TERMS), agent.ObsAgent.share_metrics
+    dense = networks.Dense
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
@@ -129,12 +169,15 @@ def applied(variant: str) -> Iterator[None]:
         agent.ObsAgent.share_metrics = lambda self: tuple(n for n in share_metrics(self) if n not in scalars)
     if variant == "bias-sum":
         consistency._outer = _outer_bias_sum
+    if variant == "outer-dense":
+        networks.Dense = _OuterDense
     try:
         yield
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
         consistency._outer = outer
+        networks.Dense = dense
         agent.SHARED_TERMS.clear()
         agent.SHARED_TERMS.update(shared_terms)
         agent.ObsAgent.share_metrics = share_metrics

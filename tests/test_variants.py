@@ -108,3 +108,60 @@ def test_scalar_loss_metrics_logs_the_same_means_with_the_same_gradient():
         np.testing.assert_allclose(metrics_v[name], metrics[name], rtol=1e-5, atol=1e-6, err_msg=name)
     for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(params_v)):
         assert jnp.array_equal(a, b)
+
+
+def test_outer_dense_keeps_the_parameters_and_gives_the_same_gradients():
+    """`outer-dense`: the agent's MLPs with the one-product backward have the same parameter tree and outputs, and
+    the agent's loss the same gradient up to the rounding of a sum's order (it must reach every layer: policy, value,
+    model); undone after the block."""
+    from _shared import POINT
+
+    from cdjax import HParams
+    from cdjax.agents.obs import agent, networks
+
+    mlp = networks.MLP((8, 8), 3)
+    x = jax.random.normal(jax.random.PRNGKey(0), (2, 5, 4))
+    params = mlp.init(jax.random.PRNGKey(1), x)
+    with variants.applied("outer-dense"):
+        assert networks.Dense is not flax_dense()
+        params_v = mlp.init(jax.random.PRNGKey(1), x)
+        out_v = mlp.apply(params, x)
+    assert networks.Dense is flax_dense()
+    assert jax.tree.structure(params_v) == jax.tree.structure(params)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(params_v)):
+        assert jnp.array_equal(a, b)
+    np.testing.assert_array_equal(out_v, mlp.apply(params, x))
+
+    trainer = agent.make_agent(POINT.replace(arm="mbmf"))
+    hp = HParams(alpha=0.0).as_float32()
+    state = jax.jit(trainer.init)(jax.random.key(0), hp)
+    _, _, _, batch = jax.jit(trainer.collect)(state, hp, jax.random.key(1))
+    mb = jax.tree.map(lambda x: agent.to_segments(x, trainer.L)[:, :POINT.minibatch_seqs], batch)
+
+    def loss(p):
+        terms = trainer.loss_terms(p, state.norms, mb, jnp.arange(POINT.num_windows), hp)[0]
+        return sum(terms.values())
+
+    def grad():  # a new function each call, so that jit traces it again
+        return jax.jit(jax.grad(lambda p: loss(p)))(state.params)
+
+    def custom_layers():  # the layers whose backward is the variant's, in the loss as traced now
+        return str(jax.make_jaxpr(lambda p: loss(p))(state.params)).count("custom_vjp_call")
+
+    plain = grad()
+    assert custom_layers() == 0
+    with variants.applied("outer-dense"):
+        outer = grad()
+        assert custom_layers() == 7  # policy and value: 2 layers each; model: 1 and its two heads
+    assert jax.tree.structure(outer) == jax.tree.structure(plain)
+    nonzero = 0
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(plain), jax.tree.leaves(outer)):
+        np.testing.assert_allclose(b, a, rtol=2e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path))
+        nonzero += bool(jnp.any(a != 0))
+    assert nonzero >= 10  # policy, value and model layers all have gradients
+
+
+def flax_dense():
+    import flax.linen as nn
+
+    return nn.Dense

@@ -21,6 +21,9 @@ from cdjax.consistency import SequenceEncoder, init_encoder
 MODEL_LOG_STD_MIN = -6.0  # bounds of the dynamics model's predicted log standard deviation
 MODEL_LOG_STD_MAX = 1.0
 MIN_POLICY_STD = 1e-3  # floor of the state-dependent policy standard deviation (softplus(x) + floor)
+# The dense layer of the agent's MLPs (policy, value, dynamics model): flax's. A module global so that a what-if of
+# `benchmarks.variants` (outer-dense) can swap in a layer of the same parameters for one process.
+Dense = nn.Dense
 
 
 def action_distribution(mean: jax.Array, std: jax.Array) -> distrax.MultivariateNormalDiag:
@@ -69,8 +72,8 @@ class MLP(nn.Module):
         else:
             hidden, last = nn.initializers.orthogonal(jnp.sqrt(2.0)), nn.initializers.orthogonal(self.out_scale)
         for w in self.widths:
-            x = act(nn.Dense(w, kernel_init=hidden)(x))
-        return nn.Dense(self.out, kernel_init=last)(x)
+            x = act(Dense(w, kernel_init=hidden)(x))
+        return Dense(self.out, kernel_init=last)(x)
 
 
 class Policy(nn.Module):
@@ -125,9 +128,9 @@ class DynamicsModel(nn.Module):
     def __call__(self, obs, action):
         x = jnp.concatenate([obs, action], axis=-1)
         for w in self.hidden:  # the same ReLU torso as the Atari latent model's; the heads differ (a Gaussian here)
-            x = nn.relu(nn.Dense(w)(x))
-        mean = nn.Dense(self.obs_size + 1)(x)
-        raw = nn.Dense(self.obs_size + 1)(x)
+            x = nn.relu(Dense(w)(x))
+        mean = Dense(self.obs_size + 1)(x)
+        raw = Dense(self.obs_size + 1)(x)
         log_std = MODEL_LOG_STD_MIN + 0.5 * (MODEL_LOG_STD_MAX - MODEL_LOG_STD_MIN) * (jnp.tanh(raw) + 1.0)
         return mean, log_std
 
