@@ -520,27 +520,33 @@ def test_sweep_init_is_the_trainers_init_and_arms_share_a_reset_only_in_the_same
 
 def test_memory_check_traces_a_shared_reset_once_and_counts_what_init_gives(monkeypatch):
     """check_memory's state bytes are those of each trainer's whole init, while the physics reset of arms in the
-    same environments (and their evaluation environments' reset) is traced once for all of them."""
+    same environments is traced once for all of them, and that trace serves the reset program compile_all lowers
+    after it (the evaluation environments' reset is traced once more: another batch of the env)."""
     import cdjax.runner.arms as arms
+    from cdjax import envs, sweep
     from cdjax.agents.obs import SETTING
+    from cdjax.envs.point import PointMass
     from cdjax.runner import budget
 
     monkeypatch.setattr(arms, "_BUILT", {})
     monkeypatch.setattr(arms, "_COMPILED", {})
+    monkeypatch.setattr(envs, "_SHARED_ENVS", {})  # a fresh point env whose physics is traced anew
+    monkeypatch.setattr(envs, "_PHYSICS", {})
+    monkeypatch.setattr(sweep, "_RESETS", {})
+    traced = []
+    reset = PointMass.reset
+    monkeypatch.setattr(PointMass, "reset", lambda self, key: traced.append(1) or reset(self, key))
     spec = dataclasses.replace(SPEC, arms=("model-free", "mbmf", "cd-k3"), final_eval=True, eval_episodes=3)
     built = [arms.build(plan, spec, SETTING) for plan in plan_arms(spec)]
-    traced = []
-    for arm in built:  # count the traces of each arm's reset and evaluation reset
-        trainer = arm.trainer
-
-        def reset(key, trainer=trainer):
-            traced.append("reset")
-            return trainer.reset(key)
-
-        arm.trainer = dataclasses.replace(trainer, reset=reset,
-                                          eval_env=lambda n, trainer=trainer: _Counted(trainer.eval_env(n), traced))
+    for arm in built:
+        arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
+    assert len({id(arm.sweep.reset) for arm in built}) == 1
+    before = len(traced)  # building traced the env's reset once, for its observation size
     arms.check_memory(built, spec)
-    assert traced == ["reset", "eval"]
+    assert len(traced) == before + 2  # the shared reset over the runs, and the evaluation environments' reset
+    arm = built[0]
+    arms._lowered(arm, "reset", arm.sweep.reset.lower, arm.keys, owner=arm.sweep.reset)
+    assert len(traced) == before + 2  # the lowering of the reset program reused check_memory's trace
     key, hp = jax.random.key(0), HParams()
     for arm in built:
         assert arm.state_bytes == budget.tree_bytes(jax.eval_shape(arm.trainer.init, key, hp)) > 0

@@ -265,11 +265,21 @@ def _shared_shape(trainer: Trainer, what: tuple, make: Callable):
     return _COMPILED[key][1]
 
 
-def _init_shape(trainer: Trainer, key: jax.Array, hp):
-    """ShapeDtypeStructs of init(key, hp): init_from over the shared reset's shapes where the trainer offers it."""
+def _init_shape(arm: Arm, key: jax.Array, hp):
+    """ShapeDtypeStructs of one run's init(key, hp): init_from over the shared reset's shapes where the trainer offers
+    it. Those come from the sweep's own reset program over the arm's runs (arm.keys) where they are drawn: compile_all
+    lowers that program for the same inputs, and JAX keeps a jitted function's trace, so the physics reset is traced
+    once for both (a trace of the trainer's reset alone would not serve the program: under the vmap over runs JAX
+    traces the physics' jitted reset again). An MJX reset takes a second or more to trace."""
+    trainer = arm.trainer
     if trainer.reset is None or trainer.init_from is None:
         return jax.eval_shape(trainer.init, key, hp)
-    envs = _shared_shape(trainer, ("reset",), lambda: jax.eval_shape(trainer.reset, key))
+    if arm.keys is None or arm.sweep.reset is None:
+        envs = _shared_shape(trainer, ("reset",), lambda: jax.eval_shape(trainer.reset, key))
+    else:
+        runs = _shared_shape(trainer, ("reset", id(arm.sweep.reset), _avals((arm.keys,))),
+                             lambda: jax.eval_shape(arm.sweep.reset, arm.keys))
+        envs = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[1:], s.dtype), runs)
     return jax.eval_shape(trainer.init_from, key, hp, envs)
 
 
@@ -280,7 +290,8 @@ def _eval_reset_shape(trainer: Trainer, episodes: int, key: jax.Array):
 
 
 def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
-    """budget.check_states from the shapes of one run's state and evaluation; returns the states' bytes."""
+    """budget.check_states from the shapes of one run's state and evaluation; returns the states' bytes. Give the arms
+    their keys first (`Sweep.grid`): the reset program's trace is then shared with compile_all (_init_shape)."""
     key = jax.random.key(0)
     rows = []
     for arm in arms:
@@ -288,7 +299,7 @@ def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
         evaluated = spec.final_eval or spec.eval_every
         cache = (id(arm.sweep), "bytes", spec.eval_episodes if evaluated else 0, _avals(hp))
         if cache not in _COMPILED:
-            state = budget.tree_bytes(_init_shape(arm.trainer, key, hp))
+            state = budget.tree_bytes(_init_shape(arm, key, hp))
             evaluation = budget.tree_bytes(_eval_reset_shape(arm.trainer, spec.eval_episodes, key)) if evaluated else 0
             _COMPILED[cache] = (arm.sweep, (state, evaluation))
         state, evaluation = _COMPILED[cache][1]
