@@ -83,12 +83,14 @@
 #            (H100): 10 seeds Mb-Mf 0.4038 against 0.4242 s/update, paper-CD 0.7015 against 0.7304; one seed 1-2%
 #            (benchmarks/results/2026-11-27-h100-shares/).
 #   outer    the `outer-dense` variant (benchmarks.variants: every dense layer of the agent's MLPs with its kernel's and
-#            bias's gradients as one product of [inputs, 1] with the cotangents) against the agent as it is, each in a
-#            process of its own (about 12 minutes): the compare suite (Brax PPO, model-free, Mb-Mf, paper-CD; Brax PPO's
-#            own layers are not changed), then the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs.
-#            Whether the bias and split-K reductions of the dense layers' backward (about 35 of model-free's 104 kernels
-#            per SGD step, benchmarks/results/2026-11-27-h100-hlo-model-free/) cost what issue 21's model-free target
-#            lacks (0.373 s per update against the 0.345 s that 1.5x Brax PPO's 0.518 s needs, 2026-11-27).
+#            bias's gradients as one product of [inputs, 1] with the cotangents) and XLA's own autotuner level and GEMM
+#            search (as `xla-own`), each against the agent at cdjax's defaults, in processes of their own (about 16
+#            minutes): the compare suite (Brax PPO, model-free, Mb-Mf, paper-CD; Brax PPO's own layers are not changed
+#            by the variant), then the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs. Whether the bias
+#            and split-K reductions of the dense layers' backward (about 35 of model-free's 104 kernels per SGD step,
+#            benchmarks/results/2026-11-27-h100-hlo-model-free/) cost what issue 21's model-free target lacks (0.373 s
+#            per update against the 0.345 s that 1.5x Brax PPO's 0.518 s needs, 2026-11-27), and whether cdjax's
+#            autotuner level and tilings cost the 10-seed paper-CD update 10% (`xla-own`).
 #   kcache   XLA's kernel cache file (--xla_gpu_kernel_cache_file: the kernels of a compiled program are written to a
 #            file, and a later compile reuses the kernels whose fused computation it already holds): the cold 4-arm ant
 #            sweep at cdjax's defaults and with a fresh cache file, ABBA (about 6 minutes). The chunks all hold the
@@ -592,13 +594,18 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "> $work/compare-scalars.log 2>&1;" \
         "grep -H -E 'x10:|s/update' $work/seeds-*.log $work/compare-*.log" ;;
     outer)
-      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 130"
-      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 200" v="benchmarks.variants"
-      echo "timeout -k 20 230 python -m benchmarks.run $cases --out $work/compare-plain > $work/compare-plain.log 2>&1;" \
-        "timeout -k 20 230 python -m $v outer-dense -- $cases --out $work/compare-outer" \
+      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 110"
+      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 180" v="benchmarks.variants"
+      local own="xla_gpu_autotune_level=4 xla_gpu_experimental_cost_model_gemm_tiling_options="
+      echo "timeout -k 20 210 python -m benchmarks.run $cases --out $work/compare-plain > $work/compare-plain.log 2>&1;" \
+        "timeout -k 20 210 python -m $v outer-dense -- $cases --out $work/compare-outer" \
         "> $work/compare-outer.log 2>&1;" \
-        "timeout -k 20 160 python -m benchmarks.run $seeds --out $work/seeds-plain > $work/seeds-plain.log 2>&1;" \
-        "timeout -k 20 160 python -m $v outer-dense -- $seeds --out $work/seeds-outer > $work/seeds-outer.log 2>&1;" \
+        "$(with_flag "$own" "timeout -k 20 210 python -m benchmarks.run $cases --out $work/compare-xla-own" \
+          "> $work/compare-xla-own.log 2>&1")" \
+        "timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-plain > $work/seeds-plain.log 2>&1;" \
+        "timeout -k 20 140 python -m $v outer-dense -- $seeds --out $work/seeds-outer > $work/seeds-outer.log 2>&1;" \
+        "$(with_flag "$own" "timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-xla-own" \
+          "> $work/seeds-xla-own.log 2>&1")" \
         "grep -H -E 'x10:|s/update' $work/compare-*.log $work/seeds-*.log" ;;
     kcache)
       local line="" v
