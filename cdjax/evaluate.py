@@ -129,7 +129,7 @@ def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool,
     def evaluator(policy, keys, hps):
         args = (policy, keys, hps)
         leaves, treedef = jax.tree.flatten(args)
-        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        if any(_is_tracer(x) for x in leaves):
             return program(*args)
         signature = (treedef, tuple((jnp.shape(x), jnp.result_type(x), getattr(x, "sharding", None)) for x in leaves))
         if signature not in compiled:
@@ -139,6 +139,15 @@ def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool,
         return compiled[signature](*args)
 
     return evaluator
+
+
+def _is_tracer(x) -> bool:
+    """Whether x is a JAX tracer (an abstract value while a function is traced), not an array."""
+    try:
+        from jax.core import Tracer
+    except ImportError:  # a JAX that no longer exports it there
+        from jax._src.core import Tracer
+    return isinstance(x, Tracer)
 
 
 # ---------------------------------------------------------------------------------------------------

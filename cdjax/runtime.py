@@ -53,9 +53,9 @@ XLA_DEFAULTS = (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG)  #
 # 0.408 s, Mb-Mf 0.410 against 0.453, the paper's CD 0.618 against 0.735, at 10 vmapped seeds Mb-Mf 0.342 and the
 # paper's CD 0.529 (0.403 and 0.675 in program order). Per program, on another H100 (2026-11-27,
 # benchmarks/results/2026-11-27-h100-per-program/): model-free 0.373, Mb-Mf 0.388, the paper's CD 0.618 s, and with
-# XLA's deterministic ops and no autotuning the same arrays as program order, bit for bit. The price is memory: buffers are no longer reused between
-# kernels that may run at once, so XLA's compiled footprint about doubles (1.44 against 0.72 GiB for the paper's CD at
-# 4096 envs), and the pixel presets' update of 30 runs no longer fits an H100 (it asked for 49.5 GiB at once;
+# XLA's deterministic ops and no autotuning the same arrays as program order, bit for bit. The price is memory:
+# buffers are no longer reused between kernels that may run at once, so XLA's compiled footprint about doubles (1.44
+# against 0.72 GiB for the paper's CD at 4096 envs), and the pixel presets' update of 30 runs no longer fits an H100 (it asked for 49.5 GiB at once;
 # benchmarks/results/2026-11-27-h100-identity/). Hence per program, where cdjax can fall back: the sweep runner
 # compiles a program again in program order when it would not fit beside the states (`compile_fitting`), and the
 # process's other programs (Brax's, a user's own) keep XLA's scheduling. A user who names the option in XLA_FLAGS
