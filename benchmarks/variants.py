@@ -30,6 +30,12 @@ Variants:
                    two-stage bias sum. The same parameters and, up to rounding, the same gradients. On an H100
                    (2026-11-27, benchmarks/results/2026-11-27-h100-hlo-model-free/) about 35 of model-free's 104
                    kernels per SGD step were the dense layers' bias and split-K reductions.
+  grad-chunks      the fused consistency chain's weight gradients as sums of one product per 5 steps
+                   (`consistency.GRAD_CHUNK`), not one product over all k steps after the backward loop: each chunk's
+                   products depend only on its own steps' arrays, so with the GPU's data-flow scheduling they may run
+                   beside the rest of the backward, and no stack of all k steps' arrays waits at the end of each SGD
+                   step (on an H100, 2026-11-27, two such concatenations took about 21 ms of paper-CD's 0.618 s
+                   update, benchmarks/results/2026-11-27-h100-per-program/). The same gradients up to rounding.
   (pad-hidden, the fused chain's hidden widths zero-padded to a multiple of 128 once per minibatch, was removed
   after its A/B: paper-CD 0.7306 s/update with it against 0.7304 s without, one H100, 2026-11-25,
   benchmarks/results/2026-11-25-h100-probes/.)
@@ -147,7 +153,7 @@ class _OuterDense(nn.Dense):
 _OuterDense.__name__ = "Dense"  # flax names a submodule by its class: Dense_0, ... as with flax's own
 
 
-VARIANTS = ("none", "no-loss-metrics", "scalar-loss-metrics", "bias-sum", "outer-dense")
+VARIANTS = ("none", "no-loss-metrics", "scalar-loss-metrics", "bias-sum", "outer-dense", "grad-chunks")
 
 
 @contextlib.contextmanager
@@ -157,7 +163,7 @@ def applied(variant: str) -> Iterator[None]:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
     outer, shared_terms, share_metrics = consistency._outer, dict(agent.SHARED_TERMS), agent.ObsAgent.share_metrics
-    dense = networks.Dense
+    dense, grad_chunk = networks.Dense, consistency.GRAD_CHUNK
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
@@ -171,6 +177,8 @@ def applied(variant: str) -> Iterator[None]:
         consistency._outer = _outer_bias_sum
     if variant == "outer-dense":
         networks.Dense = _OuterDense
+    if variant == "grad-chunks":
+        consistency.GRAD_CHUNK = 5
     try:
         yield
     finally:
@@ -178,6 +186,7 @@ def applied(variant: str) -> Iterator[None]:
             setattr(losses, name, fn)
         consistency._outer = outer
         networks.Dense = dense
+        consistency.GRAD_CHUNK = grad_chunk
         agent.SHARED_TERMS.clear()
         agent.SHARED_TERMS.update(shared_terms)
         agent.ObsAgent.share_metrics = share_metrics

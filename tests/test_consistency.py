@@ -328,10 +328,11 @@ def test_final_beyond_clip_is_the_share_of_final_states_past_the_clip(spread, be
 
 
 @pytest.mark.parametrize("hidden,shared", [((16,), True), ((16, 12), False)])
-def test_the_fused_chain_is_autodiff_of_the_plain_loop_with_every_output(hidden, shared):
+def test_the_fused_chain_is_autodiff_of_the_plain_loop_with_every_output(hidden, shared, monkeypatch):
     """`fused_chain` against JAX's own gradient of k plain `mlp_step`s and GRU steps, with a loss on all three
     outputs (h_re, h_im and the final state s_k, which the terms use only in a metric), the GRU's real and imagined
-    rows' gradients scaled apart, on states far beyond CLIP (where the clip binds)."""
+    rows' gradients scaled apart, on states far beyond CLIP (where the clip binds); and so with its weight gradients
+    summed over chunks of steps (GRAD_CHUNK, the last chunk shorter)."""
     s0, actions, real = _real_windows(seed=4)
     model = _mlp_model(hidden=hidden)
     model = model.replace(obs=nz.update(nz.RunningStats.create(4), 0.025 * jax.random.normal(jax.random.key(7),
@@ -369,6 +370,11 @@ def test_the_fused_chain_is_autodiff_of_the_plain_loop_with_every_output(hidden,
         np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6,
                                    err_msg=jax.tree_util.keystr(path))
     assert float(jnp.abs(g_f[2]).max()) > 0 and float(jnp.abs(g_f[0].layers[-1][0]).max()) > 0
+    monkeypatch.setattr(cc, "GRAD_CHUNK", 4)  # K = 6 steps: chunks of 4 and 2
+    g_c = jax.jit(jax.grad(lambda *a: fused(*a), argnums=(0, 1, 2, 3, 4)))(*args)  # a new function: traced again
+    for (path, a), b, f in zip(jax.tree_util.tree_leaves_with_path(g_p), jax.tree.leaves(g_c), jax.tree.leaves(g_f)):
+        np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6, err_msg=jax.tree_util.keystr(path))
+        np.testing.assert_allclose(b, f, rtol=1e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path))
     s_k = cc.fused_chain(model, gru, s0, actions, x_re, enc_obs, scales, shared)[2]
     assert float(jnp.abs((s_k - model.obs.mean) / model.obs.std).max()) > nz.CLIP  # the states leave the clip's range
 

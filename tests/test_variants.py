@@ -165,3 +165,14 @@ def flax_dense():
     import flax.linen as nn
 
     return nn.Dense
+
+
+def test_grad_chunks_switches_the_chain_to_chunked_weight_gradients_only_inside_its_block():
+    """`grad-chunks` sets consistency.GRAD_CHUNK (whose gradients test_consistency checks against the plain loop)
+    inside its block only."""
+    from cdjax import consistency
+
+    assert consistency.GRAD_CHUNK is None
+    with variants.applied("grad-chunks"):
+        assert consistency.GRAD_CHUNK == 5
+    assert consistency.GRAD_CHUNK is None
