@@ -105,6 +105,13 @@ class Sweep:
             raise ValueError("this sweep was built without a phase (make_sweep(trainer, phase=...))")
         return self._phase
 
+    def key_shapes(self, num_runs: int) -> jax.ShapeDtypeStruct:
+        """What `grid`'s keys for `num_runs` runs are, without drawing them: [R padded] PRNG keys over the mesh (a
+        program traced for these shapes is traced once for the keys themselves too: JAX keeps a jitted function's
+        trace per input shapes and shardings)."""
+        padded = num_runs + (-num_runs) % self.num_devices
+        return jax.ShapeDtypeStruct((padded,), jax.random.key(0).dtype, sharding=self.sharding)
+
     def grid(self, seed: int, num_seeds: int, hps: Sequence[HP]) -> tuple[jax.Array, HP]:
         """Runs for every (hp, seed) pair, hp-major: run r = i * num_seeds + s.
 

@@ -538,13 +538,12 @@ def test_memory_check_traces_a_shared_reset_once_and_counts_what_init_gives(monk
     monkeypatch.setattr(PointMass, "reset", lambda self, key: traced.append(1) or reset(self, key))
     spec = dataclasses.replace(SPEC, arms=("model-free", "mbmf", "cd-k3"), final_eval=True, eval_episodes=3)
     built = [arms.build(plan, spec, SETTING) for plan in plan_arms(spec)]
-    for arm in built:
-        arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
     assert len({id(arm.sweep.reset) for arm in built}) == 1
     before = len(traced)  # building traced the env's reset once, for its observation size
-    arms.check_memory(built, spec)
+    arms.check_memory(built, spec)  # from shapes: the runs' keys are not drawn yet
     assert len(traced) == before + 2  # the shared reset over the runs, and the evaluation environments' reset
     arm = built[0]
+    arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
     arms._lowered(arm, "reset", arm.sweep.reset.lower, arm.keys, owner=arm.sweep.reset)
     assert len(traced) == before + 2  # the lowering of the reset program reused check_memory's trace
     key, hp = jax.random.key(0), HParams()

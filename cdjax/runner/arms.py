@@ -267,18 +267,20 @@ def _shared_shape(trainer: Trainer, what: tuple, make: Callable):
 
 def _init_shape(arm: Arm, key: jax.Array, hp):
     """ShapeDtypeStructs of one run's init(key, hp): init_from over the shared reset's shapes where the trainer offers
-    it. Those come from the sweep's own reset program over the arm's runs (arm.keys) where they are drawn: compile_all
-    lowers that program for the same inputs, and JAX keeps a jitted function's trace, so the physics reset is traced
-    once for both (a trace of the trainer's reset alone would not serve the program: under the vmap over runs JAX
-    traces the physics' jitted reset again). An MJX reset takes a second or more to trace."""
+    it. Those come from the sweep's own reset program over the shapes of the arm's runs' keys (`Sweep.key_shapes`;
+    the keys are drawn after this check, which must refuse absurd run counts in seconds): compile_all lowers that
+    program for the keys, and JAX keeps a jitted function's trace per input shapes and shardings, so the physics reset
+    is traced once for both (a trace of the trainer's reset alone would not serve the program: under the vmap over
+    runs JAX traces the physics' jitted reset again). An MJX reset takes a second or more to trace."""
     trainer = arm.trainer
     if trainer.reset is None or trainer.init_from is None:
         return jax.eval_shape(trainer.init, key, hp)
-    if arm.keys is None or arm.sweep.reset is None:
+    if arm.sweep.reset is None:
         envs = _shared_shape(trainer, ("reset",), lambda: jax.eval_shape(trainer.reset, key))
     else:
-        runs = _shared_shape(trainer, ("reset", id(arm.sweep.reset), _avals((arm.keys,))),
-                             lambda: jax.eval_shape(arm.sweep.reset, arm.keys))
+        keys = arm.sweep.key_shapes(arm.num_runs)
+        runs = _shared_shape(trainer, ("reset", id(arm.sweep.reset), _avals((keys,))),
+                             lambda: jax.eval_shape(arm.sweep.reset, keys))
         envs = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[1:], s.dtype), runs)
     return jax.eval_shape(trainer.init_from, key, hp, envs)
 
@@ -290,8 +292,8 @@ def _eval_reset_shape(trainer: Trainer, episodes: int, key: jax.Array):
 
 
 def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
-    """budget.check_states from the shapes of one run's state and evaluation; returns the states' bytes. Give the arms
-    their keys first (`Sweep.grid`): the reset program's trace is then shared with compile_all (_init_shape)."""
+    """budget.check_states from the shapes of one run's state and evaluation; returns the states' bytes. Nothing is
+    drawn or computed for the runs (the reset program's trace is shared with compile_all: _init_shape)."""
     key = jax.random.key(0)
     rows = []
     for arm in arms:

@@ -187,10 +187,10 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             progress = Progress(spec.progress, record["total_env_steps"], quiet=not writer)
             with host_time("build"):
                 arms = [build(plan, spec, setting) for plan in plans]
-            for arm in arms:
-                arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
             with host_time("memory"):
                 states = check_memory(arms, spec)
+            for arm in arms:
+                arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
             done = survey(rd, arms, restart) if resume else {}
             progress.say(f"Compiling the programs of {', '.join(a.name for a in arms)} (nothing is written before "
                          "they are compiled and fit in memory).")
