@@ -128,15 +128,14 @@ def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool,
 
     def evaluator(policy, keys, hps):
         args = (policy, keys, hps)
-        leaves, treedef = jax.tree.flatten(args)
-        if any(_is_tracer(x) for x in leaves):
+        if any(_is_tracer(x) for x in jax.tree.leaves(args)):
             return program(*args)
-        signature = (treedef, tuple((jnp.shape(x), jnp.result_type(x), getattr(x, "sharding", None)) for x in leaves))
-        if signature not in compiled:
-            from cdjax.runner.budget import compile_fitting  # here: the runner imports this module
+        from cdjax.runner import budget  # here: the runner imports this module
 
-            compiled[signature] = compile_fitting(program.lower(*args), mode=mode)[0]
-        return compiled[signature](*args)
+        key = budget.signature(args)
+        if key not in compiled:
+            compiled[key] = budget.compile_fitting(program.lower(*args), mode=mode)[0]
+        return compiled[key](*args)
 
     return evaluator
 

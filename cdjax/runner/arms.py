@@ -182,19 +182,11 @@ def expectation(arm: Arm) -> Callable[[dict | None], str | None]:
     return expect
 
 
-def _avals(tree) -> tuple:
-    """What a compiled program's inputs must be: the tree's structure, shapes, dtypes and shardings (static
-    values as they are)."""
-    leaves, treedef = jax.tree.flatten(tree)
-    return treedef, tuple((x.shape, str(x.dtype), getattr(x, "sharding", None)) if hasattr(x, "shape") else x
-                          for x in leaves)
-
-
 def _lowered(arm: Arm, what: str, lower: Callable, *args, owner=None):
     """lower(*args) of arm's sweep (or of `owner`, a function several sweeps share), from this process's cache when
     it was lowered before for the same inputs."""
     owner = arm.sweep if owner is None else owner
-    key = (id(owner), what, "lowered", _avals(args))
+    key = (id(owner), what, "lowered", budget.signature(args))
     if key not in _COMPILED:
         t0 = time.perf_counter()
         _COMPILED[key] = (owner, lower(*args))  # the owner held: its id stays its own while the entry lives
@@ -211,7 +203,7 @@ def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None, owner=None
     owner = arm.sweep if owner is None else owner
     mode = runtime.compile_mode()  # read once per call: a notebook may change it between sweeps
     options = runtime.compiler_options(mode)
-    key = (id(owner), what, _avals(args), mode, tuple(sorted(options.items())))
+    key = (id(owner), what, budget.signature(args), mode, tuple(sorted(options.items())))
     # init's and reset's outputs are the states themselves (budget.check_programs leaves them out alike)
     room = None if what in ("init", "reset") else getattr(arm, "room", None)
 
@@ -279,7 +271,7 @@ def _init_shape(arm: Arm, key: jax.Array, hp):
         envs = _shared_shape(trainer, ("reset",), lambda: jax.eval_shape(trainer.reset, key))
     else:
         keys = arm.sweep.key_shapes(arm.num_runs)
-        runs = _shared_shape(trainer, ("reset", id(arm.sweep.reset), _avals((keys,))),
+        runs = _shared_shape(trainer, ("reset", id(arm.sweep.reset), budget.signature((keys,))),
                              lambda: jax.eval_shape(arm.sweep.reset, keys))
         envs = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[1:], s.dtype), runs)
     return jax.eval_shape(trainer.init_from, key, hp, envs)
@@ -299,7 +291,7 @@ def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
     for arm in arms:
         hp = arm.plan.hparams[0]
         evaluated = spec.final_eval or spec.eval_every
-        cache = (id(arm.sweep), "bytes", spec.eval_episodes if evaluated else 0, _avals(hp))
+        cache = (id(arm.sweep), "bytes", spec.eval_episodes if evaluated else 0, budget.signature(hp))
         if cache not in _COMPILED:
             state = budget.tree_bytes(_init_shape(arm, key, hp))
             evaluation = budget.tree_bytes(_eval_reset_shape(arm.trainer, spec.eval_episodes, key)) if evaluated else 0
@@ -356,7 +348,7 @@ def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
                 jobs.append((arm, "init", _compiled(arm, "init", arm.sweep.init.lower, arm.keys, arm.hps, pool=pool)))
             else:  # the environments' reset, shared by the arms in the same ones, then the rest of the init
                 reset = arm.sweep.reset
-                shared = (id(reset), _avals((arm.keys,)))
+                shared = (id(reset), budget.signature((arm.keys,)))
                 if shared not in resets:
                     resets[shared] = _compiled(arm, "reset", reset.lower, arm.keys, pool=pool, owner=reset)
                 envs = abstract(_lowered(arm, "reset", reset.lower, arm.keys, owner=reset).out_info)

@@ -89,6 +89,14 @@ def program_bytes(compiled) -> int | None:
     return int(m.output_size_in_bytes) - int(m.alias_size_in_bytes) + int(m.temp_size_in_bytes)
 
 
+def signature(tree) -> tuple:
+    """What a compiled program's inputs must be: the tree's structure, shapes, dtypes and shardings (static
+    values as they are). A key for the programs compiled for those inputs."""
+    leaves, treedef = jax.tree.flatten(tree)
+    return treedef, tuple((x.shape, str(x.dtype), getattr(x, "sharding", None)) if hasattr(x, "shape") else x
+                          for x in leaves)
+
+
 def fits(program, room: int | None) -> bool:
     """Whether a compiled program's outputs and temporaries (program_bytes) fit in `room` bytes (None, or a size the
     backend does not report: yes)."""
