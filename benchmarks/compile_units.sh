@@ -75,6 +75,11 @@
 #            CONDITIONAL: no host round trip for a loop's predicate, no launch per pass), as `cublaslt` does its flag
 #            (flag_ab). On 2026-11-27 (H100) 0.7-3.2% slower in every case, not adopted
 #            (benchmarks/results/2026-11-27-h100-cmdbuf/).
+#   tuned    cdjax's `tuned` compile mode (per program: XLA's own autotuner level and GEMM tiling search) against its
+#            defaults, about 13 minutes: the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs at the
+#            defaults, in the mode, and with XLA's own tiling search alone (process-wide: which of the two settings
+#            the 10-seed gain of the `outer` unit's xla-own part comes from); then the compare suite in the mode (Brax
+#            PPO stays at cdjax's process flags), and the cold 4-arm ant sweep compiled in it.
 #   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars
 #            reduced in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of
 #            its own (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the
@@ -612,6 +617,19 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "$(with_flag "$own" "timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-xla-own" \
           "> $work/seeds-xla-own.log 2>&1")" \
         "grep -H -E 'x10:|s/update' $work/compare-*.log $work/seeds-*.log" ;;
+    tuned)
+      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 110"
+      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 180"
+      echo "timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-plain > $work/seeds-plain.log 2>&1;" \
+        "CDJAX_COMPILE_MODE=tuned timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-tuned" \
+        "> $work/seeds-tuned.log 2>&1;" \
+        "$(with_flag xla_gpu_experimental_cost_model_gemm_tiling_options= "timeout -k 20 140 python -m benchmarks.run" \
+          "$seeds --out $work/seeds-tilings > $work/seeds-tilings.log 2>&1")" \
+        "CDJAX_COMPILE_MODE=tuned timeout -k 20 210 python -m benchmarks.run $cases --out $work/compare-tuned" \
+        "> $work/compare-tuned.log 2>&1;" \
+        "CDJAX_COMPILE_MODE=tuned timeout -k 20 150 python -m benchmarks.compile_time --out $work/cold-tuned" \
+        "--cache-dir $work/cache-tuned -- $sweep > $work/cold-tuned.log 2>&1;" \
+        "grep -H -E 'x10:|s/update|training would' $work/seeds-*.log $work/compare-*.log $work/cold-*.log" ;;
     chunks)
       local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 110"
       local cases="--suite compare --cases mbmf cd-paper --budget-s 120" v="benchmarks.variants" line="" x n=0
@@ -644,7 +662,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, outer, chunks, identity, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, outer, chunks, tuned, identity, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

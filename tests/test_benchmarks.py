@@ -625,11 +625,16 @@ def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypa
     assert seen == [runtime.SCHEDULING, {"xla_gpu_enable_triton_gemm": False, **runtime.SCHEDULING}]
     # the deterministic mode's options are XLA's own names: XLA takes them for a program (an unknown one it refuses)
     assert runtime.COMPILE_MODES["deterministic"] == {"xla_gpu_deterministic_ops": True, "xla_gpu_autotune_level": 0}
-    np.testing.assert_array_equal(f.lower(x).compile(runtime.compiler_options("deterministic"))(x), default(x))
+    for mode in ("deterministic", "tuned"):
+        np.testing.assert_array_equal(f.lower(x).compile(runtime.compiler_options(mode))(x), default(x))
+    # the tuned mode undoes, per program, exactly the two autotuning flags `import cdjax` adds
+    added = {flag.split("=")[0].lstrip("-") for flag in (runtime.GPU_AUTOTUNE_FLAG, runtime.GPU_GEMM_TILINGS_FLAG)}
+    assert set(runtime.COMPILE_MODES["tuned"]) == added
+    assert runtime.COMPILE_MODES["tuned"]["xla_gpu_autotune_level"] == 4  # XLA's own level
     with pytest.raises(Exception, match="xla_gpu_no_such_option"):
         f.lower(x).compile({"xla_gpu_no_such_option": True})
     np.testing.assert_array_equal(default(x), fast(x))  # on a CPU the GPU option changes nothing
-    with pytest.raises(ConfigError, match="compile_mode must be one of default, fast, deterministic, got 'turbo'"):
+    with pytest.raises(ConfigError, match="compile_mode must be one of default, fast, deterministic, tuned, got 'turbo'"):
         runtime.configure(compile_mode="turbo")
     monkeypatch.setattr(runtime, "_mode", None)
     monkeypatch.setenv(runtime.MODE_ENV, "turbo")
