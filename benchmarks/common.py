@@ -227,6 +227,8 @@ def cleanup():
 def device_info() -> dict:
     import jax
 
+    from cdjax import runtime
+
     devs = jax.devices()
     versions = {"jax": jax.__version__}
     for name in ("jaxlib", "brax", "mujoco", "mujoco_mjx", "flax", "optax"):
@@ -245,6 +247,9 @@ def device_info() -> dict:
         "bytes_limit": bytes_limit(),
         "versions": versions,
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        # what cdjax's own programs are compiled with beside the flags (compile mode, data-flow scheduling)
+        "compile_mode": runtime.compile_mode(),
+        "compiler_options": runtime.compiler_options(),
         "mem_fraction": os.environ.get("XLA_PYTHON_CLIENT_MEM_FRACTION", ""),
         "preallocate": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", ""),
     }
