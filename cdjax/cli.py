@@ -58,11 +58,13 @@ def _runtime_options() -> argparse.ArgumentParser:
     group.add_argument("--cache-dir", metavar="DIR", help="JAX's persistent compilation cache (default "
                        f"${runtime.CACHE_ENV}, else ~/.cache/cdjax/jax)")
     group.add_argument("--compile-mode", choices=list(runtime.COMPILE_MODES),
-                       help="what cdjax asks of XLA for its programs: default (XLA's settings), fast (on a GPU, "
-                            "Triton's GEMM fusions off: a quarter to half less cold compile time, each update 5-19%% "
-                            "slower as measured: for short runs) or deterministic (on a GPU, no atomic sums and no "
-                            "autotuning, so that another process repeats the run bit for bit; its cost not yet "
-                            f"measured); default ${runtime.MODE_ENV}, else default")
+                       help="what cdjax asks of XLA for its programs: default (the XLA flags cdjax sets, which "
+                            "shorten GPU compiles), fast (on a GPU, Triton's GEMM fusions off: a quarter to half less "
+                            "cold compile time, each update 5-19%% slower as measured: for short runs), tuned (on a "
+                            "GPU, XLA's full autotuning: compiles about a quarter longer, the paper's CD 10%% faster "
+                            "at 10 seeds as measured: for long sweeps) or deterministic (on a GPU, no atomic sums and "
+                            "no autotuning, so that another process repeats the run bit for bit; updates 1.7-1.9x "
+                            "longer as measured); default $" + runtime.MODE_ENV + ", else default")
     group.add_argument("--debug-nans", action="store_true", help="stop at the first operation that makes a NaN")
     group.add_argument("--disable-jit", action="store_true", help="run op by op (slow; for debugging)")
     return parent

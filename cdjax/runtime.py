@@ -86,10 +86,12 @@ COMPILE_MODES: dict[str, dict] = {
     "deterministic": {"xla_gpu_deterministic_ops": True, "xla_gpu_autotune_level": 0},
     # XLA's own autotuning for cdjax's programs: its default level (4) and its full search of Triton GEMM tilings, in
     # place of the two flags `import cdjax` adds for compile time (GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG). For long
-    # sweeps, where a compile is paid once and every update is faster. One H100 (2026-11-27, the `outer` unit of
-    # benchmarks/compile_units.sh, these settings process-wide): at 10 vmapped seeds of 256 envs Mb-Mf 0.326 against
-    # 0.347 s per update and the paper's CD 0.533 against 0.572; at 4096 envs model-free 0.364 against 0.379, Mb-Mf and
-    # the paper's CD unchanged; the compiles 10-30% longer. No effect on a CPU.
+    # sweeps, where a compile is paid once and every update is faster. One H100 (2026-11-27,
+    # benchmarks/results/2026-11-27-h100-tuned/): at 10 vmapped seeds of 256 envs the paper's CD ran 0.528 against
+    # 0.586 s per update (Mb-Mf 0.326 against 0.331), its program compiling 38 against 28 s; the cold 4-arm ant sweep
+    # started training after 97 s (76 s at the defaults, on another host). The gain is the tiling search's: the cost
+    # model's top two miss the batched GEMMs of the vmapped chain. At 4096 envs and one seed the arms ran within the
+    # spread between processes (benchmarks/results/2026-11-27-h100-outer/). No effect on a CPU.
     "tuned": {"xla_gpu_autotune_level": 4, "xla_gpu_experimental_cost_model_gemm_tiling_options": ""},
 }
 _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "default"

@@ -165,6 +165,10 @@ def test_tiny_suite_measures_every_case(tiny):
     assert len(brax["epoch_s_all"]) == 5 and brax["env_class"] == "PointMass"
     meta = results["metas"][0]
     assert meta["tiny"] and meta["device_count"] >= 1 and meta["command"].startswith("python -m benchmarks.run")
+    # the compile mode and per-program options the cdjax cases were compiled with (no process flag says them)
+    from cdjax import runtime
+
+    assert meta["compile_mode"] == runtime.compile_mode() and meta["compiler_options"] == runtime.compiler_options()
     assert (out / "results.png").stat().st_size > 0
 
 
