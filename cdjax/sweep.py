@@ -161,7 +161,6 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
             lambda s, h, *r: per_device(s, h, *r, *static), mesh=mesh,
             in_specs=(runs, runs) + (replicated,) * len(rest), out_specs=runs, check_vma=False)(state, hps, *rest)
 
-    reset = init_from = None
     if getattr(trainer, "reset", None) is not None and getattr(trainer, "init_from", None) is not None:
         reset = shared_reset(trainer, mesh, place)
 
@@ -172,6 +171,7 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
         def init(keys, hps):
             return init_from(keys, hps, reset(keys))
     else:
+        reset = init_from = None
 
         @jax.jit
         def init(keys, hps):
@@ -205,13 +205,14 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
     def chunk(state, hps, length, n):
         return over_runs(first_updates, length)(state, hps, n)
 
-    phase_run = None
     if phase is not None:
 
         @functools.partial(jax.jit, donate_argnums=0)
         def phase_run(state, hps):
             state, info = jax.vmap(phase)(state, hps)
             return place(state), place(info)
+    else:
+        phase_run = None
 
     return Sweep(trainer=trainer, mesh=mesh, init=init, _run=run, _phase=phase_run, _chunk=chunk, split=split,
                  reset=reset, init_from=init_from)
