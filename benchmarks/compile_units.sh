@@ -75,6 +75,10 @@
 #            CONDITIONAL: no host round trip for a loop's predicate, no launch per pass), as `cublaslt` does its flag
 #            (flag_ab). On 2026-11-27 (H100) 0.7-3.2% slower in every case, not adopted
 #            (benchmarks/results/2026-11-27-h100-cmdbuf/).
+#   learn-more seeds 5-9 of the learning benchmark on $LEARN_TASK (default ant) for cdjax's model-free arm and Brax PPO,
+#            side by side (about 9 minutes): with the committed rows of seeds 0-4, ten seeds a learner. On 2026-11-27
+#            ant's final IQM at 5 seeds was 2390.3 against Brax PPO's 2428.6, the intervals overlapping almost entirely
+#            (benchmarks/results/2026-11-27-h100-learn-per-program/).
 #   tuned    cdjax's `tuned` compile mode (per program: XLA's own autotuner level and GEMM tiling search) against its
 #            defaults, about 13 minutes: the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs at the
 #            defaults, in the mode, and with XLA's own tiling search alone (process-wide: which of the two settings
@@ -508,6 +512,17 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
+    learn-more)
+      # seeds 5-9 of the learning benchmark on ${LEARN_TASK:-ant}, cdjax's model-free arm (vmapped) and Brax PPO (one seed
+      # at a time) side by side on the one GPU: with the rows of seeds 0-4 (benchmarks/results/), 10 seeds a learner
+      local t=${LEARN_TASK:-ant}
+      echo "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 560 python -m benchmarks.learning --tasks $t" \
+        "--frameworks cdjax --variants default --seeds 5 --first-seed 5 --out $work/learn/$t-cdjax" \
+        "> $work/learn-$t-cdjax.log 2>&1 &" \
+        "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 560 python -m benchmarks.learning --tasks $t" \
+        "--frameworks brax --seeds 5 --first-seed 5 --budget-s 480 --cache-dir $work/jc --out $work/learn/$t-brax" \
+        "> $work/learn-$t-brax.log 2>&1 &" \
+        "wait; tail -n 3 $work/learn-*.log" ;;
     sched)
       local line="" i v
       for i in 1 2; do
@@ -662,7 +677,18 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, outer, chunks, tuned, identity, top1, seeds, hlo-seeds, learn, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    learn-more)
+      # seeds 5-9 of the learning benchmark on ${LEARN_TASK:-ant}, cdjax's model-free arm (vmapped) and Brax PPO (one seed
+      # at a time) side by side on the one GPU: with the rows of seeds 0-4 (benchmarks/results/), 10 seeds a learner
+      local t=${LEARN_TASK:-ant}
+      echo "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 560 python -m benchmarks.learning --tasks $t" \
+        "--frameworks cdjax --variants default --seeds 5 --first-seed 5 --out $work/learn/$t-cdjax" \
+        "> $work/learn-$t-cdjax.log 2>&1 &" \
+        "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 560 python -m benchmarks.learning --tasks $t" \
+        "--frameworks brax --seeds 5 --first-seed 5 --budget-s 480 --cache-dir $work/jc --out $work/learn/$t-brax" \
+        "> $work/learn-$t-brax.log 2>&1 &" \
+        "wait; tail -n 3 $work/learn-*.log" ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, outer, chunks, tuned, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
