@@ -677,17 +677,6 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    learn-more)
-      # seeds 5-9 of the learning benchmark on ${LEARN_TASK:-ant}, cdjax's model-free arm (vmapped) and Brax PPO (one seed
-      # at a time) side by side on the one GPU: with the rows of seeds 0-4 (benchmarks/results/), 10 seeds a learner
-      local t=${LEARN_TASK:-ant}
-      echo "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 560 python -m benchmarks.learning --tasks $t" \
-        "--frameworks cdjax --variants default --seeds 5 --first-seed 5 --out $work/learn/$t-cdjax" \
-        "> $work/learn-$t-cdjax.log 2>&1 &" \
-        "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 560 python -m benchmarks.learning --tasks $t" \
-        "--frameworks brax --seeds 5 --first-seed 5 --budget-s 480 --cache-dir $work/jc --out $work/learn/$t-brax" \
-        "> $work/learn-$t-brax.log 2>&1 &" \
-        "wait; tail -n 3 $work/learn-*.log" ;;
     *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, outer, chunks, tuned, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
