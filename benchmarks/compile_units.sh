@@ -75,6 +75,10 @@
 #            CONDITIONAL: no host round trip for a loop's predicate, no launch per pass), as `cublaslt` does its flag
 #            (flag_ab). On 2026-11-27 (H100) 0.7-3.2% slower in every case, not adopted
 #            (benchmarks/results/2026-11-27-h100-cmdbuf/).
+#   topn     the cost model's top N GEMM tilings (TOPN, default "4 8"; cdjax keeps 2) process-wide, about 10 minutes:
+#            the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs at cdjax's default and at each N,
+#            and the cold 4-arm ant sweep at each N. XLA's own search made paper-CD 10% faster at 10 seeds and the cold
+#            sweep about a quarter longer (benchmarks/results/2026-11-27-h100-tuned/).
 #   learn-more seeds 5-9 of the learning benchmark on $LEARN_TASK (default ant) for cdjax's model-free arm and Brax PPO,
 #            side by side (about 9 minutes): with the committed rows of seeds 0-4, ten seeds a learner. On 2026-11-27
 #            ant's final IQM at 5 seeds was 2390.3 against Brax PPO's 2428.6, the intervals overlapping almost entirely
@@ -632,6 +636,18 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "$(with_flag "$own" "timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-xla-own" \
           "> $work/seeds-xla-own.log 2>&1")" \
         "grep -H -E 'x10:|s/update' $work/compare-*.log $work/seeds-*.log" ;;
+    topn)
+      # the cost model's top N GEMM tilings (cdjax's default keeps 2): whether a few more catch the 10-seed gain of
+      # XLA's own search (the `tuned` unit) at less compile time
+      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 110" line="" n
+      line="timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-top2 > $work/seeds-top2.log 2>&1;"
+      for n in ${TOPN:-4 8}; do
+        local opt="xla_gpu_experimental_cost_model_gemm_tiling_options=top=$n,top_from_default=1"
+        line+=" $(with_flag "$opt" "timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-top$n" \
+          "> $work/seeds-top$n.log 2>&1; timeout -k 20 150 python -m benchmarks.compile_time --out $work/cold-top$n" \
+          "--cache-dir $work/cache-top$n -- $sweep > $work/cold-top$n.log 2>&1")"
+      done
+      echo "$line grep -H -E 'x10:|training would' $work/seeds-*.log $work/cold-*.log" ;;
     tuned)
       local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 110"
       local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 180"
@@ -677,7 +693,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, outer, chunks, tuned, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, outer, chunks, tuned, topn, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

@@ -638,7 +638,8 @@ def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypa
     with pytest.raises(Exception, match="xla_gpu_no_such_option"):
         f.lower(x).compile({"xla_gpu_no_such_option": True})
     np.testing.assert_array_equal(default(x), fast(x))  # on a CPU the GPU option changes nothing
-    with pytest.raises(ConfigError, match="compile_mode must be one of default, fast, deterministic, tuned, got 'turbo'"):
+    with pytest.raises(ConfigError, match="compile_mode must be one of default, fast, deterministic, tuned, "
+                                          "got 'turbo'"):
         runtime.configure(compile_mode="turbo")
     monkeypatch.setattr(runtime, "_mode", None)
     monkeypatch.setenv(runtime.MODE_ENV, "turbo")
