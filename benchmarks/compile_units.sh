@@ -84,10 +84,12 @@
 #            ant's final IQM at 5 seeds was 2390.3 against Brax PPO's 2428.6, the intervals overlapping almost entirely
 #            (benchmarks/results/2026-11-27-h100-learn-per-program/).
 #   tuned    cdjax's `tuned` compile mode (per program: XLA's own autotuner level and GEMM tiling search) against its
-#            defaults, about 13 minutes: the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs at the
+#            defaults, about 11 minutes: the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs at the
 #            defaults, in the mode, and with XLA's own tiling search alone (process-wide: which of the two settings
 #            the 10-seed gain of the `outer` unit's xla-own part comes from); then the compare suite in the mode (Brax
-#            PPO stays at cdjax's process flags), and the cold 4-arm ant sweep compiled in it.
+#            PPO stays at cdjax's process flags), and the cold 4-arm ant sweep compiled in it. On 2026-11-27 (H100)
+#            paper-CD at 10 seeds 0.528 s per update in the mode against 0.586 at the defaults, 0.525 with the tiling
+#            search alone; the cold sweep 97.0 s (benchmarks/results/2026-11-27-h100-tuned/).
 #   shares   the SGD's logged loss values as per-sample shares (cdjax's default since 2026-11-27) against scalars
 #            reduced in every step (`benchmarks.variants scalar-loss-metrics`, the code before), each in a process of
 #            its own (about 12 minutes): the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs, then the
