@@ -14,6 +14,7 @@ says why in one sentence and returns None.
 
 from __future__ import annotations
 
+import functools
 import os
 import pathlib
 from typing import Any, Callable, Sequence
@@ -142,11 +143,17 @@ def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool,
 
 def _is_tracer(x) -> bool:
     """Whether x is a JAX tracer (an abstract value while a function is traced), not an array."""
+    return isinstance(x, _tracer_type())
+
+
+@functools.cache
+def _tracer_type() -> type:
+    """JAX's Tracer class, looked up once."""
     try:
         from jax.core import Tracer
     except ImportError:  # a JAX that no longer exports it there
         from jax._src.core import Tracer
-    return isinstance(x, Tracer)
+    return Tracer
 
 
 # ---------------------------------------------------------------------------------------------------
