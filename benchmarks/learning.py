@@ -21,7 +21,9 @@ Every row is appended to DIR/rows.jsonl as soon as it is measured (a run cut sho
 DIR/meta.json records the device, versions, specs and command, and for cdjax the code (commit, where git can tell)
 and the whole Config each variant ran with (what `default` meant then). `--report` turns one or more such
 directories into a markdown table (final IQM with 95% stratified-bootstrap intervals per task and
-learner, area under the curve, env steps/s) and a curve plot.
+learner, area under the curve, env steps/s), the probability that a cdjax seed ends above a Brax PPO seed (rliable's
+P(X > Y), with its interval), and a curve plot. A seed whose run stopped before the last evaluation (a time limit)
+is left out and named, while at least half the learner's seeds reached it.
 """
 
 from __future__ import annotations

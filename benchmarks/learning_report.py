@@ -33,7 +33,7 @@ def split_source(source: str | pathlib.Path) -> tuple[pathlib.Path, str | None, 
 
 def load(dirs: list[pathlib.Path | str]) -> tuple[list[dict], list[dict]]:
     """(rows, metas) of every directory (DIR, DIR@FRAMEWORK or DIR@cdjax=NAME, see `split_source`); a row carries
-    its directory's device in `device`."""
+    its directory's device in `device` and the directory in `source` (one run's rows)."""
     rows, metas = [], []
     for source in dirs:
         d, framework, name = split_source(source)
@@ -46,7 +46,8 @@ def load(dirs: list[pathlib.Path | str]) -> tuple[list[dict], list[dict]]:
             if line.strip():
                 row = json.loads(line)
                 if framework is None or row["framework"] == framework:
-                    rows.append({**row, "device": meta.get("device", "?"), **({"variant": name} if name else {})})
+                    rows.append({**row, "device": meta.get("device", "?"), "source": str(d),
+                                 **({"variant": name} if name else {})})
     return rows, metas
 
 
@@ -74,13 +75,21 @@ def curves(rows: list[dict]) -> dict[tuple[str, str], dict]:
 
 
 def _sps(c: dict) -> float:
-    """Training env steps per second (all seeds together for cdjax; per seed, Brax's own figure, for Brax)."""
+    """Training env steps per second (for cdjax, all of a run's seeds together, the median over its runs; for Brax,
+    per seed, the median of Brax's own figure)."""
     rs = c["rows"]
     if rs[0]["framework"] == "brax":
         sps = [r["train_s"] for r in rs if r.get("train_s")]  # Brax's training/sps
         return float(np.median(sps)) if sps else math.nan
-    last = max(rs, key=lambda r: r["env_steps"])
-    return last["env_steps"] * len(c["seeds"]) / last["train_s"] if last["train_s"] else math.nan
+    runs = defaultdict(list)  # a learner's seeds may come from several runs (sources), each with its own time
+    for r in rs:
+        runs[r.get("source")].append(r)
+    sps = []
+    for run in runs.values():
+        last = max(run, key=lambda r: r["env_steps"])
+        if last["train_s"]:
+            sps.append(last["env_steps"] * len({r["seed"] for r in run}) / last["train_s"])
+    return float(np.median(sps)) if sps else math.nan
 
 
 def _devices(rows: list[dict]) -> str:
@@ -89,22 +98,39 @@ def _devices(rows: list[dict]) -> str:
     return " + ".join(dict.fromkeys(r.get("device", "?") for r in rows))
 
 
+def final_step(returns: np.ndarray) -> tuple[int, np.ndarray]:
+    """(the evaluation the final return is read at, which seeds it is read over) for returns [S, P]. Normally the
+    last evaluation, over every seed. A seed whose run stopped early (a time limit cut it) has none there: it is left
+    out, so long as at least half the seeds reached the end, rather than cutting every seed back to where the
+    shortest stopped (which would set one learner's early return beside another's final one). With fewer than half
+    at the end, the last evaluation every seed reached, over all of them. (-1, none) when no evaluation has all."""
+    reached = np.isfinite(returns[:, -1])
+    if 2 * reached.sum() >= len(reached) and reached.any():
+        return returns.shape[1] - 1, reached
+    complete = np.isfinite(returns).all(axis=0)
+    if not complete.any():
+        return -1, np.zeros(len(reached), bool)
+    return int(np.flatnonzero(complete)[-1]), np.ones(len(reached), bool)
+
+
 def table(rows: list[dict], reps: int = 2000) -> list[dict]:
     from cdjax.stats import iqm_interval
 
     out = []
     for (task, learner), c in sorted(curves(rows).items()):
-        complete = np.isfinite(c["returns"]).all(axis=0)
-        if not complete.any():
+        last, kept = final_step(c["returns"])
+        if last < 0:
             continue
-        last = int(np.flatnonzero(complete)[-1])
-        final = c["returns"][:, last]
-        auc = np.nanmean(c["returns"][:, 1: last + 1], axis=1) if last > 0 else final
+        returns = c["returns"][kept]
+        final = returns[:, last]
+        auc = np.nanmean(returns[:, 1: last + 1], axis=1) if last > 0 else final
         f = iqm_interval(final, reps=reps)
         a = iqm_interval(auc, reps=reps)
-        out.append({"task": task, "learner": learner, "seeds": len(c["seeds"]), "env_steps": int(c["steps"][last]),
+        left_out = [(c["seeds"][i], int(c["steps"][np.flatnonzero(np.isfinite(c["returns"][i]))[-1]])
+                     if np.isfinite(c["returns"][i]).any() else 0) for i in np.flatnonzero(~kept)]
+        out.append({"task": task, "learner": learner, "seeds": int(kept.sum()), "env_steps": int(c["steps"][last]),
                     "final": f[:3], "auc": a[:3], "sps": _sps(c), "device": _devices(c["rows"]),
-                    "per_seed": [round(float(x), 1) for x in final]})
+                    "per_seed": [round(float(x), 1) for x in final], "final_values": final, "left_out": left_out})
     return out
 
 
@@ -118,16 +144,16 @@ def ablation(rows: list[dict], reps: int = 2000) -> list[dict]:
         base = cs.get((task, "cdjax default"))
         if not learner.startswith("cdjax ") or learner == "cdjax default" or base is None:
             continue
-        complete = np.isfinite(c["returns"]).all(axis=0)
-        if not complete.any():
+        last, kept = final_step(c["returns"])
+        if last < 0 or c["steps"][last] not in base["steps"]:
             continue
-        step = c["steps"][int(np.flatnonzero(complete)[-1])]
-        if step not in base["steps"]:
-            continue
+        step = c["steps"][last]
         j = list(base["steps"]).index(step)
-        out.append({"task": task, "learner": learner, "env_steps": int(step), "seeds": len(c["seeds"]),
-                    "iqm": iqm_interval(c["returns"][:, list(c["steps"]).index(step)], reps=reps)[:3],
-                    "default": iqm_interval(base["returns"][:, j], reps=reps)[:3], "default_seeds": len(base["seeds"])})
+        base_kept = np.isfinite(base["returns"][:, j])
+        out.append({"task": task, "learner": learner, "env_steps": int(step), "seeds": int(kept.sum()),
+                    "iqm": iqm_interval(c["returns"][kept, last], reps=reps)[:3],
+                    "default": iqm_interval(base["returns"][base_kept, j], reps=reps)[:3],
+                    "default_seeds": int(base_kept.sum())})
     return out
 
 
@@ -136,7 +162,28 @@ def _ci(x: tuple) -> str:
     return f"{point:.1f} [{low:.1f}, {high:.1f}]" if math.isfinite(low) else f"{point:.1f}"
 
 
-def verdicts(entries: list[dict]) -> list[str]:
+def improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> tuple[float, float, float] | None:
+    """rliable's probability of improvement P(X > Y) of one task's final returns (a seed of X against a seed of Y,
+    ties counted half), with its 95% stratified-bootstrap interval; None where rliable does not import."""
+    from cdjax import stats
+
+    if stats.rly is None or len(x) < 2 or len(y) < 2:
+        return None
+    from rliable import metrics
+
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        point, interval = stats.rly.get_interval_estimates(
+            {"p": (np.asarray(x, float)[:, None], np.asarray(y, float)[:, None])},
+            metrics.probability_of_improvement, reps=reps)
+    finally:
+        np.random.set_state(saved)
+    return (float(np.asarray(point["p"]).squeeze()), float(np.asarray(interval["p"])[0].squeeze()),
+            float(np.asarray(interval["p"])[1].squeeze()))
+
+
+def verdicts(entries: list[dict], reps: int = 2000) -> list[str]:
     lines = []
     by_task = defaultdict(dict)
     for e in entries:
@@ -146,15 +193,21 @@ def verdicts(entries: list[dict]) -> list[str]:
         if brax is None:
             continue
         for name, e in learners.items():
-            if name == "brax-ppo" or e["env_steps"] != brax["env_steps"]:
+            if name == "brax-ppo":
+                continue
+            if e["env_steps"] != brax["env_steps"]:
+                lines.append(f"- {task}: {name} not compared: its final return is read at {e['env_steps']:,} env "
+                             f"steps, Brax PPO's at {brax['env_steps']:,}.")
                 continue
             ge = e["final"][0] >= brax["final"][0]
             overlap = not (e["final"][1] > brax["final"][2] or e["final"][2] < brax["final"][1])
             speed = e["sps"] / brax["sps"] if brax["sps"] else math.nan
+            poi = improvement(e["final_values"], brax["final_values"], reps=reps)
+            poi = f"; P({name} > Brax PPO) = {poi[0]:.2f} [{poi[1]:.2f}, {poi[2]:.2f}]" if poi else ""
             lines.append(f"- {task}: {name} final IQM {e['final'][0]:.1f} {'>=' if ge else '<'} Brax PPO's "
                          f"{brax['final'][0]:.1f} at {e['env_steps']:,} env steps (intervals "
-                         f"{'overlap' if overlap else 'disjoint'}); training env steps/s {speed:.2f}x Brax's "
-                         "(cdjax: its seeds vmapped together; Brax: one seed at a time).")
+                         f"{'overlap' if overlap else 'disjoint'}{poi}); training env steps/s {speed:.2f}x Brax's "
+                         "(cdjax: its seeds vmapped together, the median over its runs; Brax: one seed at a time).")
     return lines
 
 
@@ -173,7 +226,10 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
         for (t, learner), c in sorted(cs.items()):
             if t != task:
                 continue
-            point, low, high, _ = interval_curve(c["returns"], "iqm", reps=500)
+            _, kept = final_step(c["returns"])  # the seeds the table reads, so the curve ends where it does
+            if not kept.any():
+                continue
+            point, low, high, _ = interval_curve(c["returns"][kept], "iqm", reps=500)
             x = c["steps"] / 1e6
             style = "--" if learner == "brax-ppo" else "-"
             ax.plot(x, point, style, label=learner)
@@ -191,6 +247,17 @@ def report(dirs: list[pathlib.Path], write: str | None = None, parity_variants: 
     """The markdown (and with `write` the file and the plot beside it); `parity_variants`: the cdjax variants
     set against Brax PPO in the first table (the others appear in the ablation beside cdjax default)."""
     rows, metas = load(dirs)
+    text = report_text(rows, metas, parity_variants)
+    if write:
+        path = pathlib.Path(write)
+        png = path.with_suffix(".png")
+        plot(rows, png)
+        path.write_text(text + f"\n\n![curves]({png.name})\n")
+    return text
+
+
+def report_text(rows: list[dict], metas: list[dict], parity_variants: tuple[str, ...] = ("default",)) -> str:
+    """The report's markdown for these rows (and the commands of `metas`)."""
     entries = table(rows)
     wanted = {"brax-ppo"} | {f"cdjax {v}" for v in parity_variants}
     parity = [e for e in entries if e["learner"] in wanted]
@@ -201,6 +268,10 @@ def report(dirs: list[pathlib.Path], write: str | None = None, parity_variants: 
         lines.append(f"| {e['task']} | {e['learner']} | {e['seeds']} | {e['env_steps']:,} | {_ci(e['final'])} | "
                      f"{_ci(e['auc'])} | {e['sps']:,.0f} | {e['device']} | {e['per_seed']} |")
     lines += [""] + verdicts(parity)
+    for e in entries:
+        for seed, steps in e["left_out"]:
+            lines.append(f"- {e['task']}: {e['learner']} seed {seed} left out of the final return and the mean over "
+                         f"evaluations: its run stopped at {steps:,} env steps, before the last evaluation.")
     abl = ablation(rows)
     if abl:
         lines += ["", "### Ablation: one cdjax option changed (each at its last evaluation)", "",
@@ -211,10 +282,4 @@ def report(dirs: list[pathlib.Path], write: str | None = None, parity_variants: 
                          f"{_ci(a['iqm'])} | {_ci(a['default'])} ({a['default_seeds']}) |")
     lines += ["", "Commands:"] + [f"- `{m.get('command', '?')}` ({m.get('device', '?')}, {m.get('date', '?')}; "
                                   f"{m['dir']})" for m in metas]
-    text = "\n".join(lines)
-    if write:
-        path = pathlib.Path(write)
-        png = path.with_suffix(".png")
-        plot(rows, png)
-        path.write_text(text + f"\n\n![curves]({png.name})\n")
-    return text
+    return "\n".join(lines)

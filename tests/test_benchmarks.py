@@ -101,6 +101,41 @@ def test_learning_report_names_every_device_a_learners_seeds_ran_on():
     assert by_learner["cdjax default"]["device"] == "H100"
 
 
+def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
+    """A seed whose run a time limit stopped early is left out of the final return (while at least half the seeds
+    reached the end), named with where it stopped, instead of every seed being read where it stopped; with fewer
+    than half at the end, the last evaluation all reached is read over all of them. A learner whose final return
+    is then read at other env steps than Brax PPO's is said not compared."""
+    from benchmarks import learning_report
+
+    def row(framework, seed, steps, ret):
+        return dict(task="t", framework=framework, variant="default", seed=seed, env_steps=steps, eval_return=ret,
+                    train_s=1.0, device="H100")
+
+    steps = (0, 10, 20, 30)
+    rows = [row("cdjax", s, st, 100.0 * s + st) for s in range(4) for st in steps]
+    rows += [row("brax", s, st, 1.0 * st) for s in range(4) for st in steps if s != 3 or st <= 10]
+    by = {e["learner"]: e for e in learning_report.table(rows, reps=50)}
+    assert by["brax-ppo"]["seeds"] == 3 and by["brax-ppo"]["env_steps"] == 30
+    assert by["brax-ppo"]["per_seed"] == [30.0, 30.0, 30.0] and by["brax-ppo"]["left_out"] == [(3, 10)]
+    assert by["cdjax default"]["seeds"] == 4 and by["cdjax default"]["left_out"] == []
+    text = learning_report.report_text(rows, [])
+    assert "brax-ppo seed 3 left out" in text and "stopped at 10 env steps" in text
+    assert "cdjax default final IQM" in text and "at 30 env steps" in text
+    # cdjax's finals 30, 130, 230, 330 against the kept Brax finals 30, 30, 30: 9 of 12 pairs above, 3 ties
+    # counted half, P(X > Y) = 10.5 / 12
+    assert "P(cdjax default > Brax PPO) = 0.88" in text
+    assert learning_report.improvement([1.0, 2.0], [1.0, 2.0], reps=50)[0] == 0.5
+
+    # three of four cdjax seeds cut after 10 env steps: all four read at 10, and the verdict says why none is given
+    rows = [r for r in rows if r["framework"] == "brax" or r["seed"] == 0 or r["env_steps"] <= 10]
+    by = {e["learner"]: e for e in learning_report.table(rows, reps=50)}
+    assert by["cdjax default"]["env_steps"] == 10 and by["cdjax default"]["seeds"] == 4
+    assert by["cdjax default"]["left_out"] == []
+    assert "cdjax default not compared: its final return is read at 10 env steps, Brax PPO's at 30" in \
+        learning_report.report_text(rows, [])
+
+
 def test_learning_report_sources_rename_cdjax_rows_and_refuse_a_seed_twice(tmp_path, capsys):
     """DIR@cdjax=NAME: DIR's cdjax rows only, reported as variant NAME, so one setting's seeds from two runs under
     two variant names pool into one learner; the same seed from two sources is refused, not silently overwritten."""
