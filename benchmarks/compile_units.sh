@@ -78,11 +78,15 @@
 #   topn     the cost model's top N GEMM tilings (TOPN, default "4 8"; cdjax keeps 2) process-wide, about 10 minutes:
 #            the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs at cdjax's default and at each N,
 #            and the cold 4-arm ant sweep at each N. XLA's own search made paper-CD 10% faster at 10 seeds and the cold
-#            sweep about a quarter longer (benchmarks/results/2026-11-27-h100-tuned/).
-#   learn-more seeds 5-9 of the learning benchmark on $LEARN_TASK (default ant) for cdjax's model-free arm and Brax PPO,
-#            side by side (about 9 minutes): with the committed rows of seeds 0-4, ten seeds a learner. On 2026-11-27
-#            ant's final IQM at 5 seeds was 2390.3 against Brax PPO's 2428.6, the intervals overlapping almost entirely
-#            (benchmarks/results/2026-11-27-h100-learn-per-program/).
+#            sweep about a quarter longer (benchmarks/results/2026-11-27-h100-tuned/). On 2026-11-27 (H100) top 4 and 8
+#            made paper-CD 2.6% and 5.0% faster at 10 seeds and the cold sweep start training at 89.7 and 99.8 s; not
+#            adopted (benchmarks/results/2026-11-27-h100-topn/).
+#   learn-more five more seeds of the learning benchmark on $LEARN_TASK (default ant), seeds $LEARN_FIRST (default 5)
+#            to LEARN_FIRST + 4, for cdjax's model-free arm (vmapped, one process) and Brax PPO (one seed at a time, in
+#            two processes of 3 and 2 seeds, since its evaluations are latency-bound), side by side (about 9 minutes).
+#            On 2026-11-27 (H100), seeds 5-9: with the committed rows of seeds 0-4, ant's final IQM was 2422.5 [2263.1,
+#            2651.4] over 10 seeds against Brax PPO's 2378.5 over its 9 complete ones; one Brax process of 5 seeds ran
+#            out of time in its last seed (benchmarks/results/2026-11-27-h100-learn-more/).
 #   tuned    cdjax's `tuned` compile mode (per program: XLA's own autotuner level and GEMM tiling search) against its
 #            defaults, about 11 minutes: the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs at the
 #            defaults, in the mode, and with XLA's own tiling search alone (process-wide: which of the two settings
@@ -136,7 +140,9 @@
 #            level, two processes of paper-CD (--base xla_gpu_deterministic_ops=true), and what they cost per update: the
 #            compare suite's model-free, Mb-Mf and paper-CD with XLA_FLAGS=--xla_gpu_deterministic_ops=true (about 9
 #            minutes). On 2026-11-27 (H100) the mode cost 1.71-1.87x per update, and the deterministic ops alone made two
-#            model-free processes identical (benchmarks/results/2026-11-27-h100-per-program/).
+#            model-free processes identical (benchmarks/results/2026-11-27-h100-per-program/); re-run, the mode and
+#            the ops alone each gave identical arrays, and the ops alone cost about 1.86x
+#            (benchmarks/results/2026-11-27-h100-determinism/).
 #   identity whether cdjax's graph scheduling (CONCURRENT) computes what XLA's own (LHS) does, bit for bit (about
 #            12 minutes in all): `python -m benchmarks.same_results` on the compare suite's model-free, Mb-Mf and
 #            paper-CD cases, 3 updates each from key 0 in a process per mode (LHS twice: what two processes differ
@@ -519,15 +525,15 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
     learn-more)
-      # seeds 5-9 of the learning benchmark on ${LEARN_TASK:-ant}, cdjax's model-free arm (vmapped) and Brax PPO (one seed
-      # at a time) side by side on the one GPU: with the rows of seeds 0-4 (benchmarks/results/), 10 seeds a learner
-      local t=${LEARN_TASK:-ant}
-      echo "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 560 python -m benchmarks.learning --tasks $t" \
-        "--frameworks cdjax --variants default --seeds 5 --first-seed 5 --out $work/learn/$t-cdjax" \
-        "> $work/learn-$t-cdjax.log 2>&1 &" \
-        "XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 560 python -m benchmarks.learning --tasks $t" \
-        "--frameworks brax --seeds 5 --first-seed 5 --budget-s 480 --cache-dir $work/jc --out $work/learn/$t-brax" \
-        "> $work/learn-$t-brax.log 2>&1 &" \
+      # five more seeds of the learning benchmark on ${LEARN_TASK:-ant} from seed ${LEARN_FIRST:-5}: cdjax's model-free
+      # arm (its seeds vmapped) beside Brax PPO (one seed at a time, in two processes), all on the one GPU
+      local t=${LEARN_TASK:-ant} f=${LEARN_FIRST:-5} env="XLA_PYTHON_CLIENT_PREALLOCATE=false timeout -k 20 560"
+      echo "$env python -m benchmarks.learning --tasks $t --frameworks cdjax --variants default --seeds 5" \
+        "--first-seed $f --out $work/learn/$t-cdjax > $work/learn-$t-cdjax.log 2>&1 &" \
+        "$env python -m benchmarks.learning --tasks $t --frameworks brax --seeds 3 --first-seed $f --budget-s 520" \
+        "--cache-dir $work/jc --out $work/learn/$t-brax-a > $work/learn-$t-brax-a.log 2>&1 &" \
+        "$env python -m benchmarks.learning --tasks $t --frameworks brax --seeds 2 --first-seed $((f + 3)) --budget-s 520" \
+        "--cache-dir $work/jc2 --out $work/learn/$t-brax-b > $work/learn-$t-brax-b.log 2>&1 &" \
         "wait; tail -n 3 $work/learn-*.log" ;;
     sched)
       local line="" i v
