@@ -62,6 +62,7 @@ def curves(rows: list[dict]) -> dict[tuple[str, str], dict]:
         steps = sorted({r["env_steps"] for r in rs})
         seeds = sorted({r["seed"] for r in rs})
         values = np.full((len(seeds), len(steps)), np.nan)
+        present = np.zeros((len(seeds), len(steps)), bool)  # a row there (its value may still be NaN)
         seen = set()
         for r in rs:
             if (r["seed"], r["env_steps"]) in seen:  # two sources of one seed: one would hide the other
@@ -70,7 +71,8 @@ def curves(rows: list[dict]) -> dict[tuple[str, str], dict]:
             seen.add((r["seed"], r["env_steps"]))
             v = r["eval_return"]
             values[seeds.index(r["seed"]), steps.index(r["env_steps"])] = np.nan if v is None else v
-        out[key] = {"steps": np.asarray(steps), "returns": values, "seeds": seeds, "rows": rs}
+            present[seeds.index(r["seed"]), steps.index(r["env_steps"])] = True
+        out[key] = {"steps": np.asarray(steps), "returns": values, "present": present, "seeds": seeds, "rows": rs}
     return out
 
 
@@ -126,8 +128,11 @@ def table(rows: list[dict], reps: int = 2000) -> list[dict]:
         auc = np.nanmean(returns[:, 1: last + 1], axis=1) if last > 0 else final
         f = iqm_interval(final, reps=reps)
         a = iqm_interval(auc, reps=reps)
-        left_out = [(c["seeds"][i], int(c["steps"][np.flatnonzero(np.isfinite(c["returns"][i]))[-1]])
-                     if np.isfinite(c["returns"][i]).any() else 0) for i in np.flatnonzero(~kept)]
+        # (seed, env steps of its last row, whether that row's return is NaN) of each seed left out
+        left_out = []
+        for i in np.flatnonzero(~kept):
+            j = int(np.flatnonzero(c["present"][i])[-1])
+            left_out.append((c["seeds"][i], int(c["steps"][j]), not np.isfinite(c["returns"][i, j])))
         out.append({"task": task, "learner": learner, "seeds": int(kept.sum()), "env_steps": int(c["steps"][last]),
                     "final": f[:3], "auc": a[:3], "sps": _sps(c), "device": _devices(c["rows"]),
                     "per_seed": [round(float(x), 1) for x in final], "final_values": final, "left_out": left_out})
@@ -269,9 +274,11 @@ def report_text(rows: list[dict], metas: list[dict], parity_variants: tuple[str,
                      f"{_ci(e['auc'])} | {e['sps']:,.0f} | {e['device']} | {e['per_seed']} |")
     lines += [""] + verdicts(parity)
     for e in entries:
-        for seed, steps in e["left_out"]:
+        for seed, steps, nan in e["left_out"]:
+            why = (f"its evaluation at {steps:,} env steps is not a number" if nan else
+                   f"its run stopped at {steps:,} env steps, before the last evaluation")
             lines.append(f"- {e['task']}: {e['learner']} seed {seed} left out of the final return and the mean over "
-                         f"evaluations: its run stopped at {steps:,} env steps, before the last evaluation.")
+                         f"evaluations: {why}.")
     abl = ablation(rows)
     if abl:
         lines += ["", "### Ablation: one cdjax option changed (each at its last evaluation)", "",

@@ -117,7 +117,7 @@ def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
     rows += [row("brax", s, st, 1.0 * st) for s in range(4) for st in steps if s != 3 or st <= 10]
     by = {e["learner"]: e for e in learning_report.table(rows, reps=50)}
     assert by["brax-ppo"]["seeds"] == 3 and by["brax-ppo"]["env_steps"] == 30
-    assert by["brax-ppo"]["per_seed"] == [30.0, 30.0, 30.0] and by["brax-ppo"]["left_out"] == [(3, 10)]
+    assert by["brax-ppo"]["per_seed"] == [30.0, 30.0, 30.0] and by["brax-ppo"]["left_out"] == [(3, 10, False)]
     assert by["cdjax default"]["seeds"] == 4 and by["cdjax default"]["left_out"] == []
     text = learning_report.report_text(rows, [])
     assert "brax-ppo seed 3 left out" in text and "stopped at 10 env steps" in text
@@ -126,6 +126,14 @@ def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
     # counted half, P(X > Y) = 10.5 / 12
     assert "P(cdjax default > Brax PPO) = 0.88" in text
     assert learning_report.improvement([1.0, 2.0], [1.0, 2.0], reps=50)[0] == 0.5
+
+    # a seed whose last evaluation is NaN (it ran to the end) is left out for that reason, not as cut short
+    nan_rows = [dict(r, eval_return=None) if r["framework"] == "cdjax" and r["seed"] == 2 and r["env_steps"] == 30
+                else r for r in rows]
+    (cd,) = [e for e in learning_report.table(nan_rows, reps=50) if e["learner"] == "cdjax default"]
+    assert cd["seeds"] == 3 and cd["left_out"] == [(2, 30, True)]
+    assert "seed 2 left out of the final return and the mean over evaluations: its evaluation at 30 env steps is " \
+        "not a number" in learning_report.report_text(nan_rows, [])
 
     # three of four cdjax seeds cut after 10 env steps: all four read at 10, and the verdict says why none is given
     rows = [r for r in rows if r["framework"] == "brax" or r["seed"] == 0 or r["env_steps"] <= 10]
