@@ -75,14 +75,16 @@
 #            CONDITIONAL: no host round trip for a loop's predicate, no launch per pass), as `cublaslt` does its flag
 #            (flag_ab). On 2026-11-27 (H100) 0.7-3.2% slower in every case, not adopted
 #            (benchmarks/results/2026-11-27-h100-cmdbuf/).
-#   regions  XLA's copy insertion with region analysis (--xla_gpu_copy_insertion_use_region_analysis=true), as
-#            `cublaslt` does its flag (flag_ab, about 10 minutes). In the model-free update of 2026-11-27
-#            (benchmarks/results/2026-11-27-h100-hlo-model-free/loops-model-free.log) about 16,000 of the 120,000
-#            kernels per update are copies, most of them of loop-carried values in MJX's loop bodies: 16 a physics
-#            substep (400 a update), 6 a pass of a 9-kernel loop (1,600 passes; MJX's line search). On this
-#            project's CPU the same flag's CPU twin took the line search body's copies from 8 to 3 (the ant's step,
-#            8 envs). Whether the GPU's copies go too, and what that is worth per update (at about 3 us a kernel).
-#   regions-hlo  the optimised HLO of the compare suite's ${HLO_CASES:-model-free} update with and without the flag,
+#   regions  XLA's copy insertion with region analysis for cdjax's programs (CDJAX_XLA_OPTIONS=
+#            xla_gpu_copy_insertion_use_region_analysis=true, per program: Brax PPO stays at XLA's own), about 10
+#            minutes: the compare suite (Brax PPO, model-free, Mb-Mf, paper-CD) and the seeds suite's Mb-Mf and paper-CD
+#            at 10 vmapped seeds of 256 envs, each in a process without and one with it. In the model-free update of
+#            2026-11-27 (benchmarks/results/2026-11-27-h100-hlo-model-free/loops-model-free.log) about 16,000 of the
+#            120,000 kernels per update are copies, most of them of loop-carried values in MJX's loop bodies: 16 a
+#            physics substep (400 a update), 6 a pass of a 9-kernel loop (1,600 passes; MJX's line search). On this
+#            project's CPU the option's CPU twin took the line search body's copies from 8 to 3 (the ant's step, 8
+#            envs). Whether the GPU's copies go too, and what that is worth per update (at about 3 us a kernel).
+#   regions-hlo  the optimised HLO of the compare suite's ${HLO_CASES:-model-free} update with and without the option,
 #            one update profiled each (`dumped_case`, about 3 minutes): the kernels, copies among them, of each loop
 #            body (loops-CASE.log against loops-CASE-regions.log).
 #   topn     the cost model's top N GEMM tilings (TOPN, default "4 8"; cdjax keeps 2) process-wide, about 10 minutes:
@@ -329,12 +331,12 @@ flag_ab() {  # FLAG NAME -> a bash line: the compare suite (Brax PPO, model-free
     "grep -H -E 's/update|rror' $work/seeds-*.log $work/compare-*.log | grep -v -i warn"
 }
 
-dumped_case() {  # CASE MODULE PART "MODULE_AND_ARGS" GREP [FLAGS] -> a bash line: `python -m MODULE_AND_ARGS` with
-  # XLA's optimised HLO of the modules MODULE dumped into $work/dump-CASE and one update traced into $work/trace-CASE
+dumped_case() {  # CASE MODULE PART "MODULE_AND_ARGS" GREP -> a bash line: `python -m MODULE_AND_ARGS` with XLA's
+  # optimised HLO of the modules MODULE dumped into $work/dump-CASE and one update traced into $work/trace-CASE
   # (results $work/PART-CASE), then benchmarks.hlo_fusions on them (fusions-CASE.log, loops-CASE.log) and the lines
-  # of the run's log that match GREP; FLAGS: more of XLA_FLAGS ("--NAME=VALUE ...")
-  local case=$1 module=$2 part=$3 run=$4 grep=$5 flags=${6:-}
-  echo "XLA_FLAGS='--xla_dump_to=$work/dump-$case --xla_dump_hlo_as_text --xla_dump_hlo_module_re=$module${flags:+ $flags}'" \
+  # of the run's log that match GREP
+  local case=$1 module=$2 part=$3 run=$4 grep=$5
+  echo "XLA_FLAGS='--xla_dump_to=$work/dump-$case --xla_dump_hlo_as_text --xla_dump_hlo_module_re=$module'" \
     "timeout -k 20 150 python -m $run --budget-s 130 --trace $work/trace-$case --out $work/$part-$case" \
     "> $work/$part-$case.log 2>&1;" \
     "python -m benchmarks.hlo_fusions $work/dump-$case --profile $work/trace-$case --top ${HLO_TOP:-8}" \
@@ -572,13 +574,23 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--seed-envs 256 --budget-s 250 --trace $work/trace --out $work/seeds > $work/seeds.log 2>&1;" \
         "grep -E 'env steps/s|s/update' $work/seeds.log; grep -A 30 'Op-level' $work/seeds/results.md | head -80" ;;
     cublaslt) flag_ab xla_gpu_enable_cublaslt=false legacy ;;
-    regions) flag_ab xla_gpu_copy_insertion_use_region_analysis=true regions ;;
+    regions)
+      # per program (CDJAX_XLA_OPTIONS: cdjax's programs only, Brax PPO's at XLA's own), each suite in a process
+      # without and one with it
+      local cases="--suite compare --cases brax-ppo model-free mbmf cd-paper --budget-s 250" one=""
+      local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 150"
+      one="CDJAX_XLA_OPTIONS=xla_gpu_copy_insertion_use_region_analysis=true"
+      echo "timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-default > $work/compare-default.log 2>&1;" \
+        "$one timeout -k 20 280 python -m benchmarks.run $cases --out $work/compare-regions > $work/compare-regions.log 2>&1;" \
+        "timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-default > $work/seeds-default.log 2>&1;" \
+        "$one timeout -k 20 200 python -m benchmarks.run $seeds --out $work/seeds-regions > $work/seeds-regions.log 2>&1;" \
+        "grep -H -E 's/update|rror' $work/compare-*.log $work/seeds-*.log | grep -v -i warn" ;;
     regions-hlo)
       local line="" case f=xla_gpu_copy_insertion_use_region_analysis=true
       for case in ${HLO_CASES:-model-free}; do
         line+=" $(dumped_case $case jit_update compare "benchmarks.run --suite compare --cases $case" "' s/update'")"
-        line+=" $(with_flag $f "$(dumped_case $case-regions jit_update compare \
-          "benchmarks.run --suite compare --cases $case" "' s/update'" --$f)")"
+        line+=" CDJAX_XLA_OPTIONS=$f $(dumped_case $case-regions jit_update compare \
+          "benchmarks.run --suite compare --cases $case" "' s/update'")"
       done
       echo "$line grep -H -E ' copy|kernels per' $work/loops-*.log | head -n 40;" \
         "find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;

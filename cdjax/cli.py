@@ -64,7 +64,8 @@ def _runtime_options() -> argparse.ArgumentParser:
                             "GPU, XLA's full autotuning: compiles about a quarter longer, the paper's CD 10%% faster "
                             "at 10 seeds as measured: for long sweeps) or deterministic (on a GPU, no atomic sums and "
                             "no autotuning, so that another process repeats the run bit for bit; updates 1.7-1.9x "
-                            "longer as measured); default $" + runtime.MODE_ENV + ", else default")
+                            "longer as measured); default $" + runtime.MODE_ENV + ", else default. $"
+                            + runtime.OPTIONS_ENV + " adds XLA options (NAME=VALUE ...) to cdjax's programs only")
     group.add_argument("--debug-nans", action="store_true", help="stop at the first operation that makes a NaN")
     group.add_argument("--disable-jit", action="store_true", help="run op by op (slow; for debugging)")
     return parent
@@ -404,6 +405,9 @@ def _configure(args: argparse.Namespace) -> None:
         runtime.configure(debug_nans=args.debug_nans, disable_jit=args.disable_jit,  # run without the cache
                           compile_mode=mode)
         say(f"Note: {cache} cannot hold JAX's compilation cache; compiling without it (--cache-dir names another).")
+    # $CDJAX_XLA_OPTIONS checked before anything runs too; after the cache is set, since XLA checks them by
+    # compiling, and JAX settles whether the persistent cache is used at a process's first compile
+    runtime.environment_options()
 
 
 def _refused(sentence: str, as_program: bool) -> None:

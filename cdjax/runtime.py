@@ -2,8 +2,8 @@
 disabling jit.
 
 `cdjax` adds its XLA flags when it is imported (`apply_xla_defaults`, before JAX starts its backends), and compiles
-its own programs with per-program options (`compiler_options`: the compile mode's, and the GPU's data-flow scheduling
-of CUDA graphs, which the sweep runner drops for a program that would not fit in memory).
+its own programs with per-program options (`compiler_options`: the compile mode's, the GPU's data-flow scheduling
+of CUDA graphs, which the sweep runner drops for a program that would not fit in memory, and $CDJAX_XLA_OPTIONS).
 Everything else goes through `configure`, which the CLI (--cache-dir, --compile-mode, --debug-nans,
 --disable-jit), the tests, the benchmarks and the examples call:
 
@@ -64,6 +64,11 @@ SCHEDULING_OPTION = "xla_gpu_command_buffer_scheduling_mode"
 SCHEDULING = {SCHEDULING_OPTION: "CONCURRENT"}
 CACHE_ENV = "CDJAX_JAX_CACHE"  # environment variable naming the persistent compilation cache
 MODE_ENV = "CDJAX_COMPILE_MODE"  # environment variable naming the compile mode (configure's compile_mode wins)
+# More XLA options for cdjax's own programs only, on top of the compile mode's: NAME=VALUE words, as XLA_FLAGS writes
+# them (`CDJAX_XLA_OPTIONS="--xla_gpu_copy_insertion_use_region_analysis=true"`). Unlike XLA_FLAGS they leave the
+# process's other programs (Brax's, a user's own) as they are, so one process can set a flag for cdjax against a
+# baseline without it; they are part of the persistent cache's key and of a benchmark's recorded compiler options.
+OPTIONS_ENV = "CDJAX_XLA_OPTIONS"
 
 # What cdjax asks of XLA with every program it compiles itself (a sweep's reset, init, phase and chunk programs):
 # per-program compiler options, so a notebook can change mode between cells, and part of the persistent cache's key.
@@ -81,8 +86,9 @@ COMPILE_MODES: dict[str, dict] = {
     # benchmarks/results/2026-11-27-h100-identity/) two processes at XLA's settings differed in about half the arrays of
     # the ant's state after 3 updates; with these two settings in XLA_FLAGS, model-free, Mb-Mf and the paper's CD gave
     # identical arrays (benchmarks/results/2026-11-27-h100-per-program/). The price: 1.71-1.87x the time per update
-    # there. The mode's own two-process check is to be repeated (its init was compiled outside the mode; the
-    # `determinism` unit of benchmarks/compile_units.sh). No effect on a CPU.
+    # there. Its own two-process check, with init compiled in the mode too, gave identical arrays for model-free and
+    # the paper's CD; XLA's deterministic ops alone cost about 1.86x (2026-11-27, H100,
+    # benchmarks/results/2026-11-27-h100-determinism/). No effect on a CPU.
     "deterministic": {"xla_gpu_deterministic_ops": True, "xla_gpu_autotune_level": 0},
     # XLA's own autotuning for cdjax's programs: its default level (4) and its full search of Triton GEMM tilings, in
     # place of the two flags `import cdjax` adds for compile time (GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG). For long
@@ -189,6 +195,56 @@ def compiler_options(mode: str | None = None, *, in_order: bool = False) -> dict
     options = dict(COMPILE_MODES[compile_mode() if mode is None else check_compile_mode(mode)])
     if not in_order and not _named(SCHEDULING_OPTION, os.environ.get("XLA_FLAGS", "")):
         options.update(SCHEDULING)
+    options.update(environment_options())
+    return options
+
+
+def environment_options() -> dict:
+    """$CDJAX_XLA_OPTIONS (OPTIONS_ENV) as compiler options: NAME=VALUE words separated by spaces or commas (a
+    leading -- allowed), true and false as booleans, whole numbers as ints, anything else as text. ConfigError, one
+    sentence, for a word that is not NAME=VALUE, for the scheduling option (set it in XLA_FLAGS, where the runner's
+    in-order fallback keeps to it), and for an option XLA does not take (checked once per text by compiling a
+    one-line program: call it after `configure`, since JAX settles at a process's first compile whether the
+    persistent cache is used)."""
+    text = os.environ.get(OPTIONS_ENV, "").strip()
+    if not text:
+        return {}
+    if text not in _CHECKED_OPTIONS:
+        _CHECKED_OPTIONS[text] = _check_options(text)
+    return dict(_CHECKED_OPTIONS[text])
+
+
+_CHECKED_OPTIONS: dict[str, dict] = {}
+
+
+def _parse_value(value: str):
+    if value.lower() in ("true", "false"):
+        return value.lower() == "true"
+    if value.lstrip("-").isdigit():
+        return int(value)
+    return value
+
+
+def _check_options(text: str) -> dict:
+    from cdjax.protocol import ConfigError
+
+    options = {}
+    for word in text.replace(",", " ").split():
+        name, eq, value = word.lstrip("-").partition("=")
+        if not name or not eq:
+            raise ConfigError(f"${OPTIONS_ENV} takes NAME=VALUE words (as XLA_FLAGS writes them), got {word!r}.")
+        if name == SCHEDULING_OPTION:
+            raise ConfigError(f"${OPTIONS_ENV} cannot set {SCHEDULING_OPTION}: put --{name}={value} in XLA_FLAGS, "
+                              "where the sweep runner's fallback for programs that would not fit keeps to it.")
+        options[name] = _parse_value(value)
+    import jax
+    import jax.numpy as jnp
+
+    try:
+        jax.jit(lambda x: x + 1).lower(jnp.zeros(1)).compile(options)
+    except Exception as err:  # noqa: BLE001 - XLA's refusal (an unknown name, a value of the wrong type), in its words
+        reason = str(err).splitlines()[0].removeprefix("INVALID_ARGUMENT: ").rstrip(".")
+        raise ConfigError(f"${OPTIONS_ENV}={text!r}: XLA refuses it ({reason}).") from None
     return options
 
 

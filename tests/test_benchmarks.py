@@ -708,6 +708,58 @@ def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypa
     assert runtime.compile_mode() == "default"
 
 
+def test_cdjax_xla_options_reach_cdjax_programs_and_bad_ones_are_refused_in_one_sentence(monkeypatch):
+    """$CDJAX_XLA_OPTIONS: NAME=VALUE words (XLA_FLAGS' spelling, spaces or commas) added to the options cdjax compiles
+    its own programs with, on top of the compile mode's and the scheduling; XLA applies them (copy insertion with
+    region analysis leaves a small loop fewer copies); a word that is not NAME=VALUE, the scheduling option, an option
+    XLA does not know and a value of the wrong type are each refused in one sentence naming the variable."""
+    import types
+
+    import jax
+    import jax.numpy as jnp
+
+    from cdjax import runtime
+    from cdjax.protocol import ConfigError
+    from cdjax.runner import arms, budget
+
+    monkeypatch.setattr(runtime, "_mode", None)
+    monkeypatch.delenv(runtime.MODE_ENV, raising=False)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.delenv(runtime.OPTIONS_ENV, raising=False)
+    assert runtime.environment_options() == {} and runtime.compiler_options() == runtime.SCHEDULING
+
+    def body(c):  # a loop whose carried values are read after their successors are computed: XLA copies some
+        i, a, b, d, e = c
+        na, nb = jnp.where(a > b, a * 0.5, b), jnp.where(a > b, b, a + d)
+        return i + 1, na, nb, jnp.where(na > nb, d, e), jnp.where(na > nb, e * 2, d)
+
+    f = jax.jit(lambda x: jax.lax.while_loop(lambda c: c[0] < 10, body, (0, x, x + 1, x * 2, x * 3)))
+    x = jnp.ones(8)
+    plain = arms._compiled(types.SimpleNamespace(name="a", room=None, in_order={}), "chunk", f.lower, x,
+                           owner=object())
+    region = "xla_cpu_copy_insertion_use_region_analysis"
+    monkeypatch.setenv(runtime.OPTIONS_ENV, f"--{region}=true, xla_gpu_autotune_level=2")
+    assert runtime.environment_options() == {region: True, "xla_gpu_autotune_level": 2}
+    assert runtime.compiler_options() == {**runtime.SCHEDULING, region: True, "xla_gpu_autotune_level": 2}
+    assert runtime.compiler_options("fast", in_order=True) == {"xla_gpu_enable_triton_gemm": False, region: True,
+                                                               "xla_gpu_autotune_level": 2}
+    owner = object()
+    regions = arms._compiled(types.SimpleNamespace(name="a", room=None, in_order={}), "chunk", f.lower, x,
+                             owner=owner)
+    outside, _ = budget.compile_fitting(f.lower(x))
+    copies = [program.as_text().count(" copy(") for program in (plain, regions, outside)]
+    assert copies[1] < copies[0] and copies[2] == copies[1], copies
+    assert all(jnp.array_equal(a, b) for a, b in zip(jax.tree.leaves(plain(x)), jax.tree.leaves(regions(x))))
+    for text, match in ((f"{region}", "takes NAME=VALUE words"),
+                        (f"{runtime.SCHEDULING_OPTION}=LHS", f"put --{runtime.SCHEDULING_OPTION}=LHS in XLA_FLAGS"),
+                        ("xla_no_such_option=1", "XLA refuses it .*xla_no_such_option"),
+                        (f"{region}=maybe", f"XLA refuses it .*{region}")):
+        monkeypatch.setenv(runtime.OPTIONS_ENV, text)
+        with pytest.raises(ConfigError, match=r"^\$CDJAX_XLA_OPTIONS") as err:
+            runtime.compiler_options()
+        assert err.match(match) and "\n" not in str(err.value)
+
+
 def test_a_program_scheduled_by_data_flow_that_would_not_fit_is_compiled_in_program_order(monkeypatch):
     """cdjax compiles its programs with the GPU's kernels scheduled by data flow (runtime.SCHEDULING, per program), and
     again in XLA's program order where the program's outputs and temporaries exceed the room beside the states: in a

@@ -24,6 +24,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import math
+import os
 import pathlib
 import shlex
 import time
@@ -175,6 +176,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     try:
         with multihost.together():  # several processes: each refuses what one refuses (in one sentence)
             with host_time("plan"):
+                runtime.environment_options()  # $CDJAX_XLA_OPTIONS refused now, not after the build
                 spec, setting, plans, record = _prepare(spec, resume)
             rd = io.RunDir(pathlib.Path(spec.out))
             restart = set(restart)
@@ -345,7 +347,9 @@ class Loop:
                  + (f", after a {self.setting.phase.title} of {phased[0].plan.phase_steps:,} env steps "
                     f"({', '.join(a.name for a in phased)})" if phased else "")
                  + f"; setup {time.perf_counter() - t0:.1f} s, compile {t_compile:.1f} s"
-                 + ("." if (mode := runtime.compile_mode()) == "default" else f" (compile mode {mode})."))
+                 + ("" if (mode := runtime.compile_mode()) == "default" else f" (compile mode {mode})")
+                 + (f" with ${runtime.OPTIONS_ENV} {os.environ[runtime.OPTIONS_ENV].strip()}."
+                    if runtime.environment_options() else "."))
         purge = {a.name: a.env_steps(a.updates + 1) for a in self.arms} if resume else None
         self.tb = io.TensorBoard(self.rd, purge_steps=purge)
         self.started = True
