@@ -200,8 +200,8 @@ def compiler_options(mode: str | None = None, *, in_order: bool = False) -> dict
 
 
 def environment_options() -> dict:
-    """$CDJAX_XLA_OPTIONS (OPTIONS_ENV) as compiler options: NAME=VALUE words separated by spaces or commas (a
-    leading -- allowed), true and false as booleans, whole numbers as ints, anything else as text. ConfigError, one
+    """$CDJAX_XLA_OPTIONS (OPTIONS_ENV) as compiler options: NAME=VALUE words separated by spaces, as in XLA_FLAGS
+    (a leading -- allowed; a value may hold commas and '='), true and false as booleans, whole numbers as ints, anything else as text. ConfigError, one
     sentence, for a word that is not NAME=VALUE, for the scheduling option (set it in XLA_FLAGS, where the runner's
     in-order fallback keeps to it), and for an option XLA does not take (checked once per text by compiling a
     one-line program: call it after `configure`, since JAX settles at a process's first compile whether the
@@ -229,7 +229,7 @@ def _check_options(text: str) -> dict:
     from cdjax.protocol import ConfigError
 
     options = {}
-    for word in text.replace(",", " ").split():
+    for word in text.split():
         name, eq, value = word.lstrip("-").partition("=")
         if not name or not eq:
             raise ConfigError(f"${OPTIONS_ENV} takes NAME=VALUE words (as XLA_FLAGS writes them), got {word!r}.")

@@ -709,7 +709,7 @@ def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypa
 
 
 def test_cdjax_xla_options_reach_cdjax_programs_and_bad_ones_are_refused_in_one_sentence(monkeypatch):
-    """$CDJAX_XLA_OPTIONS: NAME=VALUE words (XLA_FLAGS' spelling, spaces or commas) added to the options cdjax compiles
+    """$CDJAX_XLA_OPTIONS: NAME=VALUE words (XLA_FLAGS' spelling) added to the options cdjax compiles
     its own programs with, on top of the compile mode's and the scheduling; XLA applies them (copy insertion with
     region analysis leaves a small loop fewer copies); a word that is not NAME=VALUE, the scheduling option, an option
     XLA does not know and a value of the wrong type are each refused in one sentence naming the variable."""
@@ -738,7 +738,9 @@ def test_cdjax_xla_options_reach_cdjax_programs_and_bad_ones_are_refused_in_one_
     plain = arms._compiled(types.SimpleNamespace(name="a", room=None, in_order={}), "chunk", f.lower, x,
                            owner=object())
     region = "xla_cpu_copy_insertion_use_region_analysis"
-    monkeypatch.setenv(runtime.OPTIONS_ENV, f"--{region}=true, xla_gpu_autotune_level=2")
+    monkeypatch.setenv(runtime.OPTIONS_ENV, "--xla_gpu_cuda_data_dir=/a,b=c")  # a text value with ',' and '=' in it
+    assert runtime.environment_options() == {"xla_gpu_cuda_data_dir": "/a,b=c"}
+    monkeypatch.setenv(runtime.OPTIONS_ENV, f"--{region}=true  xla_gpu_autotune_level=2")
     assert runtime.environment_options() == {region: True, "xla_gpu_autotune_level": 2}
     assert runtime.compiler_options() == {**runtime.SCHEDULING, region: True, "xla_gpu_autotune_level": 2}
     assert runtime.compiler_options("fast", in_order=True) == {"xla_gpu_enable_triton_gemm": False, region: True,
