@@ -167,28 +167,9 @@ def _ci(x: tuple) -> str:
     return f"{point:.1f} [{low:.1f}, {high:.1f}]" if math.isfinite(low) else f"{point:.1f}"
 
 
-def improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> tuple[float, float, float] | None:
-    """rliable's probability of improvement P(X > Y) of one task's final returns (a seed of X against a seed of Y,
-    ties counted half), with its 95% stratified-bootstrap interval; None where rliable does not import."""
-    from cdjax import stats
-
-    if stats.rly is None or len(x) < 2 or len(y) < 2:
-        return None
-    from rliable import metrics
-
-    saved = np.random.get_state()
-    np.random.seed(seed)
-    try:
-        point, interval = stats.rly.get_interval_estimates(
-            {"p": (np.asarray(x, float)[:, None], np.asarray(y, float)[:, None])},
-            metrics.probability_of_improvement, reps=reps)
-    finally:
-        np.random.set_state(saved)
-    return (float(np.asarray(point["p"]).squeeze()), float(np.asarray(interval["p"])[0].squeeze()),
-            float(np.asarray(interval["p"])[1].squeeze()))
-
-
 def verdicts(entries: list[dict], reps: int = 2000) -> list[str]:
+    from cdjax.stats import probability_of_improvement
+
     lines = []
     by_task = defaultdict(dict)
     for e in entries:
@@ -207,7 +188,8 @@ def verdicts(entries: list[dict], reps: int = 2000) -> list[str]:
             ge = e["final"][0] >= brax["final"][0]
             overlap = not (e["final"][1] > brax["final"][2] or e["final"][2] < brax["final"][1])
             speed = e["sps"] / brax["sps"] if brax["sps"] else math.nan
-            poi = improvement(e["final_values"], brax["final_values"], reps=reps)
+            poi = (probability_of_improvement(e["final_values"], brax["final_values"], reps=reps)
+                   if min(len(e["final_values"]), len(brax["final_values"])) > 1 else None)
             poi = f"; P({name} > Brax PPO) = {poi[0]:.2f} [{poi[1]:.2f}, {poi[2]:.2f}]" if poi else ""
             lines.append(f"- {task}: {name} final IQM {e['final'][0]:.1f} {'>=' if ge else '<'} Brax PPO's "
                          f"{brax['final'][0]:.1f} at {e['env_steps']:,} env steps (intervals "

@@ -75,6 +75,28 @@ def bootstrap(scores: np.ndarray, func: Callable, reps: int, seed: int) -> tuple
     return np.asarray(point, float), np.asarray(interval, float)
 
 
+def probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000,
+                               seed: int = 0) -> tuple[float, float, float] | None:
+    """rliable's probability of improvement P(X > Y) (a run of X against a run of Y, ties counted half, averaged
+    over tasks) with its 95% stratified-bootstrap interval, reproducibly (numpy's global generator seeded and put
+    back, as `bootstrap`): x [runs, tasks] and y [runs', tasks], or one task's runs as 1-D arrays. None where
+    rliable does not import."""
+    if rly is None:
+        return None
+    from rliable import metrics
+
+    x, y = (np.asarray(v, float) for v in (x, y))
+    x, y = (v[:, None] if v.ndim == 1 else v for v in (x, y))
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        point, interval = rly.get_interval_estimates({"p": (x, y)}, metrics.probability_of_improvement, reps=reps)
+    finally:
+        np.random.set_state(saved)
+    low, high = np.asarray(interval["p"])
+    return float(np.asarray(point["p"]).squeeze()), float(low.squeeze()), float(high.squeeze())
+
+
 def stratified_bootstrap(scores: np.ndarray, func: Callable, reps: int, size: float = 0.95):
     """(func(scores), percentile interval [2, ...]) by the same resampling as rliable's StratifiedBootstrap.
 

@@ -125,7 +125,9 @@ def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
     # cdjax's finals 30, 130, 230, 330 against the kept Brax finals 30, 30, 30: 9 of 12 pairs above, 3 ties
     # counted half, P(X > Y) = 10.5 / 12
     assert "P(cdjax default > Brax PPO) = 0.88" in text
-    assert learning_report.improvement([1.0, 2.0], [1.0, 2.0], reps=50)[0] == 0.5
+    from cdjax.stats import probability_of_improvement
+
+    assert probability_of_improvement([1.0, 2.0], [1.0, 2.0], reps=50)[0] == 0.5
 
     # a seed whose last evaluation is NaN (it ran to the end) is left out for that reason, not as cut short
     nan_rows = [dict(r, eval_return=None) if r["framework"] == "cdjax" and r["seed"] == 2 and r["env_steps"] == 30

@@ -407,7 +407,7 @@ def _rliable():
 
 def improvement(scores: dict[str, dict[str, np.ndarray]], pairs=PAIRS, reps: int = 2000, seed: int = 0) -> list[dict]:
     """rliable's probability of improvement P(X > Y) with its 95% interval, over the tasks that have both arms."""
-    rly, metrics = _rliable()
+    _rliable()  # refuses in one sentence where rliable does not import
     out = []
     for x, y in pairs:
         tasks = [t for t, per in scores.items() if per.get(x) is not None and per.get(y) is not None
@@ -416,14 +416,8 @@ def improvement(scores: dict[str, dict[str, np.ndarray]], pairs=PAIRS, reps: int
             continue
         X = _matrix({t: scores[t][x] for t in tasks}, tasks)
         Y = _matrix({t: scores[t][y] for t in tasks}, tasks)
-        saved = np.random.get_state()
-        np.random.seed(seed)
-        try:
-            point, interval = rly.get_interval_estimates({"p": (X, Y)}, metrics.probability_of_improvement, reps=reps)
-        finally:
-            np.random.set_state(saved)
-        out.append({"x": x, "y": y, "tasks": tasks, "p": float(np.asarray(point["p"]).squeeze()),
-                    "low": float(np.asarray(interval["p"])[0].squeeze()), "high": float(np.asarray(interval["p"])[1].squeeze())})
+        p, low, high = stats.probability_of_improvement(X, Y, reps=reps, seed=seed)
+        out.append({"x": x, "y": y, "tasks": tasks, "p": p, "low": low, "high": high})
     return out
 
 
