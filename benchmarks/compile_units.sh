@@ -84,9 +84,15 @@
 #            physics substep (400 a update), 6 a pass of a 9-kernel loop (1,600 passes; MJX's line search). On this
 #            project's CPU the option's CPU twin took the line search body's copies from 8 to 3 (the ant's step, 8
 #            envs). Whether the GPU's copies go too, and what that is worth per update (at about 3 us a kernel).
+#            On 2026-11-27 (H100) model-free and Mb-Mf 3.3% slower with it, paper-CD 0.6% faster, at 10 seeds Mb-Mf
+#            1.6% faster and paper-CD 4.2% slower: not adopted (benchmarks/results/2026-11-27-h100-regions/).
 #   regions-hlo  the optimised HLO of the compare suite's ${HLO_CASES:-model-free} update with and without the option,
 #            one update profiled each (`dumped_case`, about 3 minutes): the kernels, copies among them, of each loop
 #            body (loops-CASE.log against loops-CASE-regions.log).
+#   determinism-cd  the `determinism` unit's last part alone (its lease cut it): the compare suite's Mb-Mf and paper-CD
+#            under XLA_FLAGS=--xla_gpu_deterministic_ops=true, one process, about 2 minutes. On 2026-11-27 (H100)
+#            0.7245 and 1.0516 s per update, 1.80x and 1.66x cdjax's defaults on that machine
+#            (benchmarks/results/2026-11-27-h100-determinism/).
 #   topn     the cost model's top N GEMM tilings (TOPN, default "4 8"; cdjax keeps 2) process-wide, about 10 minutes:
 #            the seeds suite's Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs at cdjax's default and at each N,
 #            and the cold 4-arm ant sweep at each N. XLA's own search made paper-CD 10% faster at 10 seeds and the cold
@@ -608,6 +614,12 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "$(with_flag xla_gpu_deterministic_ops=true "timeout -k 20 240 python -m benchmarks.run --suite compare" \
           "--cases model-free mbmf cd-paper --budget-s 210 --out $work/compare-ops > $work/compare-ops.log 2>&1")" \
         "grep -H ' s/update\|rror' $work/compare-ops.log | grep -v -i warn" ;;
+    determinism-cd)
+      # the determinism unit's last part, which its lease cut: the compare suite's Mb-Mf and paper-CD under XLA's
+      # deterministic ops alone (cdjax's other options as they are), in one process (about 4 minutes)
+      echo "$(with_flag xla_gpu_deterministic_ops=true "timeout -k 20 280 python -m benchmarks.run --suite compare" \
+          "--cases mbmf cd-paper --budget-s 250 --out $work/compare-ops > $work/compare-ops.log 2>&1")" \
+        "grep -H ' s/update\\|rror' $work/compare-ops.log | grep -v -i warn" ;;
     identity)
       local lhs=xla_gpu_command_buffer_scheduling_mode=LHS
       local modes="$lhs $lhs xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
@@ -733,7 +745,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, regions, regions-hlo, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, outer, chunks, tuned, topn, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, regions, regions-hlo, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, determinism-cd, outer, chunks, tuned, topn, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
