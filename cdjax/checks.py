@@ -236,8 +236,10 @@ class HParamRanges:
         """One value of one field (a grid value from the command line): ConfigError naming the option."""
         check_value(name, value, self.ranges.get(name, NON_NEGATIVE))
 
-    def check(self, hp) -> None:
-        """Every concrete value of `hp` (scalars or stacked runs [R]); traced values are skipped."""
+    def check(self, hp, one_run: bool = False) -> None:
+        """Every concrete value of `hp` (scalars or stacked runs [R]); traced values are skipped. `one_run`: the
+        values of one run, as a trainer's init takes them (vmapped, a stacked set's values arrive one at a time), so
+        a concrete stacked value is refused, rather than failing deep in the trace on mismatched shapes."""
         check_type(hp, self.cls, "hyper-parameter set")
         for name, allowed in self.ranges.items():
             value = getattr(hp, name)
@@ -248,6 +250,10 @@ class HParamRanges:
                 raise ConfigError(f"{flag(name)} must be a number, got {value!r}.")
             for element in array.reshape(-1).tolist():
                 check_value(name, element, allowed)
+            if one_run and array.ndim:
+                raise ConfigError(f"{name} holds {array.size} values (stacked hyper-parameters) where init takes one "
+                                  f"run's: vmap over them with the seeds, jax.vmap(train)(keys, stacked), or pass "
+                                  f"one set.")
 
 
 def hparam_checker(ranges: Mapping[str, Range], default: Range = NON_NEGATIVE) -> Callable[[str, float], None]:

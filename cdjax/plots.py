@@ -384,6 +384,8 @@ def plot_runs(run_dirs: Sequence[str | pathlib.Path], out: str | pathlib.Path, *
     """
     run_dirs = [pathlib.Path(d) for d in run_dirs]
     out = pathlib.Path(out)
+    if not run_dirs:
+        raise io.RunDirError(f"plot_runs was given no run directory, so there is nothing to plot into {out}.")
     infos = [io.RunDir(d).read() for d in run_dirs]
     first, where = infos[0], run_dirs[0]
     for info, d in zip(infos[1:], run_dirs[1:]):

@@ -80,13 +80,22 @@ def probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000,
     """rliable's probability of improvement P(X > Y) (a run of X against a run of Y, ties counted half, averaged
     over tasks) with its 95% stratified-bootstrap interval, reproducibly (numpy's global generator seeded and put
     back, as `bootstrap`): x [runs, tasks] and y [runs', tasks], or one task's runs as 1-D arrays. None where
-    rliable does not import."""
+    rliable does not import.
+
+    As every statistic here, it uses only the runs with a finite value (with several tasks, the runs finite on
+    every task); NaN where either side has none left, and a NaN interval where either has one run (no spread to
+    resample)."""
     if rly is None:
         return None
     from rliable import metrics
 
     x, y = (np.asarray(v, float) for v in (x, y))
     x, y = (v[:, None] if v.ndim == 1 else v for v in (x, y))
+    x, y = (v[np.isfinite(v).all(axis=1)] for v in (x, y))
+    if not len(x) or not len(y):
+        return math.nan, math.nan, math.nan
+    if min(len(x), len(y)) < 2:
+        return float(metrics.probability_of_improvement(x, y)), math.nan, math.nan
     saved = np.random.get_state()
     np.random.seed(seed)
     try:

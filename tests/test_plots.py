@@ -119,6 +119,20 @@ def test_iqm_columns_matches_rliable():
     np.testing.assert_allclose(stats.iqm_columns(scores), expected)
 
 
+def test_probability_of_improvement_uses_the_finite_runs_and_gives_no_interval_for_one_run():
+    full = stats.probability_of_improvement(np.array([1.0, 3.0]), np.array([0.0, 1.0, 2.0]), reps=50)
+    # a run that never finished an episode (NaN) is left out, as every statistic here leaves it out
+    assert stats.probability_of_improvement(np.array([1.0, np.nan, 3.0]), np.array([0.0, 1.0, 2.0]), reps=50) == full
+    assert full[0] == pytest.approx(4.5 / 6) and full[1] < full[0] < full[2]
+    # one run against one: a point estimate, no interval to resample; nothing finite: nothing at all
+    point, low, high = stats.probability_of_improvement(np.array([1.0]), np.array([0.0]))
+    assert point == 1.0 and np.isnan(low) and np.isnan(high)
+    assert all(np.isnan(v) for v in stats.probability_of_improvement(np.array([np.nan]), np.array([0.0])))
+    # several tasks: a run counts where it is finite on every task
+    x, y = np.array([[1.0, 2.0], [3.0, np.nan], [2.0, 2.0]]), np.array([[0.0, 0.0], [5.0, 5.0]])
+    assert stats.probability_of_improvement(x, y, reps=50) == stats.probability_of_improvement(x[[0, 2]], y, reps=50)
+
+
 def test_model_csv_mean_across_seeds(run_dir):
     _, paths, _ = run_dir
     rows = _csv(paths["model_csv"])
@@ -252,6 +266,8 @@ def test_plot_runs_refuses_runs_that_do_not_pool(tmp_path, second, message):
     with pytest.raises(io.RunDirError, match=message):
         plots.plot_runs([a, b], tmp_path / "out", reps=50)
     assert not (tmp_path / "out").exists()
+    with pytest.raises(io.RunDirError, match="given no run directory"):
+        plots.plot_runs([], tmp_path / "out")
 
 
 def test_cdjax_plot_of_several_runs_needs_out(tmp_path, capsys):

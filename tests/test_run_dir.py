@@ -40,7 +40,7 @@ import jax
 import numpy as np
 import pytest
 
-from cdjax import Config, ConfigError, HParams, agents, io, make_train, make_trainer
+from cdjax import Config, ConfigError, HParams, agents, io, make_train, make_trainer, stack_hparams
 from cdjax.agents.atari import AtariConfig, AtariHParams
 from cdjax.agents.pixel import PixelConfig, PixelHParams
 from cdjax.checks import Count, Flag, Real, Text, Widths
@@ -335,6 +335,13 @@ def test_the_library_checks_hyper_parameters_where_they_become_concrete():
         assert str(library.value) == str(command_line.value) == words
     with pytest.raises(ConfigError, match="--alpha must not be negative, got -1.0"):  # stacked runs
         train(key, HParams(alpha=np.array([0.0, -1.0])))
+    # valid stacked runs not vmapped: one sentence, not a shape error deep in the trace
+    with pytest.raises(ConfigError, match=r"^alpha holds 2 values \(stacked hyper-parameters\) where init takes one"):
+        train(key, stack_hparams([HParams(), HParams(alpha=0.0)]))
+    with pytest.raises(ConfigError, match="--init-log-std must be between -20 and 20, got 89.0."):  # exp() overflows
+        train(key, HParams(init_log_std=89.0))
+    with pytest.raises(ConfigError, match="stack_hparams was given no HParams"):
+        stack_hparams([])
     with pytest.raises(ConfigError, match="must be a cdjax.agents.obs.config.HParams, got a "
                                           "cdjax.agents.atari.config.AtariHParams"):
         train(key, AtariHParams())

@@ -126,6 +126,8 @@ def test_learning_on_mjx_pendulum():
     (dict(rollout_len=32, segment_len=12), "does not divide rollout_len=32"),
     (dict(rollout_len=32, horizon=20, cc_windows=20), "is more than the 13 k-step windows"),
     (dict(activation="swishh"), "Unknown activation"),
+    (dict(activation="Dense"), "Unknown activation 'Dense'"),  # a module class of flax.linen, not an activation
+    (dict(activation="one_hot"), "Unknown activation 'one_hot'"),  # a function that wants more than an array
     (dict(encoder="vae"), "Unknown encoder"),
     (dict(num_envs=0), "num_envs must be a positive integer"),
     (dict(num_minibatches=-2), "num_minibatches must be a positive integer"),

@@ -122,7 +122,7 @@ class A2C:
         return skip_if_not_finite(optax.multi_transform(groups, labels))
 
     def init(self, key: jax.Array, hp: AtariHParams) -> A2CState:
-        HP_RANGES.check(hp)  # concrete values (a call outside jit) get the command line's checks
+        HP_RANGES.check(hp, one_run=True)  # concrete values (outside jit) get the command line's checks
         key_params, key_env, key_next = jax.random.split(key, 3)
         params = self.init_params(key_params)
         nan = jnp.full((), jnp.nan, jnp.float32)

@@ -176,7 +176,7 @@ class ObsAgent:
     def init_from(self, key: jax.Array, hp: HParams, env_state: EnvState) -> TrainState:
         """init(key, hp) given its environments, reset(key): a sweep compiles the physics of a reset once for all
         its arms that act in the same environments (`cdjax.protocol.Trainer.reset`)."""
-        HP_RANGES.check(hp)  # concrete values (a call outside jit) get the command line's checks
+        HP_RANGES.check(hp, one_run=True)  # concrete values (outside jit) get the command line's checks
         hp = hp.as_float32()
         _, key_params, key_train = jax.random.split(key, 3)
         params = networks.init_params(self.modules, key_params, self.O, self.A, hp.init_log_std)

@@ -14,7 +14,7 @@ from typing import Literal
 import jax.numpy as jnp
 from flax import struct
 
-from cdjax.checks import ANY, POSITIVE, UNIT, Choice, Count, Fields, HParamRanges, Real
+from cdjax.checks import POSITIVE, UNIT, Choice, Count, Fields, HParamRanges, Range, Real
 from cdjax.consistency import KINDS, windows_per_sequence
 from cdjax.protocol import ConfigError
 
@@ -118,7 +118,7 @@ def validate(config: Config) -> None:
         raise ConfigError(
             f"Unknown env {config.env!r}; choose one of: {', '.join(sorted(envs.available_envs()))}."
         )
-    if not callable(getattr(_linen(), config.activation, None)):
+    if not _is_activation(getattr(_linen(), config.activation, None)):
         raise ConfigError(f"Unknown activation {config.activation!r}; use a flax.linen activation such as swish, "
                           "tanh or relu.")
     if config.weight_init == "orthogonal" and config.policy_head_scale != Config.policy_head_scale:
@@ -164,6 +164,21 @@ def _linen():
     return nn
 
 
+def _is_activation(fn) -> bool:
+    """Whether fn maps a float array to a float array of its shape (flax.linen's relu, swish, ...), not a module
+    class such as Dense nor a function that wants more arguments (one_hot): checked on shapes alone, nothing runs."""
+    import jax
+
+    if not callable(fn) or isinstance(fn, type):
+        return False
+    x = jax.ShapeDtypeStruct((2, 3), jax.numpy.float32)
+    try:
+        y = jax.eval_shape(fn, x)
+    except Exception:  # noqa: BLE001 - whatever fn raises on one float array, it is not an activation
+        return False
+    return getattr(y, "shape", None) == x.shape and jax.numpy.issubdtype(y.dtype, jax.numpy.floating)
+
+
 @struct.dataclass
 class HParams:
     """Float hyper-parameters: traced, so any of them can be vmapped alongside the seeds."""
@@ -191,12 +206,18 @@ class HParams:
         return HParams(**{f.name: jnp.asarray(getattr(self, f.name), jnp.float32) for f in dataclasses.fields(self)})
 
 
+# The initial log standard deviation's range: exp() of it must stay finite in float32 (it overflows above about 88.7,
+# and the std head's bias is softplus's inverse of it), so +-20 (a std from 2e-9 to 5e8) bounds it well inside.
+LOG_STD = Range(-20.0, 20.0)
+
 # The range of every HParams field (the rest: not negative), checked on the command line's grid and by `init`.
-HP_RANGES = HParamRanges(HParams, gamma=UNIT, gae_lambda=UNIT, init_log_std=ANY, max_grad_norm=POSITIVE,
+HP_RANGES = HParamRanges(HParams, gamma=UNIT, gae_lambda=UNIT, init_log_std=LOG_STD, max_grad_norm=POSITIVE,
                          adam_eps=POSITIVE, clip_eps=POSITIVE, reward_scale=POSITIVE)
 
 
 def stack_hparams(hps: list[HParams]) -> HParams:
     """Stack HParams into one with leaves [len(hps)], to vmap over (e.g. an alpha grid)."""
+    if not hps:
+        raise ConfigError("stack_hparams was given no HParams; pass at least one.")
     return HParams(**{f.name: jnp.asarray([getattr(h, f.name) for h in hps], jnp.float32)
                       for f in dataclasses.fields(HParams)})
