@@ -129,7 +129,13 @@ def interval_curve(values: np.ndarray, stat: str = "iqm", reps: int = 2000, seed
     stat "iqm" (rliable IQM) or "mean". At each point only seeds with a finite value count; points
     sharing the same set of finite seeds are bootstrapped together. No interval (NaN) with < 2 seeds.
     """
-    func = {"iqm": iqm_columns, "mean": mean_columns}[stat]
+    funcs = {"iqm": iqm_columns, "mean": mean_columns}
+    if stat not in funcs:
+        raise ValueError(f"interval_curve's stat is 'iqm' or 'mean', got {stat!r}.")
+    values = np.asarray(values, float)
+    if values.ndim != 2:
+        raise ValueError(f"interval_curve takes values [seeds, points], got an array of shape {values.shape}.")
+    func = funcs[stat]
     S, P = values.shape
     finite = np.isfinite(values)
     point, low, high = (np.full(P, np.nan) for _ in range(3))
@@ -168,6 +174,8 @@ def final_values(values: np.ndarray, present: np.ndarray, fraction: float = FINA
     instead (those past (1 - fraction) x its last logged step; at least the last point): the same window for a
     log kept at every update, and still the same window after a log is thinned unevenly (every n-th point early,
     every point late), where counting points would shrink it."""
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"final_values' fraction is a share of the points in (0, 1], got {fraction!r}.")
     out = np.full(values.shape[0], np.nan)
     for s in range(values.shape[0]):
         idx = np.flatnonzero(present[s])
@@ -186,8 +194,10 @@ def area_under_curve(values: np.ndarray, present: np.ndarray, steps: np.ndarray)
 
     Each logged point stands for the steps since the previous point (the first for those since 0): the
     area is the mean of the values weighted by those steps, so arms compare over the same budget even
-    when one logs its first point late. Points with a NaN value are skipped.
+    when one logs its first point late. Points with a NaN value are skipped, and so are points whose steps do
+    not exceed the previous point's (they stand for no steps).
     """
+    steps = np.asarray(steps, float)
     out = np.full(values.shape[0], np.nan)
     for s in range(values.shape[0]):
         idx = np.flatnonzero(present[s])

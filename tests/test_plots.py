@@ -133,6 +133,18 @@ def test_probability_of_improvement_uses_the_finite_runs_and_gives_no_interval_f
     assert stats.probability_of_improvement(x, y, reps=50) == stats.probability_of_improvement(x[[0, 2]], y, reps=50)
 
 
+def test_stats_helpers_refuse_what_they_cannot_compute_in_one_sentence():
+    curve = np.array([[1.0, 2.0], [3.0, 4.0]])
+    with pytest.raises(ValueError, match="stat is 'iqm' or 'mean', got 'median'"):
+        stats.interval_curve(curve, stat="median")
+    with pytest.raises(ValueError, match=r"takes values \[seeds, points\], got an array of shape \(2,\)"):
+        stats.interval_curve(curve[0])
+    with pytest.raises(ValueError, match="fraction is a share of the points in \\(0, 1\\], got 2"):
+        stats.final_values(curve, np.ones_like(curve, bool), fraction=2)
+    # steps as a list: the same area as an array (the second point stands for 3 steps, the first for 1)
+    assert stats.area_under_curve(curve, np.ones_like(curve, bool), [1, 4]).tolist() == [1.75, 3.75]
+
+
 def test_model_csv_mean_across_seeds(run_dir):
     _, paths, _ = run_dir
     rows = _csv(paths["model_csv"])
