@@ -300,6 +300,7 @@ def test_every_field_refuses_a_bad_value_with_one_config_error_naming_it(setting
     ("pixel", ["--policy-hidden", "0"], "policy_hidden must be a non-empty tuple of positive integers, got (0,)"),
     ("pixel", ["--mlp", "0"], "mlp must be a positive integer, got 0"),
     ("pixel", ["--lr", "0"], "--lr must be positive, got 0.0"),
+    ("pixel", ["--cc-windows", "9"], "cc_windows=9 is more than the 4 k-step windows a sequence of seq_len=6 holds"),
     ("atari", ["--num-envs", "0"], "num_envs must be a positive integer, got 0"),
     ("atari", ["--sticky-prob", "1"], "sticky_prob must be in [0, 1), got 1.0"),
     ("atari", ["--rms-decay", "2"], "--rms-decay must be between 0 and 1, got 2.0"),

@@ -80,6 +80,9 @@ class PixelConfig:
                               f"{2 ** self.conv_layers}.")
         if not self.horizon < self.seq_len:
             raise ConfigError(f"horizon={self.horizon} must be below seq_len={self.seq_len}.")
+        if self.cc_windows > self.seq_len - self.horizon:  # windows of k steps among a sequence's seq_len - 1 actions
+            raise ConfigError(f"cc_windows={self.cc_windows} is more than the {self.seq_len - self.horizon} k-step "
+                              f"windows a sequence of seq_len={self.seq_len} holds (k={self.horizon}).")
         if self.upsample == "transpose" and (self.compute_dtype, self.conv_impl) != ("float32", "grouped"):
             raise ConfigError(f"upsample='transpose' runs only with compute_dtype='float32' and conv_impl='grouped' "
                               f"(got {self.compute_dtype!r} and {self.conv_impl!r}); use upsample='subpixel'.")
