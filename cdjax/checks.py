@@ -57,6 +57,8 @@ class Range:
         return f"be between {self.low:g} and {self.high:g}"
 
 
+INT32_MAX = 2 ** 31 - 1  # the largest count an int32 counter (an episode's steps) holds
+
 NON_NEGATIVE = Range()
 POSITIVE = Range(open_low=True)
 UNIT = Range(0.0, 1.0)  # a discount, a lambda, a decay
@@ -211,6 +213,14 @@ def check_value(name: str, value, allowed: Range) -> None:
         raise ConfigError(f"{flag(name)} must be finite, got {float(value)}.")
     if not allowed.holds(float(value)):
         raise ConfigError(f"{flag(name)} must {allowed.describe()}, got {float(value)}.")
+    with np.errstate(over="ignore", under="ignore"):
+        single = float(np.float32(value))  # hyper-parameters train as float32
+    if not math.isfinite(single):
+        raise ConfigError(f"{flag(name)} must be finite in float32, which it trains in (at most "
+                          f"{float(np.finfo(np.float32).max):.3g} in size), got {float(value)}.")
+    if not allowed.holds(single):
+        raise ConfigError(f"{flag(name)} must {allowed.describe()} in float32, which it trains in, got "
+                          f"{float(value)} ({single} in float32).")
 
 
 def _as_array(value) -> np.ndarray | None:
@@ -265,7 +275,7 @@ def hparam_checker(ranges: Mapping[str, Range], default: Range = NON_NEGATIVE) -
     return check_hparam
 
 
-__all__ = ["ANY", "Choice", "Count", "Fields", "Flag", "HParamRanges", "NON_NEGATIVE", "POSITIVE",
+__all__ = ["ANY", "Choice", "Count", "Fields", "Flag", "HParamRanges", "INT32_MAX", "NON_NEGATIVE", "POSITIVE",
            "PROBABILITY_BELOW_1", "Range", "Real", "Text", "UNIT", "Widths", "check_type", "check_value", "flag",
            "hparam_checker", "kind_of"]
 

@@ -308,6 +308,11 @@ def test_every_field_refuses_a_bad_value_with_one_config_error_naming_it(setting
     ("obs", ["--lr-policy", "-1"], "--lr-policy must not be negative, got -1.0"),
     ("obs", ["--gamma", "5"], "--gamma must be between 0 and 1, got 5.0"),
     ("obs", ["--alpha", "0", "nan"], "--alpha must be finite, got nan"),
+    ("obs", ["--alpha", "1e40"], "--alpha must be finite in float32, which it trains in"),
+    ("obs", ["--max-grad-norm", "1e-50"], "--max-grad-norm must be positive in float32, which it trains in, got 1e-50"),
+    ("obs", ["--episode-length", "10000000000"], "episode_length must be an integer from 1 to 2147483647"),
+    ("obs", ["--action-repeat", "1000"], "action_repeat=1000 is more than episode_length="),
+    ("atari", ["--episode-length", "10000000000"], "episode_length must be an integer from 1 to 2147483647"),
 ])
 def test_the_command_line_refuses_what_the_library_refuses(capsys, tmp_path, setting, argv, words):
     out = tmp_path / "run"

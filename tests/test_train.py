@@ -165,6 +165,34 @@ def test_batched_env_keeps_truncation_apart_and_final_obs():
     assert bool(out.terminated[0]) and not bool(out.truncated[0])
 
 
+def test_a_large_action_repeat_is_one_loop_with_the_unrolled_repeats_results(monkeypatch):
+    """Past UNROLLED_REPEATS the repeats run as one loop: the program does not grow with them (1000 unrolled steps
+    ran a 24 GB machine out of memory while compiling), and the step gives what the unrolled repeats give."""
+    import cdjax.envs as envs
+    from cdjax.envs import BatchedEnv
+    from cdjax.envs.point import PointMass
+
+    def run(repeat):
+        env = BatchedEnv(PointMass(start_range=0.5), num_envs=3, episode_length=40, action_repeat=repeat)
+        state = env.reset(jax.random.key(1))
+        push = jnp.array([[0.3, -0.2], [0.0, 0.1], [-0.4, 0.4]])
+        outs = []
+        for _ in range(4):  # the last step ends the episodes at 40 physics steps
+            state, out = jax.jit(env.step)(state, push)
+            outs.append(out)
+        size = len(jax.make_jaxpr(env.step)(state, push).eqns)
+        return jax.tree.map(np.asarray, (state.obs, state.t, outs)), size
+
+    looped, size_10 = run(10)
+    _, size_20 = run(20)
+    assert size_10 == size_20  # one loop, whatever the repeats
+    monkeypatch.setattr(envs, "UNROLLED_REPEATS", 100)
+    unrolled, size_unrolled = run(10)
+    assert size_unrolled > size_10
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), looped, unrolled)
+    assert bool(looped[2][-1].truncated.all()) and looped[1].tolist() == [0, 0, 0]
+
+
 @pytest.mark.parametrize("reset_mode", ["cached", "fresh"])
 def test_rollout_values_are_values_of_obs_and_next_obs(reset_mode):
     """closed_loop values obs and next_obs after the scan (with cached resets it derives value(obs[t+1]) from

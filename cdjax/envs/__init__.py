@@ -34,6 +34,10 @@ from flax import struct
 from cdjax.envs.episodes import EpisodeStats  # noqa: F401  (re-exported: every setting's running returns)
 from cdjax.envs.point import PointMass
 
+# Action repeats up to this many are unrolled in the step's program (the presets' 1 and 4); more run as one loop, so
+# that a large repeat does not grow the program (at 1000 unrolled point-mass steps the compile ran out of 24 GB).
+UNROLLED_REPEATS = 8
+
 # Brax tasks that run on MJX (brax's own swimmer has no mjx backend: see cdjax/envs/swimmer.py).
 BRAX_MJX_ENVS = (
     "ant", "halfcheetah", "hopper", "humanoid", "humanoidstandup", "inverted_pendulum",
@@ -193,10 +197,17 @@ class BatchedEnv:
         core = state.core
         reward = jnp.zeros((B,), jnp.float32)
         done = jnp.zeros((B,), bool)
-        for _ in range(self.action_repeat):
+
+        def repeat(_, carry):
+            core, reward, done = carry
             core = self._step_many(core, action)
-            reward = reward + jnp.where(done, 0.0, core.reward.astype(jnp.float32))
-            done = done | (core.done > 0.5)
+            return core, reward + jnp.where(done, 0.0, core.reward.astype(jnp.float32)), done | (core.done > 0.5)
+
+        if self.action_repeat <= UNROLLED_REPEATS:  # unrolled: the presets' few repeats, no loop around the physics
+            for i in range(self.action_repeat):
+                core, reward, done = repeat(i, (core, reward, done))
+        else:  # one loop, so that the program does not grow with the repeats
+            core, reward, done = jax.lax.fori_loop(0, self.action_repeat, repeat, (core, reward, done))
         next_obs = core.obs.astype(jnp.float32)
         physics = getattr(core, "pipeline_state", None)
         physics_q = (getattr(physics, "q", None), getattr(physics, "qd", None)) if physics is not None else ()

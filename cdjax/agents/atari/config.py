@@ -12,7 +12,7 @@ from typing import Literal
 
 from flax import struct
 
-from cdjax.checks import POSITIVE, PROBABILITY_BELOW_1, UNIT, Choice, Count, Fields, HParamRanges, Real, Text
+from cdjax.checks import INT32_MAX, POSITIVE, PROBABILITY_BELOW_1, UNIT, Choice, Count, Fields, HParamRanges, Real, Text
 from cdjax.consistency import KINDS, windows_per_sequence
 from cdjax.protocol import ConfigError
 
@@ -102,7 +102,7 @@ class AtariConfig:
 # annotations), checked when a Config is built.
 FIELDS = Fields(
     AtariConfig, env=Text(), num_envs=Count(1), rollout_len=Count(1), horizon=Count(1),
-    cc_windows=Count(1, zero="all windows"), cc_unroll=Count(1), episode_length=Count(1),
+    cc_windows=Count(1, zero="all windows"), cc_unroll=Count(1), episode_length=Count(1, INT32_MAX),
     sticky_prob=Real(PROBABILITY_BELOW_1), frame_skip=Count(1), conv_channels=Count(1), latent=Count(1),
     model_hidden=Count(1), encoder=Choice(KINDS), encoder_dim=Count(1), num_updates=Count(1))
 

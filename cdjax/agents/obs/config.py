@@ -14,7 +14,7 @@ from typing import Literal
 import jax.numpy as jnp
 from flax import struct
 
-from cdjax.checks import POSITIVE, UNIT, Choice, Count, Fields, HParamRanges, Range, Real
+from cdjax.checks import INT32_MAX, POSITIVE, UNIT, Choice, Count, Fields, HParamRanges, Range, Real
 from cdjax.consistency import KINDS, windows_per_sequence
 from cdjax.protocol import ConfigError
 
@@ -125,6 +125,9 @@ def validate(config: Config) -> None:
         raise ConfigError(f"policy_head_scale scales lecun-uniform's policy head; orthogonal weights have their own (gain "
                           f"0.01), so leave it at {Config.policy_head_scale} with weight_init='orthogonal', got "
                           f"{config.policy_head_scale!r}.")
+    if config.action_repeat > config.episode_length:
+        raise ConfigError(f"action_repeat={config.action_repeat} is more than episode_length={config.episode_length} "
+                          "physics steps, so every episode would end at its first agent step.")
     if config.cc_epochs > config.num_epochs:
         raise ConfigError(f"cc_epochs must be between 0 (all epochs) and num_epochs={config.num_epochs}, got {config.cc_epochs!r}.")
     if config.rollout_len % config.segment != 0:
@@ -153,7 +156,7 @@ def validate(config: Config) -> None:
 FIELDS = Fields(
     Config, encoder=Choice(ENCODERS), num_envs=Count(1), rollout_len=Count(1), horizon=Count(1), num_updates=Count(1),
     num_epochs=Count(1), num_minibatches=Count(1), segment_len=Count(1, zero="the whole rollout"),
-    episode_length=Count(1), action_repeat=Count(1), encoder_dim=Count(1), cc_windows=Count(1, zero="all windows"),
+    episode_length=Count(1, INT32_MAX), action_repeat=Count(1), encoder_dim=Count(1), cc_windows=Count(1, zero="all windows"),
     cc_unroll=Count(1), cc_epochs=Count(1, zero="all epochs"), eval_horizon=Count(1), eval_envs=Count(1),
     policy_head_scale=Real(POSITIVE))
 
