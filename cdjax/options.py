@@ -23,23 +23,32 @@ from typing import Any, Literal, Mapping
 
 
 def field_docs(cls) -> dict[str, str]:
-    """{field: the comment on the line that defines it} of a dataclass."""
+    """{field: the comment on the line that defines it} of a dataclass, with the comment-only lines right below
+    that line (no blank line between) as its continuation."""
     source = textwrap.dedent(inspect.getsource(cls))
     docs: dict[str, str] = {}
-    depth, start, name = 0, True, None
+    depth, start, name, last, commented = 0, True, None, None, False
     for tok in tokenize.generate_tokens(io.StringIO(source).readline):
         if tok.type == tokenize.INDENT:
             depth += 1
         elif tok.type == tokenize.DEDENT:
             depth -= 1
-        elif tok.type == tokenize.NEWLINE:
-            start, name = True, None
-        elif tok.type == tokenize.COMMENT and name is not None and name not in docs:
-            docs[name] = tok.string.lstrip("#").strip()
-        elif tok.type not in (tokenize.NL, tokenize.COMMENT):
+        elif tok.type == tokenize.NEWLINE:  # the end of a statement: its comment may go on below it
+            start, name, last = True, None, name if name in docs else None
+        elif tok.type == tokenize.NL:  # the end of a comment-only or blank line; a blank one ends any continuation
+            last = last if commented else None
+            commented = False
+        elif tok.type == tokenize.COMMENT:
+            commented = True
+            text = tok.string.lstrip("#").strip()
+            if name is not None and name not in docs:
+                docs[name] = text
+            elif name is None and last is not None:
+                docs[last] = f"{docs[last]} {text}"
+        else:
             if start and depth == 1 and tok.type == tokenize.NAME:
                 name = tok.string
-            start = False
+            start, last = False, None
     return {f.name: docs.get(f.name, "") for f in dataclasses.fields(cls)}
 
 

@@ -108,12 +108,19 @@ def test_help_comes_from_the_field_comments_read_with_the_tokenizer():
         widths: tuple[int, ...] = (  # a default over two lines
             64, 64)
         bare: int = 1
+        long: str = "x"  # a comment that goes on
+        # on the line below (a continuation)
+
+        # a header over the next field, after a blank line: no field's
+        last: int = 2  # its own
+        # and its continuation
 
         def method(self):  # a method's comment is no field's
             return self.bare
 
     assert field_docs(Tricky) == {"text": "the comment, not the string", "widths": "a default over two lines",
-                                  "bare": ""}
+                                  "bare": "", "long": "a comment that goes on on the line below (a continuation)",
+                                  "last": "its own and its continuation"}
 
 
 def test_precedence_defaults_then_preset_then_flags():

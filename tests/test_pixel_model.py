@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cdjax import agents, io
+from cdjax import ConfigError, agents, io
 from cdjax.agents import pixel
 from cdjax.agents.pixel import PixelHParams, PixelLearner
 from cdjax.agents.pixel.synthetic import SyntheticWorld
@@ -308,6 +308,13 @@ def test_the_expert_is_the_best_evaluated_policy_of_a_model_free_sweep(tmp_path)
     for a, b in zip(jax.tree.leaves(expert.policy), jax.tree.leaves(arm.state.params["policy"])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[best["seed"]])
     np.testing.assert_array_equal(np.asarray(expert.norms.obs.mean), np.asarray(arm.state.norms.obs.mean)[best["seed"]])
+    # a file that is no expert: one sentence, not msgpack's or a KeyError's traceback
+    (tmp_path / "text.msgpack").write_text("hello")
+    blob = (tmp_path / "point.msgpack").read_bytes()
+    (tmp_path / "cut.msgpack").write_bytes(blob[: len(blob) // 2])
+    for name in ("text", "cut"):
+        with pytest.raises(ConfigError, match=rf"^--expert '.*{name}.msgpack' is not an expert file \("):
+            load_expert(tmp_path / f"{name}.msgpack")
 
 
 def test_subpixel_decoder_layer_rearranges_each_pixels_channels_into_a_2x2_block():

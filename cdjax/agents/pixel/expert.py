@@ -72,12 +72,18 @@ def load_expert(path: str | pathlib.Path) -> Expert:
     path = pathlib.Path(path)
     if not path.is_file():
         raise ConfigError(f"--expert {str(path)!r} is not a file (write one with python -m cdjax.agents.pixel.export_expert).")
-    blob = serialization.msgpack_restore(path.read_bytes())
-    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(blob["config"]).items()}
-    config = _state_setting().config_type(**fields)
-    norms = serialization.from_state_dict(Norms.create(int(np.asarray(blob["norms"]["obs"]["mean"]).shape[-1])),
-                                          blob["norms"])
-    return Expert(config, blob["policy"], norms, float(blob["eval_return"]))
+    try:
+        blob = serialization.msgpack_restore(path.read_bytes())
+        fields = {k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(blob["config"]).items()}
+        config = _state_setting().config_type(**fields)
+        norms = serialization.from_state_dict(Norms.create(int(np.asarray(blob["norms"]["obs"]["mean"]).shape[-1])),
+                                              blob["norms"])
+        return Expert(config, blob["policy"], norms, float(blob["eval_return"]))
+    except ConfigError as err:
+        raise ConfigError(f"--expert {str(path)!r} holds a configuration this cdjax refuses: {err}") from None
+    except Exception as err:  # noqa: BLE001 - msgpack, json, a missing key, a wrong type: the file is not an expert
+        raise ConfigError(f"--expert {str(path)!r} is not an expert file ({type(err).__name__}: {err}); write one "
+                          "with python -m cdjax.agents.pixel.export_expert.") from None
 
 
 def expert_for(env: str, path: str) -> Expert:
