@@ -379,8 +379,9 @@ def plot_runs(run_dirs: Sequence[str | pathlib.Path], out: str | pathlib.Path, *
     Each (arm, hp label) holds the seeds of every run that has it (`pool_curves`): runs of the same sweep
     started with other base seeds (`cdjax sweep --seed`), e.g. because one machine could not hold all the seeds.
     RunDirError (one sentence) when the runs are of other environments or settings, when two of them share a base
-    seed (their seeds would be the same keys counted twice), or when one arm asked for other env steps per run in
-    another run (its seeds would end at other budgets).
+    seed (their seeds would be the same keys counted twice), when one arm asked for other env steps per run in
+    another run (its seeds would end at other budgets), or when an (arm, hp label) ran with another configuration or
+    other hyper-parameters in another run (`_same_settings`).
     """
     run_dirs = [pathlib.Path(d) for d in run_dirs]
     out = pathlib.Path(out)
@@ -409,6 +410,7 @@ def plot_runs(run_dirs: Sequence[str | pathlib.Path], out: str | pathlib.Path, *
                 raise io.RunDirError(f"arm {arm['name']} ran {steps:,} env steps per run in {d} and "
                                      f"{budgets[arm['name']][0]:,} in {budgets[arm['name']][1]}; pool runs of one "
                                      "budget.")
+    _same_settings(infos, run_dirs)
     curves, evals = {}, {}
     for d in run_dirs:
         offsets = {}
@@ -425,6 +427,29 @@ def plot_runs(run_dirs: Sequence[str | pathlib.Path], out: str | pathlib.Path, *
     title = (f"Summary of {', '.join(d.name for d in run_dirs)} pooled (base seeds {', '.join(map(str, bases))})"
              + (f" ({env})" if env else ""))
     return _write(out, curves, evals, Names.of(first), title, reps, max_points, seed)
+
+
+def _same_settings(infos: list[dict], run_dirs: list[pathlib.Path]) -> None:
+    """RunDirError (one sentence) unless each (arm, hp label) ran with the same configuration and hyper-parameters in
+    every run that has it (run.json's `config` and `hparams`): a curve pools seeds of one setting only, and the label
+    names the grid's values, not every field. A yardstick is compared by its file's name (another machine's path)."""
+    seen: dict[tuple, tuple] = {}
+    for info, d in zip(infos, run_dirs):
+        for arm in info.get("arms", []):
+            config = dict(arm.get("config", {}))
+            if config.get("yardstick"):
+                config["yardstick"] = pathlib.PurePath(config["yardstick"]).name
+            labels = arm.get("hp_labels", [""])
+            for label, hp in zip(labels, arm.get("hparams", [{}] * len(labels))):
+                key = (arm["name"], str(label))
+                earlier, where = seen.setdefault(key, ((config, hp), d))
+                for before, now, kind in ((earlier[0], config, "configuration"), (earlier[1], hp, "hyper-parameters")):
+                    for name in [*before, *(n for n in now if n not in before)]:
+                        if before.get(name) != now.get(name):
+                            raise io.RunDirError(
+                                f"arm {arm['name']}{f' ({label})' if label else ''} ran with {name}="
+                                f"{now.get(name)!r} in {d} and {before.get(name)!r} in {where}; pool runs of one "
+                                f"{kind}.")
 
 
 def pool_curves(a: Curves, b: Curves) -> tuple[Curves, int]:

@@ -229,11 +229,14 @@ def test_auc_weights_each_point_by_the_env_steps_it_stands_for(tmp_path):
     np.testing.assert_allclose(auc, [(10 * 1000 + 20 * 200) / 1200, (0 * 1000 + 40 * 200) / 1200])
 
 
-def _small_run(path, base_seed, seeds, level, env="point", updates=6, steps=3072, log_every=1, evals=True):
+def _small_run(path, base_seed, seeds, level, env="point", updates=6, steps=3072, log_every=1, evals=True,
+               config=None, hparams=None):
     """A run directory by hand of one arm, return = level + seed index + base seed x 100 at every logged update."""
     path.mkdir(parents=True)
+    config = {"env": env, "num_envs": 32, "yardstick": f"/{path.name}/yardstick/point.npz", **(config or {})}
     info = {"version": 1, "base_config": {"env": env}, "seeds": seeds, "seed": base_seed, "command": "synthetic",
-            "arms": [{"name": "cd", "arm": "cd", "hparams": [{}], "hp_labels": ["alpha=1.0"], "total_env_steps": steps}]}
+            "arms": [{"name": "cd", "arm": "cd", "config": config, "hparams": [{"alpha": 1.0, **(hparams or {})}],
+                      "hp_labels": ["alpha=1.0"], "total_env_steps": steps}]}
     (path / "run.json").write_text(json.dumps(info))
     with (path / "metrics.jsonl").open("w") as f:
         for s in range(seeds):
@@ -271,6 +274,10 @@ def test_plot_runs_pools_the_seeds_of_runs_of_other_base_seeds(tmp_path):
     (dict(base_seed=0), "both ran base seed 0, so their seeds are the same keys"),
     (dict(base_seed=1, env="reacher"), "is a run of environment 'reacher' and"),
     (dict(base_seed=1, steps=6144), "arm cd ran 6,144 env steps per run in"),
+    (dict(base_seed=1, config={"num_envs": 16}), r"arm cd \(alpha=1.0\) ran with num_envs=16 in .*b and 32 in .*a; "
+                                                 "pool runs of one configuration"),
+    (dict(base_seed=1, hparams={"gamma": 0.9}), r"ran with gamma=0.9 in .*b and None in .*a; pool runs of one "
+                                                "hyper-parameters"),
 ])
 def test_plot_runs_refuses_runs_that_do_not_pool(tmp_path, second, message):
     a = _small_run(tmp_path / "a", 0, 2, 1.0)
