@@ -21,6 +21,7 @@ the others with one sentence and exit status 69 (EX_UNAVAILABLE: continue it wit
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import os
@@ -265,8 +266,11 @@ def cmd_eval(args: argparse.Namespace) -> None:
         rd.check_name("RUN_DIR")
         rd.read()  # a clear error for a directory that holds no run
     try:
-        with library_log(rd.process_log(multihost.index()), tell):
+        with contextlib.ExitStack() as held, library_log(rd.process_log(multihost.index()), tell):
             with multihost.together():
+                if writer:  # a live sweep turns its checkpoints over and appends to eval.jsonl: not beside it
+                    held.enter_context(rd.lock("evaluate it when it has ended (its checkpoints turn over while it "
+                                               "trains)"))
                 spec, arms = restore_arms(args.run_dir)
             sampled = args.stochastic or (agents.get(spec.setting).eval_sampled and not args.deterministic)
             records = evaluate_arms(rd, arms, spec.seeds, args.episodes, not sampled, tell)

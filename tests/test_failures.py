@@ -131,6 +131,10 @@ def test_a_full_disk_names_the_intact_checkpoint_and_a_resume_is_the_same_run(ca
     with io.RunDir(out).lock():  # as another process training in it would hold it
         line = _fails_mid_run(capsys, ["sweep", "--out", str(out), "--resume"])
     assert line == f"cdjax: {out} is in use by another cdjax process; wait for it to end or choose another --out."
+    with io.RunDir(out).lock():  # an evaluation beside a live sweep would read checkpoints it turns over
+        line = _fails_mid_run(capsys, ["eval", str(out), "--episodes", "2"])
+    assert line == (f"cdjax: {out} is in use by another cdjax process; evaluate it when it has ended (its "
+                    "checkpoints turn over while it trains).")
     assert (out / "eval.jsonl").read_text() == before
 
 

@@ -208,9 +208,9 @@ class RunDir:
             raise RunDirError(f"cannot write into {self.path}: {reason(err)}; choose another --out.") from None
 
     @contextlib.contextmanager
-    def lock(self):
-        """Hold the directory for one sweep (an advisory lock, released when the process ends, also by kill -9):
-        RunDirError when another process holds it."""
+    def lock(self, advice: str = "wait for it to end or choose another --out"):
+        """Hold the directory for one sweep, or one evaluation (an advisory lock, released when the process ends,
+        also by kill -9): RunDirError, ending with `advice`, when another process holds it."""
         import fcntl
 
         with writing(self.path / ".lock"):  # only opening the lock file is this file's write: an error inside
@@ -219,8 +219,7 @@ class RunDir:
             try:
                 fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                raise RunDirError(f"{self.path} is in use by another cdjax process; wait for it to end or choose "
-                                  "another --out.") from None
+                raise RunDirError(f"{self.path} is in use by another cdjax process; {advice}.") from None
             try:
                 yield
             finally:
