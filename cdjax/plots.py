@@ -29,7 +29,7 @@ DISC_RETURN = "episode/discounted_return"
 # (metric name, panel title, log scale) of the diagnostics figure of logs whose run.json names none.
 MODEL_PANELS = (
     ("model/openloop_mse_k", "open-loop MSE at k steps", True),
-    ("model/openloop_mse_50", "open-loop MSE at 50 steps", True),
+    ("model/openloop_mse_50", "open-loop MSE at eval_horizon (50 unless set)", True),
     ("loss/consistency", "consistency loss", True),
     ("encoder/spread_real", "encoder spread (real)", False),
     ("encoder/spread_imagined", "encoder spread (imagined)", False),

@@ -153,7 +153,7 @@ SETTING = Setting(
     check_hparam=check_hparam,
     metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, skipped="train/skipped_steps", panels=(
         ("model/openloop_mse_k", "open-loop MSE at k steps", True),
-        ("model/openloop_mse_50", "open-loop MSE at 50 steps", True),
+        ("model/openloop_mse_50", "open-loop MSE at eval_horizon (50 unless set)", True),
         ("loss/consistency", "consistency loss", True),
         ("encoder/spread_real", "encoder spread (real)", False),
         ("encoder/spread_imagined", "encoder spread (imagined)", False))),

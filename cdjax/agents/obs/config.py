@@ -128,6 +128,10 @@ def validate(config: Config) -> None:
     if config.action_repeat > config.episode_length:
         raise ConfigError(f"action_repeat={config.action_repeat} is more than episode_length={config.episode_length} "
                           "physics steps, so every episode would end at its first agent step.")
+    episode = -(-config.episode_length // config.action_repeat)  # agent steps of an episode that times out
+    if config.use_model and config.eval_horizon > episode:
+        raise ConfigError(f"eval_horizon={config.eval_horizon} is longer than an episode ({episode} agent steps), so "
+                          "the model's open-loop error at it would never be measured; make it at most that.")
     if config.cc_epochs > config.num_epochs:
         raise ConfigError(f"cc_epochs must be between 0 (all epochs) and num_epochs={config.num_epochs}, got {config.cc_epochs!r}.")
     if config.rollout_len % config.segment != 0:
