@@ -64,7 +64,14 @@ def plan_arms(spec: SweepSpec, setting: Setting | None = None) -> list[ArmPlan]:
     grid = validate_grid(setting, spec.grid)
     if spec.phase is not None and setting.phase is None:
         raise ConfigError(f"The {setting.name} setting has no pre-update phase.")
-    return [_plan_arm(setting, spec, name, grid) for name in spec.arms]
+    plans = [_plan_arm(setting, spec, name, grid) for name in spec.arms]
+    same: dict[str, str] = {}  # two names for one arm (cd and cd-k4 where k is 4; cd-k05 and cd-k5) train it twice
+    for plan in plans:
+        first = same.setdefault(repr((plan.config, plan.hparams, plan.phase)), plan.name)
+        if first != plan.name:
+            raise ConfigError(f"Arms {first} and {plan.name} are one configuration with the same hyper-parameters, so "
+                              f"their runs would be the same runs twice; keep one of them.")
+    return plans
 
 
 def _plan_arm(setting: Setting, spec: SweepSpec, name: str, grid: dict) -> ArmPlan:
