@@ -315,6 +315,8 @@ def test_every_field_refuses_a_bad_value_with_one_config_error_naming_it(setting
     ("obs", ["--eval-horizon", "1000"], "eval_horizon=1000 is longer than an episode (50 agent steps)"),
     ("obs", ["--arms", "cd", "cd-k4"], "Arms cd and cd-k4 are one configuration with the same hyper-parameters"),
     ("atari", ["--episode-length", "10000000000"], "episode_length must be an integer from 1 to 2147483647"),
+    ("atari", ["--frame-skip", "8"], "frame_skip=8 is the ALE's (emulator frames per agent step)"),
+    ("atari", ["--env", "ale-bogus"], "Unknown ALE game 'ale-bogus'; choose one of ale-breakout"),
 ])
 def test_the_command_line_refuses_what_the_library_refuses(capsys, tmp_path, setting, argv, words):
     out = tmp_path / "run"

@@ -57,13 +57,17 @@ class AtariConfig:
     def __post_init__(self):
         FIELDS.check(self)  # every field's type and range (cdjax.checks); what follows relates fields
         if self.is_ale:
+            if self.env not in ale.GAMES:  # a name no extra would make known: said before the extra is asked for
+                raise ConfigError(f"Unknown ALE game {self.env!r}; choose one of {', '.join(ale.GAMES)}.")
             if not ale_available():
                 raise ConfigError(f"env={self.env!r}: {ALE_INSTALL}")
-            if self.env not in ale.GAMES:
-                raise ConfigError(f"Unknown ALE game {self.env!r}; choose one of {', '.join(ale.GAMES)}.")
         elif self.env not in GAMES:
             raise ConfigError(f"Unknown env {self.env!r}; choose a MinAtar game ({', '.join(GAMES)}) or "
                               "ale-<game> (e.g. ale-breakout).")
+        elif self.frame_skip != AtariConfig.frame_skip:
+            raise ConfigError(f"frame_skip={self.frame_skip} is the ALE's (emulator frames per agent step); a MinAtar "
+                              f"game such as {self.env!r} steps once per action, so leave it at "
+                              f"{AtariConfig.frame_skip}.")
         if self.horizon > self.rollout_len:
             raise ConfigError(f"horizon={self.horizon} must not exceed rollout_len={self.rollout_len}: a "
                               "consistency window lies inside one rollout.")
