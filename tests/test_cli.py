@@ -139,6 +139,17 @@ def test_precedence_defaults_then_preset_then_flags():
     assert spec.config.env == "halfcheetah" and spec.config.horizon == 20 and spec.grid["reward_scale"] == (10.0,)
 
 
+def test_an_arm_the_grid_does_not_apply_to_runs_once_and_the_plan_names_the_field():
+    from cdjax.runner.plan import plan_arms
+
+    obs = agents.get("obs")
+    spec = sweep_spec(build_parser().parse_args(["sweep", "--out", "x", "--preset", "point", "--arms", "model-free",
+                                                  "cd", "--alpha", "0", "1", "--lr-policy", "1e-3", "3e-4"]), obs)
+    free, cd = plan_arms(spec, obs)
+    assert free.ignored == ("alpha",) and len(free.hparams) == 2  # its own grid (lr_policy) still spans its runs
+    assert cd.ignored == () and len(cd.hparams) == 4
+
+
 def test_phase_options():
     from cdjax.agents.obs import MbMfPhase
 

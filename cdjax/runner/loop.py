@@ -341,7 +341,9 @@ class Loop:
         self.rounds = max(math.ceil(a.updates / self.chunk) for a in self.arms)
         self.complete_at_start = resume and all(a.updates >= a.num_updates for a in self.arms)
         phased = [a for a in self.arms if a.plan.phase is not None]
-        self.say(f"Arms {', '.join(f'{a.name} ({a.num_runs} runs)' for a in self.arms)}: "
+        ignored = lambda a: (f"; the grid's {', '.join(a.plan.ignored)} "  # noqa: E731
+                             f"{'does' if len(a.plan.ignored) == 1 else 'do'} not apply to it" if a.plan.ignored else "")
+        self.say(f"Arms {', '.join(f'{a.name} ({a.num_runs} runs{ignored(a)})' for a in self.arms)}: "
                  + ", ".join(f"{a.name} {a.num_updates}" for a in self.arms)
                  + f" updates of {self.arms[0].steps_per_update:,} env steps per run in chunks of {self.chunk}"
                  + (f", after a {self.setting.phase.title} of {phased[0].plan.phase_steps:,} env steps "

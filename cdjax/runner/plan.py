@@ -24,6 +24,7 @@ class ArmPlan:
     labels: tuple[str, ...]  # "alpha=1.0,lr_model=0.001"; "default" when nothing varies
     phase: Any = None  # the phase spec this arm runs before its updates
     phase_steps: int = 0  # env steps of that phase per run
+    ignored: tuple[str, ...] = ()  # grid fields given several values that this arm has no use for (one run covers them)
 
     @property
     def total_env_steps(self) -> int:
@@ -103,8 +104,9 @@ def _plan_arm(setting: Setting, spec: SweepSpec, name: str, grid: dict) -> ArmPl
         hp = setting.hparams_type(**dict(zip(names, combo)), **fixed)
         hps.append(hp)
         labels.append(",".join(f"{k}={_label(getattr(hp, k))}" for k in shown) or "default")
+    ignored = tuple(k for k, v in grid.items() if k in unused and len(v) > 1)
     return ArmPlan(name, dataclasses.replace(config, num_updates=num_updates), tuple(hps), tuple(labels), phase,
-                   phase_steps)
+                   phase_steps, ignored)
 
 
 def chunk_size(spec: SweepSpec, num_updates: int) -> int:
