@@ -131,13 +131,12 @@ class RunDir:
         readable or a field it holds has the wrong type: a run.json edited by hand is refused, not misread)."""
         try:
             data = self.run_json.read_bytes()
-        except FileNotFoundError:
-            raise RunDirError(f"{self.path} holds no run (no run.json); "
-                              f"start one with `cdjax sweep --out {self.path}`.") from None
         except OSError as err:
-            if err.errno in (errno.ENOTDIR, errno.EISDIR):
-                raise RunDirError(f"{self.path} holds no run (no run.json); "
-                                  f"start one with `cdjax sweep --out {self.path}`.") from None
+            if isinstance(err, FileNotFoundError) or err.errno in (errno.ENOTDIR, errno.EISDIR):
+                where = ("does not exist" if not self.path.exists() else
+                         "is a file, not a run directory" if not self.path.is_dir() else "has no run.json")
+                raise RunDirError(f"{self.path} holds no run ({where}); a run directory is the --out of a sweep, "
+                                  f"started with `cdjax sweep --out DIR`.") from None
             raise RunDirError(f"cannot read {self.run_json}: {reason(err)}.") from None
         try:
             text = data.decode("utf-8")
