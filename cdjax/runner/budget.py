@@ -58,7 +58,8 @@ def gb(n: float) -> str:
 def _refuse(need: int, have: int, where: str, detail: str) -> None:
     raise ConfigError(f"The sweep needs about {gb(need)} per device ({detail}) but there are {gb(have)} {where}; "
                       "use fewer --seeds, fewer hyper-parameter values, fewer or smaller environments "
-                      "(--num-envs), or fewer --eval-episodes.")
+                      "(--num-envs), narrower networks or shorter horizons (the widths, --eval-horizon), or fewer "
+                      "--eval-episodes.")
 
 
 def check_states(arms: Sequence[tuple[str, int, int, int]], devices: int, have: tuple[int, str] | None = None) -> int:
