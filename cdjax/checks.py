@@ -57,7 +57,7 @@ class Range:
         return f"be between {self.low:g} and {self.high:g}"
 
 
-INT32_MAX = 2 ** 31 - 1  # the largest count an int32 counter (an episode's steps) holds
+INT32_MAX = 2 ** 31 - 1  # the largest count an int32 counter holds (an episode's steps, a run's updates)
 
 NON_NEGATIVE = Range()
 POSITIVE = Range(open_low=True)

@@ -8,9 +8,9 @@ import pathlib
 from typing import Any, Mapping, Sequence
 
 from cdjax import agents
+from cdjax.checks import INT32_MAX  # update counters are int32 on the device (cli and plan take it from here)
 from cdjax.protocol import ConfigError, Setting
 
-INT32_MAX = 2**31 - 1  # update counters are int32 on the device
 SEED_MAX = 2**63 - 1  # jax.random.key takes a 64-bit seed
 
 

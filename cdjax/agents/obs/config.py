@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
+import jax
 import jax.numpy as jnp
 from flax import struct
 
@@ -174,16 +175,14 @@ def _linen():
 def _is_activation(fn) -> bool:
     """Whether fn maps a float array to a float array of its shape (flax.linen's relu, swish, ...), not a module
     class such as Dense nor a function that wants more arguments (one_hot): checked on shapes alone, nothing runs."""
-    import jax
-
     if not callable(fn) or isinstance(fn, type):
         return False
-    x = jax.ShapeDtypeStruct((2, 3), jax.numpy.float32)
+    x = jax.ShapeDtypeStruct((2, 3), jnp.float32)
     try:
         y = jax.eval_shape(fn, x)
     except Exception:  # noqa: BLE001 - whatever fn raises on one float array, it is not an activation
         return False
-    return getattr(y, "shape", None) == x.shape and jax.numpy.issubdtype(y.dtype, jax.numpy.floating)
+    return getattr(y, "shape", None) == x.shape and jnp.issubdtype(y.dtype, jnp.floating)
 
 
 @struct.dataclass
