@@ -209,22 +209,26 @@ def summary_rows(curves: dict[tuple[str, str], Curves], evals: dict | None = Non
                  seed: int = 0, names: Names = Names()) -> list[dict]:
     """One row per (arm, hp), sorted by final return IQM (best first, NaN last).
 
-    Columns: arm, hp, arm_type, seeds, updates, env_steps, then for each of final/auc x
-    return/discounted_return: <stat>_<target>_iqm, _ci_low, _ci_high; and with evals, for each
-    evaluation mode (det, stoch) found: eval_<mode>_return_*, eval_<mode>_discounted_return_*, _seeds.
+    Columns: arm, hp, arm_type, seeds (those with a finite final return, the figure the rows are ranked by),
+    logged_seeds, left_out_seed_ids (logged seeds without one), updates, env_steps, then for each of final/auc x
+    return/discounted_return: <stat>_<target>_iqm, _ci_low, _ci_high, _seeds (the seeds finite in it); and with
+    evals, for each evaluation mode (det, stoch) found: eval_<mode>_return_*, eval_<mode>_discounted_return_*,
+    _seeds.
     """
     evals = evals or {}
     modes = sorted({det for (_, _, det) in evals}, reverse=True)  # deterministic first
     rows = []
     for (arm, hp), c in curves.items():
-        row = {"arm": arm, "hp": hp, "arm_type": c.arm_type or "", "seeds": int(len(c.seeds)),
+        ranked = np.isfinite(per_seed_final(c, names.ret))  # as every statistic, the seeds column counts finite ones
+        row = {"arm": arm, "hp": hp, "arm_type": c.arm_type or "", "seeds": int(ranked.sum()),
+               "logged_seeds": int(len(c.seeds)), "left_out_seed_ids": " ".join(str(s) for s in c.seeds[~ranked]),
                "updates": int(c.present.any(axis=0).sum()),
                "env_steps": float(np.nanmax(c.env_steps)) if np.isfinite(c.env_steps).any() else math.nan}
         for stat, fn in _STATS:
             for target, name in (("return", names.ret), ("discounted_return", names.discounted_ret)):
-                iqm, lo, hi, _ = stats.iqm_interval(fn(c, name), reps, seed)
+                iqm, lo, hi, n = stats.iqm_interval(fn(c, name), reps, seed)
                 row.update({f"{stat}_{target}_iqm": iqm, f"{stat}_{target}_ci_low": lo,
-                            f"{stat}_{target}_ci_high": hi})
+                            f"{stat}_{target}_ci_high": hi, f"{stat}_{target}_seeds": n})
         skipped = per_seed_skipped(c, names.skipped)
         row["nonfinite_seeds"] = int((skipped > 0).sum())
         row["skipped_steps"] = int(np.nansum(skipped))
@@ -253,6 +257,12 @@ def _cell(row: dict, prefix: str) -> str:
     return _fmt(iqm) if not np.isfinite(lo) else f"{_fmt(iqm)} [{_fmt(lo)}, {_fmt(hi)}]"
 
 
+def _seeds_cell(row: dict) -> str:
+    """The seeds behind the row's figures, "4 of 5" where logged seeds were left out."""
+    n, logged = row["seeds"], row["logged_seeds"]
+    return str(n) if n == logged else f"**{n} of {logged}**"
+
+
 def summary_markdown(rows: list[dict], title: str = "") -> str:
     columns = [("final return", "final_return"), ("AUC return", "auc_return"),
                ("final disc. return", "final_discounted_return"), ("AUC disc. return", "auc_discounted_return")]
@@ -261,6 +271,7 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
             columns += [(f"eval return ({words})", f"eval_{mode}_return"),
                         (f"eval disc. return ({words})", f"eval_{mode}_discounted_return")]
     flagged = [row for row in rows if row.get("nonfinite_seeds")]
+    short = [row for row in rows if row["seeds"] < row["logged_seeds"]]
     head = ["rank", "arm", "hp", "seeds", "env steps"] + [name for name, _ in columns] + (
         ["non-finite"] if flagged else [])
     lines = [f"# {title}" if title else "# Summary", "",
@@ -268,10 +279,10 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
     for i, row in enumerate(rows, 1):
         steps = f"{row['env_steps']:.3g}" if np.isfinite(row["env_steps"]) else "n/a"
         arm = row["arm"] + (f" ({row['arm_type']})" if row["arm_type"] and row["arm_type"] != row["arm"] else "")
-        cells = [str(i), arm, row["hp"] or "-", str(row["seeds"]), steps] + [_cell(row, p) for _, p in columns]
+        cells = [str(i), arm, row["hp"] or "-", _seeds_cell(row), steps] + [_cell(row, p) for _, p in columns]
         if flagged:
-            cells.append(f"**{row['nonfinite_seeds']} of {row['seeds']} seeds**" if row.get("nonfinite_seeds")
-                         else "-")
+            cells.append(f"**{row['nonfinite_seeds']} of {row['logged_seeds']} seeds**"
+                         if row.get("nonfinite_seeds") else "-")
         lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
@@ -284,6 +295,13 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
         "steps; points before the first finished episode are skipped). Eval: mean return over the evaluation "
         "episodes of each seed's latest evaluation.",
     ]
+    if short:
+        runs = "; ".join(f"{row['arm']} {row['hp'] or ''} seeds {row['left_out_seed_ids']}".replace("  ", " ")
+                         for row in short)
+        lines += ["", "**Seeds left out**: the seeds column counts the seeds with a finite final return (the figure "
+                      "the rows are ranked by), and every figure uses only the seeds finite in it; these logged "
+                      f"seeds have no finite return over the last {stats.FINAL_FRACTION:.0%} of their logged "
+                      f"updates: {runs}."]
     if flagged:
         runs = "; ".join(f"{row['arm']} {row['hp'] or ''} seeds {row['nonfinite_seed_ids']}: {row['skipped_steps']} steps"
                          .replace("  ", " ") for row in flagged)

@@ -201,6 +201,30 @@ def test_single_seed_and_empty_metrics(tmp_path):
     assert math.isclose(float(_csv(paths["return_csv"])[-1]["iqm"]), 4.0)
 
 
+def test_the_seeds_column_counts_only_seeds_with_a_finite_final_return_and_says_which_were_left_out(tmp_path):
+    """A seed whose returns are all null (or NaN) is in no figure, so it is not in the seeds column either: the row
+    says "4 of 5" and a note names the seed; an arm whose seeds all have returns keeps its plain count."""
+    with (tmp_path / "metrics.jsonl").open("w") as f:
+        for arm in ("holed", "whole"):
+            for s in range(5):
+                for u in range(10):
+                    ret = None if (arm, s) == ("holed", 2) else 10.0 * s + u
+                    f.write(json.dumps({"arm": arm, "hp": "alpha=1.0", "seed": s, "update": u, "env_steps": 100 * (u + 1),
+                                        "episode/return": ret, "episode/discounted_return": ret}) + "\n")
+    paths = plots.plot_run(tmp_path, reps=100)
+    rows = {r["arm"]: r for r in _csv(paths["summary_csv"])}
+    holed, whole = rows["holed"], rows["whole"]
+    assert (holed["seeds"], holed["logged_seeds"], holed["left_out_seed_ids"]) == ("4", "5", "2")
+    assert (whole["seeds"], whole["logged_seeds"], whole["left_out_seed_ids"]) == ("5", "5", "")
+    finals = np.array([10.0 * s + 9.0 for s in (0, 1, 3, 4)])  # the last 10% of 10 updates: update 9
+    assert float(holed["final_return_iqm"]) == pytest.approx(scipy.stats.trim_mean(finals, 0.25))
+    assert holed["final_return_seeds"] == holed["auc_discounted_return_seeds"] == "4"
+    md = paths["summary_md"].read_text()
+    assert "| alpha=1.0 | **4 of 5** |" in md and "| alpha=1.0 | 5 |" in md
+    note = next(line for line in md.splitlines() if line.startswith("**Seeds left out**"))
+    assert "holed alpha=1.0 seeds 2" in note and "whole" not in note
+
+
 def test_fallback_bootstrap_matches_rliable():
     """The local bootstrap (used when rliable.library cannot import) reproduces rliable's numbers."""
     if stats.rly is None:
