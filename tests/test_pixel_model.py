@@ -28,7 +28,7 @@ from cdjax.cli import main
 from cdjax.runner import restore_arms
 from experiments.pixel.report import write_strips
 
-from _shared import PIXEL_HP, PIXEL_TINY, TINY_ARGS, logged_rows, pixel_programs
+from _shared import PIXEL_HP, PIXEL_TINY, TINY_ARGS, fail_in_one_sentence, logged_rows, pixel_programs
 
 # ltq-cd with the l2 encoder: the whole update (ELBO, imitation, consistency) with the smallest program to compile;
 # the GRU encoders (the default is grounded-gru) are checked in the consistency test.
@@ -245,6 +245,24 @@ def test_the_batchs_sequence_indices_are_materialised_before_the_frames_gather(l
     producers = _producers_until_barrier(jaxpr, gathers[0].invars[1])
     assert "optimization_barrier" in producers, producers
     assert "_randint" not in producers, producers
+
+
+@pytest.mark.parametrize("name, arm, horizon", [("ltq", "ltq", 10), ("ltq-cd", "ltq-cd", 10), ("ltq-cd3", "ltq-cd", 3)])
+def test_pixel_arm_names_set_the_arm_and_only_ltq_cd_takes_a_horizon_in_its_name(name, arm, horizon):
+    config = pixel.arm_config(name, pixel.PixelConfig(horizon=10))
+    assert (config.arm, config.horizon) == (arm, horizon)
+
+
+@pytest.mark.parametrize("name, words", [
+    ("ltq5", "Arm 'ltq5': only ltq-cd takes a horizon in its name"),
+    ("ltq-cd-5", "Unknown arm 'ltq-cd-5'"), ("ltq-5", "Unknown arm 'ltq-5'"), ("ltqcd", "Unknown arm 'ltqcd'"),
+    ("ltq-cd0", "Arm 'ltq-cd0': horizon"),
+])
+def test_malformed_pixel_arm_names_are_refused_in_one_sentence(capsys, tmp_path, name, words):
+    out = tmp_path / "run"
+    line = fail_in_one_sentence(capsys, main, ["sweep", "--setting", "pixel", "--preset", "pixel-tiny", "--out", str(out),
+                                               "--arms", name])
+    assert words in line and not out.exists()
 
 
 SYNTHETIC = dataclasses.replace(pixel.SETTING, name="pixel-synthetic",

@@ -27,10 +27,15 @@ CONSISTENCY_ONLY = ("alpha", "cc_model", "cc_policy", "enc_aux_coef")
 
 
 def arm_config(name: str, base: PixelConfig) -> PixelConfig:
+    """An arm name -> its Config: "ltq", "ltq-cd", or "ltq-cdK" (ltq-cd with horizon K, e.g. ltq-cd5)."""
     match = re.fullmatch(r"(ltq|ltq-cd)(\d+)?", name)
     if match is None:
-        raise ConfigError(f"Unknown arm {name!r}; choose ltq or ltq-cd (optionally with a horizon, e.g. ltq-cd5).")
+        raise ConfigError(f"Unknown arm {name!r}; choose ltq or ltq-cd (ltq-cd optionally with a horizon, e.g. "
+                          "ltq-cd5).")
     arm, k = match.groups()
+    if k is not None and arm == "ltq":
+        raise ConfigError(f"Arm {name!r}: only ltq-cd takes a horizon in its name (e.g. ltq-cd5); ltq's k (of its "
+                          "\"at k\" likelihood) is --horizon.")
     try:
         return base.replace(arm=arm, **({"horizon": int(k)} if k else {}))
     except ConfigError as err:
