@@ -545,6 +545,25 @@ def test_phase_and_eval_logs_are_trimmed_like_the_metrics(tmp_path):
     assert io.truncate_jsonl(phase, {"mbmf": 0, "cd": 0}) == (0, 0) and phase.read_bytes() == text  # untouched
 
 
+def test_a_resume_notes_the_logs_and_checkpoints_of_an_arm_that_run_json_does_not_name(runs, tmp_path, capsys):
+    """An arm removed from run.json by hand leaves its rows and checkpoints behind: the resume says so in one
+    sentence and goes on (a note, not a refusal), leaving them and this run's own as they were."""
+    assert set(io.RunDir(runs("obs")).arms_held()) == {"cd"}  # a run's own directory holds only its arms
+    out = _copy(runs, "obs", tmp_path)
+    for name in ("metrics.jsonl", "eval.jsonl"):  # the removed arm: the run's own logged under another name
+        with (out / name).open("a") as f:
+            f.writelines(json.dumps(dict(row, arm="mbmf")) + "\n" for row in io.read_jsonl(out / name))
+    shutil.copytree(out / "checkpoints" / "cd", out / "checkpoints" / "mbmf")
+    logs = {name: (out / name).read_bytes() for name in ("metrics.jsonl", "eval.jsonl")}
+    main(["sweep", "--out", str(out), "--resume", "--no-progress"])  # finished: nothing to train
+    err = capsys.readouterr().err
+    notes = [line for line in err.splitlines() if "run.json does not name" in line]
+    assert len(notes) == 1 and notes[0].endswith(".") and notes[0].count(". ") == 0, err
+    assert "mbmf (metrics.jsonl, eval.jsonl, checkpoints/mbmf)" in notes[0] and "cd (" not in notes[0], notes
+    assert {name: (out / name).read_bytes() for name in logs} == logs
+    assert snapshot(out / "checkpoints" / "mbmf") == snapshot(runs("obs") / "checkpoints" / "cd")
+
+
 # ---------------------------------------------------------------------------------------------------
 # Signals and interrupts
 

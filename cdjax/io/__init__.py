@@ -120,6 +120,20 @@ class RunDir:
     def checkpoints(self, arm: str) -> pathlib.Path:
         return self.path / "checkpoints" / arm
 
+    def arms_held(self, metric_rows: Iterable[Mapping] | None = None) -> dict[str, list[str]]:
+        """{arm: where the directory holds something of it}: rows of metrics.jsonl (`metric_rows`, when the caller has
+        read them), of eval.jsonl and phase.jsonl, and a directory under checkpoints/."""
+        held: dict[str, list[str]] = {}
+        for name, rows in (("metrics.jsonl", read_jsonl(self.metrics) if metric_rows is None else metric_rows),
+                           ("eval.jsonl", read_jsonl(self.eval)), ("phase.jsonl", read_jsonl(self.phase))):
+            for arm in dict.fromkeys(row["arm"] for row in rows):
+                held.setdefault(arm, []).append(name)
+        top = self.path / "checkpoints"
+        for path in sorted(top.iterdir()) if top.is_dir() else ():
+            if path.is_dir():
+                held.setdefault(path.name, []).append(f"checkpoints/{path.name}")
+        return held
+
     def exists(self) -> bool:
         try:
             return self.run_json.is_file()

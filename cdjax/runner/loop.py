@@ -364,10 +364,11 @@ class Loop:
         for path in (self.rd.eval, self.rd.phase):
             more, more_torn = io.truncate_jsonl(path, done)
             dropped, torn = dropped + more, torn + more_torn
+        rows = io.read_jsonl(self.rd.metrics)
         skipped = self.setting.metrics.skipped
         if skipped is not None:
             by_arm = {a.name: a for a in self.arms}
-            for row in io.read_jsonl(self.rd.metrics):
+            for row in rows:
                 arm = by_arm.get(row["arm"])
                 labels = arm.plan.labels if arm is not None else ()
                 if arm is not None and row.get(skipped) and row.get("hp") in labels and row["seed"] < self.spec.seeds:
@@ -379,8 +380,20 @@ class Loop:
                 f" ({torn} of them a torn line left by a process killed while writing, or a line that is not a "
                 "row: bytes that are not UTF-8, fields of the wrong types)" if torn else "")
         self.say(f"Resuming {self.rd.path}: updates done per arm: {progress}{note}.")
+        self._say_stale(rows)
         for arm in self.arms:
             self._say_skipped(arm)
+
+    def _say_stale(self, metric_rows) -> None:
+        """A note (training goes on) when the directory holds logs or checkpoints of arms run.json does not name, e.g.
+        an arm removed from run.json by hand: nothing of theirs is trimmed or trained, but the plots read them."""
+        names = {a.name for a in self.arms}
+        stale = {arm: where for arm, where in self.rd.arms_held(metric_rows).items() if arm not in names}
+        if stale:
+            held = ", ".join(f"{arm} ({', '.join(where)})" for arm, where in sorted(stale.items()))
+            self.say(f"Note: {self.rd.path} holds logs or checkpoints of arms that run.json does not name, left as "
+                     f"found (an arm removed from run.json by hand?): {held}; the summary and plots rank their logged "
+                     "runs beside this run's arms unless those are moved out.")
 
     def intact(self, when: str = " once that is fixed") -> str:
         """Which checkpoints survive a failed write (or a stop), and how to go on."""
