@@ -28,6 +28,19 @@ from cdjax.io import json_float
 from cdjax.protocol import Trainer
 
 
+# Agent steps of one evaluation episode past which a sweep does not evaluate (cdjax.runner.arms.check_evaluation): the
+# loop steps every episode's environments one step after another until each has ended, so an episode's time-out is
+# the evaluation's length on any device. The presets' episodes are 1,000 agent steps (pixel reacher's 250, ALE's
+# time-out 27,000); this is 1,000 times theirs.
+MAX_EVAL_EPISODE_STEPS = 1_000_000
+
+
+def episode_steps(env) -> int:
+    """Agent steps of an episode of `env` that times out: its `episode_length` counts physics steps (agent steps x
+    action_repeat, as Brax)."""
+    return -(-env.episode_length // getattr(env, "action_repeat", 1))
+
+
 @struct.dataclass
 class _EvalCarry:
     env_state: Any  # the eval env's state
@@ -56,8 +69,7 @@ def evaluate(trainer: Trainer, policy: Any, key: jax.Array, *, episodes: int, hp
     "return_mean", "discounted_return_mean", "length_mean".
     """
     env = trainer.eval_env(episodes)
-    # the time-out counts physics steps (agent steps x action_repeat); the loop counts agent steps
-    agent_steps = -(-env.episode_length // getattr(env, "action_repeat", 1))
+    agent_steps = episode_steps(env)  # the loop counts agent steps
     horizon = agent_steps if max_steps is None else min(int(max_steps), agent_steps)
     gamma = jnp.asarray(getattr(hp, "gamma", 1.0), jnp.float32)
     key_reset, key_act = jax.random.split(key)

@@ -71,6 +71,23 @@ def test_bad_input_is_one_sentence_and_exit_2(capsys, tmp_path, argv, words):
     assert words in line
 
 
+def test_a_sweep_whose_evaluation_episodes_would_never_end_is_refused_before_anything_is_written(capsys, tmp_path,
+                                                                                                 monkeypatch):
+    from cdjax.evaluate import MAX_EVAL_EPISODE_STEPS
+    from cdjax.runner import loop
+
+    def compile_all(*args):
+        raise AssertionError("compiled: the sweep was not refused at start-up")
+
+    monkeypatch.setattr(loop, "compile_all", compile_all)
+    out = tmp_path / "a"
+    long = str(10 * MAX_EVAL_EPISODE_STEPS)
+    argv = ["sweep", "--out", str(out), *TINY, "--arms", "cd", "--episode-length", long]
+    line = _fail(capsys, argv)
+    assert "(--episode-length" in line and "give a shorter --episode-length, or --no-final-eval" in line, line
+    assert not out.exists()
+
+
 def test_out_holding_another_run_is_refused(capsys, other_run):
     before = (other_run / "run.json").read_text()
     line = _fail(capsys, ["sweep", "--out", str(other_run), "--preset", "point"])

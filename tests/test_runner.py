@@ -603,3 +603,40 @@ def test_encoder_collapse_warning():
         Loop._say_watch(loop, arm, chunk)
     assert [("in 1 of 2" in t, "in 2 of 2" in t) for t in said] == [(True, False), (False, True)]
     assert arm.warned == 2
+
+
+def _built(tmp_path, episode_length: int, **spec):
+    """(arms, spec) of a one-arm point-mass sweep with evaluation episodes of `episode_length` physics steps at action
+    repeat 2, built as a sweep builds them (nothing compiled)."""
+    from cdjax import agents
+    from cdjax.runner.arms import build
+
+    config = dataclasses.replace(POINT, episode_length=episode_length, action_repeat=2)
+    spec, plans, _ = prepare(SweepSpec(out=str(tmp_path / "run"), config=config, arms=("cd",), seeds=1,
+                                       total_env_steps=2 * config.env_steps_per_update, progress=False, **spec),
+                             resume=False)
+    return [build(plan, spec, agents.get("obs")) for plan in plans], spec
+
+
+def test_evaluation_episodes_past_the_limit_are_refused_and_a_resume_is_warned(tmp_path):
+    """The limit counts agent steps (physics steps / action repeat): one past it is refused in one sentence naming the
+    option and the way out, at it passes; a sweep that does not evaluate is not refused; a resume (whose options
+    cannot change) is told and goes on."""
+    from cdjax import ConfigError
+    from cdjax.evaluate import MAX_EVAL_EPISODE_STEPS as LIMIT
+    from cdjax.runner.arms import check_evaluation
+
+    said = []
+    arms, spec = _built(tmp_path, 2 * LIMIT + 2)  # LIMIT + 1 agent steps
+    with pytest.raises(ConfigError) as info:
+        check_evaluation(arms, spec, resume=False, say=said.append)
+    message = str(info.value)
+    assert f"up to {LIMIT + 1:,} agent steps (--episode-length {2 * LIMIT + 2:,})" in message, message
+    assert "give a shorter --episode-length, or --no-final-eval" in message and message.endswith(".")
+    check_evaluation(arms, spec, resume=True, say=said.append)
+    assert len(said) == 1 and said[0].startswith(f"Warning: arm cd's evaluation episodes last up to {LIMIT + 1:,}")
+    check_evaluation(*_built(tmp_path, 2 * LIMIT), resume=False, say=said.append)
+    check_evaluation(*_built(tmp_path, 2 * LIMIT + 2, final_eval=False), resume=False, say=said.append)
+    with pytest.raises(ConfigError, match="--no-final-eval"):
+        check_evaluation(*_built(tmp_path, 2 * LIMIT + 2, final_eval=False, eval_every=1), resume=False, say=said.append)
+    assert len(said) == 1

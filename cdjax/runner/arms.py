@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from cdjax import io, multihost, runtime
-from cdjax.evaluate import eval_records, make_evaluator
+from cdjax.evaluate import MAX_EVAL_EPISODE_STEPS, episode_steps, eval_records, make_evaluator
 from cdjax.protocol import ConfigError, Setting, Trainer
 from cdjax.runner import budget
 from cdjax.runner.plan import ArmPlan, plan_arms, recorded
@@ -281,6 +281,29 @@ def _eval_reset_shape(trainer: Trainer, episodes: int, key: jax.Array):
     """ShapeDtypeStructs of the evaluation environments' reset for `episodes` episodes (shared as _init_shape's)."""
     return _shared_shape(trainer, ("eval", episodes),
                          lambda: jax.eval_shape(trainer.eval_env(episodes).reset, key))
+
+
+def check_evaluation(arms: list[Arm], spec: SweepSpec, resume: bool, say: Callable[[str], None]) -> None:
+    """Refuse (ConfigError) a sweep whose evaluations would run impractically long: an arm's eval episodes time out
+    after more than MAX_EVAL_EPISODE_STEPS agent steps, stepped one after another. A resume, whose options cannot
+    change, is warned instead (training goes on)."""
+    if not (spec.final_eval or spec.eval_every):
+        return
+    for arm in arms:
+        steps = episode_steps(arm.trainer.eval_env(spec.eval_episodes))
+        if steps <= MAX_EVAL_EPISODE_STEPS:
+            continue
+        field = next((f for f in ("eval_episode_length", "episode_length") if hasattr(arm.plan.config, f)), None)
+        flag = f"--{field.replace('_', '-')}" if field else "episode length"
+        what = (f"arm {arm.name}'s evaluation episodes last up to {steps:,} agent steps"
+                + (f" ({flag} {getattr(arm.plan.config, field):,})" if field else "")
+                + ", stepped one after another, so the sweep's evaluations would run impractically long (the limit is "
+                f"{MAX_EVAL_EPISODE_STEPS:,} agent steps)")
+        if not resume:
+            raise ConfigError(f"{what[0].upper()}{what[1:]}: give a shorter {flag}, or --no-final-eval (and no "
+                              "--eval-every) to train without evaluating.")
+        say(f"Warning: {what}; stop them with Ctrl-C after training (the checkpoints are kept).")
+        return
 
 
 def check_memory(arms: list[Arm], spec: SweepSpec) -> int:

@@ -36,8 +36,8 @@ import numpy as np
 from cdjax import io, multihost, runtime
 from cdjax.protocol import ConfigError, Setting
 from cdjax.runner import budget
-from cdjax.runner.arms import (Arm, abstract_state, build, check_memory, compile_all, evaluate_arms, expectation,
-                               finished_evaluation, host_time, nanmean, restore, unreadable_text)
+from cdjax.runner.arms import (Arm, abstract_state, build, check_evaluation, check_memory, compile_all, evaluate_arms,
+                               expectation, finished_evaluation, host_time, nanmean, restore, unreadable_text)
 from cdjax.runner.console import Clock, Progress, StopFlag, Stopped, library_log, stopped
 from cdjax.runner.plan import plan_arms, run_record, same_run, without_retired
 from cdjax.runner.spec import SweepSpec, out_dir, resolve
@@ -189,6 +189,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             progress = Progress(spec.progress, record["total_env_steps"], quiet=not writer)
             with host_time("build"):
                 arms = [build(plan, spec, setting) for plan in plans]
+            check_evaluation(arms, spec, resume, progress.say)
             with host_time("memory"):
                 states = check_memory(arms, spec)
             for arm in arms:
