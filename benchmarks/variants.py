@@ -36,6 +36,10 @@ Variants:
                    beside the rest of the backward, and no stack of all k steps' arrays waits at the end of each SGD
                    step (on an H100, 2026-11-27, two such concatenations took about 21 ms of paper-CD's 0.618 s
                    update, benchmarks/results/2026-11-27-h100-per-program/). The same gradients up to rounding.
+  (autodiff-gates, the fused chain's GRU backward by autodiff of its gates against `consistency.gru_gates_vjp`, a
+  written backward whose cotangents were one concatenation each, was removed with that function after its A/B: the
+  written one launched 472 kernels per SGD step against 471, 10 vmapped seeds 0.5687 against 0.5693 s/update, one
+  H100, 2026-11-27, benchmarks/results/2026-11-27-h100-gates/.)
   (pad-hidden, the fused chain's hidden widths zero-padded to a multiple of 128 once per minibatch, was removed
   after its A/B: paper-CD 0.7306 s/update with it against 0.7304 s without, one H100, 2026-11-25,
   benchmarks/results/2026-11-25-h100-probes/.)
