@@ -36,6 +36,12 @@ Variants:
                    beside the rest of the backward, and no stack of all k steps' arrays waits at the end of each SGD
                    step (on an H100, 2026-11-27, two such concatenations took about 21 ms of paper-CD's 0.618 s
                    update, benchmarks/results/2026-11-27-h100-per-program/). The same gradients up to rounding.
+  (split-chain, the fused chain in a split form: the model's k steps first, then the GRU's imagined inputs in one
+  product and the GRU's k steps, backward the GRU's chain, the model's share of its cotangents in one product and the
+  model's chain, the hidden widths zero-padded to a multiple of 32, was removed after its A/B: paper-CD 0.6595 s/update
+  against 0.6070 merged (1.70x Mb-Mf against 1.53x, each in its process), 10 seeds 0.5789 against 0.5653; 469 kernels
+  per SGD step against 471 (the pads' work went to add and select fusions); one H100, 2026-11-27,
+  benchmarks/results/2026-11-27-h100-split/.)
   (autodiff-gates, the fused chain's GRU backward by autodiff of its gates against `consistency.gru_gates_vjp`, a
   written backward whose cotangents were one concatenation each, was removed with that function after its A/B: the
   written one launched 472 kernels per SGD step against 471, 10 vmapped seeds 0.5687 against 0.5693 s/update, one
