@@ -106,6 +106,27 @@ def test_update_zero_normalises_with_the_first_rollout():
     assert not np.isclose(metrics["grad/model_nll/model"], with_cold["grad/model_nll/model"], rtol=1e-2)
 
 
+@pytest.mark.parametrize("changes", [dict(arm="model-free"), dict(cc_epochs=1)], ids=["model-free", "cd-first-epoch"])
+def test_the_sgds_gradient_diagnostics_are_its_first_steps(changes):
+    """The SGD keeps its first step's gradient (and l_cc's taps) in its scan and takes the diagnostics from it after:
+    they equal `grad_norms` of its first minibatch, for the model-free arm (no taps) and for CD with the term in the
+    first epoch only (the later epoch's steps change nothing kept)."""
+    config = POINT.replace(**changes)
+    trainer, init, update = compiled(config)
+    state = init(jax.random.key(3), HP)
+    new, metrics = update(state, HP)
+    _, key_roll, key_sgd = jax.random.split(state.key, 3)
+    _, _, traj, batch = jax.jit(trainer.collect)(state, HP, key_roll)
+    warm = refresh_norms(state.norms, traj.obs, traj.next_obs, traj.reward, traj.valid)
+    _, key_epochs = jax.random.split(key_sgd)
+    segments = jax.tree.map(lambda x: to_segments(x, config.segment), batch)
+    first, offsets = trainer.first_minibatch(segments, jax.random.split(key_epochs, config.num_epochs)[0])
+    expected = jax.jit(trainer.grad_norms)(state.params, warm, first, offsets, HP)
+    assert expected and all(name.startswith("grad/") for name in expected)
+    for name in expected:
+        np.testing.assert_allclose(metrics[name], expected[name], rtol=1e-5, err_msg=name)
+
+
 def test_to_segments_by_hand():
     x = jnp.arange(6 * 2).reshape(6, 2)  # x[t, b] = 2t + b, T = 6, B = 2
     seg = to_segments(x, 3)  # 2 segments of 3 steps per env: columns (s=0, b=0), (0, 1), (1, 0), (1, 1)
