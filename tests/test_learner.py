@@ -108,9 +108,9 @@ def test_update_zero_normalises_with_the_first_rollout():
 
 @pytest.mark.parametrize("changes", [dict(arm="model-free"), dict(cc_epochs=1)], ids=["model-free", "cd-first-epoch"])
 def test_the_sgds_gradient_diagnostics_are_its_first_steps(changes):
-    """The SGD keeps its first step's gradient (and l_cc's taps) in its scan and takes the diagnostics from it after:
-    they equal `grad_norms` of its first minibatch, for the model-free arm (no taps) and for CD with the term in the
-    first epoch only (the later epoch's steps change nothing kept)."""
+    """The SGD's gradient diagnostics are its first step's: they equal `grad_norms` of its first minibatch, for the
+    model-free arm (no taps) and for CD with the term in the first epoch only (the later epoch's steps must not replace
+    them)."""
     config = POINT.replace(**changes)
     trainer, init, update = compiled(config)
     state = init(jax.random.key(3), HP)

@@ -322,8 +322,8 @@ class ObsAgent:
         return jax.grad(rest)(params)
 
     def step_grad_norms(self, grads, tapped, rest) -> dict:
-        """The diagnostics that need a minibatch's own gradient (`tapped_gradient`; in the SGD, of its first step,
-        whose gradient and taps its scan keeps): the total's norm on each group and, without
+        """The diagnostics that need a minibatch's own gradient (`tapped_gradient`; in the SGD, every step of its
+        first scan computes them and the first step's are kept): the total's norm on each group and, without
         l_cc, each term's (the only one on its groups); with it, l_cc's on the model (its tap) and on the encoder.
         The encoder's is the one taken as a difference (the total less `rest`'s encoder_aux, whose real-row pass
         l_cc shares): its error is the rounding of the two gradients, about 1e-7 of encoder_aux's in float32 and
@@ -429,7 +429,7 @@ class ObsAgent:
             rest = self.rest_gradient(params, norms, first, first_offsets, hp)
 
         def minibatch(carry, inp, with_consistency):
-            params, opt_state, kept, summed = carry
+            params, opt_state, tap, summed = carry
             mb, key = inp
             offsets = consistency.window_offsets(key, self.L, self.k, self.config.num_windows)
             taps = self.zero_taps(params, mb) if with_consistency else None
@@ -440,15 +440,18 @@ class ObsAgent:
             unreduced = [name for name, value in metrics.items() if jnp.ndim(value)]
             assert not unreduced, f"per-sample metrics not in share_metrics(): {unreduced}"
             values = list(metrics.values())
-            if with_consistency:  # the first step's gradient (and taps) kept for the diagnostics, taken after the scan
-                new = dict(grads=grads, **({"model": tapped["model"], "actions": tapped["actions"]} if cc else {}))
-                kept = dict(jax.tree.map(lambda n, o: jnp.where(kept["first"], n, o), new,
-                                         {name: kept[name] for name in new}), first=jnp.zeros((), bool))
+            if with_consistency:  # the diagnostics of every step; the first one's are kept (and its actions' tap)
+                diagnostics = self.step_grad_norms(grads, tapped, rest)
+                values += list(diagnostics.values())
+                names["diagnostics"] = list(diagnostics)
+                if cc:
+                    is_first, kept = tap
+                    tap = (jnp.zeros((), bool), jnp.where(is_first, tapped["actions"], kept))
             # one stacked vector per minibatch, not one output per metric: on a GPU each scan output is a
             # small write of its own in every one of the epochs x minibatches steps
             names[with_consistency] = list(metrics)
             stacked = jnp.stack(values) if values else jnp.zeros((0,), jnp.float32)  # every metric may be a share
-            return (optax.apply_updates(params, updates), opt_state, kept, summed), stacked
+            return (optax.apply_updates(params, updates), opt_state, tap, summed), stacked
 
         def epoch(carry, key, with_consistency):
             perm, mb_keys = self.shuffle(key)
@@ -458,19 +461,15 @@ class ObsAgent:
 
         # Epochs with the consistency term first, then (cc_epochs > 0) the rest without it.
         n_cc = self.config.num_epochs if self.config.cc_epochs == 0 else self.config.cc_epochs
-        # The diagnostics need the first step's own gradient (and l_cc's taps): the scan keeps a copy of it in its
-        # carry and they are taken once after it. Taken in every step and the first kept, their reductions were about
-        # 11 kernels per SGD step on a GPU (benchmarks/results/2026-11-27-h100-gates/).
-        kept = dict(first=jnp.ones((), bool), grads=jax.tree.map(jnp.zeros_like, params),
-                    **({"model": jax.tree.map(jnp.zeros_like, params["model"]),
-                        "actions": jnp.zeros_like(first.action)} if cc else {}))
+        tap = (jnp.ones((), bool), jnp.zeros_like(first.action)) if cc else ()
         summed = {name: jnp.zeros((self.L, Bs)) for name in self.share_metrics()}
-        (params_new, opt_state, kept, summed), stacked = jax.lax.scan(
-            functools.partial(epoch, with_consistency=True), (params, opt_state, kept, summed), epoch_keys[:n_cc])
-        metrics = dict(zip(names[True], stacked.mean((0, 1))))
-        metrics.update(self.step_grad_norms(kept["grads"], {"model": kept["model"]} if cc else None, rest))
-        metrics.update(self.rest_grad_norms(params, norms, first, rest, kept["actions"] if cc else None))
-        carry = (params_new, opt_state, kept, summed)
+        (params_new, opt_state, tap, summed), stacked = jax.lax.scan(
+            functools.partial(epoch, with_consistency=True), (params, opt_state, tap, summed), epoch_keys[:n_cc])
+        n = len(names[True])
+        metrics = dict(zip(names[True], stacked[..., :n].mean((0, 1))))
+        metrics.update(zip(names["diagnostics"], stacked[0, 0, n:]))
+        metrics.update(self.rest_grad_norms(params, norms, first, rest, tap[1] if cc else None))
+        carry = (params_new, opt_state, tap, summed)
         if n_cc < self.config.num_epochs:  # a metric of both parts: the mean over all epochs
             carry, stacked = jax.lax.scan(functools.partial(epoch, with_consistency=False), carry, epoch_keys[n_cc:])
             n_rest = self.config.num_epochs - n_cc
