@@ -112,13 +112,16 @@ def _join(args: argparse.Namespace) -> None:
 
 def _add_sweep(sub, setting: Setting, parents: list) -> None:
     presets = "\n".join(f"  {name:<18} {p.about}" for name, p in setting.presets.items())
+    plain = setting.default_preset({})  # the preset a sweep without --preset or --env takes
+    precedence = ("Precedence: the defaults shown below < --preset (without one, the preset the setting picks, named "
+                  "like --env where one is" + (f"; with no option at all, {plain}" if plain else "") + ") < options "
+                  "given here. So a default shown below is what a run gets only where no preset applies.")
     sweep = sub.add_parser(
         "sweep", help="train arms x hyper-parameter grid x seeds, chunked, with logs and checkpoints",
         allow_abbrev=False, formatter_class=argparse.RawDescriptionHelpFormatter, parents=parents,
         description="Train every arm (one compiled program each) on the grid of the hyper-parameters given "
                     "as lists times --seeds, vmapped; log, checkpoint and show progress between chunks.\n"
-                    f"Setting {setting.name}: {setting.about}; arms: {setting.arms_help}.\n"
-                    "Precedence: defaults < --preset < options given here.",
+                    f"Setting {setting.name}: {setting.about}; arms: {setting.arms_help}.\n" + precedence,
         epilog=f"presets:\n{presets}")
     run = sweep.add_argument_group("sweep (cdjax.runner.SweepSpec)")
     run.add_argument("--out", required=True, metavar="DIR", help="run directory (refuses one that holds another run)")
@@ -201,7 +204,7 @@ def setting_of(argv: Sequence[str]) -> Setting:
 
 def sweep_spec(args: argparse.Namespace, setting: Setting, command: str = "") -> SweepSpec:
     """The SweepSpec that the sweep options describe (defaults < preset < explicit options)."""
-    from cdjax.runner import resume_spec
+    from cdjax.runner import preset_spec, resume_spec
 
     config_given, hp_given = options.given(args, "config."), options.given(args, "hp.")
     phase_given, spec_given = options.given(args, "phase."), options.given(args, "spec.")
@@ -215,25 +218,16 @@ def sweep_spec(args: argparse.Namespace, setting: Setting, command: str = "") ->
                        | ({"--preset"} if args.preset else set()))
         if extra:
             raise UsageError(f"--resume continues the run recorded in {args.out}/run.json, so {', '.join(extra)} "
-                             "cannot be changed (only --steps and --no-progress).")
+                             "cannot be changed (only --steps and --no-progress, besides --time-limit and "
+                             "--restart-arm).")
         return resume_spec(args.out, **spec_given)
 
-    if args.preset is not None and args.preset not in setting.presets:
-        raise ConfigError(f"Unknown preset {args.preset!r}; choose one of: {', '.join(setting.presets)}.")
-    preset = setting.presets.get(args.preset or setting.default_preset(config_given) or "")
-    config = setting.config_type(**{**(preset.config if preset else {}), **config_given})
-    grid = {**(preset.hparams if preset else {}), **hp_given}
-    spec_values = {**(preset.sweep if preset else {}), **spec_given}
-    spec_values["arms"] = tuple(spec_values.get("arms", ()))
-    phase = None
-    if setting.phase is not None:
-        on = phase_on if phase_on is not None else bool(phase_given) or bool(preset and preset.phase is not None)
-        if phase_given and phase_on is False:
-            raise UsageError(f"--no-{setting.phase.flag} contradicts the --phase-* options given.")
-        if on:
-            phase = setting.phase.spec_type(**{**((preset.phase or {}) if preset else {}), **phase_given})
-    return SweepSpec(out=args.out, config=config, grid=grid, phase=phase, command=command,
-                     **{"setting": setting.name, **spec_values})
+    if setting.phase is not None and phase_given and phase_on is False:
+        raise UsageError(f"--no-{setting.phase.flag} contradicts the --phase-* options given.")
+    return preset_spec(args.out, setting.name, args.preset, config=config_given, hparams=hp_given,
+                       phase=phase_given if setting.phase is not None else None,
+                       phase_on=phase_on if setting.phase is not None else False, command=command,
+                       **spec_given)
 
 
 def cmd_sweep(args: argparse.Namespace, setting: Setting, command: str, limit=None) -> None:

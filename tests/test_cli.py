@@ -17,7 +17,8 @@ import pytest
 import cdjax
 from cdjax import Config, HParams, agents, io
 from cdjax.cli import build_parser, main, sweep_spec
-from cdjax.runner import SweepSpec, plan, prepare
+from cdjax.protocol import ConfigError
+from cdjax.runner import SweepSpec, plan, prepare, preset_spec
 
 from _shared import POINT, TINY_ARGS, fail_in_one_sentence
 from conftest import CACHE
@@ -155,6 +156,29 @@ def test_precedence_defaults_then_preset_then_flags():
     assert spec.config.num_envs == Config().num_envs and spec.grid == {} and spec.total_env_steps == 5_000_000
     spec = parse("--preset", "ant", "--env", "halfcheetah")
     assert spec.config.env == "halfcheetah" and spec.config.horizon == 20 and spec.grid["reward_scale"] == (10.0,)
+
+
+def test_preset_spec_is_the_sweep_commands_spec_as_a_function():
+    """`cdjax.runner.preset_spec` (a notebook's way to a preset) gives the spec `cdjax sweep` builds from the same
+    options, the env's own preset included; `SweepSpec(...)` alone applies none; a phase contradicted or an unknown
+    preset is one sentence."""
+    from cdjax.agents.obs import MbMfPhase
+
+    obs = agents.get("obs")
+    parse = lambda *argv: sweep_spec(build_parser().parse_args(["sweep", "--out", "x", *argv]), obs)  # noqa: E731
+    assert preset_spec("x", config={"env": "ant"}, seeds=5) == parse("--env", "ant", "--seeds", "5")
+    assert preset_spec("x") == parse()  # no env: the default env's preset
+    assert preset_spec("x", preset="cpu-smoke", config={"num_envs": 16}, hparams={"alpha": (0.0, 0.5), "gamma": 0.9},
+                       phase={"mpc_candidates": 64}) == parse("--preset", "cpu-smoke", "--num-envs", "16", "--alpha",
+                                                              "0", "0.5", "--gamma", "0.9", "--phase-mpc-candidates",
+                                                              "64")
+    assert preset_spec("x", config={"env": "ant"}).phase is None
+    assert preset_spec("x", config={"env": "point"}, phase_on=True).phase == MbMfPhase()
+    assert SweepSpec(out="x", config=Config(env="ant")).total_env_steps != preset_spec("x").total_env_steps
+    with pytest.raises(ConfigError, match="contradicts"):
+        preset_spec("x", phase={"mpc_candidates": 64}, phase_on=False)
+    with pytest.raises(ConfigError, match="Unknown preset 'nope'"):
+        preset_spec("x", preset="nope")
 
 
 def test_an_arm_the_grid_does_not_apply_to_runs_once_and_the_plan_names_the_field():

@@ -5,6 +5,8 @@ logs, checkpoints, exact resume, evaluation and plots.
                      arms=("mbmf", "cd"), grid={"alpha": (0.0, 1.0)}, seeds=3, total_env_steps=100_000)
     run_dir = run_sweep(spec)                 # or run_sweep(resume_spec("runs/pendulum"), resume=True)
     run_sweep(spec, after_chunk=TimeLimit(3600))   # stop (checkpointed, resumable) before an hour is past
+    run_sweep(preset_spec("runs/ant", config={"env": "ant"}, seeds=5))  # as `cdjax sweep --env ant --seeds 5`:
+                                                  # the ant preset's values under the ones given
 
 Rooms: `spec` (what is asked, bounds), `plan` (arms, grids, run.json, resume compatibility), `budget`
 (memory), `arms` (one arm's programs and state, evaluation), `loop` (the chunk loop), `console`
@@ -14,7 +16,7 @@ Rooms: `spec` (what is asked, bounds), `plan` (arms, grids, run.json, resume com
 from cdjax.runner.arms import EVAL_TAG, Arm, evaluate_arms, restore_arms
 from cdjax.runner.loop import Interrupted, TimeLimit, prepare, run_sweep
 from cdjax.runner.plan import ArmPlan, chunk_size, plan_arms, resume_spec, run_record, spec_of, validate_grid
-from cdjax.runner.spec import SweepSpec
+from cdjax.runner.spec import SweepSpec, preset_spec
 
 __all__ = ["Arm", "ArmPlan", "EVAL_TAG", "Interrupted", "SweepSpec", "TimeLimit", "chunk_size", "evaluate_arms",
-           "plan_arms", "prepare", "restore_arms", "resume_spec", "run_record", "run_sweep", "spec_of", "validate_grid"]
+           "plan_arms", "prepare", "preset_spec", "restore_arms", "resume_spec", "run_record", "run_sweep", "spec_of", "validate_grid"]

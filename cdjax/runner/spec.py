@@ -14,6 +14,36 @@ from cdjax.protocol import ConfigError, Setting
 SEED_MAX = 2**63 - 1  # jax.random.key takes a 64-bit seed
 
 
+def preset_spec(out: str | pathlib.Path, setting: str = agents.DEFAULT, preset: str | None = None, *,
+                config: Mapping[str, Any] | None = None, hparams: Mapping[str, Any] | None = None,
+                phase: Mapping[str, Any] | None = None, phase_on: bool | None = None, **spec: Any) -> "SweepSpec":
+    """The SweepSpec `cdjax sweep` builds from its options: the setting's defaults < a preset < the values given.
+
+    preset: a name in the setting's presets; None: the one the setting picks for the given config (the observation
+    space's: its env's, e.g. "ant" for env="ant" or no env). config: Config field -> value; hparams: HParams field ->
+    a value or a tuple of values (a grid); phase: the setting's phase fields (given: the phase runs); phase_on: run the
+    phase or not (None: when phase fields are given or the preset has one); spec: SweepSpec fields (arms, seeds,
+    total_env_steps, ...). `SweepSpec(...)` itself applies no preset."""
+    chosen = agents.get(setting)
+    config, hparams, phase = dict(config or {}), dict(hparams or {}), dict(phase or {})
+    if preset is not None and preset not in chosen.presets:
+        raise ConfigError(f"Unknown preset {preset!r}; choose one of: {', '.join(chosen.presets)}.")
+    base = chosen.presets.get(preset or chosen.default_preset(config) or "")
+    grid = {**(base.hparams if base else {}),
+            **{name: tuple(v) if isinstance(v, (list, tuple)) else (v,) for name, v in hparams.items()}}
+    values = {**(base.sweep if base else {}), **spec}
+    values["arms"] = tuple(values.get("arms", ()))
+    on = phase_on if phase_on is not None else bool(phase) or bool(base and base.phase is not None)
+    if phase and phase_on is False:
+        raise ConfigError("phase_on=False contradicts the phase fields given.")
+    if on and chosen.phase is None:
+        raise ConfigError(f"The {chosen.name} setting has no phase to run.")
+    return SweepSpec(out=out, setting=chosen.name,
+                     config=chosen.config_type(**{**(base.config if base else {}), **config}), grid=grid,
+                     phase=chosen.phase.spec_type(**{**((base.phase or {}) if base else {}), **phase}) if on else None,
+                     **values)
+
+
 @dataclasses.dataclass
 class SweepSpec:
     """Everything a sweep needs; the CLI only parses into this, a notebook can build it directly."""
