@@ -227,7 +227,7 @@ def sweep_spec(args: argparse.Namespace, setting: Setting, command: str = "") ->
     return preset_spec(args.out, setting.name, args.preset, config=config_given, hparams=hp_given,
                        phase=phase_given if setting.phase is not None else None,
                        phase_on=phase_on if setting.phase is not None else False, command=command,
-                       **spec_given)
+                       **{k: v for k, v in spec_given.items() if k != "setting"})  # --setting: chose `setting`
 
 
 def cmd_sweep(args: argparse.Namespace, setting: Setting, command: str, limit=None) -> None:

@@ -114,7 +114,8 @@ def test_a_unit_starts_once_is_polled_and_packs_its_files_into_out(tmp_path):
 
 
 def test_carry_size_counts_the_tracked_the_untracked_not_ignored_and_the_carried_files(tmp_path):
-    """experiments/lease.sh carry_size: what a device call would send, against its 64 MiB."""
+    """experiments/lease.sh carry_size: what a device call would send, against its 64 MiB, counted as the device tool
+    counts (each file a tar member: a 512-byte header and its bytes in whole 512-byte blocks)."""
     lease = ROOT / "experiments" / "lease.sh"
     subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
     (tmp_path / ".gitignore").write_text("/.whl-x/\n")  # 9 bytes
@@ -129,9 +130,12 @@ def test_carry_size_counts_the_tracked_the_untracked_not_ignored_and_the_carried
                               capture_output=True, timeout=30)
         return done.returncode, done.stdout
 
-    assert size() == (0, f"1,509 bytes (0.0 MiB) would travel, {64 * 2**20 - 1509:,} bytes under 64 MiB\n")
-    assert size(".whl-x")[1].startswith("3,509 bytes")
+    member = lambda n: 512 + -(-n // 512) * 512  # noqa: E731
+    sent = member(9) + member(1000) + member(500)  # 3,584
+    assert size() == (0, f"{sent:,} bytes (0.0 MiB) would travel, {64 * 2**20 - sent:,} bytes under 64 MiB\n")
+    assert size(".whl-x")[1].startswith(f"{sent + member(2000):,} bytes")
     with open(tmp_path / ".whl-x" / "big.whl", "wb") as f:  # sparse: 64 MiB on paper, nothing on disk
         f.truncate(64 * 2**20)
     rc, out = size(".whl-x")
-    assert rc == 1 and out.endswith("would travel: 3,509 bytes over 64 MiB\n")
+    over = sent + member(2000) + member(64 * 2**20) - 64 * 2**20
+    assert rc == 1 and out.endswith(f"would travel: {over:,} bytes over 64 MiB\n")
