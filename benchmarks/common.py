@@ -16,17 +16,51 @@ At the default (ant, 4096 envs, unroll 20, batch 512, 32 minibatches, 8 epochs) 
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import gc
 import math
 import os
+import pathlib
 import statistics
+import sys
 import time
-from typing import Any, Callable
+from typing import Any, Callable, NoReturn
 
 # Brax's ppo_networks.make_ppo_networks defaults (brax 0.14.2): policy (32,)*4, value (256,)*5.
 BRAX_POLICY_HIDDEN = (32,) * 4
 BRAX_VALUE_HIDDEN = (256,) * 5
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse that refuses bad input as the `cdjax` command does: `<prog>: <one sentence>` on stderr, no usage
+    block, exit status 2. Counts take cdjax.options' types (`positive`, `non_negative`, `seconds`)."""
+
+    def error(self, message: str) -> NoReturn:
+        message = message.replace("unrecognized arguments:", "unknown option(s):").replace("\n", " ")
+        refuse(self.prog, f"{message}; see `{self.prog} --help`")
+
+
+def refuse(prog: str, sentence: str) -> NoReturn:
+    """End a command that cannot run as asked: `<prog>: <sentence>.` on stderr and exit status 2."""
+    print(f"{prog}: {sentence.rstrip('.')}.", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def unwritable_file(path: str | pathlib.Path) -> str | None:
+    """Why a file could not be written at `path` (a clause naming it), or None; touches nothing. An output file's
+    directory is not made for it (a mistyped one would be): it must exist."""
+    path = pathlib.Path(path)
+    folder = path.absolute().parent
+    if path.is_dir():
+        return f"{path} is a directory; name a file"
+    if not folder.exists():
+        return f"its directory {folder} does not exist"
+    if not folder.is_dir():
+        return f"{folder} is a file, not a directory"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"cannot write into {folder}"
+    return None
 
 
 @dataclasses.dataclass(frozen=True)

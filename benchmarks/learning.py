@@ -41,7 +41,8 @@ import time
 if __package__ in (None, ""):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import Spec, device_info  # noqa: E402
+from benchmarks.common import Parser, Spec, device_info, refuse, unwritable_file  # noqa: E402
+from cdjax.options import non_negative, positive, seconds  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)
@@ -194,19 +195,22 @@ def run_brax(name: str, task: Task, seed: int, rows: Rows) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.learning", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser(prog="python -m benchmarks.learning", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--tasks", nargs="+", default=["ant", "halfcheetah", "reacher"], choices=list(TASKS))
     p.add_argument("--frameworks", nargs="+", default=["cdjax", "brax"], choices=["cdjax", "brax"])
     p.add_argument("--variants", nargs="+", default=["default"], choices=list(VARIANTS),
                    help="cdjax learner variants (default: the defaults)")
-    p.add_argument("--seeds", type=int, default=5)
-    p.add_argument("--first-seed", type=int, default=0,
-                   help="seeds first-seed ... first-seed + seeds - 1 (to spread one learner's seeds over processes)")
-    p.add_argument("--evals", type=int, help="override every task's number of evaluations")
-    p.add_argument("--updates-per-eval", type=int, help="override every task's updates between evaluations")
+    p.add_argument("--seeds", type=positive, default=5,
+                   help="runs per task and learner (cdjax: per variant) (default 5; --tiny: at most 2)")
+    p.add_argument("--first-seed", type=non_negative, default=0, metavar="B",
+                   help="base seed B, to spread one learner's seeds over processes (default 0): cdjax's runs take "
+                        "their keys from base key B, its rows say seeds B*1000 ... B*1000 + seeds - 1 (never those of "
+                        "another B); Brax PPO runs seeds B ... B + seeds - 1")
+    p.add_argument("--evals", type=positive, help="override every task's number of evaluations")
+    p.add_argument("--updates-per-eval", type=positive, help="override every task's updates between evaluations")
     p.add_argument("--tiny", action="store_true", help="CPU smoke: the point task, 2 seeds")
-    p.add_argument("--budget-s", type=float, default=float("inf"),
+    p.add_argument("--budget-s", type=seconds, default=float("inf"),
                    help="start no new (task, learner, seed) after this many seconds")
     p.add_argument("--out", help="output directory (rows.jsonl, meta.json)")
     p.add_argument("--cache-dir", default=os.path.expanduser("~/.cache/cdjax/jax"),
@@ -214,14 +218,21 @@ def main(argv=None) -> int:
     p.add_argument("--report", nargs="+", metavar="DIR", help="make the table and plot from these directories (DIR@brax or DIR@cdjax: only that "
                    "framework's rows of DIR)")
     p.add_argument("--write", help="with --report: write the markdown here (and the plot beside it)")
-    p.add_argument("--parity-variants", nargs="+", default=["default"], metavar="VARIANT",
+    p.add_argument("--parity-variants", nargs="+", metavar="VARIANT",
                    help="with --report: the cdjax variants set against Brax PPO in the first table (default: default)")
     args = p.parse_args(argv)
+    report_only = [option for option, value in (("--write", args.write), ("--parity-variants", args.parity_variants))
+                   if value is not None]
+    if report_only and not args.report:  # (the benchmark would run, and ignore them)
+        refuse(p.prog, f"{' and '.join(report_only)} go{'es' * (len(report_only) == 1)} with --report DIR (the table of "
+                       "a benchmark's --out); without --report this command runs the benchmark")
     if args.report:
         from benchmarks import learning_report
 
+        if args.write and (why := unwritable_file(args.write)):  # said before the rows are read and plotted
+            refuse(p.prog, f"--write {args.write}: {why}")
         try:
-            text = learning_report.report(args.report, args.write, tuple(args.parity_variants))
+            text = learning_report.report(args.report, args.write, tuple(args.parity_variants or ["default"]))
         except ValueError as err:  # a source without rows, or a seed given twice: one sentence, not a traceback
             print(f"python -m benchmarks.learning: {err}", file=sys.stderr)
             return 2
@@ -229,16 +240,22 @@ def main(argv=None) -> int:
         return 0
     if args.tiny:
         args.tasks, args.seeds = ["point"], min(args.seeds, 2)
-    from cdjax import runtime
+    from cdjax import io, runtime
+    from cdjax.protocol import ConfigError
 
-    runtime.configure(cache_dir=args.cache_dir)
     out = pathlib.Path(args.out or f"benchmarks/results/{datetime.date.today()}-learning")
+    try:
+        io.RunDir(out).check_writable()
+        runtime.configure(cache_dir=args.cache_dir, cache_source="--cache-dir")
+    except (ConfigError, io.RunDirError) as err:
+        refuse(p.prog, str(err))
     rows = Rows(out)
     tasks = {}
     for name in args.tasks:
         task = TASKS[name]
-        task = dataclasses.replace(task, evals=args.evals or task.evals,
-                                   updates_per_eval=args.updates_per_eval or task.updates_per_eval)
+        task = dataclasses.replace(
+            task, evals=task.evals if args.evals is None else args.evals,
+            updates_per_eval=task.updates_per_eval if args.updates_per_eval is None else args.updates_per_eval)
         tasks[name] = task
     meta = {"command": "python -m benchmarks.learning " + shlex.join(argv if argv is not None else sys.argv[1:]),
             "date": str(datetime.date.today()), **device_info(),
@@ -246,7 +263,6 @@ def main(argv=None) -> int:
                           "eval_episodes": t.eval_episodes, "budget": t.budget} for n, t in tasks.items()},
             "variants": {v: [VARIANTS[v][0], VARIANTS[v][1]] for v in args.variants}}
     if "cdjax" in args.frameworks:  # what `default` and each variant meant when these rows ran: the whole Config
-        from cdjax import io
         from cdjax.runner.plan import code_record
 
         meta["code"] = code_record()

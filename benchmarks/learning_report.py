@@ -31,23 +31,35 @@ def split_source(source: str | pathlib.Path) -> tuple[pathlib.Path, str | None, 
     return pathlib.Path(text), None, None
 
 
+def _json(path: pathlib.Path, text: str, where: str = ""):
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}{where} is not JSON ({err.msg})") from None
+
+
 def load(dirs: list[pathlib.Path | str]) -> tuple[list[dict], list[dict]]:
     """(rows, metas) of every directory (DIR, DIR@FRAMEWORK or DIR@cdjax=NAME, see `split_source`); a row carries
-    its directory's device in `device` and the directory in `source` (one run's rows)."""
+    its directory's device in `device` and the directory in `source` (one run's rows). ValueError (one sentence) for
+    a directory without rows, a line that is not JSON, or sources that leave no row."""
     rows, metas = [], []
     for source in dirs:
         d, framework, name = split_source(source)
         if not (d / "rows.jsonl").is_file():
             raise ValueError(f"{source} has no rows.jsonl: give a directory of `python -m benchmarks.learning --out`, "
                              "as DIR, DIR@brax, DIR@cdjax or DIR@cdjax=NAME")
-        meta = json.loads((d / "meta.json").read_text()) if (d / "meta.json").exists() else {}
+        meta = _json(d / "meta.json", (d / "meta.json").read_text()) if (d / "meta.json").exists() else {}
         metas.append({"dir": str(source), **meta})
-        for line in (d / "rows.jsonl").read_text().splitlines():
-            if line.strip():
-                row = json.loads(line)
-                if framework is None or row["framework"] == framework:
-                    rows.append({**row, "device": meta.get("device", "?"), "source": str(d),
-                                 **({"variant": name} if name else {})})
+        lines = [(i, line) for i, line in enumerate((d / "rows.jsonl").read_text().splitlines(), 1) if line.strip()]
+        if not lines:
+            raise ValueError(f"no rows in {d / 'rows.jsonl'}: its run measured nothing (yet)")
+        for i, line in lines:
+            row = _json(d / "rows.jsonl", line, f" line {i}")
+            if framework is None or row["framework"] == framework:
+                rows.append({**row, "device": meta.get("device", "?"), "source": str(d),
+                             **({"variant": name} if name else {})})
+    if not rows:
+        raise ValueError(f"no rows in {', '.join(map(str, dirs))}: each holds only the other framework's rows")
     return rows, metas
 
 

@@ -67,6 +67,22 @@ def count(text: str) -> int:
     return int(value)
 
 
+def positive(text: str) -> int:
+    """A count of at least 1 (`count`'s forms)."""
+    value = count(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of at least 1")
+    return value
+
+
+def non_negative(text: str) -> int:
+    """A count of at least 0 (`count`'s forms): a base seed, an index."""
+    value = count(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of at least 0")
+    return value
+
+
 def number(text: str) -> float:
     try:
         return float(text)

@@ -179,6 +179,60 @@ def test_learning_report_sources_rename_cdjax_rows_and_refuse_a_seed_twice(tmp_p
         assert err.startswith("python -m benchmarks.learning: ") and err.count("\n") == 1, err
 
 
+def test_learning_benchmark_refuses_bad_arguments_in_one_sentence_before_anything_runs(tmp_path, capsys, monkeypatch):
+    """python -m benchmarks.learning: report options without --report, counts that are not positive, a negative base
+    seed, an --out that is a file: one sentence naming the option, exit status 2, nothing run or written; --report of
+    a directory without rows, or with a --write whose directory does not exist, likewise (no empty table, no plot)."""
+    from benchmarks import learning
+
+    def never(*args, **kwargs):
+        pytest.fail("the benchmark started")
+
+    monkeypatch.setattr(learning, "run_cdjax", never)
+    monkeypatch.setattr(learning, "run_brax", never)
+    out, afile = tmp_path / "out", tmp_path / "afile"
+    afile.write_text("")
+
+    def refused(argv, option):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as stop:
+            learning.main(argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.startswith("python -m benchmarks.learning: ") and err.count("\n") == 1, err
+        assert option in err, err
+        return err
+
+    tiny = ["--tiny", "--out", str(out)]
+    assert "runs the benchmark" in refused([*tiny, "--write", str(tmp_path / "L.md")], "--write goes with --report")
+    refused([*tiny, "--parity-variants", "tanh"], "--parity-variants")
+    for option, value in (("--seeds", "0"), ("--seeds", "-2"), ("--evals", "-1"), ("--evals", "0"),
+                          ("--updates-per-eval", "0"), ("--first-seed", "-1"), ("--budget-s", "0")):
+        refused([*tiny, option, value], f"argument {option}: '{value}' is not")
+    refused(["--tiny", "--out", str(afile)], f"{afile} is a file")
+    assert not out.exists() and not (tmp_path / "L.md").exists()
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        learning.main(["--help"])
+    assert "B*1000 ... B*1000 + seeds - 1" in " ".join(capsys.readouterr().out.split())  # the rows cdjax labels
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "rows.jsonl").write_text("\n")
+    for write in ([], ["--write", str(tmp_path / "L.md")]):
+        capsys.readouterr()
+        assert learning.main(["--report", str(empty), *write]) == 2
+        err = capsys.readouterr().err
+        assert err == f"python -m benchmarks.learning: no rows in {empty / 'rows.jsonl'}: its run measured nothing (yet)\n"
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "rows.jsonl").write_text(json.dumps(dict(task="t", framework="cdjax", variant="default", seed=0,
+                                                     env_steps=0, eval_return=1.0, train_s=1.0)) + "\n")
+    assert learning.main(["--report", f"{full}@brax"]) == 2  # sources that leave no row
+    refused(["--report", str(full), "--write", str(tmp_path / "nodir" / "L.md")], "--write")
+    refused(["--report", str(full), "--write", str(tmp_path)], "is a directory")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "empty", "full"]
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """One run of the tiny suite (a subset of `--tiny --suite all`: every part except the devices
