@@ -21,8 +21,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from benchmarks.common import Parser
 from cdjax import consistency as cc
 from cdjax import normalize as nz
+from cdjax.options import positive
 
 ARGS = ("model", "gru", "s0", "actions", "x_re")
 # (row, chain, matmul precision); "default" is JAX's default (TF32 may be used for float32 products on a GPU)
@@ -99,20 +101,13 @@ def check(windows=512, horizon=20, obs=27, act=8, hidden=500, enc=128, seed=0) -
             "relative_error": rows}
 
 
-def _positive(text: str) -> int:
-    value = int(text) if text.strip().lstrip("+").isdigit() else 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of at least 1")
-    return value
-
-
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.chain_check", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser(prog="python -m benchmarks.chain_check", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", help="directory for results.json")
     for name, default in (("windows", 512), ("horizon", 20), ("obs", 27), ("act", 8), ("hidden", 500), ("enc", 128),
                           ("seed", 0)):
-        p.add_argument(f"--{name}", type=int if name == "seed" else _positive, default=default)
+        p.add_argument(f"--{name}", type=int if name == "seed" else positive, default=default)
     a = p.parse_args(argv)
     result = check(a.windows, a.horizon, a.obs, a.act, a.hidden, a.enc, a.seed)
     print(f"{result['device']} ({result['backend']}), {result['sizes']}: relative error against the plain loop at "

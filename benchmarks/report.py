@@ -477,10 +477,21 @@ def merge(results_list: list[dict]) -> dict:
 
 
 def load(path: str | pathlib.Path) -> dict:
+    """The results of a run (its --out directory or its results.json); ValueError, one sentence, when there are none."""
     p = pathlib.Path(path)
     if p.is_dir():
         p = p / "results.json"
-    return json.loads(p.read_text())
+        if not p.is_file():
+            raise ValueError(f"{path} holds no results.json (name a directory of `python -m benchmarks.run --out`)")
+    elif not p.is_file():
+        raise ValueError(f"{path} does not exist")
+    try:
+        results = json.loads(p.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{p} is not a results.json ({getattr(err, 'msg', None) or err.reason})") from None
+    if not isinstance(results, dict) or not isinstance(results.get("parts"), dict):
+        raise ValueError(f"{p} is not a results.json (it has no \"parts\")")
+    return results
 
 
 def write_out(results: dict, out_dir: str | pathlib.Path) -> str:

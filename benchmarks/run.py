@@ -16,6 +16,7 @@ keeps what it measured) and prints the markdown last. See benchmarks/README.md.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import os
 import pathlib
@@ -23,12 +24,14 @@ import shlex
 import sys
 import time
 import traceback
+from typing import Callable
 
 if __package__ in (None, ""):  # `python benchmarks/run.py` as well as `python -m benchmarks.run`
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from benchmarks import report  # noqa: E402
-from benchmarks.common import FULL, TINY, Spec, Timing, cleanup  # noqa: E402
+from benchmarks.common import FULL, TINY, Parser, Spec, Timing, cleanup, refuse, unwritable_file  # noqa: E402
+from cdjax.options import non_negative, positive, seconds  # noqa: E402
 
 SUITES = ("compare", "seeds", "envs", "devices")
 DISTRIBUTED_SUITES = ("seeds", "devices")  # the suites whose sweeps span every process's devices
@@ -39,8 +42,7 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
 def parse(argv):
-    p = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser(prog="python -m benchmarks.run", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--suite", nargs="+", default=["compare"], choices=[*SUITES, "all"],
                    help="parts to run in this process (GPU: one per command, each fits in ~9 minutes)")
     p.add_argument("--tiny", action="store_true", help="CPU smoke sizes (point env, 16 envs); numbers mean nothing")
@@ -48,17 +50,17 @@ def parse(argv):
     p.add_argument("--scaling-cases", nargs="+", choices=SCALING_CASES, default=list(SCALING_CASES[:2]),
                    help="seeds/envs: cdjax cases to scale (default: cd-fast model-free)")
     p.add_argument("--env", help="task (default ant; tiny: point)")
-    p.add_argument("--num-envs", type=int, help="compare: num_envs (default 4096)")
-    p.add_argument("--seed-envs", type=int, help="seeds/devices: num_envs per seed (default 256)")
-    p.add_argument("--seed-counts", type=int, nargs="+", help="seeds: vmapped seed counts (default 1 8 32 128)")
-    p.add_argument("--device-seed-counts", type=int, nargs="+", help="devices: seed counts (default 32 128)")
-    p.add_argument("--env-counts", type=int, nargs="+", help="envs: num_envs values (default 512 ... 8192)")
-    p.add_argument("--updates", type=int, help="timed calls per case (default 5)")
-    p.add_argument("--max-case-s", type=float, help="stop timing a case after this many timed seconds (min 2 calls)")
-    p.add_argument("--brax-steps-per-epoch", type=int, default=2, help="Brax training steps per timed epoch")
-    p.add_argument("--brax-steady-epochs", type=int, default=3, help="Brax epochs timed after the 2 warm-up epochs")
-    p.add_argument("--ceiling-len", type=int, default=200, help="ceiling: steps per timed scan")
-    p.add_argument("--budget-s", type=float, default=420.0,
+    p.add_argument("--num-envs", type=positive, help="compare: num_envs (default 4096)")
+    p.add_argument("--seed-envs", type=positive, help="seeds/devices: num_envs per seed (default 256)")
+    p.add_argument("--seed-counts", type=positive, nargs="+", help="seeds: vmapped seed counts (default 1 8 32 128)")
+    p.add_argument("--device-seed-counts", type=positive, nargs="+", help="devices: seed counts (default 32 128)")
+    p.add_argument("--env-counts", type=positive, nargs="+", help="envs: num_envs values (default 512 ... 8192)")
+    p.add_argument("--updates", type=positive, help="timed calls per case (default 5)")
+    p.add_argument("--max-case-s", type=seconds, help="stop timing a case after this many timed seconds (min 2 calls)")
+    p.add_argument("--brax-steps-per-epoch", type=positive, default=2, help="Brax training steps per timed epoch")
+    p.add_argument("--brax-steady-epochs", type=positive, default=3, help="Brax epochs timed after the 2 warm-up epochs")
+    p.add_argument("--ceiling-len", type=positive, default=200, help="ceiling: steps per timed scan")
+    p.add_argument("--budget-s", type=seconds, default=420.0,
                    help="skip the remaining cases once this process has run this long (default 420 s)")
     p.add_argument("--out", help="output directory (results.json, results.md, results.png)")
     p.add_argument("--write-results", metavar="PATH", help="also render PATH (e.g. benchmarks/RESULTS.md) + PATH.png")
@@ -70,34 +72,74 @@ def parse(argv):
                    help="compare: write a jax.profiler trace of one update per cdjax case into DIR/<case> (seeds: of "
                         "one update of every seed, DIR/<case>-x<seeds>) and summarise its device ops "
                         "(benchmarks.profile_summary) into the results")
-    p.add_argument("--trace-top", type=int, default=25, help="--trace: ops listed per case (default 25)")
+    p.add_argument("--trace-top", type=positive, default=25, help="--trace: ops listed per case (default 25)")
     p.add_argument("--distributed", action="store_true",
                    help="join the other processes first (cdjax.multihost.initialize: one process per host or GPU, "
                         "each running this command); the seeds and devices suites then sweep over every process's "
                         "devices, and process 0 writes the results (see README)")
     p.add_argument("--coordinator", help="--distributed: coordinator host:port (default: auto-detected)")
-    p.add_argument("--num-processes", type=int, help="--distributed: number of processes (default: auto-detected)")
-    p.add_argument("--process-id", type=int, help="--distributed: this process's id (default: auto-detected)")
+    p.add_argument("--num-processes", type=positive, help="--distributed: number of processes (default: auto-detected)")
+    p.add_argument("--process-id", type=non_negative, help="--distributed: this process's id (default: auto-detected)")
     p.add_argument("--dry-run", action="store_true", help="print the plan (configs, env steps) and exit")
     args = p.parse_args(argv)
     args.suite = list(SUITES) if "all" in args.suite else list(dict.fromkeys(args.suite))
     if args.distributed and set(args.suite) - set(DISTRIBUTED_SUITES):
         p.error(f"--distributed measures sweeps over every process's devices: give --suite "
                 f"{' '.join(DISTRIBUTED_SUITES)} (compare and envs are single-device by design)")
+    args = defaults(args)
+    check(p.prog, args)
     return args
 
 
-def specs(args) -> tuple[Spec, Spec]:
+def check(prog: str, args) -> None:
+    """Refuse, in one sentence with exit status 2, what would otherwise fail only once the cases run (or, for the
+    outputs, once they ran): an --out or --write-results that cannot be written, and a task or sizes that some
+    Spec or cdjax Config of the suites cannot take. Builds every one of those (no program); writes nothing."""
+    from cdjax import io
+
+    if args.out:
+        try:
+            io.RunDir(pathlib.Path(args.out)).check_writable()
+        except io.RunDirError as err:
+            refuse(prog, str(err))
+    if args.write_results and (why := unwritable_file(args.write_results)):
+        refuse(prog, f"--write-results {args.write_results}: {why}")
+    if args.merge:
+        return
+    from benchmarks.throughput import cdjax_cases
+
+    def build(option: str, value, spec: Callable[[], Spec]) -> Spec:
+        try:
+            built = spec()
+            built.config()
+            for _, overrides, _ in cdjax_cases(built).values():
+                built.config(**overrides)
+        except ValueError as err:  # (ConfigError is one)
+            refuse(prog, f"{option} {value}: {err}")
+        return built
+
+    base = build("--env", args.env or (TINY if args.tiny else FULL).env, lambda: _base(args))
+    main = build("--num-envs", args.num_envs, lambda: base.with_num_envs(args.num_envs)) if args.num_envs else base
+    build("--seed-envs", args.seed_envs, lambda: base.with_num_envs(args.seed_envs))
+    if "envs" in args.suite or args.dry_run:  # (the dry run builds them whatever the suites)
+        for n in args.env_counts:
+            build("--env-counts", n, lambda: main.with_num_envs(n))
+
+
+def _base(args) -> Spec:
     base = TINY if args.tiny else FULL
-    if args.env:
-        base = Spec(**{**base.__dict__, "env": args.env})
+    return dataclasses.replace(base, env=args.env) if args.env else base
+
+
+def specs(args) -> tuple[Spec, Spec]:
+    base = _base(args)
     main = base.with_num_envs(args.num_envs) if args.num_envs else base
-    seed_envs = args.seed_envs or (16 if args.tiny else 256)
-    return main, base.with_num_envs(seed_envs)
+    return main, base.with_num_envs(args.seed_envs)
 
 
 def defaults(args):
     tiny = args.tiny
+    args.seed_envs = args.seed_envs or (16 if tiny else 256)
     args.seed_counts = args.seed_counts or ([1, 2, 4] if tiny else [1, 8, 32, 128])
     args.device_seed_counts = args.device_seed_counts or ([2, 4] if tiny else [32, 128])
     args.env_counts = args.env_counts or ([16, 32] if tiny else [512, 1024, 2048, 4096, 8192])
@@ -248,10 +290,14 @@ def run_envs(suite: Suite, spec: Spec, timing: Timing, args) -> None:
 
 def main(argv=None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = defaults(parse(argv))
+    args = parse(argv)
     command = "python -m benchmarks.run " + shlex.join(argv)
     if args.merge:
-        results = report.merge([report.load(p) for p in args.merge])
+        try:
+            loaded = [report.load(p) for p in args.merge]
+        except ValueError as err:
+            refuse("python -m benchmarks.run", f"--merge: {err}")
+        results = report.merge(loaded)
         if args.out:
             md = report.write_out(results, args.out)
         else:
@@ -281,8 +327,12 @@ def main(argv=None) -> dict:
         multihost.initialize(args.coordinator, args.num_processes, args.process_id)
     if args.cache:
         from cdjax import runtime
+        from cdjax.protocol import ConfigError
 
-        runtime.configure(cache_dir=args.cache)
+        try:
+            runtime.configure(cache_dir=args.cache, cache_source="--cache")
+        except ConfigError as err:
+            refuse("python -m benchmarks.run", str(err))
     from benchmarks.common import device_info
 
     info = device_info()

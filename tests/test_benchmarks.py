@@ -246,6 +246,43 @@ def tiny(tmp_path_factory):
     return out, json.loads((out / "results.json").read_text())
 
 
+def test_benchmark_run_refuses_bad_arguments_in_one_sentence_before_anything_compiles(tmp_path, capsys, monkeypatch):
+    """python -m benchmarks.run: counts below 1, non-positive seconds, sizes or a task no Spec or Config takes, --merge
+    sources that hold no results, outputs that cannot be written: one sentence naming the option, exit status 2,
+    before any suite starts (none would have failed before its first case compiled, some not at all)."""
+    from benchmarks import run
+
+    for name in ("run_compare", "run_seeds", "run_envs", "run_devices"):
+        monkeypatch.setattr(run, name, lambda *args: pytest.fail("a suite started"))
+    out, afile, bad = tmp_path / "out", tmp_path / "afile", tmp_path / "bad.json"
+    afile.write_text("")
+    bad.write_text("not json")
+    (tmp_path / "empty").mkdir()
+
+    def refused(argv, *said):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.startswith("python -m benchmarks.run: ") and err.count("\n") == 1, err
+        assert all(s in err for s in said), err
+
+    tiny = ["--tiny", "--suite", "all", "--out", str(out)]
+    for option, value in (("--num-envs", "-5"), ("--num-envs", "0"), ("--env-counts", "0"), ("--seed-counts", "0"),
+                          ("--updates", "0"), ("--updates", "-3"), ("--max-case-s", "0"), ("--budget-s", "-1")):
+        refused([*tiny, option, value], f"argument {option}: '{value}' is not")
+    refused([*tiny, "--env", "nosuchenv"], "--env nosuchenv: Unknown env 'nosuchenv'")
+    refused([*tiny, "--num-envs", "1"], "--num-envs 1: eval_envs=2 is larger than num_envs=1")  # a Config's refusal
+    refused([*tiny, "--env-counts", "16", "1"], "--env-counts 1: ")
+    refused(["--suite", "compare", "--num-envs", "100", "--dry-run"], "--num-envs 100: ", "a multiple of num_envs")
+    refused([*tiny, "--write-results", str(tmp_path / "nodir" / "R.md")], "--write-results", "does not exist")
+    refused(["--tiny", "--out", str(afile)], f"{afile} is a file")
+    for source, said in ((tmp_path / "none", "does not exist"), (tmp_path / "empty", "holds no results.json"),
+                         (bad, "is not a results.json"), (afile, "is not a results.json")):
+        refused(["--merge", str(source), "--out", str(out)], f"--merge: {source} {said}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "bad.json", "empty"]
+
+
 def test_tiny_suite_measures_every_case(tiny):
     out, results = tiny
     parts = results["parts"]
