@@ -11,9 +11,12 @@ import platform
 import sys
 import time
 
+from cdjax import options
+from cdjax.cli import Parser, UsageError
 from experiments.paper_obs_space import TASKS, UNITS
 
 HERE = pathlib.Path(__file__).resolve().parent
+PROG = "python -m experiments.paper_obs_space"
 UNIT_LIMIT_S = 1260  # a unit's sweeps (compile, phases, training) stop by then; its evaluations and packing follow
 
 
@@ -72,13 +75,14 @@ def cmd_train(args, passthrough: list[str]) -> int:
     out = pathlib.Path(args.out or f"runs/units/{unit.name}")
     out.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
-    record = {"unit": unit.name, "task": unit.task, "limit_s": args.limit, "started": datetime.datetime.now().isoformat(
+    limit = UNIT_LIMIT_S if args.limit is None else args.limit
+    record = {"unit": unit.name, "task": unit.task, "limit_s": limit, "started": datetime.datetime.now().isoformat(
         timespec="seconds"), "estimate_s": round(unit.estimate()["total"]), "parts": []}
     estimates = unit.estimate()["parts"]
     code = 0
     for i, part in enumerate(unit.parts):
         later = sum(estimates[p.name]["total"] for p in unit.parts[i + 1:])
-        left = args.limit - (time.monotonic() - start) - later
+        left = limit - (time.monotonic() - start) - later
         if left < 120:
             record["parts"].append({"name": part.name, "skipped": f"{left:.0f} s left"})
             code = code or 75
@@ -131,6 +135,11 @@ def cmd_keep(args) -> int:
 def cmd_report(args) -> int:
     from experiments.paper_obs_space import report
 
+    missing = [str(path) for path in args.runs if not path.is_dir()]
+    if missing:  # (else the report would say that no unit has run yet)
+        print(f"{PROG} report: --runs {', '.join(missing)}: no such directory (give directories that hold run "
+              "directories, e.g. experiments/paper_obs_space/data)", file=sys.stderr)
+        return 2
     if args.paired is not None and not (args.paired / "summary.json").is_file():
         print(f"python -m experiments.paper_obs_space report: {args.paired} has no summary.json (give the data "
               "directory of another report, e.g. experiments/paper_obs_space/data)", file=sys.stderr)
@@ -148,15 +157,29 @@ def cmd_report(args) -> int:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m experiments.paper_obs_space", description=__doc__)
+    """The command; its exit status (2 and one sentence on stderr for arguments it cannot take)."""
+    try:
+        args, rest = parse(argv)
+    except UsageError as err:
+        print(f"{PROG}: {err}", file=sys.stderr)
+        return 2
+    if args.command == "train":
+        return cmd_train(args, rest)
+    return {"units": cmd_units, "keep": cmd_keep, "report": cmd_report}[args.command](args)
+
+
+def parse(argv) -> tuple[argparse.Namespace, list[str]]:
+    """(arguments, the options `train` passes on to cdjax sweep); UsageError (one sentence) for what cannot run."""
+    p = Parser(prog=PROG, description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
-    sub.add_parser("units", help="the units of the experiment, their budgets and estimated wall-clock")
+    u = sub.add_parser("units", help="the units of the experiment, their budgets and estimated wall-clock")
     t = sub.add_parser("train", help="one unit (or one task's preset as it stands); other options go to cdjax sweep")
     which = t.add_mutually_exclusive_group(required=True)
     which.add_argument("--unit", choices=list(UNITS))
     which.add_argument("--task", choices=TASKS, help="the preset's arms in one sweep")
     t.add_argument("--out", help="the unit's directory (default runs/units/<unit>) or the run directory")
-    t.add_argument("--limit", type=float, default=UNIT_LIMIT_S, help="seconds the unit's sweeps may take in all")
+    t.add_argument("--limit", type=options.seconds, metavar="SECONDS",
+                   help=f"--unit: seconds the unit's sweeps may take in all (default {UNIT_LIMIT_S})")
     k = sub.add_parser("keep", help="add a unit's run directories (unpacked from device.sh's UNIT.tar.gz) to data/")
     k.add_argument("paths", nargs="+", type=pathlib.Path)
     k.add_argument("--data", default=str(HERE / "data"))
@@ -164,7 +187,7 @@ def main(argv=None) -> int:
     r.add_argument("--runs", nargs="+", type=pathlib.Path, default=[HERE / "data"],
                    help="directories searched for run directories (run.json); default the kept data")
     r.add_argument("--out", default=str(HERE))
-    r.add_argument("--reps", type=int, default=2000, help="bootstrap replications")
+    r.add_argument("--reps", type=options.positive, default=2000, help="bootstrap replications (default 2000)")
     r.add_argument("--keep", action="store_true", help="also copy the runs' data (thinned) into OUT/data/")
     r.add_argument("--paired", type=pathlib.Path, metavar="DATA",
                    help="another report's data directory (its summary.json): set this data's final returns beside "
@@ -172,11 +195,12 @@ def main(argv=None) -> int:
     r.add_argument("--arms", nargs="+", metavar="ARM",
                    help="only these arms (the report's arm keys, e.g. mbmf cd-k20); default every arm found")
     args, rest = p.parse_known_args(argv)
-    if args.command == "train":
-        return cmd_train(args, rest)
-    if rest:
-        p.error(f"unknown option(s): {' '.join(rest)}")
-    return {"units": cmd_units, "keep": cmd_keep, "report": cmd_report}[args.command](args)
+    if args.command == "train" and args.task and args.limit is not None:
+        t.error("--limit is the time of a unit's sweeps (--unit); --task runs one sweep, whose limit is cdjax "
+                "sweep's --time-limit")
+    if args.command != "train" and rest:
+        {"units": u, "keep": k, "report": r}[args.command].error(f"unknown option(s): {' '.join(rest)}")
+    return args, rest
 
 
 if __name__ == "__main__":
