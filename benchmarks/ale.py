@@ -32,21 +32,33 @@ if __package__ in (None, ""):  # `python benchmarks/ale.py` as well as `python -
 
 import numpy as np  # noqa: E402
 
-from benchmarks.common import device_info  # noqa: E402
+from benchmarks.common import Parser, device_info, refuse  # noqa: E402
+from cdjax.options import positive  # noqa: E402
+
+PROG = "python -m benchmarks.ale"
 
 # CPU smoke sizes: the preset's config with small networks, short games and 2 emulators per seed (the ALE tests use
 # the same config, so that the chunk program comes from the compilation cache).
 TINY_CONFIG = dict(num_envs=2, latent=32, model_hidden=32, encoder_dim=8, episode_length=200)
 
 
+def ale_presets() -> list[str]:
+    """The atari setting's presets of ALE games (the names --game takes)."""
+    from cdjax import agents
+    from cdjax.agents.atari.config import ALE_PREFIX
+
+    return [name for name, preset in agents.get("atari").presets.items()
+            if str(preset.config.get("env", "")).startswith(ALE_PREFIX)]
+
+
 def parse(argv):
-    p = argparse.ArgumentParser(prog="python -m benchmarks.ale", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    p.add_argument("--game", default="breakout", help="ALE preset (breakout, seaquest, mspacman, frostbite)")
-    p.add_argument("--totals", type=int, nargs="+", help="emulators in total (default 16 64 256; tiny 2 4)")
-    p.add_argument("--envs-per-seed", type=int, help="emulators per seed (default 16; tiny 2)")
+    p = Parser(prog=PROG, description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter,
+               epilog=__doc__)
+    p.add_argument("--game", default="breakout", choices=ale_presets(), help="ALE preset (default breakout)")
+    p.add_argument("--totals", type=positive, nargs="+", help="emulators in total (default 16 64 256; tiny 2 4)")
+    p.add_argument("--envs-per-seed", type=positive, help="emulators per seed (default 16; tiny 2)")
     p.add_argument("--arms", nargs="+", default=["a2c", "a2c-cd"], help="cdjax arms (default a2c a2c-cd)")
-    p.add_argument("--chunk-updates", type=int, help="updates per timed call of a sweep (default 25; tiny 2)")
+    p.add_argument("--chunk-updates", type=positive, help="updates per timed call of a sweep (default 25; tiny 2)")
     p.add_argument("--seconds", type=float, help="timed seconds per case, at least 2 calls (default 20; tiny 0.5)")
     p.add_argument("--tiny", action="store_true", help="CPU smoke sizes")
     p.add_argument("--cache-dir", help="JAX's persistent compilation cache (default: $CDJAX_JAX_CACHE, else none)")
@@ -183,20 +195,28 @@ def markdown(rows: list[dict], meta: dict) -> str:
 def main(argv=None) -> dict:
     args = parse(argv)
     import cdjax  # noqa: F401 - before JAX's backends start (its XLA:CPU flag)
-    from cdjax import runtime
+    from cdjax import io, runtime
+    from cdjax.protocol import ConfigError
 
-    cache = args.cache_dir or os.environ.get(runtime.CACHE_ENV)
-    if cache:
-        runtime.configure(cache_dir=cache)
+    out = pathlib.Path(args.out) if args.out else None
+    try:  # every arm's config first: without the `atari` extra, the install hint `cdjax sweep` gives
+        configs = {arm: preset_config(args.game, arm, args.envs_per_seed, args.tiny) for arm in args.arms}
+        if out is not None:
+            io.RunDir(out).check_writable()
+        cache = args.cache_dir or os.environ.get(runtime.CACHE_ENV)
+        if cache:
+            runtime.configure(cache_dir=cache, cache_source="--cache-dir" if args.cache_dir else f"${runtime.CACHE_ENV}")
+    except (ConfigError, io.RunDirError) as err:
+        refuse(PROG, str(err))
     import ale_py
 
     meta = {**device_info(), "game": args.game, "cpu_count": os.cpu_count(), "ale_py": ale_py.__version__,
             "chunk_updates": args.chunk_updates, "seconds": args.seconds, "tiny": args.tiny,
             "command": "python -m benchmarks.ale " + " ".join(argv if argv is not None else sys.argv[1:]),
             "date": datetime.date.today().isoformat()}
-    base = preset_config(args.game, args.arms[0] if args.arms else "a2c", args.envs_per_seed, args.tiny)
+    base = configs[args.arms[0]]
     meta["rollout_len"] = base.rollout_len
-    out = pathlib.Path(args.out or f"benchmarks/results/{meta['date']}-{meta['device'].replace(' ', '_')}-ale")
+    out = out or pathlib.Path(f"benchmarks/results/{meta['date']}-{meta['device'].replace(' ', '_')}-ale")
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
 
@@ -219,8 +239,7 @@ def main(argv=None) -> dict:
         seeds = total // args.envs_per_seed
         record("ale-py", total, lambda t=total: ale_py_python(base, t, args.seconds))
         record("in jit", total, lambda s=seeds: in_jit(base, s, args.seconds))
-        for arm in args.arms:
-            config = preset_config(args.game, arm, args.envs_per_seed, args.tiny)
+        for arm, config in configs.items():
             record(f"cdjax {arm}", total, lambda c=config, s=seeds: cdjax_sweep(
                 c, preset_hparams(args.game), s, args.chunk_updates, args.seconds))
     text = markdown(rows, meta)

@@ -44,13 +44,16 @@ import time
 if __package__ in (None, ""):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
+from benchmarks.common import Parser, refuse  # noqa: E402
+
+PROG = "python -m benchmarks.compile_time"
+
 
 def main(argv=None) -> list[dict]:
     argv = list(sys.argv[1:] if argv is None else argv)
     sweep_args = argv[argv.index("--") + 1:] if "--" in argv else []
     own = argv[:argv.index("--")] if "--" in argv else argv
-    p = argparse.ArgumentParser(prog="python -m benchmarks.compile_time", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True, help="directory of the two run directories and compile_time.json")
     p.add_argument("--cache-dir", help="JAX's persistent compilation cache (an empty directory: a cold start)")
     p.add_argument("--lower-only", action="store_true",
@@ -60,12 +63,22 @@ def main(argv=None) -> list[dict]:
                         "(an experiment: whether the chunks, compiling side by side, autotune the kernels they share "
                         "each anew; XLA keeps the autotuner's results for the rest of the process)")
     args = p.parse_args(own)
-    if args.lower_only:
-        return lower_only(sweep_args, pathlib.Path(args.out))
-    if args.first_chunk_alone:
-        with first_chunk_alone():
-            return measure(args, sweep_args)
-    return measure(args, sweep_args)
+    from cdjax import io
+    from cdjax.cli import UsageError
+    from cdjax.protocol import ConfigError
+
+    out = pathlib.Path(args.out)
+    try:  # the --out and the sweep's options checked before anything is built; the sweep's own refusals likewise
+        io.RunDir(out).check_writable()
+        _spec(sweep_args, out / ("lowered-run" if args.lower_only else "1"))
+        if args.lower_only:
+            return lower_only(sweep_args, out)
+        if args.first_chunk_alone:
+            with first_chunk_alone():
+                return measure(args, sweep_args)
+        return measure(args, sweep_args)
+    except (UsageError, ConfigError, io.RunDirError) as err:
+        refuse(PROG, str(err).replace("`cdjax --help`", "`cdjax sweep --help`"))
 
 
 def measure(args, sweep_args: list[str]) -> list[dict]:
@@ -74,7 +87,7 @@ def measure(args, sweep_args: list[str]) -> list[dict]:
     from cdjax.runner import Interrupted, arms, run_sweep
 
     if args.cache_dir:
-        runtime.configure(cache_dir=args.cache_dir)
+        runtime.configure(cache_dir=args.cache_dir, cache_source="--cache-dir")
     rows = []
     for i in (1, 2):
         spec, sweep_argv = _spec(sweep_args, pathlib.Path(args.out) / str(i))

@@ -651,6 +651,41 @@ def test_compile_time_lower_only_sizes_every_program_and_compiles_none(tmp_path,
                                          "distinct": len({d for r in rows for d in r["dot_signatures"]})}
 
 
+def test_ale_and_compile_time_benchmarks_refuse_bad_arguments_in_one_sentence(tmp_path, capsys, monkeypatch):
+    """benchmarks.ale: a game no ALE preset names, counts below 1, and (without the `atari` extra, faked here) the
+    install hint `cdjax sweep` gives, before ale-py is imported or anything is written; benchmarks.compile_time: an
+    --out that is a file, sweep options `cdjax sweep` refuses, a --cache-dir JAX cannot use. One sentence each, exit
+    status 2, no sweep started."""
+    from benchmarks import ale, compile_time
+    from cdjax import runner
+    from cdjax.agents.atari import config as atari_config
+
+    monkeypatch.setattr(atari_config, "ale_available", lambda: False)
+    monkeypatch.setattr(runner, "run_sweep", lambda *args, **kwargs: pytest.fail("a sweep started"))
+    out, afile = tmp_path / "out", tmp_path / "afile"
+    afile.write_text("")
+
+    def refused(main, argv, prog, said):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.startswith(f"python -m benchmarks.{prog}: ") and said in err, err
+        assert err.count("\n") == 1, err
+
+    refused(ale.main, ["--game", "nosuch", "--out", str(out)], "ale", "argument --game: invalid choice: 'nosuch'")
+    refused(ale.main, ["--tiny", "--totals", "0", "--out", str(out)], "ale", "argument --totals: '0' is not")
+    refused(ale.main, ["--tiny", "--out", str(out)], "ale", 'pip install -e ".[atari]"')
+    point = ["--env", "point", "--steps", "100"]
+    refused(compile_time.main, ["--out", str(afile), "--", *point], "compile_time", f"{afile} is a file")
+    refused(compile_time.main, ["--lower-only", "--out", str(afile), "--", *point], "compile_time", "is a file")
+    refused(compile_time.main, ["--out", str(out), "--", "--env", "nosuch"], "compile_time", "Unknown env 'nosuch'")
+    refused(compile_time.main, ["--out", str(out), "--", "--bogus"], "compile_time", "see `cdjax sweep --help`")
+    refused(compile_time.main, ["--out", str(out), "--cache-dir", str(afile), "--", *point], "compile_time",
+            f"--cache-dir {afile} is a file")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
 def test_dot_signatures_are_the_distinct_operand_and_result_types_of_the_products():
     import jax
     import jax.numpy as jnp

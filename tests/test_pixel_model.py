@@ -335,6 +335,26 @@ def test_the_expert_is_the_best_evaluated_policy_of_a_model_free_sweep(tmp_path)
             load_expert(tmp_path / f"{name}.msgpack")
 
 
+def test_export_expert_refuses_what_it_cannot_export_in_one_sentence(tmp_path, capsys):
+    """python -m cdjax.agents.pixel.export_expert: --help shows the usage (exit status 0); a run directory that does
+    not exist, an EXPERT_FILE that is a directory, or a wrong number of arguments: one sentence, exit status 2,
+    nothing written."""
+    from cdjax.agents.pixel.export_expert import main as export
+
+    with pytest.raises(SystemExit) as stop:
+        export(["--help"])
+    assert stop.value.code == 0 and "usage: python -m cdjax.agents.pixel.export_expert" in capsys.readouterr().out
+    for argv, said in (([str(tmp_path / "none"), str(tmp_path / "e.msgpack")], f"{tmp_path / 'none'} holds no run"),
+                       ([str(tmp_path), str(tmp_path)], f"EXPERT_FILE {tmp_path} is a directory"),
+                       ([str(tmp_path)], "required: EXPERT_FILE")):
+        with pytest.raises(SystemExit) as stop:
+            export(argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.startswith("python -m cdjax.agents.pixel.export_expert: ") and said in err
+        assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_subpixel_decoder_layer_rearranges_each_pixels_channels_into_a_2x2_block():
     """depth_to_space: channel (di * 2 + dj) * C + c of input pixel (i, j) lands on pixel (2i + di, 2j + dj),
     channel c; the decoder's two upsampling kinds give the same output shapes."""
