@@ -84,21 +84,28 @@ def test_gradient_norm_metrics_match_per_term_gradients(point_batch):
         assert sum(group in groups for name, groups in TERM_GROUPS.items() if name != "consistency") <= 1, group
 
 
-def test_update_zero_normalises_with_the_first_rollout():
-    """The first rollout joins the (empty) statistics before SGD: update 0's minibatches are normalised with
-    them (its gradient diagnostics equal those computed with the first rollout's statistics, not the cold
-    ones), and the state carries them."""
-    trainer, init, update = compiled(POINT)
-    state = init(jax.random.key(1), HP)
+def _first_update(config, seed: int):
+    """One update of `config` from init, and what its SGD's first step saw: (trainer, state before, state after,
+    metrics, the statistics with the first rollout joined, the first minibatch and its windows' offsets)."""
+    trainer, init, update = compiled(config)
+    state = init(jax.random.key(seed), HP)
     new, metrics = update(state, HP)
     _, key_roll, key_sgd = jax.random.split(state.key, 3)
     _, _, traj, batch = jax.jit(trainer.collect)(state, HP, key_roll)
     warm = refresh_norms(state.norms, traj.obs, traj.next_obs, traj.reward, traj.valid)
+    _, key_epochs = jax.random.split(key_sgd)  # the SGD's first minibatch: the diagnostics are its step's
+    segments = jax.tree.map(lambda x: to_segments(x, config.segment), batch)
+    first, offsets = trainer.first_minibatch(segments, jax.random.split(key_epochs, config.num_epochs)[0])
+    return trainer, state, new, metrics, warm, first, offsets
+
+
+def test_update_zero_normalises_with_the_first_rollout():
+    """The first rollout joins the (empty) statistics before SGD: update 0's minibatches are normalised with
+    them (its gradient diagnostics equal those computed with the first rollout's statistics, not the cold
+    ones), and the state carries them."""
+    trainer, state, new, metrics, warm, first, offsets = _first_update(POINT, 1)
     assert float(new.norms.obs.count) == POINT.rollout_len * POINT.num_envs
     _assert_same(new.norms, warm)
-    _, key_epochs = jax.random.split(key_sgd)  # the SGD's first minibatch: the diagnostics are its step's
-    segments = jax.tree.map(lambda x: to_segments(x, POINT.segment), batch)
-    first, offsets = trainer.first_minibatch(segments, jax.random.split(key_epochs, POINT.num_epochs)[0])
     diag = jax.jit(trainer.grad_norms)
     with_warm, with_cold = diag(state.params, warm, first, offsets, HP), diag(state.params, state.norms, first, offsets, HP)
     for name in with_warm:
@@ -111,16 +118,7 @@ def test_the_sgds_gradient_diagnostics_are_its_first_steps(changes):
     """The SGD's gradient diagnostics are its first step's: they equal `grad_norms` of its first minibatch, for the
     model-free arm (no taps) and for CD with the term in the first epoch only (the later epoch's steps must not replace
     them)."""
-    config = POINT.replace(**changes)
-    trainer, init, update = compiled(config)
-    state = init(jax.random.key(3), HP)
-    new, metrics = update(state, HP)
-    _, key_roll, key_sgd = jax.random.split(state.key, 3)
-    _, _, traj, batch = jax.jit(trainer.collect)(state, HP, key_roll)
-    warm = refresh_norms(state.norms, traj.obs, traj.next_obs, traj.reward, traj.valid)
-    _, key_epochs = jax.random.split(key_sgd)
-    segments = jax.tree.map(lambda x: to_segments(x, config.segment), batch)
-    first, offsets = trainer.first_minibatch(segments, jax.random.split(key_epochs, config.num_epochs)[0])
+    trainer, state, _, metrics, warm, first, offsets = _first_update(POINT.replace(**changes), 3)
     expected = jax.jit(trainer.grad_norms)(state.params, warm, first, offsets, HP)
     assert expected and all(name.startswith("grad/") for name in expected)
     for name in expected:
