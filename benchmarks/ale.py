@@ -33,7 +33,7 @@ if __package__ in (None, ""):  # `python benchmarks/ale.py` as well as `python -
 import numpy as np  # noqa: E402
 
 from benchmarks.common import Parser, device_info, refuse  # noqa: E402
-from cdjax.options import positive  # noqa: E402
+from cdjax.options import positive, seconds  # noqa: E402
 
 PROG = "python -m benchmarks.ale"
 
@@ -59,7 +59,7 @@ def parse(argv):
     p.add_argument("--envs-per-seed", type=positive, help="emulators per seed (default 16; tiny 2)")
     p.add_argument("--arms", nargs="+", default=["a2c", "a2c-cd"], help="cdjax arms (default a2c a2c-cd)")
     p.add_argument("--chunk-updates", type=positive, help="updates per timed call of a sweep (default 25; tiny 2)")
-    p.add_argument("--seconds", type=float, help="timed seconds per case, at least 2 calls (default 20; tiny 0.5)")
+    p.add_argument("--seconds", type=seconds, help="timed seconds per case, at least 2 calls (default 20; tiny 0.5)")
     p.add_argument("--tiny", action="store_true", help="CPU smoke sizes")
     p.add_argument("--cache-dir", help="JAX's persistent compilation cache (default: $CDJAX_JAX_CACHE, else none)")
     p.add_argument("--out", help="output directory (default benchmarks/results/<date>-<device>-ale)")

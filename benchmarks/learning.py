@@ -226,6 +226,13 @@ def main(argv=None) -> int:
     if report_only and not args.report:  # (the benchmark would run, and ignore them)
         refuse(p.prog, f"{' and '.join(report_only)} go{'es' * (len(report_only) == 1)} with --report DIR (the table of "
                        "a benchmark's --out); without --report this command runs the benchmark")
+    run_only = [f"--{name.replace('_', '-')}" for name in ("tasks", "frameworks", "variants", "seeds", "first_seed",
+                                                            "evals", "updates_per_eval", "tiny", "budget_s", "out",
+                                                            "cache_dir")
+                if getattr(args, name) != p.get_default(name)]
+    if args.report and run_only:  # (the report reads what its directories hold, and would ignore them)
+        refuse(p.prog, f"{', '.join(run_only)} set{'s' * (len(run_only) == 1)} up a benchmark run, not --report's "
+                       "table, which reads what its directories hold: give them without --report")
     if args.report:
         from benchmarks import learning_report
 

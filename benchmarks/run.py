@@ -82,6 +82,12 @@ def parse(argv):
     p.add_argument("--process-id", type=non_negative, help="--distributed: this process's id (default: auto-detected)")
     p.add_argument("--dry-run", action="store_true", help="print the plan (configs, env steps) and exit")
     args = p.parse_args(argv)
+    if args.merge:  # merging reads finished results: what sets up a run would be ignored
+        ignored = [f"--{a.dest.replace('_', '-')}" for a in p._actions
+                   if a.dest not in ("help", "merge", "out", "write_results") and getattr(args, a.dest) != a.default]
+        if ignored:
+            p.error(f"{', '.join(ignored)} set{'s' * (len(ignored) == 1)} up a run, which --merge does not make (it "
+                    "merges finished results): give them without --merge")
     args.suite = list(SUITES) if "all" in args.suite else list(dict.fromkeys(args.suite))
     if args.distributed and set(args.suite) - set(DISTRIBUTED_SUITES):
         p.error(f"--distributed measures sweeps over every process's devices: give --suite "

@@ -230,6 +230,8 @@ def test_learning_benchmark_refuses_bad_arguments_in_one_sentence_before_anythin
     assert learning.main(["--report", f"{full}@brax"]) == 2  # sources that leave no row
     refused(["--report", str(full), "--write", str(tmp_path / "nodir" / "L.md")], "--write")
     refused(["--report", str(full), "--write", str(tmp_path)], "is a directory")
+    err = refused(["--report", str(full), "--seeds", "3", "--out", str(out)], "--seeds, --out set up a benchmark run")
+    assert "without --report" in err  # run-only options the report would ignore
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "empty", "full"]
 
 
@@ -280,6 +282,7 @@ def test_benchmark_run_refuses_bad_arguments_in_one_sentence_before_anything_com
     for source, said in ((tmp_path / "none", "does not exist"), (tmp_path / "empty", "holds no results.json"),
                          (bad, "is not a results.json"), (afile, "is not a results.json")):
         refused(["--merge", str(source), "--out", str(out)], f"--merge: {source} {said}")
+    refused(["--merge", str(bad), "--tiny", "--num-envs", "8"], "--tiny, --num-envs set up a run")  # it would ignore them
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "bad.json", "empty"]
 
 
@@ -675,6 +678,7 @@ def test_ale_and_compile_time_benchmarks_refuse_bad_arguments_in_one_sentence(tm
 
     refused(ale.main, ["--game", "nosuch", "--out", str(out)], "ale", "argument --game: invalid choice: 'nosuch'")
     refused(ale.main, ["--tiny", "--totals", "0", "--out", str(out)], "ale", "argument --totals: '0' is not")
+    refused(ale.main, ["--tiny", "--seconds", "0", "--out", str(out)], "ale", "argument --seconds: '0' is not")
     refused(ale.main, ["--tiny", "--out", str(out)], "ale", 'pip install -e ".[atari]"')
     point = ["--env", "point", "--steps", "100"]
     refused(compile_time.main, ["--out", str(afile), "--", *point], "compile_time", f"{afile} is a file")
