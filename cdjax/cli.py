@@ -315,6 +315,8 @@ def cmd_plot(args: argparse.Namespace) -> None:
         rd = io.RunDir(pathlib.Path(run_dir))
         rd.check_name("RUN_DIR")
         rd.read()  # a clear error for a directory that holds no run
+        if note := rd.unnamed_arms():
+            say(note)
         dirs.append(rd.path)
     if len(set(d.resolve() for d in dirs)) < len(dirs):
         raise UsageError("a RUN_DIR is named twice; name each run once.")

@@ -134,6 +134,18 @@ class RunDir:
                 held.setdefault(path.name, []).append(f"checkpoints/{path.name}")
         return held
 
+    def unnamed_arms(self, names: Iterable[str] | None = None, metric_rows: Iterable[Mapping] | None = None) -> str:
+        """A note naming the arms whose logs or checkpoints the directory holds but `names` (default: run.json's arms)
+        does not, e.g. an arm removed from run.json by hand, with where each was found; "" when there are none."""
+        names = set(names if names is not None else (arm["name"] for arm in self.read().get("arms", ())))
+        stale = {arm: where for arm, where in self.arms_held(metric_rows).items() if arm not in names}
+        if not stale:
+            return ""
+        held = ", ".join(f"{arm} ({', '.join(where)})" for arm, where in sorted(stale.items()))
+        return (f"Note: {self.path} holds logs or checkpoints of arms that run.json does not name, left as found (an "
+                f"arm removed from run.json by hand?): {held}; the summary and plots rank their logged runs beside "
+                "this run's arms unless those are moved out.")
+
     def exists(self) -> bool:
         try:
             return self.run_json.is_file()

@@ -388,13 +388,8 @@ class Loop:
     def _say_stale(self, metric_rows) -> None:
         """A note (training goes on) when the directory holds logs or checkpoints of arms run.json does not name, e.g.
         an arm removed from run.json by hand: nothing of theirs is trimmed or trained, but the plots read them."""
-        names = {a.name for a in self.arms}
-        stale = {arm: where for arm, where in self.rd.arms_held(metric_rows).items() if arm not in names}
-        if stale:
-            held = ", ".join(f"{arm} ({', '.join(where)})" for arm, where in sorted(stale.items()))
-            self.say(f"Note: {self.rd.path} holds logs or checkpoints of arms that run.json does not name, left as "
-                     f"found (an arm removed from run.json by hand?): {held}; the summary and plots rank their logged "
-                     "runs beside this run's arms unless those are moved out.")
+        if note := self.rd.unnamed_arms((a.name for a in self.arms), metric_rows):
+            self.say(note)
 
     def intact(self, when: str = " once that is fixed") -> str:
         """Which checkpoints survive a failed write (or a stop), and how to go on."""
