@@ -89,6 +89,9 @@ class Metrics:
     # the metric counting the optimiser steps an update skipped because its loss or gradient was not finite: the
     # host sums it per run and names the runs that skipped any (progress, summary); None: not reported
     skipped: str | None = None
+    # a Config field the return metric is measured at (the pixel setting's likelihood "at k": its horizon): arms that
+    # differ in it are ranked on different measures, which the sweep says (`cdjax.runner.plan.return_note`)
+    ret_field: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)

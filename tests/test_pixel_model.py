@@ -265,6 +265,25 @@ def test_malformed_pixel_arm_names_are_refused_in_one_sentence(capsys, tmp_path,
     assert words in line and not out.exists()
 
 
+def test_a_sweep_whose_arms_measure_their_return_at_different_horizons_says_so():
+    """The pixel return (the summary's ranking) is the likelihood at each arm's own k: `ltq ltq-cd5` under a k = 10
+    preset sets likelihoods at 10 and at 5 side by side, which the sweep's note names (and the common measure); arms
+    at one k, and the obs setting's env returns, give none."""
+    from cdjax.cli import build_parser, sweep_spec
+    from cdjax.runner.plan import plan_arms, return_note
+
+    def note(setting, *argv):
+        setting = agents.get(setting)
+        spec = sweep_spec(build_parser(setting).parse_args(["sweep", "--out", "x", "--setting", setting.name, *argv]),
+                          setting)
+        return return_note(setting, plan_arms(spec, setting))
+
+    said = note("pixel", "--preset", "pixel-halfcheetah", "--arms", "ltq", "ltq-cd5")
+    assert "horizon (ltq 10, ltq-cd5 5)" in said and "heldout/loglik_k" in said and "heldout/loglik_50" in said
+    assert note("pixel", "--preset", "pixel-halfcheetah", "--arms", "ltq", "ltq-cd") is None
+    assert note("obs", "--preset", "point", "--arms", "cd", "cd-k2") is None
+
+
 SYNTHETIC = dataclasses.replace(pixel.SETTING, name="pixel-synthetic",
                                 make_trainer=lambda config: pixel.trainer_of(learner_for(config)))
 agents.register(SYNTHETIC)

@@ -39,7 +39,7 @@ from cdjax.runner import budget
 from cdjax.runner.arms import (Arm, abstract_state, build, check_evaluation, check_memory, compile_all, evaluate_arms,
                                expectation, finished_evaluation, host_time, nanmean, restore, unreadable_text)
 from cdjax.runner.console import Clock, Progress, StopFlag, Stopped, library_log, stopped
-from cdjax.runner.plan import plan_arms, run_record, same_run, without_retired
+from cdjax.runner.plan import plan_arms, return_note, run_record, same_run, without_retired
 from cdjax.runner.spec import SweepSpec, out_dir, resolve
 from cdjax.sweep import unpad
 
@@ -353,6 +353,8 @@ class Loop:
                  + ("" if (mode := runtime.compile_mode()) == "default" else f" (compile mode {mode})")
                  + (f" with ${runtime.OPTIONS_ENV} {os.environ[runtime.OPTIONS_ENV].strip()}."
                     if runtime.environment_options() else "."))
+        if note := return_note(self.setting, [a.plan for a in self.arms]):
+            self.say(note)
         purge = {a.name: a.env_steps(a.updates + 1) for a in self.arms} if resume else None
         self.tb = io.TensorBoard(self.rd, purge_steps=purge)
         self.started = True

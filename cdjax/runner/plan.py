@@ -75,6 +75,19 @@ def plan_arms(spec: SweepSpec, setting: Setting | None = None) -> list[ArmPlan]:
     return plans
 
 
+def return_note(setting: Setting, plans: Sequence[ArmPlan]) -> str | None:
+    """A note when the arms' return (the figure the summary ranks them by) is measured at different values of the
+    setting's `Metrics.ret_field`, e.g. pixel likelihoods at k = 10 and at k = 5; None otherwise."""
+    field, metrics = setting.metrics.ret_field, setting.metrics
+    values = {plan.name: getattr(plan.config, field) for plan in plans} if field else {}
+    if len(set(values.values())) < 2:
+        return None
+    return (f"Note: the arms' return ({metrics.ret}, which ranks them in the summary) is measured at each arm's own "
+            f"{field} ({', '.join(f'{name} {value}' for name, value in values.items())}), so the ranking sets "
+            f"different measures side by side; the discounted return ({metrics.discounted_ret}) is one measure for "
+            "all of them.")
+
+
 def _plan_arm(setting: Setting, spec: SweepSpec, name: str, grid: dict) -> ArmPlan:
     config = setting.arm_config(name, spec.config)
     phase = spec.phase if spec.phase is not None and setting.phase.applies(config) else None

@@ -134,7 +134,8 @@ SETTING = Setting(
     unused_hparams=lambda config, phase: {} if config.use_consistency else {n: None for n in CONSISTENCY_ONLY},
     shown_hparams=lambda config: ("alpha",) if config.use_consistency else (),
     check_hparam=check_hparam,
-    metrics=Metrics(ret="heldout/loglik_k", discounted_ret="heldout/loglik_50", skipped="train/skipped_steps", panels=(
+    metrics=Metrics(ret="heldout/loglik_k", discounted_ret="heldout/loglik_50", skipped="train/skipped_steps",
+                    ret_field="horizon", panels=(
         ("heldout/imitation", "held-out imitation loss", True),
         ("loss/imitation", "imitation loss", True),
         ("model/elbo_per_frame", "ELBO per frame (nats)", False),
