@@ -16,7 +16,6 @@ At the default (ant, 4096 envs, unroll 20, batch 512, 32 minibatches, 8 epochs) 
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import gc
 import math
@@ -27,18 +26,23 @@ import sys
 import time
 from typing import Any, Callable, NoReturn
 
+from cdjax import cli
+
 # Brax's ppo_networks.make_ppo_networks defaults (brax 0.14.2): policy (32,)*4, value (256,)*5.
 BRAX_POLICY_HIDDEN = (32,) * 4
 BRAX_VALUE_HIDDEN = (256,) * 5
 
 
-class Parser(argparse.ArgumentParser):
-    """argparse that refuses bad input as the `cdjax` command does: `<prog>: <one sentence>` on stderr, no usage
-    block, exit status 2. Counts take cdjax.options' types (`positive`, `non_negative`, `seconds`)."""
+class Parser(cli.Parser):
+    """The `cdjax` command's parser (one line, no usage block) for a benchmark's own `main`, which no `cdjax` main
+    catches for: `<prog>: <one sentence>` on stderr and exit status 2. Counts take cdjax.options' types
+    (`positive`, `non_negative`, `seconds`)."""
 
     def error(self, message: str) -> NoReturn:
-        message = message.replace("unrecognized arguments:", "unknown option(s):").replace("\n", " ")
-        refuse(self.prog, f"{message}; see `{self.prog} --help`")
+        try:
+            super().error(message)
+        except cli.UsageError as err:
+            refuse(self.prog, str(err))
 
 
 def refuse(prog: str, sentence: str) -> NoReturn:
