@@ -17,6 +17,9 @@ durations on a GPU (kernels do not nest; with XLA's CUDA graphs scheduled by dat
 one stream line run side by side and overlap), so the percentages of all ops add up to 100 % of the traced device
 time (the sum of those times). Beside it the timeline: the span from the first op's start to the last one's end, the
 time some op was running (busy), and the mean number running at once while busy (concurrency: summed time / busy).
+On a GPU also the CUDA graphs (XLA's command buffers) with the most kernel time, per launch: kernels, span and busy
+time (`graphs`). A loop body's graph is one pass of the loop: the SGD step's span against its busy time says how long
+its chain of dependent kernels waits between them.
 
 A GPU kernel's launch shape (blocks x threads per block, and the occupancy the profiler computed) is read from the
 `grid:X,Y,Z block:X,Y,Z ... occ_pct:P` text the profiler attaches to each kernel event (its kernel details): a
@@ -306,7 +309,44 @@ def summarize(path: str | pathlib.Path, top: int = 25) -> dict:
                 for o in rows[:top]],
         "groups": [{"group": g, "count": groups[g]["count"], "total_ms": groups[g]["us"] / 1e3,
                     "pct": pct(groups[g]["us"])} for g in sorted(groups, key=lambda g: -groups[g]["us"])],
+        "graphs": graphs(events, total_us) if source == "GPU kernels" else [],
     }
+
+
+GRAPH_OP = re.compile(r"command_buffer_\d+$")  # the HLO op XLA:GPU names a CUDA graph's kernels by
+GRAPHS_SHOWN = 8
+
+
+def graphs(events: list[dict], summed_us: float, shown: int = GRAPHS_SHOWN) -> list[dict]:
+    """The CUDA graphs (XLA command buffers) holding the most kernel time, each with its launches' shape.
+
+    A graph's kernels carry its name (`command_buffer_N`) as their HLO op. Its launches are counted as the fewest
+    times any one of its kernels ran (each kernel of a graph runs once per launch; a name repeated in the graph, as
+    an unrolled chain's GEMMs are, runs more often). When every launch ran the same number of kernels, its events
+    in start order are split into the launches, and a launch's span (first kernel's start to last one's end) and
+    busy time (some kernel of it running) are averaged: the span of a loop body's graph is one pass of the loop on
+    the device, and span over busy says how much of it the GPU waited between dependent kernels."""
+    by_graph: dict[str, list[dict]] = collections.defaultdict(list)
+    for e in events:
+        op = e.get("args", {}).get("hlo_op", "")
+        if GRAPH_OP.match(op):
+            by_graph[op].append(e)
+    rows = []
+    for name, evs in by_graph.items():
+        counts = collections.Counter(e["name"] for e in evs)
+        launches = min(counts.values())
+        summed = sum(float(e["dur"]) for e in evs)
+        row = {"graph": name, "module": evs[0].get("args", {}).get("hlo_module", ""), "kernels": len(evs),
+               "launches": launches, "kernels_per_launch": len(evs) / launches, "total_ms": summed / 1e3,
+               "pct": 100.0 * summed / summed_us if summed_us > 0 else 0.0, "span_us": None, "busy_us": None}
+        if len(evs) % launches == 0:
+            ordered, n = sorted(evs, key=lambda e: float(e["ts"])), len(evs) // launches
+            parts = [ordered[i:i + n] for i in range(0, len(ordered), n)]
+            row["span_us"] = sum(max(float(e["ts"]) + float(e["dur"]) for e in part) - float(part[0]["ts"])
+                                 for part in parts) / launches
+            row["busy_us"] = sum(timeline(part, 0.0)["busy_ms"] * 1e3 for part in parts) / launches
+        rows.append(row)
+    return sorted(rows, key=lambda r: -r["total_ms"])[:shown]
 
 
 def timeline(events: list[dict], summed_us: float) -> dict:
@@ -327,7 +367,7 @@ def _cell(text: str) -> str:
 
 
 def markdown(summary: dict) -> str:
-    """Two markdown tables: the top ops, then the groups (all ops)."""
+    """Markdown tables: the top ops, the groups (all ops), and on a GPU the CUDA graphs with the most kernel time."""
     shown = sum(o["pct"] for o in summary["ops"])
     lines = [f"{summary['source']}: {summary['device_ms']:.3f} ms of device time in {summary['events']:,} events, "
              f"{summary['distinct_ops']} distinct ops; the top {len(summary['ops'])} hold {shown:.1f} % "
@@ -342,6 +382,16 @@ def markdown(summary: dict) -> str:
     lines += ["", "| group | count | total ms | % |", "| --- | ---: | ---: | ---: |"]
     for g in summary["groups"]:
         lines.append(f"| {g['group']} | {g['count']:,} | {g['total_ms']:.3f} | {g['pct']:.1f} |")
+    if summary.get("graphs"):
+        lines += ["", "CUDA graphs (XLA command buffers) with the most kernel time; a launch's span is its first kernel's "
+                  "start to its last one's end, busy the time some kernel of it ran:", "",
+                  "| graph | launches | kernels / launch | total ms | % | span / launch µs | busy / launch µs | "
+                  "kernel µs / launch |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        for g in summary["graphs"]:
+            us = lambda v: "–" if v is None else f"{v:,.1f}"  # noqa: E731
+            lines.append(f"| `{g['graph']}` | {g['launches']:,} | {g['kernels_per_launch']:,.1f} | {g['total_ms']:.3f} | "
+                         f"{g['pct']:.1f} | {us(g['span_us'])} | {us(g['busy_us'])} | "
+                         f"{g['total_ms'] * 1e3 / g['launches']:,.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -352,15 +402,22 @@ def summarize_all(path: str | pathlib.Path, top: int = 25) -> Iterable[tuple[pat
 
 
 def main(argv=None) -> str:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.profile_summary", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    from benchmarks.common import Parser, refuse, unwritable_file  # (imports cdjax: only the command needs it)
+    from cdjax.options import positive
+
+    p = Parser(prog="python -m benchmarks.profile_summary", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("path", help="trace directory (or a directory of several, or a trace file)")
-    p.add_argument("--top", type=int, default=25, help="ops listed (default 25)")
+    p.add_argument("--top", type=positive, default=25, help="ops listed (default 25)")
     p.add_argument("--out", help="also write the markdown to this file")
     args = p.parse_args(argv)
+    if not pathlib.Path(args.path).exists():
+        refuse(p.prog, f"{args.path} does not exist")
+    if args.out and (why := unwritable_file(args.out)):
+        refuse(p.prog, f"--out {args.out}: {why}")
     sections = [(root, s) for root, s in summarize_all(args.path, args.top)]
     if not sections:
-        raise SystemExit(f"no {' or '.join(TRACE_NAMES)} under {args.path}")
+        refuse(p.prog, f"no {' or '.join(TRACE_NAMES)} under {args.path}")
     md = "\n".join((f"### {root}\n\n" if len(sections) > 1 else "") + markdown(s) for root, s in sections)
     if args.out:
         pathlib.Path(args.out).write_text(md)

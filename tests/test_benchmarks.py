@@ -403,6 +403,39 @@ def test_profile_summary_of_a_gpu_trace_reads_stream_kernels(tmp_path):
     assert "0.080 ms of it, 1.25 at once" in profile_summary.markdown(summary)
 
 
+def test_profile_summary_splits_a_cuda_graph_into_its_launches():
+    """A loop body's graph launched 3 times, each launch a GEMM, two fusions side by side, then the same GEMM again
+    (an unrolled chain's repeated kernel): 4 kernels a launch, its span and busy time per launch; another graph's
+    kernels and a kernel outside any graph do not mix in."""
+    def kernel(name, graph, ts, dur):
+        return {"ph": "X", "pid": 1, "tid": 7, "ts": ts, "dur": dur, "name": name, "args": {"hlo_op": graph}}
+
+    events = []
+    for start in (0.0, 100.0, 200.0):  # each launch: 0-10 gemm, 12-20 and 14-22 fusions, 30-40 gemm, then idle
+        events += [kernel("gemm", "command_buffer_5", start, 10.0), kernel("fusion_a", "command_buffer_5", start + 12, 8.0),
+                   kernel("fusion_b", "command_buffer_5", start + 14, 8.0), kernel("gemm", "command_buffer_5", start + 30, 10.0)]
+    events += [kernel("copy", "command_buffer_9", 50.0, 5.0), kernel("loose", "custom-call.1", 60.0, 5.0)]
+    (big, small) = profile_summary.graphs(events, summed_us=sum(e["dur"] for e in events))
+    assert (big["graph"], big["launches"], big["kernels_per_launch"]) == ("command_buffer_5", 3, 4.0)
+    assert big["span_us"] == pytest.approx(40.0) and big["busy_us"] == pytest.approx(30.0)  # 10 + (12..22) + 10
+    assert big["total_ms"] == pytest.approx(0.108) and big["pct"] == pytest.approx(100 * 108 / 118)
+    assert (small["graph"], small["launches"], small["kernels"]) == ("command_buffer_9", 1, 1)
+    md = profile_summary.markdown({"source": "GPU kernels", "device_ms": 0.118, "events": 14, "distinct_ops": 5,
+                                   "hlo_grouping": False, "span_ms": 0.24, "busy_ms": 0.1, "concurrency": 1.1,
+                                   "ops": [], "groups": [], "graphs": [big, small]})
+    assert "| `command_buffer_5` | 3 | 4.0 | 0.108 | 91.5 | 40.0 | 30.0 | 36.0 |" in md
+
+
+def test_profile_summary_refuses_what_it_cannot_read_or_write(tmp_path, capsys):
+    for argv, said in (([str(tmp_path / "none")], "does not exist"), ([str(tmp_path)], "no perfetto_trace.json.gz"),
+                       ([str(tmp_path), "--top", "0"], "--top"),
+                       ([str(tmp_path), "--out", str(tmp_path / "no" / "x.md")], "does not exist")):
+        with pytest.raises(SystemExit) as e:
+            profile_summary.main(argv)
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and said in err and "\n" not in err, (argv, err)
+
+
 def test_ratios_follow_from_raw_numbers(tiny):
     _, results = tiny
     rows = {r["case"]: r for r in results["parts"]["compare"]}
