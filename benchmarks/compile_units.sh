@@ -25,6 +25,9 @@
 #            the compare suite's budget cannot skip it, the seeds suite at 10 vmapped seeds of 256 envs for Mb-Mf and
 #            the paper's CD (the 10-seed ratio, profiled); then the 4-arm ant sweep compiled cold with XLA's defaults
 #            (the README's compile figure). Each part is stopped by `timeout` so the unit ends inside 840 s.
+#            ACCEPT_CASES (default "brax-ppo model-free mbmf cd-paper") and ACCEPT_BUDGET (default 330 s) set the
+#            compare part's cases and budget: with `ceiling collect` too, its table splits each update into physics,
+#            rollout and SGD.
 #   hlo      what the largest kernels of the model arms compute and cost (about 8 minutes): the compare suite's Mb-Mf,
 #            Mb-Mf with `benchmarks.variants no-loss-metrics` (the losses' diagnostics dropped, gradients unchanged),
 #            paper-CD and paper-CD with `benchmarks.variants bias-sum` (the chain's bias gradients as separate sums)
@@ -378,8 +381,10 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "grep -h -E 'sweep [12]:|compile [0-9.]+ s' $work/fast.log;" \
         "tail -n 12 $work/default/results.md $work/no-triton-gemm/results.md" ;;
     accept)
-      echo "timeout -k 20 360 python -m benchmarks.run --suite compare --cases brax-ppo model-free mbmf cd-paper" \
-        "--budget-s 330 --trace $work/trace --out $work/compare > $work/compare.log 2>&1;" \
+      local budget=${ACCEPT_BUDGET:-330}
+      echo "timeout -k 20 $((budget + 30)) python -m benchmarks.run --suite compare --cases" \
+        "${ACCEPT_CASES:-brax-ppo model-free mbmf cd-paper}" \
+        "--budget-s $budget --trace $work/trace --out $work/compare > $work/compare.log 2>&1;" \
         "timeout -k 20 240 python -m benchmarks.run --suite seeds --scaling-cases mbmf cd-paper --seed-counts 10" \
         "--seed-envs 256 --budget-s 210 --trace $work/trace-seeds --out $work/seeds > $work/seeds.log 2>&1;" \
         "timeout -k 20 240 python -m benchmarks.compile_time --out $work/cold --cache-dir $work/cache-cold -- $sweep" \
