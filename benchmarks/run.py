@@ -38,6 +38,7 @@ DISTRIBUTED_SUITES = ("seeds", "devices")  # the suites whose sweeps span every 
 COMPARE_CASES = ("brax-ppo", "ceiling", "collect", "model-free", "mbmf", "cd-fast", "cd-paper", "cd-w2-unroll",
                  "cd-default")
 SCALING_CASES = ("cd-fast", "model-free", "mbmf", "cd-paper")  # the designated CD first: its 32-vs-1 ratio is a target
+TRACED_CASES = tuple(c for c in COMPARE_CASES if c not in ("brax-ppo", "ceiling", "collect"))  # compare's, --trace
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
 
@@ -70,8 +71,8 @@ def parse(argv):
                         "tiny: .jax_cache)")
     p.add_argument("--trace", metavar="DIR",
                    help="compare: write a jax.profiler trace of one update per cdjax case into DIR/<case> (seeds: of "
-                        "one update of every seed, DIR/<case>-x<seeds>) and summarise its device ops "
-                        "(benchmarks.profile_summary) into the results")
+                        "one update of every seed, DIR/<case>-x<seeds>; envs and devices: not traced) and summarise "
+                        "its device ops (benchmarks.profile_summary) into the results")
     p.add_argument("--trace-top", type=positive, default=25, help="--trace: ops listed per case (default 25)")
     p.add_argument("--distributed", action="store_true",
                    help="join the other processes first (cdjax.multihost.initialize: one process per host or GPU, "
@@ -92,15 +93,28 @@ def parse(argv):
     if args.distributed and set(args.suite) - set(DISTRIBUTED_SUITES):
         p.error(f"--distributed measures sweeps over every process's devices: give --suite "
                 f"{' '.join(DISTRIBUTED_SUITES)} (compare and envs are single-device by design)")
+    if args.trace_top != p.get_default("trace_top") and not args.trace:
+        p.error("--trace-top goes with --trace DIR (it sets how many ops each trace's table lists)")
+    if args.trace and not traced(args):
+        p.error(f"--trace traces the compare suite's cdjax cases ({', '.join(TRACED_CASES)}) and the seeds suite's "
+                "sweeps, none of which this command runs: give --suite compare with one of those cases, or --suite "
+                "seeds, or leave --trace out")
     args = defaults(args)
     check(p.prog, args)
     return args
 
 
+def traced(args) -> bool:
+    """Whether --trace has something to trace: compare's cdjax cases (`run_compare`) or the seeds suite's sweeps
+    (`run_seeds`); the envs and devices suites, Brax PPO, the ceiling and the rollout alone are not traced."""
+    compare = set(args.cases or COMPARE_CASES) & set(TRACED_CASES)
+    return "seeds" in args.suite or ("compare" in args.suite and bool(compare))
+
+
 def check(prog: str, args) -> None:
     """Refuse, in one sentence with exit status 2, what would otherwise fail only once the cases run (or, for the
-    outputs, once they ran): an --out or --write-results that cannot be written, and a task or sizes that some
-    Spec or cdjax Config of the suites cannot take. Builds every one of those (no program); writes nothing."""
+    outputs, once they ran): an --out, --write-results or --trace that cannot be written, and a task or sizes that
+    some Spec or cdjax Config of the suites cannot take. Builds every one of those (no program); writes nothing."""
     from cdjax import io
 
     if args.out:
@@ -110,6 +124,16 @@ def check(prog: str, args) -> None:
             refuse(prog, str(err))
     if args.write_results and (why := unwritable_file(args.write_results)):
         refuse(prog, f"--write-results {args.write_results}: {why}")
+    if args.trace:  # a directory made with its parents, as --out is (profile_summary.trace): RunDir's check
+        trace = io.RunDir(pathlib.Path(args.trace))
+        try:
+            trace.check_name("--trace")
+        except io.RunDirError as err:
+            refuse(prog, str(err))
+        try:
+            trace.check_writable()
+        except io.RunDirError as err:  # (its advice names --out)
+            refuse(prog, f"--trace: {str(err).removesuffix('; choose another --out.')}")
     if args.merge:
         return
     from benchmarks.throughput import cdjax_cases

@@ -268,6 +268,7 @@ def test_benchmark_run_refuses_bad_arguments_in_one_sentence_before_anything_com
         err = capsys.readouterr().err
         assert stop.value.code == 2 and err.startswith("python -m benchmarks.run: ") and err.count("\n") == 1, err
         assert all(s in err for s in said), err
+        return err
 
     tiny = ["--tiny", "--suite", "all", "--out", str(out)]
     for option, value in (("--num-envs", "-5"), ("--num-envs", "0"), ("--env-counts", "0"), ("--seed-counts", "0"),
@@ -283,6 +284,14 @@ def test_benchmark_run_refuses_bad_arguments_in_one_sentence_before_anything_com
                          (bad, "is not a results.json"), (afile, "is not a results.json")):
         refused(["--merge", str(source), "--out", str(out)], f"--merge: {source} {said}")
     refused(["--merge", str(bad), "--tiny", "--num-envs", "8"], "--tiny, --num-envs set up a run")  # it would ignore them
+    # --trace: a directory that could not be made (found only after the cases ran), suites and cases that trace nothing
+    assert "--out" not in refused([*tiny, "--trace", str(afile / "trace")],
+                                  f"--trace: cannot write into {afile / 'trace'}: Not a directory")
+    assert "--out" not in refused([*tiny, "--trace", str(afile)], f"--trace: {afile} is a file, not a directory")
+    refused(["--tiny", "--suite", "envs", "devices", "--trace", str(out)], "--trace traces", "none of which")
+    refused(["--tiny", "--cases", "ceiling", "collect", "--trace", str(out)], "--trace traces", "none of which")
+    refused(["--tiny", "--trace-top", "5"], "--trace-top goes with --trace")
+    assert main(["--tiny", "--suite", "envs", "seeds", "--trace", str(out / "trace"), "--dry-run"]) == {}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "bad.json", "empty"]
 
 
