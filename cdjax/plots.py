@@ -212,8 +212,9 @@ def summary_rows(curves: dict[tuple[str, str], Curves], evals: dict | None = Non
     Columns: arm, hp, arm_type, seeds (those with a finite final return, the figure the rows are ranked by),
     logged_seeds, left_out_seed_ids (logged seeds without one), updates, env_steps, then for each of final/auc x
     return/discounted_return: <stat>_<target>_iqm, _ci_low, _ci_high, _seeds (the seeds finite in it); and with
-    evals, for each evaluation mode (det, stoch) found: eval_<mode>_return_*, eval_<mode>_discounted_return_*,
-    _seeds.
+    evals, for each evaluation mode (det, stoch) found: eval_<mode>_return_* and eval_<mode>_discounted_return_*
+    (the same four: _seeds counts the seeds whose latest evaluation is finite in it) and eval_<mode>_seeds (those of
+    the evaluation return).
     """
     evals = evals or {}
     modes = sorted({det for (_, _, det) in evals}, reverse=True)  # deterministic first
@@ -239,7 +240,7 @@ def summary_rows(curves: dict[tuple[str, str], Curves], evals: dict | None = Non
             for target in ("return", "discounted_return"):
                 iqm, lo, hi, n = stats.iqm_interval(ev[target] if ev else [], reps, seed)
                 row.update({f"eval_{mode}_{target}_iqm": iqm, f"eval_{mode}_{target}_ci_low": lo,
-                            f"eval_{mode}_{target}_ci_high": hi})
+                            f"eval_{mode}_{target}_ci_high": hi, f"eval_{mode}_{target}_seeds": n})
             row[f"eval_{mode}_seeds"] = int(np.isfinite(ev["return"]).sum()) if ev else 0
         rows.append(row)
     rows.sort(key=lambda r: (not np.isfinite(r["final_return_iqm"]), -np.nan_to_num(r["final_return_iqm"])))
@@ -250,11 +251,21 @@ def _fmt(x: float) -> str:
     return "n/a" if not np.isfinite(x) else f"{x:.4g}"
 
 
+def _other_count(row: dict, prefix: str) -> int | None:
+    """The seeds behind the row's figure `prefix` where they are not as many as the seeds column's (a seed not
+    evaluated, a non-finite evaluation, a figure finite for other seeds than the final return); None where they are,
+    or where there is no figure."""
+    n = row.get(f"{prefix}_seeds", row["seeds"])
+    return n if n and n != row["seeds"] else None
+
+
 def _cell(row: dict, prefix: str) -> str:
     iqm, lo, hi = row[f"{prefix}_iqm"], row[f"{prefix}_ci_low"], row[f"{prefix}_ci_high"]
     if not np.isfinite(iqm):
         return "n/a"
-    return _fmt(iqm) if not np.isfinite(lo) else f"{_fmt(iqm)} [{_fmt(lo)}, {_fmt(hi)}]"
+    text = _fmt(iqm) if not np.isfinite(lo) else f"{_fmt(iqm)} [{_fmt(lo)}, {_fmt(hi)}]"
+    n = _other_count(row, prefix)
+    return text if n is None else f"{text} (**n = {n}**)"
 
 
 def _seeds_cell(row: dict) -> str:
@@ -272,6 +283,8 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
                         (f"eval disc. return ({words})", f"eval_{mode}_discounted_return")]
     flagged = [row for row in rows if row.get("nonfinite_seeds")]
     short = [row for row in rows if row["seeds"] < row["logged_seeds"]]
+    counted = [(row, name, n) for row in rows for name, prefix in columns
+               if (n := _other_count(row, prefix)) is not None]
     head = ["rank", "arm", "hp", "seeds", "env steps"] + [name for name, _ in columns] + (
         ["non-finite"] if flagged else [])
     lines = [f"# {title}" if title else "# Summary", "",
@@ -302,6 +315,13 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
                       "the rows are ranked by), and every figure uses only the seeds finite in it; these logged "
                       f"seeds have no finite return over the last {stats.FINAL_FRACTION:.0%} of their logged "
                       f"updates: {runs}."]
+    if counted:
+        figures = "; ".join(f"{row['arm']} {row['hp'] or ''} {name}: n = {n} (seeds column {row['seeds']})"
+                            .replace("  ", " ") for row, name, n in counted)
+        lines += ["", "**Seed counts**: a figure marked n = N is over N seeds, not the seeds column's: an evaluation "
+                      "column counts the seeds whose latest evaluation is finite in it (a seed not evaluated, or "
+                      f"evaluated to a non-finite return, is not in it), every other column the seeds finite in it: "
+                      f"{figures}."]
     if flagged:
         runs = "; ".join(f"{row['arm']} {row['hp'] or ''} seeds {row['nonfinite_seed_ids']}: {row['skipped_steps']} steps"
                          .replace("  ", " ") for row in flagged)

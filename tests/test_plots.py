@@ -225,6 +225,39 @@ def test_the_seeds_column_counts_only_seeds_with_a_finite_final_return_and_says_
     assert "holed alpha=1.0 seeds 2" in note and "whole" not in note
 
 
+def test_an_evaluation_column_over_other_seeds_than_the_seeds_column_says_over_how_many(tmp_path):
+    """The seeds column counts the seeds with a finite final return; an evaluation column whose own count differs
+    (a seed not evaluated, an evaluation that is not finite, a left-out seed that was evaluated) says n = N in its
+    cell and a note names the arm, the column and the count; columns over the seeds column's seeds say nothing."""
+    with (tmp_path / "metrics.jsonl").open("w") as f:
+        for arm in ("short", "holed", "whole"):
+            for s in range(4):
+                for u in range(5):
+                    ret = None if (arm, s) == ("holed", 1) else 10.0 * s + u
+                    f.write(json.dumps({"arm": arm, "hp": "", "seed": s, "update": u, "env_steps": 100 * (u + 1),
+                                        "episode/return": ret, "episode/discounted_return": ret}) + "\n")
+    with (tmp_path / "eval.jsonl").open("w") as f:
+        for arm, seeds in (("short", range(3)), ("holed", range(4)), ("whole", range(4))):  # short: seed 3 not
+            for s in seeds:
+                ret = None if (arm, s) == ("short", 0) else float(s)  # short: seed 0's evaluation not finite
+                f.write(json.dumps({"arm": arm, "hp": "", "seed": s, "update": 4, "deterministic": True,
+                                    "episodes": 2, "eval/return": ret, "eval/discounted_return": float(s)}) + "\n")
+    paths = plots.plot_run(tmp_path, reps=50)
+    rows = {r["arm"]: r for r in _csv(paths["summary_csv"])}
+    assert [(rows[a]["seeds"], rows[a]["eval_det_return_seeds"], rows[a]["eval_det_discounted_return_seeds"])
+            for a in ("short", "holed", "whole")] == [("4", "2", "3"), ("3", "4", "4"), ("4", "4", "4")]
+    md = paths["summary_md"].read_text()
+    cells = {line.split(" | ")[1]: line.removesuffix(" |").split(" | ")[5:] for line in md.splitlines()
+             if line.startswith("| ")}
+    assert cells["short"][4].endswith("(**n = 2**)") and cells["short"][5].endswith("(**n = 3**)")
+    assert cells["holed"][4].endswith("(**n = 4**)") and cells["holed"][5].endswith("(**n = 4**)")
+    assert not any("n = " in cell for cell in cells["short"][:4] + cells["holed"][:4] + cells["whole"])
+    note = next(line for line in md.splitlines() if line.startswith("**Seed counts**"))
+    assert note.endswith(": holed eval return (deterministic): n = 4 (seeds column 3); holed eval disc. return "
+                         "(deterministic): n = 4 (seeds column 3); short eval return (deterministic): n = 2 (seeds "
+                         "column 4); short eval disc. return (deterministic): n = 3 (seeds column 4)."), note  # ranked
+
+
 def test_fallback_bootstrap_matches_rliable():
     """The local bootstrap (used when rliable.library cannot import) reproduces rliable's numbers."""
     if stats.rly is None:
