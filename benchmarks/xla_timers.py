@@ -24,6 +24,13 @@ import pathlib
 import re
 import sys
 
+if __package__ in (None, ""):  # `python benchmarks/xla_timers.py` as well as `python -m benchmarks.xla_timers`
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import Parser, refuse, unwritable_file  # noqa: E402
+from cdjax import io  # noqa: E402
+from cdjax.options import positive  # noqa: E402
+
 _TIMER = re.compile(r"\] (?P<timer>\S.*?) for (?P<module>\S+) time: .*?\((?P<us>\d+) us\)")
 _SUFFIX = re.compile(r"(?:[._]\d+)+$")
 
@@ -63,19 +70,26 @@ def table(rows: list[dict], top: int | None = None) -> str:
 
 
 def main(argv=None) -> list[dict]:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.xla_timers", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    """Bad input (a log that is not a readable file, a --top below 1, a --json that cannot be written, a log without
+    timer lines) ends in one sentence with exit status 2 before anything is printed or written."""
+    p = Parser(prog="python -m benchmarks.xla_timers", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("log", type=pathlib.Path, help="a log with XLA:GPU's timer lines (plain or .gz)")
-    p.add_argument("--top", type=int, default=None, help="print only the N largest rows (the rest summed in one)")
+    p.add_argument("--top", type=positive, default=None, help="print only the N largest rows (the rest summed in one)")
     p.add_argument("--json", type=pathlib.Path, help="also write every row here")
     args = p.parse_args(argv)
     if not args.log.is_file():
-        p.error(f"no such log: {args.log}")
-    rows = parse(read_lines(args.log))
+        refuse(p.prog, f"LOG {args.log} is a directory; name the log file" if args.log.is_dir() else
+               f"no such log: {args.log}")
+    if args.json and (why := unwritable_file(args.json)):
+        refuse(p.prog, f"--json {args.json}: {why}")
+    try:
+        rows = parse(read_lines(args.log))
+    except (OSError, EOFError) as err:  # unreadable, or a .gz that is not gzip or is cut short
+        refuse(p.prog, f"cannot read {args.log}: {io.reason(err)}")
     if not rows:
-        print(f"{args.log} holds no XLA timer lines (run with TF_CPP_MIN_LOG_LEVEL=0 and TF_CPP_VMODULE=gpu_compiler=1,"
-              "nvptx_compiler=1,compile_module_to_llvm_ir=1)", file=sys.stderr)
-        sys.exit(2)
+        refuse(p.prog, f"{args.log} holds no XLA timer lines (run with TF_CPP_MIN_LOG_LEVEL=0 and "
+                       "TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1,compile_module_to_llvm_ir=1)")
     print(table(rows, args.top))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))

@@ -1029,6 +1029,37 @@ def test_xla_timers_sum_each_timer_over_modules_of_one_kind(tmp_path, capsys):
     assert e.value.code == 2
 
 
+def test_xla_timers_refuses_bad_arguments_in_one_sentence_before_printing_or_writing(tmp_path, capsys):
+    """benchmarks.xla_timers: a missing log, a directory as the log, a log it cannot read (a .gz that is not gzip),
+    --top below 1, a --json that cannot be written, a log without timer lines: one sentence naming it, exit status 2,
+    nothing printed on stdout and no --json written."""
+    from benchmarks import xla_timers
+
+    log, afile, notgz = tmp_path / "vlog.log", tmp_path / "afile", tmp_path / "vlog.log.gz"
+    log.write_text("I1127 02:11:13.2 440 gpu_compiler.cc:2345] GpuCompiler::RunHloPasses for jit_chunk time: 39.6 s "
+                   "(39600000 us)\n")
+    afile.write_text("nothing timed here\n")
+    notgz.write_text(log.read_text())
+
+    def refused(argv, said):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as stop:
+            xla_timers.main(argv)
+        out, err = capsys.readouterr()
+        assert stop.value.code == 2 and out == "" and err.count("\n") == 1, err
+        assert err.startswith("python -m benchmarks.xla_timers: ") and said in err, err
+
+    refused([str(tmp_path / "none.log")], f"no such log: {tmp_path / 'none.log'}")
+    refused([str(tmp_path)], f"LOG {tmp_path} is a directory")
+    refused([str(notgz)], f"cannot read {notgz}: Not a gzipped file")
+    refused([str(log), "--top", "0"], "argument --top: '0' is not a whole number of at least 1")
+    refused([str(log), "--json", str(afile / "t.json")], f"--json {afile / 't.json'}: {afile} is a file")
+    refused([str(log), "--json", str(tmp_path)], f"--json {tmp_path}: {tmp_path} is a directory")
+    refused([str(afile)], f"{afile} holds no XLA timer lines")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "vlog.log", "vlog.log.gz"]
+    assert xla_timers.main([str(log), "--top", "1"])[0]["kind"] == "jit_chunk"  # the same log, asked rightly
+
+
 def test_same_results_compares_bit_for_bit_and_puts_the_setting_first():
     import numpy as np
 
