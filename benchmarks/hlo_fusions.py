@@ -30,6 +30,13 @@ import argparse
 import collections
 import pathlib
 import re
+import sys
+
+if __package__ in (None, ""):  # `python benchmarks/hlo_fusions.py` as well as `python -m benchmarks.hlo_fusions`
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import Parser, refuse  # noqa: E402
+from cdjax.options import non_negative, positive  # noqa: E402
 
 _COMPUTATION = re.compile(r"^(?:ENTRY\s+)?%([\w.\-]+)\s.*\{\s*$")
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*)$")
@@ -236,15 +243,20 @@ def profile_kernels(trace: pathlib.Path, top: int) -> list[dict]:
 
 
 def main(argv=None) -> str:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    """Bad input (a DUMP that does not exist or holds no optimised HLO, a --profile without a trace, counts out of
+    range, --loops with what it does not use, nothing to look for) ends in one sentence with exit status 2 before
+    anything is read or printed."""
+    p = Parser(prog="python -m benchmarks.hlo_fusions", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dump", type=pathlib.Path, help="XLA dump directory or one optimised-HLO text file")
     p.add_argument("prefixes", nargs="*", help="instruction-name prefixes (as a GPU profile begins the kernels' names)")
     p.add_argument("--profile", type=pathlib.Path, help="a trace of the same program: its top fusion kernels' names")
-    p.add_argument("--top", type=int, default=8, help="with --profile: how many kernels (default 8); with --loops: "
-                   "groups per computation")
+    p.add_argument("--top", type=positive, default=8, help="with --profile: how many kernels (default 8); with "
+                   "--loops: groups per computation")
     p.add_argument("--loops", action="store_true", help="the kernels each loop body and the entry launch per pass")
-    p.add_argument("--max-lines", type=int, default=80, help="lines of each fused computation to print")
-    args = p.parse_args(argv)
+    p.add_argument("--max-lines", type=non_negative, default=80, help="lines of each fused computation to print")
+    args = p.parse_intermixed_args(argv)  # (PREFIXes after an option too)
+    check(p, args)
     if args.loops:
         text = loops_report(loop_kernels(args.dump), args.top)
         print(text)
@@ -255,11 +267,39 @@ def main(argv=None) -> str:
             kernels.append(k["kernel"])
             head.append(f"{k['kernel']}: {k['total_ms']:.3f} ms in {k['count']:,} calls ({k['pct']:.1f}%), launch "
                         f"{k['launch'] or 'not in the trace'}")
-    if not args.prefixes and not kernels:
-        p.error("name prefixes or --profile")
+        if not kernels and not args.prefixes:
+            refuse(p.prog, f"the top ops of --profile {args.profile} hold no XLA fusion kernel to look up; name "
+                           "instruction-name PREFIXes")
     text = "\n".join(head + ([""] if head else []) + [report(find(args.dump, args.prefixes, kernels), args.max_lines)])
     print(text)
     return text
+
+
+def check(p: Parser, args) -> None:
+    """Refuse (one sentence, exit status 2) what would otherwise print an empty answer or fail part way."""
+    if not args.dump.exists():
+        refuse(p.prog, f"DUMP {args.dump} does not exist")
+    if not hlo_files(args.dump):
+        refuse(p.prog, f"DUMP {args.dump} holds no *after_optimizations.txt file (dump with XLA_FLAGS=--xla_dump_to="
+                       "DIR --xla_dump_hlo_as_text, or name one HLO text file)")
+    if args.loops:
+        ignored = [name for name, given in (("PREFIX", args.prefixes), ("--profile", args.profile),
+                                            ("--max-lines", args.max_lines != p.get_default("max_lines"))) if given]
+        if ignored:
+            refuse(p.prog, f"--loops counts each loop body's launches and shows no fused computation, which "
+                           f"{' and '.join(ignored)} {'are' if len(ignored) > 1 else 'is'} for: give "
+                           f"{'them' if len(ignored) > 1 else 'it'} without --loops")
+        return
+    if not args.prefixes and not args.profile:
+        refuse(p.prog, f"name instruction-name PREFIXes, --profile TRACE or --loops; see `{p.prog} --help`")
+    if args.profile:
+        from benchmarks import profile_summary
+
+        if not args.profile.exists():
+            refuse(p.prog, f"--profile {args.profile} does not exist")
+        if not profile_summary.find_traces(args.profile):
+            refuse(p.prog, f"--profile {args.profile} holds no profiler trace "
+                           f"({' or '.join(profile_summary.TRACE_NAMES)}; benchmarks.run --trace DIR writes one)")
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import pytest
 
 from benchmarks import hlo_fusions
 
@@ -113,3 +114,31 @@ def test_loops_count_each_bodys_launches_by_group_and_not_the_fused_insides(tmp_
     path.write_text(hlo.replace(', backend_config={"known_trip_count":{"n":"3"}}', ""))
     body, _ = hlo_fusions.loop_kernels(path)
     assert body["trips"] is None and body["passes"] == 1
+
+
+def test_bad_arguments_are_refused_in_one_sentence_before_anything_is_read(tmp_path, capsys):
+    """A DUMP that does not exist or holds no optimised HLO (it answered "no instruction with that name"), a --profile
+    without a trace, --top below 1, --loops with what only the fusion listing uses (it ignored them), nothing to look
+    for: one sentence naming it, exit status 2, nothing on stdout."""
+    dump, empty = tmp_path / "dump", tmp_path / "empty"
+    dump.mkdir()
+    empty.mkdir()
+    (dump / "m.after_optimizations.txt").write_text("HloModule m\n")
+
+    def refused(argv, said):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as stop:
+            hlo_fusions.main(argv)
+        out, err = capsys.readouterr()
+        assert stop.value.code == 2 and out == "" and err.count("\n") == 1, err
+        assert err.startswith("python -m benchmarks.hlo_fusions: ") and said in err, err
+
+    refused([str(tmp_path / "none"), "loop_fusion"], f"DUMP {tmp_path / 'none'} does not exist")
+    refused([str(empty), "loop_fusion"], f"DUMP {empty} holds no *after_optimizations.txt file")
+    refused([str(dump), "--profile", str(tmp_path / "none")], f"--profile {tmp_path / 'none'} does not exist")
+    refused([str(dump), "--profile", str(empty)], f"--profile {empty} holds no profiler trace")
+    refused([str(dump), "loop_fusion", "--top", "0"], "argument --top: '0' is not a whole number of at least 1")
+    refused([str(dump), "--loops", "loop_fusion"], "PREFIX is for: give it without --loops")
+    refused([str(dump), "--loops", "--profile", str(empty), "--max-lines", "3"], "--profile and --max-lines are for")
+    refused([str(dump)], "name instruction-name PREFIXes, --profile TRACE or --loops")
+    assert hlo_fusions.main([str(dump), "--max-lines", "3", "loop_fusion"]) == "no instruction with that name"
