@@ -244,6 +244,13 @@ def say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
+def _say_unnamed_arms(rd: io.RunDir, tell=say) -> None:
+    """`cdjax eval` and `cdjax plot` say, as a resume does (cdjax.runner.loop), when the directory holds logs or
+    checkpoints of arms its run.json does not name (`RunDir.unnamed_arms`): a note, the command goes on."""
+    if note := rd.unnamed_arms():
+        tell(note)
+
+
 def cmd_eval(args: argparse.Namespace) -> None:
     import jax
 
@@ -265,6 +272,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                 if writer:  # a live sweep turns its checkpoints over and appends to eval.jsonl: not beside it
                     held.enter_context(rd.lock("evaluate it when it has ended (its checkpoints turn over while it "
                                                "trains)"))
+                    _say_unnamed_arms(rd, tell)
                 spec, arms = restore_arms(args.run_dir)
             sampled = args.stochastic or (agents.get(spec.setting).eval_sampled and not args.deterministic)
             records = evaluate_arms(rd, arms, spec.seeds, args.episodes, not sampled, tell)
@@ -315,8 +323,7 @@ def cmd_plot(args: argparse.Namespace) -> None:
         rd = io.RunDir(pathlib.Path(run_dir))
         rd.check_name("RUN_DIR")
         rd.read()  # a clear error for a directory that holds no run
-        if note := rd.unnamed_arms():
-            say(note)
+        _say_unnamed_arms(rd)
         dirs.append(rd.path)
     if len(set(d.resolve() for d in dirs)) < len(dirs):
         raise UsageError("a RUN_DIR is named twice; name each run once.")

@@ -545,10 +545,11 @@ def test_phase_and_eval_logs_are_trimmed_like_the_metrics(tmp_path):
     assert io.truncate_jsonl(phase, {"mbmf": 0, "cd": 0}) == (0, 0) and phase.read_bytes() == text  # untouched
 
 
-def test_a_resume_notes_the_logs_and_checkpoints_of_an_arm_that_run_json_does_not_name(runs, tmp_path, capsys):
+def test_a_resume_notes_the_logs_and_checkpoints_of_an_arm_that_run_json_does_not_name(runs, tmp_path, capsys,
+                                                                                        monkeypatch):
     """An arm removed from run.json by hand leaves its rows and checkpoints behind: the resume says so in one
-    sentence and goes on (a note, not a refusal), leaving them and this run's own as they were; `cdjax plot` says
-    the same."""
+    sentence and goes on (a note, not a refusal), leaving them and this run's own as they were; `cdjax plot` and
+    `cdjax eval` say the same."""
     assert set(io.RunDir(runs("obs")).arms_held()) == {"cd"}  # a run's own directory holds only its arms
     out = _copy(runs, "obs", tmp_path)
     for name in ("metrics.jsonl", "eval.jsonl"):  # the removed arm: the run's own logged under another name
@@ -564,6 +565,11 @@ def test_a_resume_notes_the_logs_and_checkpoints_of_an_arm_that_run_json_does_no
     assert {name: (out / name).read_bytes() for name in logs} == logs
     assert snapshot(out / "checkpoints" / "mbmf") == snapshot(runs("obs") / "checkpoints" / "cd")
     main(["plot", str(out), "--bootstrap-reps", "20"])  # the plots, which rank them, say it too
+    assert [line for line in capsys.readouterr().err.splitlines() if "run.json does not name" in line] == notes
+    import cdjax.runner
+
+    monkeypatch.setattr(cdjax.runner, "evaluate_arms", lambda *args: [])  # what is said before it, not its programs
+    main(["eval", str(out), "--episodes", "2"])  # its rows land beside the unnamed arm's in eval.jsonl: it says so
     assert [line for line in capsys.readouterr().err.splitlines() if "run.json does not name" in line] == notes
 
 
