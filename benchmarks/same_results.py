@@ -18,7 +18,9 @@ so compare there with --base xla_gpu_deterministic_ops=true xla_gpu_autotune_lev
 LHS and CONCURRENT gave identical arrays (benchmarks/results/2026-11-27-h100-per-program/). Both programs (init and
 update) are compiled with cdjax.runtime.compiler_options, so a compile mode (CDJAX_COMPILE_MODE) reaches both; until
 2026-11-27 the init was not, and in the `deterministic` mode the physics arrays of its reset then differed between
-two processes. Writes results.json and results.md under --out; exit status 1 when any array differs.
+two processes. Writes results.json and results.md under --out; exit status 1 when any array differs. Bad input
+ends in one sentence with exit status 2 before any child starts (the settings asked of XLA first, in one start-up,
+as `benchmarks.xla_flags --accepts` asks).
 """
 
 from __future__ import annotations
@@ -27,13 +29,15 @@ import argparse
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 
 import numpy as np
 
-from benchmarks.common import FULL, TINY
+from benchmarks.common import FULL, TINY, Parser, refuse
 from benchmarks.throughput import cdjax_cases
+from cdjax.options import positive
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
@@ -108,9 +112,37 @@ def run_child(cases: list[str], updates: int, tiny: bool, path: str) -> None:
     np.savez(path, **saved)
 
 
+SETTING = re.compile(r"[A-Za-z][A-Za-z0-9_]*=\S+")  # NAME=VALUE, one word of XLA_FLAGS once `--` leads it
+
+
+def check(prog: str, args) -> None:
+    """Refuse, in one sentence with exit status 2, what would otherwise fail in a child process, or in the
+    comparison once every child ran, or compare nothing: a setting that is not NAME=VALUE or that this XLA does not
+    take (it aborts at start-up), fewer than two --flags, an --out that cannot be written. Writes nothing."""
+    from benchmarks import xla_flags
+    from cdjax import io
+
+    for option, settings in (("--flags", args.flags), ("--base", args.base)):
+        for setting in settings:
+            if not SETTING.fullmatch(setting):
+                refuse(prog, f"{option} {setting!r} is not NAME=VALUE (an XLA option without its leading --, e.g. "
+                             "xla_gpu_autotune_level=0)")
+    if len(args.flags) < 2:
+        refuse(prog, f"--flags {args.flags[0]} alone compares nothing: give two or more settings (the first is the "
+                     "reference; name it twice to see what two processes at one setting differ by)")
+    try:
+        io.RunDir(pathlib.Path(args.out)).check_writable()
+    except io.RunDirError as err:
+        refuse(prog, str(err))
+    settings = list(dict.fromkeys([*args.flags, *args.base]))
+    if not xla_flags.accepts(" --".join(settings)):  # one XLA start for all (XLA_FLAGS is words); one each if refused
+        refused = [s for s in settings if not xla_flags.accepts(s)] or [" ".join(settings)]
+        refuse(prog, f"XLA refuses {', '.join(refused)} at start-up (benchmarks.xla_flags lists the names it holds)")
+
+
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.same_results", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser(prog="python -m benchmarks.same_results", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--flags", nargs="+", required=True, metavar="NAME=VALUE",
                    help="XLA settings, one child process each; the first is the reference")
     p.add_argument("--base", nargs="+", default=[], metavar="NAME=VALUE",
@@ -118,14 +150,16 @@ def main(argv=None) -> int:
                         "xla_gpu_autotune_level=0: the GPU's atomics and the autotuner's timing-dependent choices "
                         "out of the way, so that a scheduling option's own effect shows)")
     p.add_argument("--cases", nargs="+", default=["model-free", "cd-paper"], choices=list(cdjax_cases(FULL)))
-    p.add_argument("--updates", type=int, default=3, help="updates per case (default 3)")
+    p.add_argument("--updates", type=positive, default=3, help="updates per case (default 3)")
     p.add_argument("--tiny", action="store_true", help="the CPU smoke sizes (point env, 16 envs)")
     p.add_argument("--out", required=True, help="directory for the arrays and results.json, results.md")
     p.add_argument("--child", help=argparse.SUPPRESS)  # internal: save this process's arrays to CHILD (.npz)
     args = p.parse_args(argv)
+    args.cases = list(dict.fromkeys(args.cases))
     if args.child:
         run_child(args.cases, args.updates, args.tiny, args.child)
         return 0
+    check(p.prog, args)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     files = []

@@ -1080,3 +1080,44 @@ def test_same_results_compares_bit_for_bit_and_puts_the_setting_first():
                                         "--xla_force_host_platform_device_count=2"] and env["HOME"] == "/h"
     env = same_results.child_env("a=1", {"XLA_FLAGS": "--c=3"}, base=("b=2", "d=4"))  # shared settings after its own
     assert env["XLA_FLAGS"].split() == ["--a=1", "--b=2", "--d=4", "--c=3"]
+
+
+def test_same_results_refuses_bad_arguments_in_one_sentence_before_a_child_starts(tmp_path, capsys, monkeypatch):
+    """benchmarks.same_results: a setting that is not NAME=VALUE (a space would split it in XLA_FLAGS), one that this
+    XLA refuses (a child aborted part way), one --flags alone (it said "every array identical"), --updates below 1,
+    an --out that cannot be written: one sentence, exit status 2, no child started and nothing written."""
+    from benchmarks import same_results, xla_flags
+
+    class Started(Exception):
+        pass
+
+    def run(*args, **kwargs):
+        raise Started(args)
+
+    asked = []
+    monkeypatch.setattr(same_results.subprocess, "run", run)
+    monkeypatch.setattr(xla_flags, "accepts", lambda setting: asked.append(setting) or "no_such" not in setting)
+    out, afile = tmp_path / "out", tmp_path / "afile"
+    afile.write_text("")
+
+    def refused(argv, said):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as stop:
+            same_results.main([*argv, "--tiny"])
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.count("\n") == 1, err
+        assert err.startswith("python -m benchmarks.same_results: ") and said in err, err
+
+    two = ["--flags", "a=1", "b=2"]
+    refused(["--flags", "a=1", "b", "--out", str(out)], "--flags 'b' is not NAME=VALUE")
+    refused([*two, "--base", "c=1 d=2", "--out", str(out)], "--base 'c=1 d=2' is not NAME=VALUE")
+    refused(["--flags", "a=1", "--out", str(out)], "--flags a=1 alone compares nothing")
+    refused([*two, "--updates", "0", "--out", str(out)], "argument --updates: '0' is not a whole number of at least 1")
+    refused([*two, "--out", str(afile)], f"{afile} is a file, not a directory")
+    refused([*two, "--out", str(afile / "out")], f"cannot write into {afile / 'out'}")
+    assert asked == []  # (the format, count and --out first: no XLA started for them)
+    refused([*two, "--base", "xla_no_such=1", "--out", str(out)], "XLA refuses xla_no_such=1 at start-up")
+    assert asked == ["a=1 --b=2 --xla_no_such=1", "a=1", "b=2", "xla_no_such=1"]  # all at once, then one by one
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+    with pytest.raises(Started):  # the same, asked rightly, starts its first child
+        same_results.main([*two, "--out", str(out), "--tiny"])
