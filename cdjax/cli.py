@@ -317,12 +317,13 @@ def _print_eval(records: list[dict]) -> None:
 def cmd_plot(args: argparse.Namespace) -> None:
     from cdjax.plots import plot_run, plot_runs
     from cdjax.runner.console import stopped
+    from cdjax.runner.plan import recorded_return_note
 
-    dirs = []
+    dirs, runs = [], []
     for run_dir in args.run_dirs:
         rd = io.RunDir(pathlib.Path(run_dir))
         rd.check_name("RUN_DIR")
-        rd.read()  # a clear error for a directory that holds no run
+        runs.append(rd.read())  # a clear error for a directory that holds no run
         _say_unnamed_arms(rd)
         dirs.append(rd.path)
     if len(set(d.resolve() for d in dirs)) < len(dirs):
@@ -340,11 +341,12 @@ def cmd_plot(args: argparse.Namespace) -> None:
             raise UsageError(f"--out {out} is one of the runs, whose own summary the pooled one would replace; "
                              "name another directory.")
     again = " ".join(shlex.quote(str(a)) for a in (*dirs, *(("--out", out) if args.out is not None else ())))
+    notes = [note] if (note := recorded_return_note(runs)) else []  # what the sweep said of its ranking, as recorded
     try:
         if len(dirs) == 1 and args.out is None:
-            written = plot_run(out, reps=args.bootstrap_reps, say=say)
+            written = plot_run(out, reps=args.bootstrap_reps, say=say, notes=notes)
         else:
-            written = plot_runs(dirs, out, reps=args.bootstrap_reps, say=say)
+            written = plot_runs(dirs, out, reps=args.bootstrap_reps, say=say, notes=notes)
     except KeyboardInterrupt as err:
         raise stopped(err, f"Interrupted while plotting; the plots and summary of {out} may be partly rewritten: "
                            f"run `cdjax plot {again}` again.") from None

@@ -274,7 +274,9 @@ def _seeds_cell(row: dict) -> str:
     return str(n) if n == logged else f"**{n} of {logged}**"
 
 
-def summary_markdown(rows: list[dict], title: str = "") -> str:
+def summary_markdown(rows: list[dict], title: str = "", notes: Sequence[str] = ()) -> str:
+    """The summary table of `rows` (summary_rows') with its notes; `notes`: more paragraphs under it (the sweep's
+    note on the measure the arms are ranked by, `cdjax.runner.plan.return_note`)."""
     columns = [("final return", "final_return"), ("AUC return", "auc_return"),
                ("final disc. return", "final_discounted_return"), ("AUC disc. return", "auc_discounted_return")]
     for mode, words in (("det", "deterministic"), ("stoch", "stochastic")):
@@ -327,6 +329,8 @@ def summary_markdown(rows: list[dict], title: str = "") -> str:
                          .replace("  ", " ") for row in flagged)
         lines += ["", f"**Non-finite training**: these runs skipped optimiser steps whose loss or gradient was not "
                       f"finite (the parameters stayed as they were; their numbers are suspect): {runs}."]
+    for note in notes:
+        lines += ["", note]
     return "\n".join(lines) + "\n"
 
 
@@ -381,20 +385,21 @@ def _draw(ax, series, colors: dict[str, str], log: bool = False):
 
 
 def plot_run(run_dir: str | pathlib.Path, *, reps: int = 2000, max_points: int = 300, seed: int = 0,
-             say: Callable[[str], None] | None = None) -> dict[str, pathlib.Path]:
+             say: Callable[[str], None] | None = None, notes: Sequence[str] = ()) -> dict[str, pathlib.Path]:
     """Write RUN/plots/{return,discounted_return,model}.{png,csv}, RUN/summary.{md,csv}.
 
     Returns {"return", "return_csv", "discounted_return", "discounted_return_csv", "model", "model_csv",
     "summary_md", "summary_csv"} -> written path (the diagnostics figure "model" only when some arm logs
     one of its metrics). Curves are thinned to at most `max_points` updates; the CSVs hold exactly the
-    plotted numbers. `say` hears about torn log lines; a failed write raises io.WriteError.
+    plotted numbers. `say` hears about torn log lines; a failed write raises io.WriteError. `notes` go under the
+    summary table (summary_markdown).
     """
     run_dir = pathlib.Path(run_dir)
     info = io.RunDir(run_dir).read_if_present()
     curves = _loaded(run_dir, say, run_dir)
     env = info.get("base_config", {}).get("env") if isinstance(info.get("base_config"), dict) else None
     title = f"Summary of {run_dir.name}" + (f" ({env})" if env else "")
-    return _write(run_dir, curves, load_eval(run_dir, say), Names.of(info), title, reps, max_points, seed)
+    return _write(run_dir, curves, load_eval(run_dir, say), Names.of(info), title, reps, max_points, seed, notes)
 
 
 def _loaded(run_dir: pathlib.Path, say: Callable[[str], None] | None, out: pathlib.Path) -> dict:
@@ -410,8 +415,8 @@ def _loaded(run_dir: pathlib.Path, say: Callable[[str], None] | None, out: pathl
 
 
 def plot_runs(run_dirs: Sequence[str | pathlib.Path], out: str | pathlib.Path, *, reps: int = 2000,
-              max_points: int = 300, seed: int = 0, say: Callable[[str], None] | None = None
-              ) -> dict[str, pathlib.Path]:
+              max_points: int = 300, seed: int = 0, say: Callable[[str], None] | None = None,
+              notes: Sequence[str] = ()) -> dict[str, pathlib.Path]:
     """plot_run's figures and summary, into OUT/, of several runs of one environment with their seeds pooled.
 
     Each (arm, hp label) holds the seeds of every run that has it (`pool_curves`): runs of the same sweep
@@ -464,7 +469,7 @@ def plot_runs(run_dirs: Sequence[str | pathlib.Path], out: str | pathlib.Path, *
     env = first.get("base_config", {}).get("env")
     title = (f"Summary of {', '.join(d.name for d in run_dirs)} pooled (base seeds {', '.join(map(str, bases))})"
              + (f" ({env})" if env else ""))
-    return _write(out, curves, evals, Names.of(first), title, reps, max_points, seed)
+    return _write(out, curves, evals, Names.of(first), title, reps, max_points, seed, notes)
 
 
 def _same_settings(infos: list[dict], run_dirs: list[pathlib.Path]) -> None:
@@ -521,7 +526,7 @@ def pool_seed_arrays(a: dict | None, b: dict | None) -> dict | None:
 
 
 def _write(out: pathlib.Path, curves: dict, evals: dict, names: Names, title: str, reps: int, max_points: int,
-           seed: int) -> dict[str, pathlib.Path]:
+           seed: int, notes: Sequence[str] = ()) -> dict[str, pathlib.Path]:
     """The figures, their CSVs and the summary of `curves` into OUT/plots/ and OUT/summary.{md,csv}."""
     colors = {c.label: f"C{i % 10}" for i, c in enumerate(curves.values())}  # one colour per curve everywhere
     plots = out / "plots"
@@ -535,7 +540,7 @@ def _write(out: pathlib.Path, curves: dict, evals: dict, names: Names, title: st
     rows = summary_rows(curves, evals, reps, seed, names)
     written["summary_md"] = out / "summary.md"
     with io.writing(written["summary_md"]):
-        written["summary_md"].write_text(summary_markdown(rows, title))
+        written["summary_md"].write_text(summary_markdown(rows, title, notes))
         written["summary_csv"] = _write_csv(out / "summary.csv", rows)
     return written
 

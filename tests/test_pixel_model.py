@@ -284,6 +284,40 @@ def test_a_sweep_whose_arms_measure_their_return_at_different_horizons_says_so()
     assert note("obs", "--preset", "point", "--arms", "cd", "cd-k2") is None
 
 
+def test_cdjax_plot_keeps_the_note_on_the_arms_return_under_its_summary(tmp_path):
+    """The note a sweep of arms at different k gives is in the summary.md that `cdjax plot` writes, computed by
+    return_note from run.json's arms: the same text as from the sweep's plans. Pooled runs of one k each (ltq in one,
+    ltq-cd5 in the other) set the two measures side by side too; either run alone does not. Hand-written logs."""
+    from cdjax.cli import build_parser, sweep_spec
+    from cdjax.runner.plan import plan_arms, return_note, run_record
+
+    setting = agents.get("pixel")
+
+    def run(name, *argv):
+        spec = sweep_spec(build_parser(setting).parse_args(["sweep", "--out", "x", "--setting", "pixel", "--preset",
+                                                            "pixel-halfcheetah", "--seeds", "2", *argv]), setting)
+        plans = plan_arms(spec, setting)
+        out = tmp_path / name
+        out.mkdir()
+        (out / "run.json").write_text(json.dumps(run_record(spec, plans, setting)))
+        io.append_jsonl(out / "metrics.jsonl", [
+            {"arm": plan.name, "hp": plan.labels[0], "seed": s, "update": u, "env_steps": 100 * u,
+             "heldout/loglik_k": -10.0 * plan.config.horizon + s + u, "heldout/loglik_50": -500.0 + s + u}
+            for plan in plans for s in range(2) for u in range(1, 4)])
+        return out, plans
+
+    both, plans = run("both", "--arms", "ltq", "ltq-cd5")
+    note = return_note(setting, plans)
+    assert note and "horizon (ltq 10, ltq-cd5 5)" in note
+    main(["plot", str(both), "--bootstrap-reps", "20"])
+    assert note in (both / "summary.md").read_text().splitlines()
+    (a, _), (b, _) = run("a", "--arms", "ltq"), run("b", "--arms", "ltq-cd5", "--seed", "1")
+    main(["plot", str(a), "--bootstrap-reps", "20"])
+    assert "Note: the arms' return" not in (a / "summary.md").read_text()
+    main(["plot", str(a), str(b), "--out", str(tmp_path / "pooled"), "--bootstrap-reps", "20"])
+    assert note in (tmp_path / "pooled" / "summary.md").read_text().splitlines()
+
+
 SYNTHETIC = dataclasses.replace(pixel.SETTING, name="pixel-synthetic",
                                 make_trainer=lambda config: pixel.trainer_of(learner_for(config)))
 agents.register(SYNTHETIC)

@@ -683,5 +683,6 @@ class Loop:
         except ImportError as err:  # an install without the plotting stack (e.g. a bare GPU image)
             self.say(f"No plots or summary: {err}; `cdjax plot {self.rd.path}` makes them where it is installed.")
             return
-        written = plot_run(self.rd.path, reps=self.spec.bootstrap_reps, say=self.say)
+        note = return_note(self.setting, [a.plan for a in self.arms])  # said at the start, kept under the table
+        written = plot_run(self.rd.path, reps=self.spec.bootstrap_reps, say=self.say, notes=[note] if note else [])
         self.say(f"Wrote {', '.join(str(p) for p in written.values())}.")

@@ -75,17 +75,43 @@ def plan_arms(spec: SweepSpec, setting: Setting | None = None) -> list[ArmPlan]:
     return plans
 
 
-def return_note(setting: Setting, plans: Sequence[ArmPlan]) -> str | None:
+def return_note(setting: Setting, plans: Sequence[ArmPlan | Mapping]) -> str | None:
     """A note when the arms' return (the figure the summary ranks them by) is measured at different values of the
-    setting's `Metrics.ret_field`, e.g. pixel likelihoods at k = 10 and at k = 5; None otherwise."""
+    setting's `Metrics.ret_field`, e.g. pixel likelihoods at k = 10 and at k = 5; None otherwise. `plans`: the arms'
+    ArmPlans (a sweep), or run.json's records of them (`run_record`'s "arms": `recorded_return_note`); a record
+    without the field counts for nothing."""
     field, metrics = setting.metrics.ret_field, setting.metrics
-    values = {plan.name: getattr(plan.config, field) for plan in plans} if field else {}
+    values = {}
+    for plan in plans if field else ():
+        if isinstance(plan, ArmPlan):
+            values[plan.name] = getattr(plan.config, field)
+        elif field in (config := plan.get("config") or {}):  # as dataclass_from_json reads it
+            values[plan.get("name")] = tuple(config[field]) if isinstance(config[field], list) else config[field]
     if len(set(values.values())) < 2:
         return None
     return (f"Note: the arms' return ({metrics.ret}, which ranks them in the summary) is measured at each arm's own "
             f"{field} ({', '.join(f'{name} {value}' for name, value in values.items())}), so the ranking sets "
             f"different measures side by side; the discounted return ({metrics.discounted_ret}) is one measure for "
             "all of them.")
+
+
+def recorded_return_note(runs: Sequence[Mapping]) -> str | None:
+    """`return_note` of the arms that run.json records: `runs`, the run.json of one run directory or of several of one
+    setting whose seeds `cdjax plot` pools (an arm recorded in several counts once: pooled runs agree on its config).
+    Read from the records, not planned again, so that a run.json that plots but would not plan (an arm's config that
+    this cdjax refuses) still plots; None also for a setting this process does not know (registered by another
+    program), whose plots need only run.json's metric names."""
+    if not runs:
+        return None
+    try:
+        setting = agents.get(runs[0].get("setting", agents.DEFAULT))
+    except ConfigError:
+        return None
+    arms = {}
+    for run in runs:
+        for arm in run.get("arms", ()):
+            arms.setdefault(arm.get("name"), arm)
+    return return_note(setting, list(arms.values()))
 
 
 def _plan_arm(setting: Setting, spec: SweepSpec, name: str, grid: dict) -> ArmPlan:
