@@ -84,6 +84,7 @@ import jax.numpy as jnp
 
 import flax.linen as nn
 
+from benchmarks.common import Parser, refuse
 from cdjax import consistency
 from cdjax.agents.obs import agent, losses, networks
 
@@ -203,14 +204,19 @@ def applied(variant: str) -> Iterator[None]:
 
 
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.variants", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    """Bad input (an unknown variant, BENCHMARK-ARGS that `benchmarks.run` refuses, --merge, which builds no program)
+    ends in one sentence with exit status 2 before the variant is applied or anything runs."""
+    from benchmarks import run
+
+    p = Parser(prog="python -m benchmarks.variants", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("variant", choices=VARIANTS)
     p.add_argument("benchmark_args", nargs=argparse.REMAINDER, help="after --: the arguments of benchmarks.run")
     args = p.parse_args(argv)
     rest = args.benchmark_args[1:] if args.benchmark_args[:1] == ["--"] else args.benchmark_args
-    from benchmarks import run
-
+    if run.parse(list(rest)).merge:  # (run's own refusals, in its name, first)
+        refuse(p.prog, "a variant applies to the programs benchmarks.run builds, and --merge builds none: merge with "
+                       "`python -m benchmarks.run --merge` alone")
     print(f"variant: {args.variant}", flush=True)
     with applied(args.variant):
         return run.main(rest)

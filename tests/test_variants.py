@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -176,3 +178,32 @@ def test_grad_chunks_switches_the_chain_to_chunked_weight_gradients_only_inside_
     with variants.applied("grad-chunks"):
         assert consistency.GRAD_CHUNK == 5
     assert consistency.GRAD_CHUNK is None
+
+
+def test_bad_arguments_are_refused_in_one_sentence_before_the_variant_is_applied(tmp_path, capsys, monkeypatch):
+    """An unknown variant (argparse's usage block before), BENCHMARK-ARGS that benchmarks.run refuses (in its name) and
+    --merge (it builds no program for a variant to change): one sentence, exit status 2, nothing applied or run."""
+    from benchmarks import run
+
+    monkeypatch.setattr(variants, "applied", lambda variant: pytest.fail("a variant was applied"))
+    afile = tmp_path / "afile"
+    afile.write_text("")
+
+    def refused(argv, prog, said):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as stop:
+            variants.main(argv)
+        out, err = capsys.readouterr()
+        assert stop.value.code == 2 and out == "" and err.count("\n") == 1, err
+        assert err.startswith(f"python -m benchmarks.{prog}: ") and said in err, err
+
+    refused(["no-such", "--", "--tiny"], "variants", "argument variant: invalid choice: 'no-such'")
+    refused(["bias-sum", "--", "--tiny", "--updates", "0"], "run", "argument --updates: '0' is not")
+    refused(["bias-sum", "--", "--tiny", "--trace", str(afile)], "run", f"--trace: {afile} is a file")
+    refused(["none", "--merge", str(tmp_path)], "variants", "--merge builds none")
+    with monkeypatch.context() as patch:  # the same, asked rightly, applies it around benchmarks.run
+        patch.setattr(variants, "applied", lambda variant: contextlib.nullcontext(seen.append(variant)))
+        patch.setattr(run, "main", lambda argv: {"argv": argv})
+        seen = []
+        assert variants.main(["bias-sum", "--", "--tiny", "--dry-run"]) == {"argv": ["--tiny", "--dry-run"]}
+        assert seen == ["bias-sum"]
