@@ -131,11 +131,11 @@
 #            benchmarks/results/2026-11-27-h100-hlo-model-free/) cost what issue 21's model-free target lacks (0.373 s
 #            per update against the 0.345 s that 1.5x Brax PPO's 0.518 s needs, 2026-11-27), and whether cdjax's
 #            autotuner level and tilings cost the 10-seed paper-CD update 10% (`xla-own`).
-#   stacks   the consistency chain's per-step arrays written into their slots of one buffer per kind as the steps run
-#            (cdjax's form since 2026-11-28) against the `concat-stacks` variant (kept apart and concatenated after the
-#            loops, the form before): the compare suite's Mb-Mf and paper-CD four times (ABBA), then the seeds suite's
-#            Mb-Mf and paper-CD at 10 vmapped seeds of 256 envs each way (about 14 minutes). (It replaced `chunks`,
-#            the removed `grad-chunks` variant's A/B, benchmarks/results/2026-11-27-h100-outer/.)
+#   chunks   the `grad-chunks` variant (benchmarks.variants: the consistency chain's weight gradients as one product
+#            per 5 steps, each free to run as soon as its steps' cotangents exist, instead of one product over all 20
+#            steps after the backward loop, with its stacks of every step's arrays) against the agent as it is: the
+#            compare suite's Mb-Mf and paper-CD four times (ABBA), then the seeds suite's Mb-Mf and paper-CD at 10
+#            vmapped seeds of 256 envs with and without (about 14 minutes).
 #   kcache   XLA's kernel cache file (--xla_gpu_kernel_cache_file: the kernels of a compiled program are written to a
 #            file, and a later compile reuses the kernels whose fused computation it already holds): the cold 4-arm ant
 #            sweep at cdjax's defaults and with a fresh cache file, ABBA (about 6 minutes). The chunks all hold the
@@ -718,15 +718,15 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "CDJAX_COMPILE_MODE=tuned timeout -k 20 150 python -m benchmarks.compile_time --out $work/cold-tuned" \
         "--cache-dir $work/cache-tuned -- $sweep > $work/cold-tuned.log 2>&1;" \
         "grep -H -E 'x10:|s/update|training would' $work/seeds-*.log $work/compare-*.log $work/cold-*.log" ;;
-    stacks)
+    chunks)
       local seeds="--suite seeds --scaling-cases mbmf cd-paper --seed-counts 10 --seed-envs 256 --budget-s 110"
       local cases="--suite compare --cases mbmf cd-paper --budget-s 120" v="benchmarks.variants" line="" x n=0
-      for x in inplace concat concat inplace; do
-        local run="benchmarks.run"; [ $x = concat ] && run="$v concat-stacks --"
+      for x in plain chunks chunks plain; do
+        local run="benchmarks.run"; [ $x = chunks ] && run="$v grad-chunks --"
         line+="timeout -k 20 150 python -m $run $cases --out $work/compare-$x-$((++n)) > $work/compare-$x-$n.log 2>&1; "
       done
-      echo "$line timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-inplace > $work/seeds-inplace.log 2>&1;" \
-        "timeout -k 20 140 python -m $v concat-stacks -- $seeds --out $work/seeds-concat > $work/seeds-concat.log 2>&1;" \
+      echo "$line timeout -k 20 140 python -m benchmarks.run $seeds --out $work/seeds-plain > $work/seeds-plain.log 2>&1;" \
+        "timeout -k 20 140 python -m $v grad-chunks -- $seeds --out $work/seeds-chunks > $work/seeds-chunks.log 2>&1;" \
         "grep -H -E 'x10:|s/update' $work/compare-*.log $work/seeds-*.log" ;;
     kcache)
       local line="" v
@@ -750,7 +750,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, regions, regions-hlo, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, determinism-cd, outer, stacks, tuned, topn, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, regions, regions-hlo, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, determinism-cd, outer, chunks, tuned, topn, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 

@@ -30,15 +30,12 @@ Variants:
                    two-stage bias sum. The same parameters and, up to rounding, the same gradients. On an H100
                    (2026-11-27, benchmarks/results/2026-11-27-h100-hlo-model-free/) about 35 of model-free's 104
                    kernels per SGD step were the dense layers' bias and split-K reductions.
-  concat-stacks    the fused consistency chain's large per-step arrays (hidden units, hidden states, the first
-                   layer's and the GRU's cotangents) kept apart and concatenated once after its loops, the ones column
-                   of the bias's row appended then (`consistency.STACKS` "concat", the form until 2026-11-28), instead
-                   of written into their slots of one buffer per kind as the steps run. The same gradients up to
-                   rounding.
-  (grad-chunks, the fused chain's weight gradients as sums of one product per 5 steps, was removed with
-  `consistency.GRAD_CHUNK` when the stacks were written in place: paper-CD 0.6094 s/update against 0.6247 at 4096
-  envs but Mb-Mf, the same program, 3% apart between the two processes; 10 seeds 0.6140 against 0.5721; one H100,
-  2026-11-27, benchmarks/results/2026-11-27-h100-outer/.)
+  grad-chunks      the fused consistency chain's weight gradients as sums of one product per 5 steps
+                   (`consistency.GRAD_CHUNK`), not one product over all k steps after the backward loop: each chunk's
+                   products depend only on its own steps' arrays, so with the GPU's data-flow scheduling they may run
+                   beside the rest of the backward, and no stack of all k steps' arrays waits at the end of each SGD
+                   step (on an H100, 2026-11-27, two such concatenations took about 21 ms of paper-CD's 0.618 s
+                   update, benchmarks/results/2026-11-27-h100-per-program/). The same gradients up to rounding.
   (split-chain, the fused chain in a split form: the model's k steps first, then the GRU's imagined inputs in one
   product and the GRU's k steps, backward the GRU's chain, the model's share of its cotangents in one product and the
   model's chain, the hidden widths zero-padded to a multiple of 32, was removed after its A/B: paper-CD 0.6595 s/update
@@ -108,10 +105,9 @@ def _zeroing(fn: Callable, names: tuple[str, ...]) -> Callable:
 
 
 def _outer_bias_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """consistency._outer_stacked's (kernel, bias) gradient (a [..., I + 1] ends in its ones column) as the kernel's
-    product a[..., :I]^T b and the bias's sum of b (`consistency._outer` calls it too)."""
+    """consistency._outer's (kernel, bias) gradient as the kernel's product a^T b and the bias's sum of b."""
     b = b.reshape(-1, b.shape[-1])
-    return a[..., :-1].reshape(-1, a.shape[-1] - 1).T @ b, b.sum(0)
+    return a.reshape(-1, a.shape[-1]).T @ b, b.sum(0)
 
 
 # the loss values the SGD logs as per-sample shares since 2026-11-27 (`scalar-loss-metrics` undoes it), by function
@@ -168,7 +164,7 @@ class _OuterDense(nn.Dense):
 _OuterDense.__name__ = "Dense"  # flax names a submodule by its class: Dense_0, ... as with flax's own
 
 
-VARIANTS = ("none", "no-loss-metrics", "scalar-loss-metrics", "bias-sum", "outer-dense", "concat-stacks")
+VARIANTS = ("none", "no-loss-metrics", "scalar-loss-metrics", "bias-sum", "outer-dense", "grad-chunks")
 
 
 @contextlib.contextmanager
@@ -177,8 +173,8 @@ def applied(variant: str) -> Iterator[None]:
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}: one of {', '.join(VARIANTS)}")
     saved = {name: getattr(losses, name) for name in LOSS_METRICS}
-    outer, shared_terms, share_metrics = consistency._outer_stacked, dict(agent.SHARED_TERMS), agent.ObsAgent.share_metrics
-    dense, stacks = networks.Dense, consistency.STACKS
+    outer, shared_terms, share_metrics = consistency._outer, dict(agent.SHARED_TERMS), agent.ObsAgent.share_metrics
+    dense, grad_chunk = networks.Dense, consistency.GRAD_CHUNK
     if variant == "no-loss-metrics":
         for name, metrics in LOSS_METRICS.items():
             setattr(losses, name, _zeroing(saved[name], metrics))
@@ -189,19 +185,19 @@ def applied(variant: str) -> Iterator[None]:
         scalars = {m for names in SCALAR_LOSSES.values() for m in names}
         agent.ObsAgent.share_metrics = lambda self: tuple(n for n in share_metrics(self) if n not in scalars)
     if variant == "bias-sum":
-        consistency._outer_stacked = _outer_bias_sum
+        consistency._outer = _outer_bias_sum
     if variant == "outer-dense":
         networks.Dense = _OuterDense
-    if variant == "concat-stacks":
-        consistency.STACKS = "concat"
+    if variant == "grad-chunks":
+        consistency.GRAD_CHUNK = 5
     try:
         yield
     finally:
         for name, fn in saved.items():
             setattr(losses, name, fn)
-        consistency._outer_stacked = outer
+        consistency._outer = outer
         networks.Dense = dense
-        consistency.STACKS = stacks
+        consistency.GRAD_CHUNK = grad_chunk
         agent.SHARED_TERMS.clear()
         agent.SHARED_TERMS.update(shared_terms)
         agent.ObsAgent.share_metrics = share_metrics

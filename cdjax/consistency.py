@@ -267,7 +267,9 @@ def _outer(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     (One product, not the kernel's product and the bias's sum apart: on an H100 the separate sum's per-step reduce
     kernels made paper-CD's update 0.839 s against 0.805 s, 2026-11-25, `benchmarks.variants bias-sum`.)
     """
-    return _outer_stacked(_with_ones(a), b)
+    a = jnp.concatenate([a, jnp.ones(a.shape[:-1] + (1,), a.dtype)], axis=-1)
+    g = a.reshape(-1, a.shape[-1]).T @ b.reshape(-1, b.shape[-1])
+    return g[:-1], g[-1]
 
 
 def _chain_inputs(c: dict, shared: bool, s: jax.Array) -> jax.Array:
@@ -296,53 +298,6 @@ def _stack_steps(xs: list) -> jax.Array:
     return jnp.concatenate([x[None] for x in xs])
 
 
-def _with_ones(x: jax.Array) -> jax.Array:
-    """x [..., D] with a last column of ones: [..., D + 1] (the bias's row of a weight gradient's product)."""
-    return jnp.concatenate([x, jnp.ones(x.shape[:-1] + (1,), x.dtype)], axis=-1)
-
-
-# How the fused chain keeps the large per-step arrays that its weight gradients read stacked [k, ...] (the hidden
-# units, the hidden states, the first layer's and the GRU's cotangents). A module global, for `benchmarks.variants`
-# (concat-stacks):
-# - "inplace": each step's array is written into its slot of one [k, ...] buffer as the step runs (the hidden units and
-#   hidden states into buffers whose last column is already the ones of the bias's row), so the products read the
-#   buffers as they are;
-# - "concat": the arrays are kept apart and concatenated, the ones column appended, once after the loops (until
-#   2026-11-28). On an H100 those concatenations were about 33 ms of paper-CD's 0.62 s update, memory-bound copies at
-#   the end of every SGD step (benchmarks/results/2026-11-28-h100-accept/).
-STACKS = "inplace"
-
-
-class _Steps:
-    """The k per-step arrays of one kind, put one step at a time, read back per step (`[t]`) and stacked
-    (`stacked()`: [k, ...], with a last column of ones when `ones`). `held` is what crosses the custom VJP's residuals:
-    the buffer (STACKS "inplace") or the list of arrays ("concat")."""
-
-    def __init__(self, k: int, ones: bool = False, held: jax.Array | list | None = None):
-        self.k, self.ones, self.held = k, ones, held
-
-    def put(self, t: int, x: jax.Array) -> None:
-        if STACKS == "concat":
-            self.held = self.held or [None] * self.k
-            self.held[t] = x
-            return
-        if self.held is None:
-            make = jnp.ones if self.ones else jnp.zeros
-            self.held = make((self.k,) + x.shape[:-1] + (x.shape[-1] + self.ones,), x.dtype)
-        self.held = jax.lax.dynamic_update_slice(self.held, x[None], (t,) + (0,) * x.ndim)
-
-    def __getitem__(self, t: int) -> jax.Array:
-        if isinstance(self.held, list):
-            return self.held[t]
-        return self.held[t, ..., :self.held.shape[-1] - 1] if self.ones else self.held[t]
-
-    def stacked(self) -> jax.Array:
-        if isinstance(self.held, list):
-            stack = _stack_steps(self.held)
-            return _with_ones(stack) if self.ones else stack
-        return self.held
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
 def _chain(shared: bool, kernel: bool, p: dict, c: dict):
     return _chain_fwd(shared, kernel, p, c)[0]
@@ -354,8 +309,8 @@ def _chain_fwd(shared: bool, kernel: bool, p: dict, c: dict):
     Per step, three matrix products: the model's hidden layer(s) and output, then one product of the new
     state's normalised input with [first layer's state rows | W_i] (the next step's first layer and this step's
     imagined GRU input at once), and one of [h_re; h_im] with W_h. The real rows' GRU inputs and the actions'
-    share of the first layer do not depend on the chain: one product each, before it. The hidden units and the
-    hidden states entering each step are kept for the weight gradients as `_Steps` (STACKS), the rest as lists.
+    share of the first layer do not depend on the chain: one product each, before it. The residuals are the
+    per-step arrays as they are (a list per kind), never written into stacked buffers step by step.
     `kernel`: the k steps as one CUDA kernel (`cdjax.kernels.chain`), its residuals stacked [k or k+1, ...].
     """
     layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
@@ -374,25 +329,24 @@ def _chain_fwd(shared: bool, kernel: bool, p: dict, c: dict):
         return (hs[k, :W], hs[k, W:], states[k]), (p, c, w_in, gi_re, stats, xin, [u], both_im, hh, hs)
     states, xin = [s0], [_chain_inputs(c, shared, s0)]
     p1 = xin[0] @ w_in[:, :N1]
-    h = jnp.zeros((2 * W, w_h.shape[0]), s0.dtype)  # real rows, then imagined rows
-    hidden, hs_in = [_Steps(k, ones=True) for _ in layers[:-1]], _Steps(k, ones=True)
-    both_im, hh = [], []
+    hs = [jnp.zeros((2 * W, w_h.shape[0]), s0.dtype)]  # real rows, then imagined rows
+    hidden, both_im, hh = [], [], []
     for t in range(k):
         u = jax.nn.relu(p1 + z1_actions[t])
-        hidden[0].put(t, u)
-        for i, (kernel_t, bias) in enumerate(layers[1:-1], 1):
+        us = [u]
+        for kernel_t, bias in layers[1:-1]:
             u = jax.nn.relu(u @ kernel_t + bias)
-            hidden[i].put(t, u)
+            us.append(u)
         states.append(states[-1] + nz.denormalize(c["delta"], u @ w_out + b_out))
         xin.append(_chain_inputs(c, shared, states[-1]))
         both = xin[-1] @ w_in  # [W, N1 + 3H]: the next step's first layer (state part) | this step's GRU input
         p1 = both[:, :N1]
+        hidden.append(us)
         both_im.append(both[:, N1:])
-        hs_in.put(t, h)
-        hh.append(h @ w_h)
-        h = _gates(c, gi_re[t], both_im[-1], hh[-1], h)
-    residuals = (p, c, w_in, gi_re, states, xin, [steps.held for steps in hidden], both_im, hh, hs_in.held)
-    return (h[:W], h[W:], states[-1]), residuals
+        hh.append(hs[-1] @ w_h)
+        hs.append(_gates(c, gi_re[t], both_im[-1], hh[-1], hs[-1]))
+    residuals = (p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs)
+    return (hs[-1][:W], hs[-1][W:], states[-1]), residuals
 
 
 def _input_weights(w_1: jax.Array, w_i: jax.Array, O: int, shared: bool) -> jax.Array:
@@ -410,85 +364,97 @@ def _kernel_stats(c: dict) -> jax.Array:
                       c["delta"].std])
 
 
-def _row_scaling(c: dict, rows: int):
-    """g [..., 2 rows, J] -> g with the real rows' cotangents scaled by scales[0] and the imagined rows' by scales[1],
-    as `scale_gradient` would scale the encoder's gradient of each (a zero scale gives zeros, whatever g holds)."""
-    scales = jnp.repeat(jnp.stack(c["scales"]), rows)[:, None]  # [2 rows, 1]: each row's kind's scale
-    return lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)
-
-
 def _chain_bwd(shared: bool, kernel: bool, residuals, cotangents):
     """The chain's backward, unrolled: per step only the cotangents of the states and hidden states (three
     matrix products); every weight's gradient afterwards, one product over all k steps and both row kinds each
     (the bias as the product's last row). `kernel`: the per-step cotangents as one CUDA kernel."""
     dh_re, dh_im, ds = cotangents
-    W = ds.shape[0]
-    scaled = _row_scaling(residuals[1], W)
     if kernel:
         p, c, w_in, gi_re, stats, xin, hidden, both_im, hh, hs = residuals
         (_, _), (w_out, _) = p["layers"]
         dgi, dhh, dz, dz1, ds0 = chain_kernel.backward(nz.CLIP, hidden[0], xin, both_im, hh, hs, gi_re, w_in, w_out,
                                                        p["w_h"], p["b_i"], p["b_hn"], stats,
                                                        jnp.concatenate([dh_re, dh_im]), ds)
-        return _chain_weight_grads(p, c, xin[:-1], xin[1:], [_with_ones(hidden[0])], [dz1, dz], scaled(dgi),
-                                   scaled(dhh), _with_ones(hs[:-1]), dgi[:, :W] @ p["w_i"].T, ds0)
-    p, c, w_in, gi_re, states, xin, hidden_held, both_im, hh, hs_held = residuals
+        return _chain_weight_grads(p, c, xin[:-1], xin[1:], hidden, [dz1, dz], dgi, dhh, hs[:-1], ds0)
+    p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs = residuals
     layers, w_h = p["layers"], p["w_h"]
-    k = len(both_im)
-    hidden, hs_in = [_Steps(k, True, held) for held in hidden_held], _Steps(k, True, hs_held)
+    k = len(hidden)
     N1 = layers[0][0].shape[1]
     delta_std = c["delta"].std  # d denormalize(delta, z) / dz
     dh, dp1 = jnp.concatenate([dh_re, dh_im]), None  # cotangents of h_{t+1} and of the next step's first layer
-    dgi, dhh, dz_hidden = _Steps(k), _Steps(k), [_Steps(k) for _ in layers[:-1]]
-    dz_out, dx_re = [None] * k, [None] * k
+    dgi, dhh, dzs = [None] * k, [None] * k, [None] * k
     for t in reversed(range(k)):
-        _, gates_vjp = jax.vjp(functools.partial(_gates, c), gi_re[t], both_im[t], hh[t], hs_in[t])
-        dgi_re, dgi_im, dhh_t, dh_direct = gates_vjp(dh)
-        dgi.put(t, scaled(jnp.concatenate([dgi_re, dgi_im])))  # the weight gradients' share, each row kind's scale
-        dhh.put(t, scaled(dhh_t))
-        dx_re[t] = dgi_re @ p["w_i"].T
-        dh = dh_direct + dhh_t @ w_h.T
+        _, gates_vjp = jax.vjp(functools.partial(_gates, c), gi_re[t], both_im[t], hh[t], hs[t])
+        dgi_re, dgi_im, dhh[t], dh_direct = gates_vjp(dh)
+        dgi[t] = jnp.concatenate([dgi_re, dgi_im])
+        dh = dh_direct + dhh[t] @ w_h.T
         dboth = dgi_im if dp1 is None else jnp.concatenate([dp1, dgi_im], axis=-1)
         dxin = dboth @ (w_in[:, N1:] if dp1 is None else w_in).T
         _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[t + 1])
         ds = ds + inputs_vjp(dxin)[0]  # every path into s_{t+1}
-        dz = dz_out[t] = ds * delta_std  # the output layer's
-        for i in reversed(range(len(layers) - 1)):  # hidden layer i's pre-activation, through layer i + 1
-            dz = jnp.where(hidden[i][t] > 0, dz @ layers[i + 1][0].T, 0.0)
-            dz_hidden[i].put(t, dz)
+        dz = ds * delta_std  # the output layer's
+        dzs[t] = [dz]
+        for (kernel_t, _), u in zip(layers[:0:-1], hidden[t][::-1]):
+            dz = jnp.where(u > 0, dz @ kernel_t.T, 0.0)
+            dzs[t].append(dz)
+        dzs[t] = dzs[t][::-1]
         dp1 = dz
     _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[0])
     ds0 = ds + inputs_vjp(dp1 @ w_in[:, :N1].T)[0]
-    return _chain_weight_grads(p, c, _stack_steps(xin[:-1]), _stack_steps(xin[1:]), [h.stacked() for h in hidden],
-                               [d.stacked() for d in dz_hidden] + [_stack_steps(dz_out)], dgi.stacked(), dhh.stacked(),
-                               hs_in.stacked(), _stack_steps(dx_re), ds0)
+
+    return _stepwise_weight_grads(p, c, xin, hidden, dzs, dgi, dhh, hs, ds0, GRAD_CHUNK or k)
 
 
-def _outer_stacked(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """`_outer` of inputs a [..., I + 1] that already end in a column of ones."""
-    g = a.reshape(-1, a.shape[-1]).T @ b.reshape(-1, b.shape[-1])
-    return g[:-1], g[-1]
+# Steps per product of the chain's weight gradients (None: all k steps in one product per weight, after the loop, the
+# default). With c < k the weight gradients are the sums of one product per c steps, each formed from that chunk's
+# per-step arrays alone, so a chunk's products need not wait for the rest of the backward nor for a stack of all k
+# steps. The same gradients up to the order of the sums. A module global for `benchmarks.variants` (grad-chunks).
+GRAD_CHUNK: int | None = None
 
 
-def _chain_weight_grads(p: dict, c: dict, xin_prev, xin_next, hidden: list, dz_layers: list, dgi, dhh, hs_prev, dx_re,
-                        ds0):
+def _stepwise_weight_grads(p: dict, c: dict, xin: list, hidden: list, dzs: list, dgi: list, dhh: list, hs: list, ds0,
+                           chunk: int):
+    """`_chain_weight_grads` over the steps in chunks of `chunk` (the last one shorter): the weights' and biases'
+    gradients summed over the chunks, the per-step cotangents (actions', x_re's) concatenated in step order."""
+    k, stack = len(hidden), _stack_steps  # [steps, ...]: one copy per kind and chunk
+    parts = []
+    for t0 in range(0, k, chunk):
+        steps = range(t0, min(t0 + chunk, k))
+        part = dict(p, actions=p["actions"][t0:steps[-1] + 1], x_re=p["x_re"][t0:steps[-1] + 1])
+        parts.append(_chain_weight_grads(
+            part, c, stack([xin[t] for t in steps]), stack([xin[t + 1] for t in steps]),
+            [stack([hidden[t][i] for t in steps]) for i in range(len(hidden[0]))],
+            [stack([dzs[t][i] for t in steps]) for i in range(len(dzs[0]))],
+            stack([dgi[t] for t in steps]), stack([dhh[t] for t in steps]), stack([hs[t] for t in steps]), ds0))
+    if len(parts) == 1:
+        return parts[0]
+    per_step = {"actions", "x_re"}
+    dp = {name: (jnp.concatenate([part[0][name] for part in parts]) if name in per_step else
+                 jax.tree.map(lambda *xs: sum(xs[1:], xs[0]), *[part[0][name] for part in parts]))
+          for name in parts[0][0] if name != "s0"}
+    return dict(dp, s0=ds0), parts[0][1]
+
+
+def _chain_weight_grads(p: dict, c: dict, xin_prev, xin_next, hidden: list, dz_layers: list, dgi, dhh, hs_prev, ds0):
     """Every weight's gradient from the chain's per-step arrays, stacked [k, ...]: one product over all k steps and
     both row kinds each (the bias as the product's last row), and the inputs' cotangents.
 
     xin_prev, xin_next [k, W, X]: the normalised inputs of steps 0..k-1 and 1..k; hidden: each hidden layer's
-    outputs with a last column of ones [k, W, N + 1]; dz_layers: each layer's output cotangents; dgi, dhh [k, 2W, 3H]:
-    the GRU's input and recurrent parts' cotangents, each row kind's scaled as scale_gradient would; hs_prev
-    [k, 2W, H + 1]: the hidden states entering each step, with a last column of ones; dx_re [k, W, D]: the real
-    rows' inputs' cotangents; ds0 [W, O]."""
+    outputs [k, W, N]; dz_layers: each layer's output cotangents; dgi, dhh [k, 2W, 3H]: the GRU's input and
+    recurrent parts' cotangents; hs_prev [k, 2W, H]: the hidden states entering each step; ds0 [W, O]."""
     layers = p["layers"]
-    O, H = ds0.shape[-1], p["w_h"].shape[0]
+    O, W, H = ds0.shape[-1], ds0.shape[0], p["w_h"].shape[0]
     model_in = jnp.concatenate([xin_prev[..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
-    dlayers = (_outer(model_in, dz_layers[0]),) + tuple(_outer_stacked(x, dz) for x, dz in zip(hidden, dz_layers[1:]))
+    dlayers = tuple(_outer(x, dz) for x, dz in zip([model_in] + list(hidden), dz_layers))
     dactions = dz_layers[0] @ layers[0][0][O:].T
+    # the GRU's weights: real and imagined rows in one product, each kind's cotangent scaled as scale_gradient would
+    scales = jnp.repeat(jnp.stack(c["scales"]), W)[None, :, None]  # [1, 2W, 1]: each row's kind's scale
+    scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
     x_enc = jnp.concatenate([p["x_re"], xin_next[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2W, D]
-    dw_i, db_i = _outer(x_enc, dgi)
-    dw_h, dgh_bias = _outer_stacked(hs_prev, dhh)
-    dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions, x_re=dx_re)
+    dw_i, db_i = _outer(x_enc, scaled(dgi))
+    dw_h, dgh_bias = _outer(hs_prev, scaled(dhh))
+    dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
+              x_re=dgi[:, :W] @ p["w_i"].T)
     return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})
 
 

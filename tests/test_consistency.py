@@ -332,7 +332,7 @@ def test_the_fused_chain_is_autodiff_of_the_plain_loop_with_every_output(hidden,
     """`fused_chain` against JAX's own gradient of k plain `mlp_step`s and GRU steps, with a loss on all three
     outputs (h_re, h_im and the final state s_k, which the terms use only in a metric), the GRU's real and imagined
     rows' gradients scaled apart, on states far beyond CLIP (where the clip binds); and so with its weight gradients
-    so with its per-step arrays stacked once after the loops (STACKS "concat") as with them written in place."""
+    summed over chunks of steps (GRAD_CHUNK, the last chunk shorter)."""
     s0, actions, real = _real_windows(seed=4)
     model = _mlp_model(hidden=hidden)
     model = model.replace(obs=nz.update(nz.RunningStats.create(4), 0.025 * jax.random.normal(jax.random.key(7),
@@ -370,7 +370,7 @@ def test_the_fused_chain_is_autodiff_of_the_plain_loop_with_every_output(hidden,
         np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6,
                                    err_msg=jax.tree_util.keystr(path))
     assert float(jnp.abs(g_f[2]).max()) > 0 and float(jnp.abs(g_f[0].layers[-1][0]).max()) > 0
-    monkeypatch.setattr(cc, "STACKS", "concat")
+    monkeypatch.setattr(cc, "GRAD_CHUNK", 4)  # K = 6 steps: chunks of 4 and 2
     g_c = jax.jit(jax.grad(lambda *a: fused(*a), argnums=(0, 1, 2, 3, 4)))(*args)  # a new function: traced again
     for (path, a), b, f in zip(jax.tree_util.tree_leaves_with_path(g_p), jax.tree.leaves(g_c), jax.tree.leaves(g_f)):
         np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6, err_msg=jax.tree_util.keystr(path))
@@ -431,16 +431,16 @@ def test_chain_check_measures_the_fused_chain_against_the_plain_loop(tmp_path):
     assert list(rows) == [name for name, _, _ in chain_check.ROWS]
     for row in rows.values():
         assert set(row) == {"value", *chain_check.ARGS} and max(row.values()) < 1e-5, rows
-    right = cc._outer_stacked  # the fused backward's weight gradients (every layer's, the GRU's), doubled
+    right = cc._outer  # the fused backward's weight gradients (every layer's, the GRU's), doubled
 
     def doubled(a, b):
         return jax.tree.map(lambda x: 2 * x, right(a, b))
 
-    cc._outer_stacked = doubled
+    cc._outer = doubled
     try:
         bad = chain_check.check(16, 6, 4, 2, 16, 8)["relative_error"]
     finally:
-        cc._outer_stacked = right
+        cc._outer = right
     assert bad["fused chain"]["model"] > 0.5 and bad["fused chain"]["s0"] < 1e-5
     assert bad["fused chain, highest"]["model"] > 0.5 and max(bad["plain loop"].values()) < 1e-5
     for size in ("0", "-3", "two"):  # a size that is no width: one sentence from argparse, no traceback

@@ -64,11 +64,11 @@ def test_bias_sum_gives_the_same_weight_gradients_as_the_one_product():
     assert kernel.shape == (7, 3) and bias.shape == (3,)
     assert jnp.allclose(kernel, jnp.einsum("...i,...j->ij", a, b), atol=1e-5)
     assert jnp.allclose(bias, b.sum((0, 1, 2)), atol=1e-5)
-    one_product = consistency._outer_stacked
+    one_product = consistency._outer
     with variants.applied("bias-sum"):
-        assert consistency._outer_stacked is not one_product
+        assert consistency._outer is not one_product
         split_kernel, split_bias = consistency._outer(a, b)
-    assert consistency._outer_stacked is one_product
+    assert consistency._outer is one_product
     assert jnp.allclose(split_kernel, kernel, atol=1e-5) and jnp.allclose(split_bias, bias, atol=1e-5)
 
 
@@ -169,15 +169,15 @@ def flax_dense():
     return nn.Dense
 
 
-def test_concat_stacks_switches_the_chain_to_stacks_concatenated_after_its_loops_only_inside_its_block():
-    """`concat-stacks` sets consistency.STACKS to "concat" (whose gradients test_consistency checks against the plain
-    loop and the in-place form) inside its block only."""
+def test_grad_chunks_switches_the_chain_to_chunked_weight_gradients_only_inside_its_block():
+    """`grad-chunks` sets consistency.GRAD_CHUNK (whose gradients test_consistency checks against the plain loop)
+    inside its block only."""
     from cdjax import consistency
 
-    assert consistency.STACKS == "inplace"
-    with variants.applied("concat-stacks"):
-        assert consistency.STACKS == "concat"
-    assert consistency.STACKS == "inplace"
+    assert consistency.GRAD_CHUNK is None
+    with variants.applied("grad-chunks"):
+        assert consistency.GRAD_CHUNK == 5
+    assert consistency.GRAD_CHUNK is None
 
 
 def test_bad_arguments_are_refused_in_one_sentence_before_the_variant_is_applied(tmp_path, capsys, monkeypatch):
