@@ -36,6 +36,11 @@ Variants:
                    beside the rest of the backward, and no stack of all k steps' arrays waits at the end of each SGD
                    step (on an H100, 2026-11-27, two such concatenations took about 21 ms of paper-CD's 0.618 s
                    update, benchmarks/results/2026-11-27-h100-per-program/). The same gradients up to rounding.
+  (inplace-stacks, the fused chain's large per-step arrays written into their slots of one buffer per kind as the
+  steps ran (the hidden units' and states' buffers starting as ones, their bias column in place) instead of
+  concatenated after the loops, was reverted after its A/B: at one seed paper-CD 0.6005 and 0.6009 s/update against
+  0.5973 and 0.6147 concatenated (ABBA), at 10 seeds 0.6546 against 0.5823; one H100, 2026-11-28,
+  benchmarks/results/2026-11-28-h100-stacks/, code in c09c318.)
   (split-chain, the fused chain in a split form: the model's k steps first, then the GRU's imagined inputs in one
   product and the GRU's k steps, backward the GRU's chain, the model's share of its cotangents in one product and the
   model's chain, the hidden widths zero-padded to a multiple of 32, was removed after its A/B: paper-CD 0.6595 s/update
