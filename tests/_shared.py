@@ -83,6 +83,19 @@ def fail_in_one_sentence(capsys, main, argv) -> str:
     return lines[0]
 
 
+def benchmark_refuses(capsys, main, argv, prog: str, said: str, quiet: bool = False) -> str:
+    """Run a benchmark's main(argv), which must exit with status 2 after one line `python -m benchmarks.PROG: ...` on
+    stderr that holds `said` (and, `quiet`, print nothing on stdout); return that line."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    out, err = capsys.readouterr()
+    assert stop.value.code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"python -m benchmarks.{prog}: ") and said in err, err
+    assert out == "" or not quiet, out
+    return err.strip()
+
+
 def logged_rows(run_dir, name: str = "metrics.jsonl") -> list[dict]:
     """A JSONL log of a run without the wall-clock (the only field that differs between two runs), in a fixed
     order (arms that resume from different updates interleave their chunks differently)."""

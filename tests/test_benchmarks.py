@@ -18,6 +18,7 @@ from benchmarks.common import FULL, TINY  # noqa: E402
 from benchmarks.run import main  # noqa: E402
 from benchmarks.scaling import seed_scaling  # noqa: E402
 from benchmarks.throughput import DESIGNATED_CD, PAPER_CD  # noqa: E402
+from _shared import benchmark_refuses  # noqa: E402
 
 COMPARE = ["brax-ppo", "ceiling", "collect", "model-free", "mbmf", DESIGNATED_CD, PAPER_CD]
 
@@ -711,12 +712,7 @@ def test_ale_and_compile_time_benchmarks_refuse_bad_arguments_in_one_sentence(tm
     afile.write_text("")
 
     def refused(main, argv, prog, said):
-        capsys.readouterr()
-        with pytest.raises(SystemExit) as stop:
-            main(argv)
-        err = capsys.readouterr().err
-        assert stop.value.code == 2 and err.startswith(f"python -m benchmarks.{prog}: ") and said in err, err
-        assert err.count("\n") == 1, err
+        benchmark_refuses(capsys, main, argv, prog, said)
 
     refused(ale.main, ["--game", "nosuch", "--out", str(out)], "ale", "argument --game: invalid choice: 'nosuch'")
     refused(ale.main, ["--tiny", "--totals", "0", "--out", str(out)], "ale", "argument --totals: '0' is not")
@@ -1042,12 +1038,7 @@ def test_xla_timers_refuses_bad_arguments_in_one_sentence_before_printing_or_wri
     notgz.write_text(log.read_text())
 
     def refused(argv, said):
-        capsys.readouterr()
-        with pytest.raises(SystemExit) as stop:
-            xla_timers.main(argv)
-        out, err = capsys.readouterr()
-        assert stop.value.code == 2 and out == "" and err.count("\n") == 1, err
-        assert err.startswith("python -m benchmarks.xla_timers: ") and said in err, err
+        benchmark_refuses(capsys, xla_timers.main, argv, "xla_timers", said, quiet=True)
 
     refused([str(tmp_path / "none.log")], f"no such log: {tmp_path / 'none.log'}")
     refused([str(tmp_path)], f"LOG {tmp_path} is a directory")
@@ -1101,12 +1092,7 @@ def test_same_results_refuses_bad_arguments_in_one_sentence_before_a_child_start
     afile.write_text("")
 
     def refused(argv, said):
-        capsys.readouterr()
-        with pytest.raises(SystemExit) as stop:
-            same_results.main([*argv, "--tiny"])
-        err = capsys.readouterr().err
-        assert stop.value.code == 2 and err.count("\n") == 1, err
-        assert err.startswith("python -m benchmarks.same_results: ") and said in err, err
+        benchmark_refuses(capsys, same_results.main, [*argv, "--tiny"], "same_results", said)
 
     two = ["--flags", "a=1", "b=2"]
     refused(["--flags", "a=1", "b", "--out", str(out)], "--flags 'b' is not NAME=VALUE")

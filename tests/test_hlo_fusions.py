@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import pytest
 
 from benchmarks import hlo_fusions
+from _shared import benchmark_refuses
 
 
 def _masked_scaled_sum(x, m):
@@ -126,12 +126,7 @@ def test_bad_arguments_are_refused_in_one_sentence_before_anything_is_read(tmp_p
     (dump / "m.after_optimizations.txt").write_text("HloModule m\n")
 
     def refused(argv, said):
-        capsys.readouterr()
-        with pytest.raises(SystemExit) as stop:
-            hlo_fusions.main(argv)
-        out, err = capsys.readouterr()
-        assert stop.value.code == 2 and out == "" and err.count("\n") == 1, err
-        assert err.startswith("python -m benchmarks.hlo_fusions: ") and said in err, err
+        benchmark_refuses(capsys, hlo_fusions.main, argv, "hlo_fusions", said, quiet=True)
 
     refused([str(tmp_path / "none"), "loop_fusion"], f"DUMP {tmp_path / 'none'} does not exist")
     refused([str(empty), "loop_fusion"], f"DUMP {empty} holds no *after_optimizations.txt file")

@@ -11,6 +11,7 @@ import pytest
 
 from benchmarks import variants
 from cdjax.agents.obs import losses
+from _shared import benchmark_refuses
 
 
 def _losses(pred_mean, pred_log_std, policy_mean, value, data):
@@ -190,12 +191,7 @@ def test_bad_arguments_are_refused_in_one_sentence_before_the_variant_is_applied
     afile.write_text("")
 
     def refused(argv, prog, said):
-        capsys.readouterr()
-        with pytest.raises(SystemExit) as stop:
-            variants.main(argv)
-        out, err = capsys.readouterr()
-        assert stop.value.code == 2 and out == "" and err.count("\n") == 1, err
-        assert err.startswith(f"python -m benchmarks.{prog}: ") and said in err, err
+        benchmark_refuses(capsys, variants.main, argv, prog, said, quiet=True)
 
     refused(["no-such", "--", "--tiny"], "variants", "argument variant: invalid choice: 'no-such'")
     refused(["bias-sum", "--", "--tiny", "--updates", "0"], "run", "argument --updates: '0' is not")
