@@ -78,6 +78,10 @@
 #            CONDITIONAL: no host round trip for a loop's predicate, no launch per pass), as `cublaslt` does its flag
 #            (flag_ab). On 2026-11-27 (H100) 0.7-3.2% slower in every case, not adopted
 #            (benchmarks/results/2026-11-27-h100-cmdbuf/).
+#   pdl      programmatic dependent launch (--xla_gpu_enable_pdl=true: on Hopper a kernel may start while the one it
+#            depends on finishes, its prologue overlapping the other's tail), as `cublaslt` does its flag (flag_ab). The
+#            SGD step of paper-CD is ~480 small dependent kernels busy 95% of its span, 4-8 µs each at 512 rows
+#            (benchmarks/results/2026-11-28-h100-accept/): whether the overlap shortens the chain.
 #   regions  XLA's copy insertion with region analysis for cdjax's programs (CDJAX_XLA_OPTIONS=
 #            xla_gpu_copy_insertion_use_region_analysis=true, per program: Brax PPO stays at XLA's own), about 10
 #            minutes: the compare suite (Brax PPO, model-free, Mb-Mf, paper-CD) and the seeds suite's Mb-Mf and paper-CD
@@ -606,6 +610,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       echo "$line grep -H -E ' copy|kernels per' $work/loops-*.log | head -n 40;" \
         "find $work -name '*after_optimizations.txt' | xargs tar -czf $work/hlo.tar.gz" ;;
     cmdbuf) flag_ab xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL while ;;
+    pdl) flag_ab xla_gpu_enable_pdl=true pdl ;;
     concurrent) flag_ab xla_gpu_command_buffer_scheduling_mode=LHS lhs ;;
     xla-own) flag_ab "xla_gpu_autotune_level=4 xla_gpu_experimental_cost_model_gemm_tiling_options=" xla-own ;;
     determinism)
@@ -750,7 +755,7 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
           "--frameworks cdjax --variants default --seeds 5 --out $work/learn/$t > $work/learn-$t.log 2>&1 &"
       done
       echo "wait; tail -n 2 $work/learn-*.log" ;;
-    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, regions, regions-hlo, chain, chain-e2e, cmdbuf, concurrent, xla-own, determinism, determinism-cd, outer, chunks, tuned, topn, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
+    *) echo "unknown unit $1: flags, lowered, speed, accept, autotune, levels, tilings, kernels, hlo, parallel, sched, timers, kcache, shares, ab, cublaslt, regions, regions-hlo, chain, chain-e2e, cmdbuf, pdl, concurrent, xla-own, determinism, determinism-cd, outer, chunks, tuned, topn, identity, top1, seeds, hlo-seeds, learn, learn-more, workers, hc-seeds, hc-levels, hc-final, hc-ablate, init, head or head-more" >&2; return 1 ;;
   esac
 }
 
