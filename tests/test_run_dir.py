@@ -462,6 +462,8 @@ def test_unreadable_log_lines_are_skipped_by_plot_and_trimmed_by_resume(runs, tm
     (lambda p: _edit_run(p.parent, lambda run: run["base_config"].update(policy_hidden="wide")),
      "policy_hidden must be a non-empty tuple of positive integers, got 'wide'"),
     (lambda p: p.write_bytes(b"\x00" * 10), "run.json is not valid JSON"),
+    (lambda p: _edit_run(p.parent, lambda run: run["arms"][0].pop("name")),
+     "run.json: arms[0].name must be an arm's name, got no name"),
 ])
 @pytest.mark.parametrize("command", ["resume", "eval", "plot"])
 def test_a_damaged_run_json_is_one_sentence_for_every_command(runs, tmp_path, capsys, damage, words, command):

@@ -366,9 +366,9 @@ def _short(value, limit: int = 60) -> str:
 
 def check_record(run: dict, where: str | os.PathLike = "run.json") -> None:
     """RunDirError (one sentence naming the field) for a run.json field of the wrong type."""
-    def refuse(name: str, what: str, value) -> None:
-        raise RunDirError(f"{where}: {name} must be {what}, got {_short(value)}; put back the run.json the sweep "
-                          "wrote.")
+    def refuse(name: str, what: str, value, got: str = "") -> None:
+        raise RunDirError(f"{where}: {name} must be {what}, got {got or _short(value)}; put back the run.json the "
+                          "sweep wrote.")
 
     for name, (what, ok) in _RECORD.items():
         if name in run and not ok(run[name]):
@@ -376,6 +376,8 @@ def check_record(run: dict, where: str | os.PathLike = "run.json") -> None:
     for i, arm in enumerate(run.get("arms", [])):
         if not isinstance(arm, dict):
             refuse(f"arms[{i}]", "an object", arm)
+        if "name" not in arm:  # every reader of the logs (plot, eval, a resume) finds an arm's rows by its name
+            refuse(f"arms[{i}].name", _ARM["name"][0], None, got="no name")
         for name, (what, ok) in _ARM.items():
             if name in arm and not ok(arm[name]):
                 refuse(f"arms[{i}].{name}", what, arm[name])
