@@ -74,6 +74,8 @@ ensure_wheels() {
 # 10 MB are left for the data units add; `carry_size .whl-site` says what is left before a call. On 2026-11-27 the
 # tree (56.6 MB, 1,840 files with the tarball) no longer fitted beside it: `SITE_NO_GL=1 pack_site` leaves out PyOpenGL
 # and glfw (8.4 MB instead of 9.2), enough for units that render nothing (the pixel and rendering units need them).
+# On 2026-11-28 the tracked PNGs were re-encoded as palette images (`python -m experiments.compact_pngs`: 12.4 -> 6.1
+# MB), and the full site fits again with about 5.8 MB to spare; run it on new figures before committing them.
 pack_site() {
   local tmp w
   tmp=$(mktemp -d) || return 1

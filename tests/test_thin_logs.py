@@ -92,3 +92,37 @@ def test_the_final_window_is_the_same_on_a_thinned_log_as_on_the_whole_one():
     by_points = stats.final_values(thinned, np.ones_like(thinned, bool))[0]
     assert by_points > whole + 20  # the last 10% of ~240 kept points: only the last ~24 updates
     assert stats.final_values(full, np.ones_like(full, bool))[0] == whole  # a whole log: both windows agree
+
+
+def test_compact_pngs_keeps_the_picture_in_fewer_bytes_and_leaves_transparency_alone():
+    """A plot-like opaque RGBA image (flat colours, an anti-aliased line) comes back as a smaller palette PNG of the
+    same size whose pixels are within a few levels of the original; an image with transparent pixels, and a palette
+    image, come back as None (left as they are)."""
+    import io as bytes_io
+
+    import numpy as np
+    from PIL import Image
+
+    from experiments.compact_pngs import compact
+
+    y, x = np.mgrid[0:120, 0:400]
+    rgba = np.full((120, 400, 4), 255, np.uint8)
+    for i, color in enumerate([(31, 119, 180), (255, 127, 14), (44, 160, 44)]):
+        near = np.clip(1.5 - np.abs(y - (30 + 30 * i + 10 * np.sin(x / (20 + 5 * i)))), 0, 1)[..., None]
+        rgba[..., :3] = (rgba[..., :3] * (1 - near) + np.array(color) * near).astype(np.uint8)
+
+    def png(array, mode="RGBA"):
+        out = bytes_io.BytesIO()
+        Image.fromarray(array, mode).save(out, "PNG")
+        return out.getvalue()
+
+    raw = png(rgba)
+    new = compact(raw)
+    assert new is not None and len(new) < len(raw)
+    image = Image.open(bytes_io.BytesIO(new))
+    assert image.mode == "P" and image.size == (400, 120)
+    assert np.abs(np.asarray(image.convert("RGB"), int) - rgba[..., :3].astype(int)).max() <= 16
+    see_through = rgba.copy()
+    see_through[:10, :10, 3] = 0
+    assert compact(png(see_through)) is None
+    assert compact(new) is None
