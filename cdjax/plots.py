@@ -259,6 +259,11 @@ def _other_count(row: dict, prefix: str) -> int | None:
     return n if n and n != row["seeds"] else None
 
 
+def _label(row: dict) -> str:
+    """A summary row's arm and hyper-parameter label, as its notes name it ("cd alpha=1.0", or "cd" alone)."""
+    return " ".join(part for part in (row["arm"], row["hp"]) if part)
+
+
 def _cell(row: dict, prefix: str) -> str:
     iqm, lo, hi = row[f"{prefix}_iqm"], row[f"{prefix}_ci_low"], row[f"{prefix}_ci_high"]
     if not np.isfinite(iqm):
@@ -311,22 +316,20 @@ def summary_markdown(rows: list[dict], title: str = "", notes: Sequence[str] = (
         "episodes of each seed's latest evaluation.",
     ]
     if short:
-        runs = "; ".join(f"{row['arm']} {row['hp'] or ''} seeds {row['left_out_seed_ids']}".replace("  ", " ")
-                         for row in short)
+        runs = "; ".join(f"{_label(row)} seeds {row['left_out_seed_ids']}" for row in short)
         lines += ["", "**Seeds left out**: the seeds column counts the seeds with a finite final return (the figure "
                       "the rows are ranked by), and every figure uses only the seeds finite in it; these logged "
                       f"seeds have no finite return over the last {stats.FINAL_FRACTION:.0%} of their logged "
                       f"updates: {runs}."]
     if counted:
-        figures = "; ".join(f"{row['arm']} {row['hp'] or ''} {name}: n = {n} (seeds column {row['seeds']})"
-                            .replace("  ", " ") for row, name, n in counted)
+        figures = "; ".join(f"{_label(row)} {name}: n = {n} (seeds column {row['seeds']})" for row, name, n in counted)
         lines += ["", "**Seed counts**: a figure marked n = N is over N seeds, not the seeds column's: an evaluation "
                       "column counts the seeds whose latest evaluation is finite in it (a seed not evaluated, or "
                       f"evaluated to a non-finite return, is not in it), every other column the seeds finite in it: "
                       f"{figures}."]
     if flagged:
-        runs = "; ".join(f"{row['arm']} {row['hp'] or ''} seeds {row['nonfinite_seed_ids']}: {row['skipped_steps']} steps"
-                         .replace("  ", " ") for row in flagged)
+        runs = "; ".join(f"{_label(row)} seeds {row['nonfinite_seed_ids']}: {row['skipped_steps']} steps"
+                         for row in flagged)
         lines += ["", f"**Non-finite training**: these runs skipped optimiser steps whose loss or gradient was not "
                       f"finite (the parameters stayed as they were; their numbers are suspect): {runs}."]
     for note in notes:
