@@ -45,7 +45,6 @@ import numpy as np
 from flax import struct
 
 from cdjax import normalize as nz
-from cdjax.kernels import chain as chain_kernel
 from cdjax.numerics import masked_mean
 
 KINDS = ("grounded-gru", "gru", "frozen-gru", "l2")
@@ -298,12 +297,12 @@ def _stack_steps(xs: list) -> jax.Array:
     return jnp.concatenate([x[None] for x in xs])
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
-def _chain(shared: bool, kernel: bool, p: dict, c: dict):
-    return _chain_fwd(shared, kernel, p, c)[0]
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _chain(shared: bool, p: dict, c: dict):
+    return _chain_fwd(shared, p, c)[0]
 
 
-def _chain_fwd(shared: bool, kernel: bool, p: dict, c: dict):
+def _chain_fwd(shared: bool, p: dict, c: dict):
     """The k imagined steps and both encodings, unrolled: -> ((h_re [W, H], h_im [W, H], s_k [W, O]), residuals).
 
     Per step, three matrix products: the model's hidden layer(s) and output, then one product of the new
@@ -311,7 +310,6 @@ def _chain_fwd(shared: bool, kernel: bool, p: dict, c: dict):
     imagined GRU input at once), and one of [h_re; h_im] with W_h. The real rows' GRU inputs and the actions'
     share of the first layer do not depend on the chain: one product each, before it. The residuals are the
     per-step arrays as they are (a list per kind), never written into stacked buffers step by step.
-    `kernel`: the k steps as one CUDA kernel (`cdjax.kernels.chain`), its residuals stacked [k or k+1, ...].
     """
     layers, w_i, w_h = p["layers"], p["w_i"], p["w_h"]
     s0, actions, x_re = p["s0"], p["actions"], p["x_re"]
@@ -322,11 +320,6 @@ def _chain_fwd(shared: bool, kernel: bool, p: dict, c: dict):
     c = dict(c, b_i=p["b_i"], gh_bias=jnp.concatenate([jnp.zeros((2 * w_h.shape[0],), p["b_hn"].dtype), p["b_hn"]]))
     gi_re = x_re @ w_i + p["b_i"]  # [k, W, 3H]
     z1_actions = actions @ w_1[O:] + b_1  # [k, W, N1]
-    if kernel:
-        stats = _kernel_stats(c)
-        u, states, xin, both_im, hh, hs = chain_kernel.forward(nz.CLIP, s0, z1_actions, gi_re, w_in, w_out, b_out, w_h,
-                                                               p["b_i"], p["b_hn"], stats)
-        return (hs[k, :W], hs[k, W:], states[k]), (p, c, w_in, gi_re, stats, xin, [u], both_im, hh, hs)
     states, xin = [s0], [_chain_inputs(c, shared, s0)]
     p1 = xin[0] @ w_in[:, :N1]
     hs = [jnp.zeros((2 * W, w_h.shape[0]), s0.dtype)]  # real rows, then imagined rows
@@ -358,24 +351,11 @@ def _input_weights(w_1: jax.Array, w_i: jax.Array, O: int, shared: bool) -> jax.
     return jnp.zeros((2 * O, N1 + w_i.shape[1]), w_1.dtype).at[:O, :N1].set(w_1[:O]).at[O:, N1:].set(w_i)
 
 
-def _kernel_stats(c: dict) -> jax.Array:
-    """[6, O]: mean and std of the model's input, the encoder's input and the model's output (the kernels' stats)."""
-    return jnp.stack([c["model_obs"].mean, c["model_obs"].std, c["enc_obs"].mean, c["enc_obs"].std, c["delta"].mean,
-                      c["delta"].std])
-
-
-def _chain_bwd(shared: bool, kernel: bool, residuals, cotangents):
+def _chain_bwd(shared: bool, residuals, cotangents):
     """The chain's backward, unrolled: per step only the cotangents of the states and hidden states (three
     matrix products); every weight's gradient afterwards, one product over all k steps and both row kinds each
-    (the bias as the product's last row). `kernel`: the per-step cotangents as one CUDA kernel."""
+    (the bias as the product's last row)."""
     dh_re, dh_im, ds = cotangents
-    if kernel:
-        p, c, w_in, gi_re, stats, xin, hidden, both_im, hh, hs = residuals
-        (_, _), (w_out, _) = p["layers"]
-        dgi, dhh, dz, dz1, ds0 = chain_kernel.backward(nz.CLIP, hidden[0], xin, both_im, hh, hs, gi_re, w_in, w_out,
-                                                       p["w_h"], p["b_i"], p["b_hn"], stats,
-                                                       jnp.concatenate([dh_re, dh_im]), ds)
-        return _chain_weight_grads(p, c, xin[:-1], xin[1:], hidden, [dz1, dz], dgi, dhh, hs[:-1], ds0)
     p, c, w_in, gi_re, states, xin, hidden, both_im, hh, hs = residuals
     layers, w_h = p["layers"], p["w_h"]
     k = len(hidden)
@@ -402,37 +382,9 @@ def _chain_bwd(shared: bool, kernel: bool, residuals, cotangents):
     _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[0])
     ds0 = ds + inputs_vjp(dp1 @ w_in[:, :N1].T)[0]
 
-    return _stepwise_weight_grads(p, c, xin, hidden, dzs, dgi, dhh, hs, ds0, GRAD_CHUNK or k)
-
-
-# Steps per product of the chain's weight gradients (None: all k steps in one product per weight, after the loop, the
-# default). With c < k the weight gradients are the sums of one product per c steps, each formed from that chunk's
-# per-step arrays alone, so a chunk's products need not wait for the rest of the backward nor for a stack of all k
-# steps. The same gradients up to the order of the sums. A module global for `benchmarks.variants` (grad-chunks).
-GRAD_CHUNK: int | None = None
-
-
-def _stepwise_weight_grads(p: dict, c: dict, xin: list, hidden: list, dzs: list, dgi: list, dhh: list, hs: list, ds0,
-                           chunk: int):
-    """`_chain_weight_grads` over the steps in chunks of `chunk` (the last one shorter): the weights' and biases'
-    gradients summed over the chunks, the per-step cotangents (actions', x_re's) concatenated in step order."""
-    k, stack = len(hidden), _stack_steps  # [steps, ...]: one copy per kind and chunk
-    parts = []
-    for t0 in range(0, k, chunk):
-        steps = range(t0, min(t0 + chunk, k))
-        part = dict(p, actions=p["actions"][t0:steps[-1] + 1], x_re=p["x_re"][t0:steps[-1] + 1])
-        parts.append(_chain_weight_grads(
-            part, c, stack([xin[t] for t in steps]), stack([xin[t + 1] for t in steps]),
-            [stack([hidden[t][i] for t in steps]) for i in range(len(hidden[0]))],
-            [stack([dzs[t][i] for t in steps]) for i in range(len(dzs[0]))],
-            stack([dgi[t] for t in steps]), stack([dhh[t] for t in steps]), stack([hs[t] for t in steps]), ds0))
-    if len(parts) == 1:
-        return parts[0]
-    per_step = {"actions", "x_re"}
-    dp = {name: (jnp.concatenate([part[0][name] for part in parts]) if name in per_step else
-                 jax.tree.map(lambda *xs: sum(xs[1:], xs[0]), *[part[0][name] for part in parts]))
-          for name in parts[0][0] if name != "s0"}
-    return dict(dp, s0=ds0), parts[0][1]
+    stack = _stack_steps  # [k, ...]: one copy per kind
+    return _chain_weight_grads(p, c, stack(xin[:-1]), stack(xin[1:]), [stack(list(u)) for u in zip(*hidden)],
+                               [stack(list(dz)) for dz in zip(*dzs)], stack(dgi), stack(dhh), stack(hs[:-1]), ds0)
 
 
 def _chain_weight_grads(p: dict, c: dict, xin_prev, xin_next, hidden: list, dz_layers: list, dgi, dhh, hs_prev, ds0):
@@ -462,7 +414,7 @@ _chain.defvjp(_chain_fwd, _chain_bwd)
 
 
 def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.RunningStats, scales: tuple,
-                shared: bool = False, kernel: bool | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+                shared: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The k imagined steps of an MLPModel from s0 [W, O] under actions [k, W, A] and the GRU encodings of the real
     (normalised) states x_re [k, W, D] and of the imagined ones (normalised by enc_obs): (h_re, h_im [W, H], s_k).
 
@@ -472,18 +424,13 @@ def fused_chain(model: MLPModel, gru: tuple, s0, actions, x_re, enc_obs: nz.Runn
     gradient from the real rows is scaled by scales[0] and from the imagined rows by scales[1] (as
     `scale_gradient` would on the encoder's parameters of each); the running statistics are constants.
     `shared`: enc_obs is the model's own obs statistics (one normalised input serves both).
-    `kernel`: run the steps as the CUDA kernels of `cdjax.kernels.chain` (the same function, float32 products
-    without TF32 rounding); None: where `chain_kernel.usable` says they fit and $CDJAX_CHAIN_KERNEL is 1.
     """
     w_i, b_i, w_h, b_hn = gru
     layers = tuple(tuple(layer) for layer in model.layers)
-    if kernel is None:
-        O, N1, H = s0.shape[-1], layers[0][0].shape[1], w_h.shape[0]
-        kernel = chain_kernel.usable(len(layers), O, O if shared else 2 * O, N1, H, s0.dtype)
     p = dict(layers=layers, w_i=w_i, b_i=b_i, w_h=w_h, b_hn=b_hn, s0=s0, actions=actions, x_re=x_re)
     c = jax.lax.stop_gradient(dict(model_obs=model.obs, delta=model.delta, enc_obs=enc_obs,
                                    scales=tuple(jnp.asarray(x, jnp.float32) for x in scales)))
-    return _chain(shared, bool(kernel), p, c)
+    return _chain(shared, p, c)
 
 
 # ---------------------------------------------------------------------------------------------------

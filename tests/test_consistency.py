@@ -1,7 +1,6 @@
 """The consistency module alone, on hand-made batches: windows, l_cc, encoders, the two gradient paths."""
 
 import functools
-import json
 import types
 
 import jax
@@ -328,11 +327,10 @@ def test_final_beyond_clip_is_the_share_of_final_states_past_the_clip(spread, be
 
 
 @pytest.mark.parametrize("hidden,shared", [((16,), True), ((16, 12), False)])
-def test_the_fused_chain_is_autodiff_of_the_plain_loop_with_every_output(hidden, shared, monkeypatch):
+def test_the_fused_chain_is_autodiff_of_the_plain_loop_with_every_output(hidden, shared):
     """`fused_chain` against JAX's own gradient of k plain `mlp_step`s and GRU steps, with a loss on all three
     outputs (h_re, h_im and the final state s_k, which the terms use only in a metric), the GRU's real and imagined
-    rows' gradients scaled apart, on states far beyond CLIP (where the clip binds); and so with its weight gradients
-    summed over chunks of steps (GRAD_CHUNK, the last chunk shorter)."""
+    rows' gradients scaled apart, on states far beyond CLIP (where the clip binds)."""
     s0, actions, real = _real_windows(seed=4)
     model = _mlp_model(hidden=hidden)
     model = model.replace(obs=nz.update(nz.RunningStats.create(4), 0.025 * jax.random.normal(jax.random.key(7),
@@ -370,11 +368,6 @@ def test_the_fused_chain_is_autodiff_of_the_plain_loop_with_every_output(hidden,
         np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6,
                                    err_msg=jax.tree_util.keystr(path))
     assert float(jnp.abs(g_f[2]).max()) > 0 and float(jnp.abs(g_f[0].layers[-1][0]).max()) > 0
-    monkeypatch.setattr(cc, "GRAD_CHUNK", 4)  # K = 6 steps: chunks of 4 and 2
-    g_c = jax.jit(jax.grad(lambda *a: fused(*a), argnums=(0, 1, 2, 3, 4)))(*args)  # a new function: traced again
-    for (path, a), b, f in zip(jax.tree_util.tree_leaves_with_path(g_p), jax.tree.leaves(g_c), jax.tree.leaves(g_f)):
-        np.testing.assert_allclose(b, a, rtol=2e-4, atol=1e-6, err_msg=jax.tree_util.keystr(path))
-        np.testing.assert_allclose(b, f, rtol=1e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path))
     s_k = cc.fused_chain(model, gru, s0, actions, x_re, enc_obs, scales, shared)[2]
     assert float(jnp.abs((s_k - model.obs.mean) / model.obs.std).max()) > nz.CLIP  # the states leave the clip's range
 
@@ -415,37 +408,6 @@ def test_mlp_step_is_the_agents_model_step():
     a = jax.random.uniform(jax.random.key(5), (7, agent.A), minval=-1, maxval=1)
     np.testing.assert_allclose(cc.mlp_step(agent.mlp_model(params["model"], norms), s, a),
                                agent.model_step(params["model"], norms, s, a)[0], rtol=1e-6, atol=1e-6)
-
-
-def test_chain_check_measures_the_fused_chain_against_the_plain_loop(tmp_path):
-    """`benchmarks.chain_check` (run on a GPU to see what its matmul precision costs the chain): on CPU, in float32,
-    the fused chain follows its plain-loop reference to float32 rounding, for the value and every input's gradient,
-    and so do the rows beside it (the plain loop at the default precision, the fused chain at the highest); it writes
-    them to results.json; a chain with a wrong gradient shows in the fused rows only."""
-    from benchmarks import chain_check
-
-    sizes = ["--windows", "16", "--horizon", "6", "--obs", "4", "--act", "2", "--hidden", "16", "--enc", "8"]
-    result = chain_check.main(sizes + ["--out", str(tmp_path)])
-    assert json.loads((tmp_path / "results.json").read_text()) == result
-    rows = result["relative_error"]
-    assert list(rows) == [name for name, _, _ in chain_check.ROWS]
-    for row in rows.values():
-        assert set(row) == {"value", *chain_check.ARGS} and max(row.values()) < 1e-5, rows
-    right = cc._outer  # the fused backward's weight gradients (every layer's, the GRU's), doubled
-
-    def doubled(a, b):
-        return jax.tree.map(lambda x: 2 * x, right(a, b))
-
-    cc._outer = doubled
-    try:
-        bad = chain_check.check(16, 6, 4, 2, 16, 8)["relative_error"]
-    finally:
-        cc._outer = right
-    assert bad["fused chain"]["model"] > 0.5 and bad["fused chain"]["s0"] < 1e-5
-    assert bad["fused chain, highest"]["model"] > 0.5 and max(bad["plain loop"].values()) < 1e-5
-    for size in ("0", "-3", "two"):  # a size that is no width: one sentence from argparse, no traceback
-        with pytest.raises(SystemExit, match="2"):
-            chain_check.main(["--windows", size])
 
 
 def _transposes(jaxpr) -> int:
