@@ -8,7 +8,7 @@ import cdjax
 
 ROOT = pathlib.Path(cdjax.__file__).resolve().parent
 SETTINGS = sorted(p.name for p in (ROOT / "agents").iterdir() if (p / "__init__.py").is_file())
-SHARED = ("checks", "consistency", "envs", "kernels", "normalize", "numerics", "optim", "protocol", "replay", "runtime")
+SHARED = ("checks", "consistency", "envs", "normalize", "numerics", "optim", "protocol", "replay", "runtime")
 FACE = "cdjax"  # cdjax/__init__.py re-exports the observation-space agent's public names
 
 
