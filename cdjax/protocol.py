@@ -134,6 +134,10 @@ class Setting:
     # action. A greedy discrete policy can stall for a whole episode (Atari: not pressing FIRE under sticky actions),
     # and A2C's literature reports the sampling policy.
     eval_sampled: bool = False
+    # config -> train(key, hp) -> (final state, metrics [num_updates]): the whole run as one pure function (PureJaxRL
+    # style, the caller jits/vmaps it); `cdjax.agents.make_train` dispatches on the Config's type to it. None: the
+    # setting has no such function (e.g. its environment lives outside JAX).
+    make_train: Callable[[ConfigT], Callable] | None = None
 
 
 __all__ = ["ConfigError", "Metrics", "Phase", "Preset", "Setting", "Trainer"]

@@ -396,7 +396,7 @@ def test_grounding_term_alone_is_the_terms_encoder_aux_with_its_gradient():
 def test_mlp_step_is_the_agents_model_step():
     """The obs-space agent's model in the fused form (`ObsAgent.mlp_model`) steps exactly as its model_step."""
     from cdjax.agents.obs import networks
-    from cdjax.agents.obs.agent import ObsAgent
+    from cdjax.agents.obs.learner import ObsAgent
 
     from _shared import POINT
 

@@ -10,7 +10,7 @@ import optax
 import pytest
 
 from cdjax import HParams
-from cdjax.agents.obs.agent import TERM_GROUPS, make_agent, refresh_norms, term_weights, to_segments
+from cdjax.agents.obs.learner import TERM_GROUPS, make_agent, refresh_norms, term_weights, to_segments
 
 from _shared import POINT, compiled
 

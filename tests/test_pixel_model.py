@@ -411,7 +411,7 @@ def test_export_expert_refuses_what_it_cannot_export_in_one_sentence(tmp_path, c
 def test_subpixel_decoder_layer_rearranges_each_pixels_channels_into_a_2x2_block():
     """depth_to_space: channel (di * 2 + dj) * C + c of input pixel (i, j) lands on pixel (2i + di, 2j + dj),
     channel c; the decoder's two upsampling kinds give the same output shapes."""
-    from cdjax.agents.pixel.model import ConvDecoder, depth_to_space
+    from cdjax.agents.pixel.networks import ConvDecoder, depth_to_space
 
     x = np.arange(2 * 3 * 4 * 8, dtype=np.float32).reshape(2, 3, 4, 8)  # C = 2 after the 2x2 rearrangement
     y = np.asarray(depth_to_space(jnp.asarray(x)))
@@ -602,7 +602,7 @@ def test_float32_layers_are_flax_layers_as_before_bit_for_bit():
     of the flax layers the model was written with before (reference modules here), bit for bit."""
     import flax.linen as nn
 
-    from cdjax.agents.pixel.model import ConvDecoder, ConvEncoder, depth_to_space
+    from cdjax.agents.pixel.networks import ConvDecoder, ConvEncoder, depth_to_space
 
     class Encoder(nn.Module):
         @nn.compact

@@ -3,6 +3,7 @@
     from cdjax import agents
     setting = agents.get("obs")            # the observation-space agent (PPO + dynamics model + consistency)
     agents.register(my_setting)            # a new setting: the sweep, checkpoints, eval, plots and CLI take it
+    train = agents.make_train(config)      # any setting's Config: train(key, hp) -> (state, metrics)
 
 The observation-space setting is registered on first use (importing it pulls in brax and MJX).
 """
@@ -38,3 +39,25 @@ def get(name: str) -> Setting:
 
 def names() -> list[str]:
     return sorted(set(_BUILTIN) | set(_REGISTRY))
+
+
+def setting_of(config) -> Setting:
+    """The setting whose Config type `config` is (ConfigError, one sentence, for an object of no setting's type)."""
+    for name in names():
+        setting = get(name)
+        if type(config) is setting.config_type:
+            return setting
+    raise ConfigError(f"{type(config).__name__} is no setting's Config; give the Config of one of: {', '.join(names())}.")
+
+
+def make_train(config):
+    """train(key, hp) -> (final state, metrics) of the setting whose Config `config` is: pure, jit/vmap it yourself."""
+    setting = setting_of(config)
+    if setting.make_train is None:
+        raise ConfigError(f"Setting {setting.name!r} has no make_train; run it with make_trainer or `cdjax sweep`.")
+    return setting.make_train(config)
+
+
+def make_trainer(config):
+    """The protocol's Trainer (`cdjax.protocol.Trainer`) of the setting whose Config `config` is."""
+    return setting_of(config).make_trainer(config)

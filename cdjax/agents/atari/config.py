@@ -132,3 +132,6 @@ class AtariHParams:
 
 # The range of every HParams field (the rest: not negative), checked on the command line's grid and by `init`.
 HP_RANGES = HParamRanges(AtariHParams, rms_decay=UNIT, rms_eps=POSITIVE, gamma=UNIT, max_grad_norm=POSITIVE)
+
+
+Config, HParams = AtariConfig, AtariHParams  # the face every setting shares: cdjax.agents.<setting>.Config, HParams

@@ -3,8 +3,9 @@ on MuJoCo-MJX, with the Mb-Mf phase of Nagabandi et al. before PPO.
 
     from cdjax.agents.obs import Config, HParams, make_train       # also importable from cdjax itself
 
-The package: `config` (Config, HParams), `agent` (ObsAgent: rollout, losses and the one jitted update;
-`make_agent`, `make_train`), `networks`, `losses`, `rollout`, `optim` (Adam per parameter group),
+The package: `config` (Config, HParams), `learner` (ObsAgent: rollout, losses and the one jitted update;
+`make_agent`, `make_train`, `make_trainer`), `state` (TrainState), `networks`, `losses`, `rollout`, `optim` (Adam per
+parameter group),
 `mbmf/` (the Mb-Mf phase: spec, data, the phase program), `mpc` (random-shooting MPC), `presets`.
 This module adapts them to the protocol the host side runs (`SETTING`). Arms are `model-free`, `mbmf` and
 `cd`, optionally with a horizon: `cd-k5` is the cd arm with k = 5 (the paper's k ablation runs `cd-k5` and
@@ -16,21 +17,14 @@ from __future__ import annotations
 import functools
 import math
 import re
-import warnings
 from typing import Mapping
 
-import jax
-import jax.numpy as jnp
-
-from cdjax import envs
-from cdjax import normalize as nz
-from cdjax.agents.obs.agent import ObsAgent, TrainState, make_agent, make_train
+from cdjax.agents.obs.learner import ObsAgent, TrainState, make_agent, make_train, make_trainer
 from cdjax.agents.obs.config import HP_RANGES, Config, HParams, stack_hparams
 from cdjax.agents.obs.mbmf import MbMfPhase, make_mbmf_phase, total_env_steps, validate_phase
 from cdjax.agents.obs.presets import PRESETS
 from cdjax.consistency import collapse_warning
-from cdjax.envs.resume import needed_leaves
-from cdjax.protocol import ConfigError, Metrics, Phase, Setting, Trainer
+from cdjax.protocol import ConfigError, Metrics, Phase, Setting
 
 ARMS = ("model-free", "mbmf", "cd")
 RETURN = "episode/return"
@@ -74,55 +68,6 @@ check_hparam = HP_RANGES.check_one
 
 
 @functools.lru_cache(maxsize=None)
-def _needed_env_leaves(env_name: str, num_envs: int, episode_length: int, action_repeat: int, reset_mode: str):
-    """The env-state leaves a resume needs; every leaf (a bigger checkpoint, never a wrong one) when the
-    analysis of the traced step fails on a JAX release whose primitives it does not know."""
-    env = envs.batched(env_name, num_envs, episode_length, action_repeat, reset_mode)
-    try:
-        return needed_leaves(env)
-    except Exception as err:  # noqa: BLE001 - an optimisation of the checkpoint's size must not end a run
-        warnings.warn(f"checkpoints keep the whole {env_name} state: the analysis of which leaves a resume needs "
-                      f"failed ({type(err).__name__}: {err})", stacklevel=2)
-        return jax.tree.map(lambda _: True, jax.eval_shape(env.reset, jax.random.key(0)))
-
-
-def make_trainer(config: Config) -> Trainer:
-    """The observation-space agent of `config` as the host side runs it (`cdjax.protocol.Trainer`)."""
-    agent = make_agent(config)
-
-    @functools.cache
-    def saved_leaves():
-        """Every leaf of the TrainState but the environment's derived physics data (cdjax.envs.resume) and its
-        reset targets."""
-        shapes = jax.eval_shape(agent.init, jax.random.key(0), HParams())
-        every = jax.tree.map(lambda _: True, shapes)
-        env = _needed_env_leaves(config.env, config.num_envs, config.episode_length, config.action_repeat,
-                                 config.reset_mode)
-        # Each env's reset target (`first`) is set by init and never changes (the Mb-Mf phase acts in its own
-        # environments): a restore fills it from the fresh init of the same keys, so it is not stored.
-        env = env.replace(first=jax.tree.map(lambda _: False, env.first))
-        return every.replace(env_state=env)
-
-    def eval_env(num_envs: int) -> envs.BatchedEnv:
-        return envs.BatchedEnv(agent.env.env, num_envs, config.episode_length, config.action_repeat,
-                               config.reset_mode, observation_size=agent.env.observation_size)
-
-    def fresh_policy(key: jax.Array) -> dict:
-        """The policy network as its module initialises it, statistics at their initial values."""
-        params = agent.policy.init(key, jnp.zeros((1, agent.O), jnp.float32))
-        return {"params": {"policy": params}, "norms": nz.Norms.create(agent.O)}
-
-    # everything cdjax.envs.make_env builds the environments from: arms equal in these share one reset program
-    env_key = ("obs", config.env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode,
-               bool(getattr(config, "stagger_resets", False)))
-    return Trainer(
-        config=config, init=agent.init, update=agent.update, reset=agent.reset, init_from=agent.init_from,
-        env_key=env_key,
-        policy=lambda state: {"params": {"policy": state.params["policy"]}, "norms": state.norms},
-        act=lambda policy, obs, key: agent.act(policy["params"], policy["norms"], obs, key),
-        eval_env=eval_env, saved_leaves=saved_leaves, fresh_policy=fresh_policy, inner=agent)
-
-
 def _describe_phase(info: Mapping[str, float]) -> str:
     return (f"reward per step: random actions {info.get('random/reward_mean', math.nan):.3g}, MPC "
             f"{info.get('mpc/reward_mean_last', math.nan):.3g}, distilled policy "
@@ -146,6 +91,7 @@ MBMF_PHASE = Phase(
     as_metrics={"dagger/episode_return": RETURN})
 
 SETTING = Setting(
+    make_train=make_train,
     name="obs", about="observation-space models with PPO on MuJoCo-MJX (the paper's first setting)",
     config_type=Config, hparams_type=HParams, make_trainer=make_trainer, arm_config=arm_config, arm_fields=("arm",),
     arms_help="model-free, mbmf, cd, or cd-kN for cd with horizon N", default_arms=("mbmf", "cd"),

@@ -6,7 +6,10 @@ Shapes are time-major: [T, B, ...]. A `mask` is 1 where a sample counts and 0 wh
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+
+from cdjax import normalize as nz
 
 from cdjax.agents.obs.networks import action_distribution, squashed_entropy
 from cdjax.numerics import backward_linear_recurrence, masked_mean, masked_share
@@ -99,3 +102,25 @@ def model_loss(pred_mean, pred_log_std, target, mask, shares: bool = False):
         "model/reward_mse": diagnostic(sq[..., -1], mask),
     }
     return loss, metrics
+
+
+def model_target(norms: nz.Norms, obs, next_obs, reward) -> jax.Array:
+    """The dynamics model's target [..., O+1]: the normalised change of state and the normalised reward."""
+    return jnp.concatenate([nz.normalize(norms.delta, next_obs - obs), nz.normalize(norms.reward, reward[..., None])],
+                           axis=-1)
+
+
+# The parameter groups each loss term can reach (the gradient-norm metrics report these pairs). Each group is reached
+# by at most one term besides l_cc (`rest_gradient` relies on it).
+TERM_GROUPS = {"ppo": ("policy", "value"), "model_nll": ("model",), "consistency": ("model", "encoder", "policy"),
+               "encoder_aux": ("encoder",)}
+# The loss terms whose metric `loss_terms(shares=True)` gives as per-sample shares (the others are scalars there).
+# In the SGD no scalar of these terms is then used, so XLA drops their per-step reductions (under vmap it had fused
+# them with the losses' backward into a slow kernel).
+SHARED_TERMS = {"ppo": "loss/ppo", "model_nll": "loss/model_nll"}
+
+
+def term_weights(hp) -> dict[str, jax.Array]:
+    """The weight of each named loss term in the total."""
+    return {"ppo": jnp.ones((), jnp.float32), "model_nll": hp.model_coef, "consistency": hp.alpha,
+            "encoder_aux": hp.enc_aux_coef}

@@ -130,3 +130,6 @@ class PixelHParams:
 
 # The range of every HParams field (the rest: not negative), checked on the command line's grid and by `init`.
 HP_RANGES = HParamRanges(PixelHParams, lr=POSITIVE, clip=POSITIVE, gamma=UNIT)
+
+
+Config, HParams = PixelConfig, PixelHParams  # the face every setting shares: cdjax.agents.<setting>.Config, HParams

@@ -23,7 +23,7 @@ over all `eval_horizon` steps after `context` filtered steps, the ELBO per frame
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -31,12 +31,14 @@ import optax
 from flax import struct
 
 from cdjax import consistency
+from cdjax.agents.pixel import losses
 from cdjax.agents.pixel.config import HP_RANGES, PixelConfig
 from cdjax.agents.pixel.data import Dataset, PixelWorld
 from cdjax.agents.pixel.expert import actor, expert_for
 from cdjax.agents.pixel.chain import pixel_chain
 from cdjax.agents.pixel.model import LtqModel, core_weights, stack_frames
 from cdjax.checks import check_type
+from cdjax.protocol import Trainer
 
 HELDOUT_BATCH = 4  # held-out sequences scored per update
 
@@ -174,7 +176,7 @@ class PixelLearner:
         """frames [L+F-1, B, S, S, 3] uint8, actions [L, B, A] (time-major) -> (total, metrics)."""
         key_elbo, key_cc = jax.random.split(key)
         elbo, parts, filtered = self.model.elbo(params, frames, actions, key_elbo)
-        imitation = ((self.model.act(params, filtered.h) - actions) ** 2).mean()
+        imitation = losses.imitation_loss(self.model.act(params, filtered.h), actions)
         L = actions.shape[0]
         terms = {"elbo": -elbo.mean(), "imitation": imitation}
         weights = {"elbo": 1.0, "imitation": hp.imitation_coef}
@@ -202,15 +204,15 @@ class PixelLearner:
         loglik, _, elbo, filtered = self.model.openloop_loglik(params, frames, actions, key_ol, c.context)
         return {"heldout/loglik_k": loglik[:c.horizon].mean(), "heldout/loglik_50": loglik.mean(),
                 "heldout/elbo_per_frame": elbo.mean() / actions.shape[0],
-                "heldout/imitation": ((self.model.act(params, filtered.h) - actions) ** 2).mean()}
+                "heldout/imitation": losses.imitation_loss(self.model.act(params, filtered.h), actions)}
 
     # --- the update ----------------------------------------------------------------------------
     def update(self, state: PixelState, hp) -> tuple[PixelState, dict]:
         c = self.config
         key, key_batch, key_loss, key_heldout = jax.random.split(state.key, 4)
         # The batch's sequence indices, materialised: without the barrier XLA:GPU fuses randint's threefry into the
-        # gather of the frames (stacked and cast), and every one of its ~400M output elements recomputed it: 11.5 of
-        # 80 ms per update of 10 halfcheetah runs on an H100 (2026-11-25, experiments/pixel/data/hlo-h100/).
+        # gather of the frames (stacked and cast), and every one of its output elements recomputed it
+        # (experiments/pixel/data/hlo-h100/ shows the cost).
         pick = jax.lax.optimization_barrier(jax.random.randint(key_batch, (c.batch_size,), 0, c.num_sequences))
         frames, actions = time_major(state.data.frames[pick]), time_major(state.data.actions[pick])
         (total, metrics), grads = jax.value_and_grad(self.loss, has_aux=True)(state.params, frames, actions, hp,
@@ -238,3 +240,31 @@ class PixelLearner:
         z = mean if key is None else mean + std * jax.random.normal(key, mean.shape)
         h, cell = self.model.core.apply(core, obs["h"], obs["c"], z, obs["a"], method="transition")
         return jnp.concatenate([self.model.act(params, h), h, cell], -1)
+
+
+TrainState = PixelState  # the face every setting shares: cdjax.agents.<setting>.TrainState
+
+
+def make_train(config: PixelConfig) -> Callable[[jax.Array, Any], tuple[PixelState, dict]]:
+    """train(key, hp) -> (final state, metrics with leaves [num_updates]): pure, jit/vmap it yourself."""
+    learner = PixelLearner(config)
+
+    def train(key: jax.Array, hp):
+        state = learner.init(key, hp)
+        return jax.lax.scan(lambda s, _: learner.update(s, hp), state, None, length=config.num_updates)
+
+    return train
+
+
+def make_trainer(config: PixelConfig) -> Trainer:
+    """The pixel learner of `config` as the host side runs it (`cdjax.protocol.Trainer`)."""
+    return trainer_of(PixelLearner(config))
+
+
+def trainer_of(learner: PixelLearner) -> Trainer:
+    """The protocol's view of a learner (e.g. one built on another world than the rendered task)."""
+    # runs_split "local": under the partitioner the runs' vmapped convolutions (per-run weights) were all-gathered
+    # across devices; each device runs its own runs
+    return Trainer(config=learner.config, init=learner.init, update=learner.update, policy=learner.policy,
+                   act=learner.act, eval_env=learner.world.eval_env, saved_leaves=learner.saved_leaves, inner=learner,
+                   runs_split="local")

@@ -51,7 +51,7 @@ from flax import struct
 
 from cdjax import normalize as nz
 from cdjax.agents.obs import losses, mpc, networks
-from cdjax.agents.obs.agent import ObsAgent, TrainState, make_agent, model_target, refresh_norms
+from cdjax.agents.obs.learner import ObsAgent, TrainState, make_agent, model_target, refresh_norms
 from cdjax.agents.obs.config import Config, HParams
 from cdjax.agents.obs.mbmf.data import Labelled, Rollout, Transitions, model_objective
 from cdjax.agents.obs.mbmf.spec import HANDOVER_CHECKS, MbMfPhase, validate_phase

@@ -1,5 +1,5 @@
-"""The observation-space agent: make_agent(config) -> ObsAgent (init, update, ...); make_train(config) ->
-train(key, hp).
+"""The observation-space learner: make_agent(config) -> ObsAgent (init, update, ...); make_train(config) ->
+train(key, hp); make_trainer(config) -> the protocol's Trainer.
 
 One call of `update` is the whole consistent-dynamics step, compiled once: closed-loop rollout
 (scan over T steps of B environments), GAE, then epochs x minibatches (scans) of
@@ -20,103 +20,30 @@ The library never jits or vmaps a whole run: callers compose, e.g.
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import optax
-from flax import struct
 from jax.flatten_util import ravel_pytree
 
-from cdjax import consistency
+from cdjax import consistency, envs
 from cdjax import normalize as nz
 from cdjax.agents.obs import losses, networks, yardstick
 from cdjax.agents.obs.config import HP_RANGES, Config, HParams
 from cdjax.agents.obs.optim import make_optimizer
-from cdjax.agents.obs.rollout import Transition, closed_loop, open_loop
+from cdjax.agents.obs.losses import SHARED_TERMS, TERM_GROUPS, model_target, term_weights
+from cdjax.agents.obs.rollout import closed_loop, open_loop
+from cdjax.agents.obs.state import Batch, History, TrainState, refresh_norms, saved_leaves, to_segments
 from cdjax.checks import check_type
 from cdjax.envs import EnvState, EpisodeStats, make_env, strong_types
 from cdjax.numerics import masked_mean, masked_share
-
-
-@struct.dataclass
-class History:
-    """The last H transitions of the first `eval_envs` environments (for open-loop error at k and 50)."""
-
-    obs: jax.Array  # [H, E, O]
-    next_obs: jax.Array  # [H, E, O]
-    action: jax.Array  # [H, E, A]
-    ended: jax.Array  # [H, E] bool
-    valid: jax.Array  # [H, E] bool
-    filled: jax.Array  # [] int32 how many of the H slots hold real data
-
-    @classmethod
-    def create(cls, length: int, envs: int, obs_size: int, action_size: int) -> "History":
-        z = lambda *s: jnp.zeros(s, jnp.float32)  # noqa: E731
-        return cls(z(length, envs, obs_size), z(length, envs, obs_size), z(length, envs, action_size),
-                   jnp.zeros((length, envs), bool), jnp.zeros((length, envs), bool), jnp.zeros((), jnp.int32))
-
-    def push(self, traj: Transition) -> "History":
-        H, E = self.ended.shape
-        cat = lambda old, new: jnp.concatenate([old, new[:, :E]], axis=0)[-H:]  # noqa: E731
-        return History(cat(self.obs, traj.obs), cat(self.next_obs, traj.next_obs), cat(self.action, traj.action),
-                       cat(self.ended, traj.ended), cat(self.valid, traj.valid),
-                       jnp.minimum(self.filled + traj.obs.shape[0], H).astype(jnp.int32))
-
-
-@struct.dataclass
-class TrainState:
-    params: dict  # {"policy", "value"[, "model"][, "encoder"]} flax variable dicts
-    opt_state: Any  # optax state
-    norms: nz.Norms  # running statistics of observations, deltas and rewards
-    env_state: EnvState  # batched environment state
-    episodes: EpisodeStats  # running returns per environment
-    history: History  # recent transitions of a few environments (model diagnostics)
-    last_return: jax.Array  # [] mean return of the latest finished episodes (NaN before any)
-    last_disc_return: jax.Array  # [] same, discounted
-    key: jax.Array  # PRNG key
-    update_step: jax.Array  # [] int32 updates done
-
-
-def model_target(norms: nz.Norms, obs, next_obs, reward) -> jax.Array:
-    """The dynamics model's target [..., O+1]: the normalised change of state and the normalised reward."""
-    return jnp.concatenate([nz.normalize(norms.delta, next_obs - obs), nz.normalize(norms.reward, reward[..., None])],
-                           axis=-1)
-
-
-# The parameter groups each loss term can reach (the gradient-norm metrics report these pairs). Each group is reached
-# by at most one term besides l_cc (`rest_gradient` relies on it).
-TERM_GROUPS = {"ppo": ("policy", "value"), "model_nll": ("model",), "consistency": ("model", "encoder", "policy"),
-               "encoder_aux": ("encoder",)}
-# The loss terms whose metric `loss_terms(shares=True)` gives as per-sample shares (the others are scalars there).
-# In the SGD no scalar of these terms is then used, so XLA drops their per-step reductions: under vmap (seeds) it had
-# fused two of them with the losses' backward into a 3-block kernel, 18.7 ms of Mb-Mf's 0.419 s update at 10 seeds of
-# 256 envs (one H100, 2026-11-27, benchmarks/results/2026-11-27-h100-hlo-seeds/).
-SHARED_TERMS = {"ppo": "loss/ppo", "model_nll": "loss/model_nll"}
+from cdjax.protocol import Trainer
 
 
 def _norm(tree) -> jax.Array:
     """The global norm of a tree, taken on its leaves raveled into one vector (as the optimiser holds them)."""
     return optax.global_norm(ravel_pytree(tree)[0])
-
-
-def term_weights(hp: HParams) -> dict[str, jax.Array]:
-    """The weight of each named loss term in the total."""
-    return {"ppo": jnp.ones((), jnp.float32), "model_nll": hp.model_coef, "consistency": hp.alpha,
-            "encoder_aux": hp.enc_aux_coef}
-
-
-def refresh_norms(norms: nz.Norms, obs, next_obs, reward, valid) -> nz.Norms:
-    """Merge a batch of transitions (leaves [..., D], valid [...]) into the running statistics."""
-    return nz.Norms(obs=nz.update(norms.obs, obs, valid), delta=nz.update(norms.delta, next_obs - obs, valid),
-                    reward=nz.update(norms.reward, reward[..., None], valid))
-
-
-def to_segments(x: jax.Array, segment: int) -> jax.Array:
-    """[T, B, ...] -> [L, (T / L) * B, ...]: the rollout cut into sequences of L steps (column s * B + b)."""
-    T, B = x.shape[:2]
-    S = T // segment
-    return jnp.swapaxes(x.reshape((S, segment, B) + x.shape[2:]), 0, 1).reshape((segment, S * B) + x.shape[2:])
 
 
 class ObsAgent:
@@ -537,25 +464,6 @@ def make_agent(config: Config) -> ObsAgent:
     return ObsAgent(config)
 
 
-@struct.dataclass
-class Batch:
-    """What the SGD phase needs of a rollout; leaves [T, B, ...] (minibatches: [L, Bs, ...])."""
-
-    obs: jax.Array
-    next_obs: jax.Array
-    action: jax.Array
-    raw_action: jax.Array
-    noise: jax.Array
-    log_prob: jax.Array
-    reward: jax.Array
-    terminated: jax.Array
-    ended: jax.Array
-    valid: jax.Array
-    next_value: jax.Array  # V(next_obs) at acting time: the bootstrap of time-outs inside a sequence
-    advantages: jax.Array | None  # GAE over the whole rollout at acting time (None when gae_in_loss)
-    returns: jax.Array | None
-
-
 def make_train(config: Config) -> Callable[[jax.Array, HParams], tuple[TrainState, dict]]:
     """train(key, hp) -> (final state, metrics with leaves [num_updates]): pure, jit/vmap it yourself."""
     agent = make_agent(config)
@@ -565,3 +473,28 @@ def make_train(config: Config) -> Callable[[jax.Array, HParams], tuple[TrainStat
         return jax.lax.scan(lambda s, _: agent.update(s, hp), state, None, length=config.num_updates)
 
     return train
+
+
+def make_trainer(config: Config) -> Trainer:
+    """The observation-space agent of `config` as the host side runs it (`cdjax.protocol.Trainer`)."""
+    agent = make_agent(config)
+
+    def eval_env(num_envs: int) -> envs.BatchedEnv:
+        return envs.BatchedEnv(agent.env.env, num_envs, config.episode_length, config.action_repeat,
+                               config.reset_mode, observation_size=agent.env.observation_size)
+
+    def fresh_policy(key: jax.Array) -> dict:
+        """The policy network as its module initialises it, statistics at their initial values."""
+        params = agent.policy.init(key, jnp.zeros((1, agent.O), jnp.float32))
+        return {"params": {"policy": params}, "norms": nz.Norms.create(agent.O)}
+
+    # everything cdjax.envs.make_env builds the environments from: arms equal in these share one reset program
+    env_key = ("obs", config.env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode,
+               bool(getattr(config, "stagger_resets", False)))
+    return Trainer(
+        config=config, init=agent.init, update=agent.update, reset=agent.reset, init_from=agent.init_from,
+        env_key=env_key,
+        policy=lambda state: {"params": {"policy": state.params["policy"]}, "norms": state.norms},
+        act=lambda policy, obs, key: agent.act(policy["params"], policy["norms"], obs, key), eval_env=eval_env,
+        saved_leaves=functools.cache(lambda: saved_leaves(config, agent.init, HParams())), fresh_policy=fresh_policy,
+        inner=agent)

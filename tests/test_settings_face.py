@@ -1,0 +1,73 @@
+"""The three settings wear one face: the same role modules, the same public names, and `make_train(config)` that
+runs a whole (tiny) run on a CPU and gives a state of the Config's shapes and the setting's metric names;
+`cdjax.agents.make_train` dispatches on the Config's type."""
+
+import importlib
+
+import jax
+import numpy as np
+import pytest
+
+from cdjax import agents
+from cdjax.agents.atari import AtariConfig, AtariHParams
+from cdjax.protocol import ConfigError
+
+from _shared import PIXEL_HP, PIXEL_TINY, POINT
+
+SETTINGS = ("obs", "pixel", "atari")
+ROLES = ("config", "learner", "networks", "losses", "presets")
+FACE = ("Config", "HParams", "TrainState", "make_train", "make_trainer", "PRESETS", "SETTING")
+UPDATES = 2
+TINY = {
+    "obs": (POINT.replace(num_updates=UPDATES), None),
+    "pixel": (PIXEL_TINY.replace(num_updates=UPDATES), PIXEL_HP),
+    "atari": (AtariConfig(env="breakout", arm="a2c-cd", num_envs=4, rollout_len=8, horizon=4, conv_channels=4,
+                          latent=16, model_hidden=16, encoder_dim=8, episode_length=100, num_updates=UPDATES),
+              AtariHParams(lr=3e-3)),
+}
+
+
+@pytest.mark.parametrize("name", SETTINGS)
+def test_each_setting_has_the_role_modules_and_the_public_names(name):
+    package = importlib.import_module(f"cdjax.agents.{name}")
+    for role in ROLES:
+        importlib.import_module(f"cdjax.agents.{name}.{role}")
+    assert set(FACE) <= set(package.__all__), set(FACE) - set(package.__all__)
+    config_module = importlib.import_module(f"cdjax.agents.{name}.config")
+    learner = importlib.import_module(f"cdjax.agents.{name}.learner")
+    presets = importlib.import_module(f"cdjax.agents.{name}.presets")
+    # the names are the role modules' own, and the registry's setting is the package's
+    assert package.Config is config_module.Config and package.HParams is config_module.HParams
+    assert package.make_train is learner.make_train and package.make_trainer is learner.make_trainer
+    assert package.TrainState is learner.TrainState and package.PRESETS is presets.PRESETS
+    assert agents.get(name) is package.SETTING and package.SETTING.config_type is package.Config
+    assert package.SETTING.hparams_type is package.HParams and package.SETTING.make_train is package.make_train
+    for preset in package.PRESETS.values():  # every preset makes a Config of the setting
+        assert isinstance(package.Config(**preset.config), package.Config)
+
+
+@pytest.mark.parametrize("name", SETTINGS)
+def test_make_train_runs_a_tiny_run_with_the_configs_shapes_and_the_settings_metrics(name):
+    package = importlib.import_module(f"cdjax.agents.{name}")
+    config, hp = TINY[name]
+    hp = package.HParams() if hp is None else hp
+    config = package.SETTING.arm_config(package.SETTING.default_arms[-1], config)  # the arm with the consistency term
+    train = agents.make_train(config)  # the registry's dispatch on the Config's type
+    state, metrics = jax.jit(train)(jax.random.key(0), hp)
+    assert isinstance(state, package.TrainState)
+    expected = jax.eval_shape(package.make_trainer(config).init, jax.random.key(0), hp)
+    assert jax.tree.structure(state) == jax.tree.structure(expected)
+    for got, want in zip(jax.tree.leaves(state), jax.tree.leaves(expected)):
+        assert (got.shape, got.dtype) == (want.shape, want.dtype)
+    m = package.SETTING.metrics
+    names = {m.ret, m.discounted_ret, m.skipped, "loss/consistency"} | {panel[0] for panel in m.panels}
+    assert names <= set(metrics), names - set(metrics)
+    for key, value in metrics.items():
+        assert value.shape[0] == UPDATES, key  # one row per update, scalars inside the scan
+    assert np.isfinite(np.asarray(metrics["loss/consistency"])).all()
+
+
+def test_make_train_dispatch_refuses_what_is_no_settings_config():
+    with pytest.raises(ConfigError, match="no setting's Config"):
+        agents.make_train({"env": "ant"})
+    assert agents.make_trainer(TINY["atari"][0]).config == TINY["atari"][0]
