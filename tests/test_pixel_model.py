@@ -364,8 +364,8 @@ def test_a_sweep_through_the_cli_resumes_and_equals_each_seed_alone(tmp_path, le
 def test_the_expert_is_the_best_evaluated_policy_of_a_model_free_sweep(tmp_path):
     """export_expert (what device.sh runs between the expert's sweep and the pixel sweep) on the pure-JAX point
     mass: the saved policy and statistics are the restored ones of the run with the best deterministic evaluation."""
-    from cdjax.agents.pixel.expert import load_expert
-    from cdjax.agents.pixel.export_expert import main as export
+    from cdjax.agents.experts import load_expert
+    from cdjax.runner.export_expert import main as export
 
     run = tmp_path / "expert-run"
     main(["sweep", "--setting", "obs", *TINY_ARGS, "--arms", "model-free", "--steps", "384", "--eval-episodes", "2",
@@ -389,21 +389,21 @@ def test_the_expert_is_the_best_evaluated_policy_of_a_model_free_sweep(tmp_path)
 
 
 def test_export_expert_refuses_what_it_cannot_export_in_one_sentence(tmp_path, capsys):
-    """python -m cdjax.agents.pixel.export_expert: --help shows the usage (exit status 0); a run directory that does
+    """python -m cdjax.runner.export_expert: --help shows the usage (exit status 0); a run directory that does
     not exist, an EXPERT_FILE that is a directory, or a wrong number of arguments: one sentence, exit status 2,
     nothing written."""
-    from cdjax.agents.pixel.export_expert import main as export
+    from cdjax.runner.export_expert import main as export
 
     with pytest.raises(SystemExit) as stop:
         export(["--help"])
-    assert stop.value.code == 0 and "usage: python -m cdjax.agents.pixel.export_expert" in capsys.readouterr().out
+    assert stop.value.code == 0 and "usage: python -m cdjax.runner.export_expert" in capsys.readouterr().out
     for argv, said in (([str(tmp_path / "none"), str(tmp_path / "e.msgpack")], f"{tmp_path / 'none'} holds no run"),
                        ([str(tmp_path), str(tmp_path)], f"EXPERT_FILE {tmp_path} is a directory"),
                        ([str(tmp_path)], "required: EXPERT_FILE")):
         with pytest.raises(SystemExit) as stop:
             export(argv)
         err = capsys.readouterr().err
-        assert stop.value.code == 2 and err.startswith("python -m cdjax.agents.pixel.export_expert: ") and said in err
+        assert stop.value.code == 2 and err.startswith("python -m cdjax.runner.export_expert: ") and said in err
         assert err.count("\n") == 1 and "Traceback" not in err, err
     assert list(tmp_path.iterdir()) == []
 

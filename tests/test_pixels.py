@@ -106,7 +106,7 @@ def test_expert_data_is_rendered_from_the_task_in_jit():
     the expert's (in [-1, 1], different between sequences)."""
     from cdjax.agents.pixel import PRESETS, PixelConfig
     from cdjax.agents.pixel.data import PixelWorld
-    from cdjax.agents.pixel.expert import actor, untrained_expert
+    from cdjax.agents.experts import actor, untrained_expert
 
     config = PixelConfig(**PRESETS["pixel-tiny"].config).replace(burn_in=0, expert_sample=False)
     world = PixelWorld(config, actor(untrained_expert("reacher", jax.random.key(1))))

@@ -27,7 +27,7 @@ class PixelConfig:
 
     env: str = "halfcheetah"  # MJX task rendered to pixels: halfcheetah, reacher or pusher
     arm: Arm = "ltq-cd"  # ltq: the state-space model and imitation; ltq-cd: plus the consistency term
-    expert: str = ""  # file written by cdjax.agents.pixel.expert.save_expert; "" = an untrained policy (tests)
+    expert: str = ""  # file written by cdjax.agents.experts.save_expert; "" = an untrained policy (tests)
     expert_sample: bool = True  # the expert samples its Gaussian policy in the data (False: acts by its mean)
     image_size: int = 64  # S: frames are S x S x 3 (a multiple of 2^conv_layers)
     frame_stack: int = 4  # frames per observation (the encoder's input has 3 x frame_stack channels)

@@ -34,7 +34,7 @@ from cdjax import consistency
 from cdjax.agents.pixel import losses
 from cdjax.agents.pixel.config import HP_RANGES, PixelConfig
 from cdjax.agents.pixel.data import Dataset, PixelWorld
-from cdjax.agents.pixel.expert import actor, expert_for
+from cdjax.agents.experts import actor, expert_for
 from cdjax.agents.pixel.chain import pixel_chain
 from cdjax.agents.pixel.model import LtqModel, core_weights, stack_frames
 from cdjax.checks import check_type

@@ -1,15 +1,18 @@
 """The expert whose pixel trajectories the pixel setting learns from: a policy of cdjax's own model-free arm
-(the observation-space setting, PPO on the state), saved to one file.
+(the observation-space setting, PPO on the state), saved to one file. It joins two settings (the obs setting's policy,
+the pixel setting's data), so it lives beside the registry, not in either: the pixel setting loads it, the host side's
+`cdjax.runner.export_expert` writes it from an obs run directory.
 
     cdjax sweep --setting obs --preset halfcheetah --arms model-free --seeds 1 --out runs/expert-hc
-    python -m cdjax.agents.pixel.export_expert runs/expert-hc experts/halfcheetah.msgpack   # the best run's policy
+    python -m cdjax.runner.export_expert runs/expert-hc experts/halfcheetah.msgpack   # the best run's policy
     cdjax sweep --setting pixel --preset pixel-halfcheetah --expert experts/halfcheetah.msgpack ...
 
 The file holds the observation-space Config (JSON), the policy's parameters, the observation statistics and
 the run's deterministic evaluation return: the two parts of what the obs setting's `Trainer.policy(state)`
 gives, `{"params": {"policy": ...}, "norms": ...}`. This module reaches that setting through the registry
 (`cdjax.agents.get("obs")`) and acts through its protocol `Trainer`, never by importing its package.
-`Config.expert = ""` stands for an untrained policy (tests).
+`Config.expert = ""` stands for an untrained policy (tests). Exporting the best policy of an observation-space run
+directory reads a sweep's checkpoints, so it lives on the host side (`cdjax.runner.export_expert`).
 """
 
 from __future__ import annotations
@@ -71,7 +74,7 @@ def save_expert(path: str | pathlib.Path, expert: Expert) -> pathlib.Path:
 def load_expert(path: str | pathlib.Path) -> Expert:
     path = pathlib.Path(path)
     if not path.is_file():
-        raise ConfigError(f"--expert {str(path)!r} is not a file (write one with python -m cdjax.agents.pixel.export_expert).")
+        raise ConfigError(f"--expert {str(path)!r} is not a file (write one with python -m cdjax.runner.export_expert).")
     try:
         blob = serialization.msgpack_restore(path.read_bytes())
         fields = {k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(blob["config"]).items()}
@@ -83,7 +86,7 @@ def load_expert(path: str | pathlib.Path) -> Expert:
         raise ConfigError(f"--expert {str(path)!r} holds a configuration this cdjax refuses: {err}") from None
     except Exception as err:  # noqa: BLE001 - msgpack, json, a missing key, a wrong type: the file is not an expert
         raise ConfigError(f"--expert {str(path)!r} is not an expert file ({type(err).__name__}: {err}); write one "
-                          "with python -m cdjax.agents.pixel.export_expert.") from None
+                          "with python -m cdjax.runner.export_expert.") from None
 
 
 def expert_for(env: str, path: str) -> Expert:
@@ -99,27 +102,3 @@ def actor(expert: Expert) -> Callable[[jax.Array, jax.Array | None], jax.Array]:
     trainer = _state_setting().make_trainer(expert.config)
     acting = dict(expert.acting, params={"policy": jax.tree.map(np.asarray, expert.policy)})
     return lambda obs, key: trainer.act(acting, obs, key)
-
-
-def export_from_run(run_dir: str | pathlib.Path, path: str | pathlib.Path, arm: str = "model-free") -> Expert:
-    """The policy of `arm`'s run with the best deterministic evaluation return in an observation-space sweep."""
-    from cdjax import io
-    from cdjax.runner import restore_arms
-
-    run_dir = pathlib.Path(run_dir)
-    _, arms = restore_arms(run_dir)
-    found = next((a for a in arms if a.name == arm), None)
-    if found is None:
-        raise ConfigError(f"{run_dir} has no arm {arm!r}.")
-    labels = list(found.plan.labels)
-    evals = [e for e in io.read_jsonl(run_dir / "eval.jsonl") if e["arm"] == arm and e.get("deterministic", True)
-             and e.get("eval/return") is not None and e.get("hp") in labels]
-    if not evals:
-        raise ConfigError(f"{run_dir} has no deterministic evaluation of arm {arm!r}.")
-    best = max(evals, key=lambda e: e["eval/return"])
-    run = labels.index(best["hp"]) * (found.num_runs // len(labels)) + best["seed"]
-    acting = jax.device_get(jax.tree.map(lambda x: x[run], found.trainer.policy(found.state)))
-    expert = Expert(found.plan.config, acting["params"]["policy"], acting["norms"], float(best["eval/return"]))
-    save_expert(path, expert)
-    return expert
-
