@@ -74,7 +74,7 @@ run_task() {  # TASK GPU SECONDS
     fi
     grep -q '"deterministic": true' "$d/expert-run/eval.jsonl" 2>/dev/null || \
       python -m cdjax.cli eval "$d/expert-run" --episodes 16
-    python -m cdjax.agents.pixel.export_expert "$d/expert-run" "$d/expert.msgpack" || return 1
+    python -m cdjax.runner.export_expert "$d/expert-run" "$d/expert.msgpack" || return 1
   fi
   [ "${EXPERTS_ONLY:-0}" = 1 ] && return 0  # EXPERTS_ONLY=1: stop after the experts (e.g. to carry them elsewhere)
   # after the sweep (FINAL=1): the evaluation and the plots (230 s; pusher's 20 runs took over 120 s to evaluate) and

@@ -191,7 +191,7 @@ def task_report(unit_dirs, reps: int = 2000, merged=None) -> tuple[list[dict], d
         info["horizon"] = config["horizon"]
     expert = _task_files(unit_dirs, units, "expert.msgpack")
     if expert is not None:
-        from cdjax.agents.pixel.expert import load_expert
+        from cdjax.agents.experts import load_expert
 
         info["expert_return"] = load_expert(expert).eval_return
     cost = _task_files(unit_dirs, units, "cost.json")
