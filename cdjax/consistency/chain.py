@@ -56,7 +56,7 @@ def gru_gates(gi: jax.Array, gh: jax.Array, h: jax.Array) -> jax.Array:
     return (1.0 - z) * n + z * h
 
 
-def _outer(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
+def layer_grads(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     """A layer's (kernel, bias) gradient summed over every leading axis (every step and row at once) from its
     inputs a [..., I] and its outputs' cotangents b [..., J]: one matrix product of [a, 1] and b.
 
@@ -86,7 +86,7 @@ def _gates(c: dict, gi_re, both_im, hh, h):
     return gru_gates(gi, hh + c["gh_bias"], h)
 
 
-def _stack_steps(xs: list) -> jax.Array:
+def stack_steps(xs: list) -> jax.Array:
     """The per-step arrays xs (each [...]) stacked along a new leading axis [k, ...], as jnp.stack, but written as a
     concatenation of [1, ...] slices: under vmap jnp.stack puts the vmapped axis second ([k, seeds, ...]), and the
     weight gradients' products then need it moved back in front, a transpose of each stacked array in every SGD step;
@@ -179,7 +179,7 @@ def _chain_bwd(shared: bool, residuals, cotangents):
     _, inputs_vjp = jax.vjp(functools.partial(_chain_inputs, c, shared), states[0])
     ds0 = ds + inputs_vjp(dp1 @ w_in[:, :N1].T)[0]
 
-    stack = _stack_steps  # [k, ...]: one copy per kind
+    stack = stack_steps  # [k, ...]: one copy per kind
     return _chain_weight_grads(p, c, stack(xin[:-1]), stack(xin[1:]), [stack(list(u)) for u in zip(*hidden)],
                                [stack(list(dz)) for dz in zip(*dzs)], stack(dgi), stack(dhh), stack(hs[:-1]), ds0)
 
@@ -194,14 +194,14 @@ def _chain_weight_grads(p: dict, c: dict, xin_prev, xin_next, hidden: list, dz_l
     layers = p["layers"]
     O, W, H = ds0.shape[-1], ds0.shape[0], p["w_h"].shape[0]
     model_in = jnp.concatenate([xin_prev[..., :O], p["actions"]], axis=-1)  # layer 1's inputs, steps 0..k-1
-    dlayers = tuple(_outer(x, dz) for x, dz in zip([model_in] + list(hidden), dz_layers))
+    dlayers = tuple(layer_grads(x, dz) for x, dz in zip([model_in] + list(hidden), dz_layers))
     dactions = dz_layers[0] @ layers[0][0][O:].T
     # the GRU's weights: real and imagined rows in one product, each kind's cotangent scaled as scale_gradient would
     scales = jnp.repeat(jnp.stack(c["scales"]), W)[None, :, None]  # [1, 2W, 1]: each row's kind's scale
     scaled = lambda g: jnp.where(scales == 0, jnp.zeros_like(g), g * scales)  # noqa: E731
     x_enc = jnp.concatenate([p["x_re"], xin_next[..., -p["x_re"].shape[-1]:]], axis=1)  # [k, 2W, D]
-    dw_i, db_i = _outer(x_enc, scaled(dgi))
-    dw_h, dgh_bias = _outer(hs_prev, scaled(dhh))
+    dw_i, db_i = layer_grads(x_enc, scaled(dgi))
+    dw_h, dgh_bias = layer_grads(hs_prev, scaled(dhh))
     dp = dict(layers=dlayers, w_i=dw_i, b_i=db_i, w_h=dw_h, b_hn=dgh_bias[2 * H:], s0=ds0, actions=dactions,
               x_re=dgi[:, :W] @ p["w_i"].T)
     return dp, jax.tree.map(jnp.zeros_like, {name: c[name] for name in ("model_obs", "delta", "enc_obs", "scales")})

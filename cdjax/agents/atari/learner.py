@@ -214,7 +214,7 @@ class A2C:
         metrics.update({
             "episode/return": ret, "episode/discounted_return": disc_ret, "episode/count": stats.done_count,
             "train/reward": batch.reward.mean(), "env/invalid_fraction": 1.0 - batch.valid.astype(jnp.float32).mean(),
-            "train/skipped_step": (~jnp.isfinite(optax.global_norm(grads))).astype(jnp.float32)})
+            "train/skipped_step": (opt_state.total_notfinite - state.opt_state.total_notfinite).astype(jnp.float32)})
         new = state.replace(params=params, opt_state=opt_state, env_state=env_state, stats=stats, last_return=ret,
                             last_disc_return=disc_ret, key=key, step=state.step + 1)
         return new, metrics

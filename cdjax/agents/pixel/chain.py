@@ -11,6 +11,14 @@ gradient comes afterwards, one product over all k steps each.
 
 Gradient paths are those of `consistency_loss`: the caller scales the core's and the policy's parameters; the GRU's
 gradient from the real rows is scaled by scales[0] and from the imagined rows by scales[1].
+
+What it shares with `cdjax.consistency.chain` (the same math): the GRU step (`gru_gates`) and its backward by the
+same vjp, every layer's (kernel, bias) gradient as one product over all steps (`layer_grads`), and the per-step
+arrays stacked so that a vmapped runs' axis stays in front (`stack_steps`). Why the loops are its own: the model
+step is another function (the LSTM core with a latent sampled from the prior, z = mean + std * eps, and optionally
+the policy acting on the imagined h, not an MLP on normalised states), so its forward products, its per-step
+cotangents (through the LSTM cell, the softplus scale and the tanh policy) and the residuals they need differ;
+and the GRU reads the model's own hidden state, with no normalisation statistics and no clip.
 """
 
 from __future__ import annotations
@@ -22,7 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from cdjax.agents.pixel.model import lstm_cell
-from cdjax.consistency import gru_gates
+from cdjax.consistency.chain import gru_gates, layer_grads, stack_steps
 
 
 def _flat(x: jax.Array) -> jax.Array:
@@ -30,8 +38,8 @@ def _flat(x: jax.Array) -> jax.Array:
 
 
 def _outer(xs: list, ds: list) -> jax.Array:
-    """sum_t xs[t]^T ds[t]: one product over every step and row."""
-    return _flat(jnp.stack(xs)).T @ _flat(jnp.stack(ds))
+    """sum_t xs[t]^T ds[t]: one product over every step and row (a layer without bias)."""
+    return _flat(stack_steps(xs)).T @ _flat(stack_steps(ds))
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
@@ -130,16 +138,13 @@ def _chain_bwd(use_policy: bool, min_std: float, residuals, cotangents):
     if use_policy:
         grads["pw1"], col = dw_hall[:, :Np], Np
         grads["pb1"] = jnp.stack([dP_t[:, :Np] for dP_t in d["P"]]).sum((0, 1))
-        grads["pw2"] = _outer(r["u1"], d["dpre2"])
-        grads["pb2"] = jnp.stack(d["dpre2"]).sum((0, 1))
+        grads["pw2"], grads["pb2"] = layer_grads(stack_steps(r["u1"]), stack_steps(d["dpre2"]))
     grads["wp_h"], grads["w_hl"], grads["w_i"] = (dw_hall[:, col:col + M], dw_hall[:, col + M:col + M + 4 * H],
                                                   dw_hall[:, -3 * G:])
-    dw_a = _outer(r["a"], d["Q"])
-    grads["wp_a"], grads["w_xa"] = dw_a[:, :M], dw_a[:, M:]
-    grads["bp"] = jnp.stack([dQ[:, :M] for dQ in d["Q"]]).sum((0, 1))
-    grads["b_l"] = jnp.stack(d["gates"]).sum((0, 1))
-    grads["wo"] = _outer([nn.relu(gp) for gp in r["gp"]], d["out"])
-    grads["bo"] = jnp.stack(d["out"]).sum((0, 1))
+    # the action's rows of the prior's hidden layer and of the LSTM, with their biases (bp, b_l): Q's cotangents
+    dw_a, db_a = layer_grads(stack_steps(r["a"]), stack_steps(d["Q"]))
+    grads["wp_a"], grads["w_xa"], grads["bp"], grads["b_l"] = dw_a[:, :M], dw_a[:, M:], db_a[:M], db_a[M:]
+    grads["wo"], grads["bo"] = layer_grads(stack_steps([nn.relu(gp) for gp in r["gp"]]), stack_steps(d["out"]))
     grads["w_z"] = _outer(r["z"], d["gates"])
     # the GRU: the real rows' input products happened outside the loop (gi_re), the imagined rows' inside `both`
     grads["w_i"] = grads["w_i"] + _flat(p["x_re"]).T @ _flat(dgi_scaled[:, 0])

@@ -38,6 +38,7 @@ from cdjax.agents.experts import actor, expert_for
 from cdjax.agents.pixel.chain import pixel_chain
 from cdjax.agents.pixel.model import LtqModel, core_weights, stack_frames
 from cdjax.checks import check_type
+from cdjax.optim import skip_if_not_finite
 from cdjax.protocol import Trainer
 
 HELDOUT_BATCH = 4  # held-out sequences scored per update
@@ -71,11 +72,12 @@ def scale_by_group_rates(rates: dict, default) -> optax.GradientTransformation:
 
 def optimizer(hp) -> optax.GradientTransformation:
     """Gradient clipping by value, then Adam (the authors' code: 1.0 and 1e-4), the policy's parameters at their own
-    step size when `lr_policy` > 0; a non-finite step is skipped. With lr_policy 0 it is optax.adam(lr) after the
+    step size when `lr_policy` > 0; a non-finite step is skipped (`cdjax.optim.skip_if_not_finite`, as in every
+    setting: the state optax.apply_if_finite keeps, leaf for leaf). With lr_policy 0 it is optax.adam(lr) after the
     clipping, state and numbers alike."""
     policy_lr = jnp.where(hp.lr_policy > 0, hp.lr_policy, hp.lr)
     adam = optax.chain(optax.scale_by_adam(), scale_by_group_rates({"policy": policy_lr}, hp.lr))
-    return optax.apply_if_finite(optax.chain(optax.clip(hp.clip), adam), max_consecutive_errors=1_000_000)
+    return skip_if_not_finite(optax.chain(optax.clip(hp.clip), adam))
 
 
 class PixelLearner:
