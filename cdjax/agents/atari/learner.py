@@ -263,9 +263,3 @@ def make_trainer(config: AtariConfig) -> Trainer:
     return Trainer(config=config, init=agent.init, update=agent.update, policy=lambda state: state.params["agent"],
                    act=agent.act, eval_env=eval_env,
                    saved_leaves=saved_leaves, inner=agent)
-
-
-# RMSprop rates of the MinAtar presets, checked per game with the a2c arm on an H200 (5 seeds, 5M env steps, evaluation
-# IQM over 100 sampled-action episodes; experiments/atari/RESULTS.md). Space Invaders at 1e-2: AUC 50.0 / 68.0 / 56.5 /
-# 49.0 and evaluation 82.6 / 100.2 / 82.8 / 59.0 at 5e-3 / 1e-2 / 2e-2 / 4e-2, and at 2e-2 the 10-seed, 10M-step run
-# split its seeds (final training return [15, 102]) where 1e-2 gave 108.5 [94.6, 117.0].

@@ -7,6 +7,9 @@ from cdjax.agents.atari.config import ALE_PREFIX, AtariConfig
 from cdjax.agents.atari.minatar import GAMES
 from cdjax.protocol import Preset
 
+# RMSprop rates of the MinAtar presets, checked per game with the a2c arm (5 seeds, 5M env steps, evaluation IQM
+# over 100 sampled-action episodes; experiments/atari/RESULTS.md): Space Invaders learnt best and most evenly across
+# seeds at 1e-2 (at 2e-2 a 10-seed run split its seeds).
 RATES = {"space_invaders": 1e-2}
 
 

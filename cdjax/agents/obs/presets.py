@@ -9,8 +9,8 @@ The per-environment settings start from Brax's published PPO settings for the sa
 (discount, reward scaling, entropy cost, clipping 0.3, epochs, minibatches, parallel envs, budget), with
 the rollout long enough to hold the paper's k-step windows (k = 20 for the locomotion tasks as in the
 paper, k = 5 for the manipulation tasks) and the consistency term on a few windows per sequence in the
-first epoch (every window in every epoch, the paper's schedule, costs 1.52x Mb-Mf's update with the fused term:
-benchmarks/results/2026-11-24-h100-compare; the presets switch to it at 1.5x, or when it learns better).
+first epoch (every window in every epoch, the paper's schedule, cost about 1.5x Mb-Mf's update with the fused term
+as measured in benchmarks/; the presets switch to it when that cost drops, or when it learns better).
 Only ant and halfcheetah have been measured on a GPU with these settings (benchmarks/LEARNING.md). `cpu-smoke` was
 measured: `cdjax sweep --preset cpu-smoke --out runs/smoke` took 126 s end to end on a shared 2-core
 CPU with an empty compilation cache (setup 32 s, compile 31 s, training 35 s, evaluation 18 s).

@@ -14,8 +14,8 @@ kernel, so the choice is how the per-run kernels meet:
               rule, also for the input's and the kernel's gradients): R dense convolutions in one program
     auto      per layer: per-run where the layer's input or output has fewer than AUTO_MIN_CHANNELS channels per run
               (the encoder's first layer reads 3 x frame_stack, the decoder's last writes 24: a grouped convolution
-              of so few channels per group runs far below its FLOPs: on an H200 the decoder's last layer alone held
-              59 % of the grouped bfloat16 update's kernel time, experiments/pixel/data/roofline-h200/profile/),
+              of so few channels per group runs far below its FLOPs: the decoder's last layer alone took most of
+              the grouped bfloat16 update's kernel time in the profile of experiments/pixel/data/roofline-h200/),
               grouped elsewhere (wide layers, where the grouped kernels are efficient and per-run's
               slicing and stacking of every run's operands costs more)
     matmul    the convolution as one matrix product of patches (each output pixel's kernel window, gathered by
