@@ -1,15 +1,11 @@
 """The observation-space learner: make_agent(config) -> ObsAgent (init, update, ...); make_train(config) ->
 train(key, hp); make_trainer(config) -> the protocol's Trainer.
 
-One call of `update` is the whole consistent-dynamics step, compiled once: closed-loop rollout
-(scan over T steps of B environments), GAE, then epochs x minibatches (scans) of
-
-    PPO + model_coef * model NLL + alpha * consistency,
-
-where the consistency term imagines k-step open-loop windows with the learned model from real start
-states, under actions re-derived differentiably from the stored noise (so its gradient reaches the
-policy), encodes real and imagined windows with one shared encoder, and averages the L2 distance over
-the windows that stay inside one episode. Arms are switches of the same code: `model-free` builds no
+One call of `update` is the whole consistent-dynamics step, compiled once: closed-loop rollout (scan over T steps
+of B environments), GAE, then epochs x minibatches (scans) of PPO + model_coef * model NLL + alpha * consistency,
+where the consistency term imagines k-step open-loop windows with the learned model from real start states, under
+actions re-derived differentiably from the stored noise (so its gradient reaches the policy), encodes real and
+imagined windows with one shared encoder, and averages the L2 distance over the windows inside one episode. Arms are switches of the same code: `model-free` builds no
 model, `mbmf` trains the model without the consistency term, `cd` builds the consistency term with
 weight `alpha` (alpha = 0 there still logs l_cc, without gradient).
 
