@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from cdjax import budget
 from cdjax.io import json_float
 from cdjax.protocol import Trainer
 
@@ -124,7 +125,7 @@ def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool,
     """jit(vmap(evaluate)) over runs: fn(policy [R], keys [R], hps [R]) -> results [R, ...].
 
     Feed it `trainer.policy(state)` of a sweep's state and the stacked HParams of the same runs. Compiled as cdjax
-    compiles its other programs, once per kind of input (`cdjax.runner.budget.compile_fitting`): with the compile
+    compiles its other programs, once per kind of input (`cdjax.budget.compile_fitting`): with the compile
     mode in force when it was made (so `--compile-mode deterministic` reaches the evaluations too) and the GPU's
     data-flow scheduling, in program order where that would not fit in the device's free memory. Called inside
     a trace (under your own jit), it is the plain jit(vmap(evaluate)).
@@ -143,8 +144,6 @@ def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool,
         args = (policy, keys, hps)
         if any(_is_tracer(x) for x in jax.tree.leaves(args)):
             return program(*args)
-        from cdjax.runner import budget  # here: the runner imports this module
-
         key = budget.signature(args)
         if key not in compiled:
             compiled[key] = budget.compile_fitting(program.lower(*args), mode=mode)[0]

@@ -41,17 +41,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from cdjax import multihost
-from cdjax.io import RunDirError, WriteError, reason
+from cdjax.errors import CheckpointMismatch, CheckpointWarning, WriteError, reason
 
 MAX_TO_KEEP = 2
-
-
-class CheckpointWarning(UserWarning):
-    """A checkpoint could not be restored and an older one is used instead."""
-
-
-class CheckpointMismatch(RunDirError):
-    """A readable checkpoint of another run than the one asked for (one sentence; nothing was changed)."""
 
 
 class _Unreadable(Exception):

@@ -19,7 +19,7 @@ import numpy as np
 from cdjax import io, multihost, runtime
 from cdjax.evaluate import MAX_EVAL_EPISODE_STEPS, episode_steps, eval_records, make_evaluator
 from cdjax.protocol import ConfigError, Setting, Trainer
-from cdjax.runner import budget
+from cdjax import budget
 from cdjax.runner.plan import ArmPlan, plan_arms, recorded
 from cdjax.runner.spec import SweepSpec
 from cdjax.sweep import Sweep, make_sweep

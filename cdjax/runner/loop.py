@@ -35,7 +35,7 @@ import numpy as np
 
 from cdjax import io, multihost, runtime
 from cdjax.protocol import ConfigError, Setting
-from cdjax.runner import budget
+from cdjax import budget
 from cdjax.runner.arms import (Arm, abstract_state, build, check_evaluation, check_memory, compile_all, evaluate_arms,
                                expectation, finished_evaluation, host_time, nanmean, restore, unreadable_text)
 from cdjax.runner.console import Clock, Progress, StopFlag, Stopped, library_log, stopped
