@@ -5,6 +5,8 @@
     metrics.jsonl                  one object per (arm, hp, seed, update); NaN written as null
     phase.jsonl                    the pre-update phase's diagnostics per (arm, hp, seed)
     eval.jsonl                     evaluations (cdjax.evaluate.eval_records)
+    timings.jsonl                  where each process's time went: tracing, compiling, init, restore, evaluations,
+                                   writes (cdjax.io.timings)
     cdjax.log                      what the libraries (orbax, absl, asyncio, warnings) said during the sweep
     cdjax.process<i>.log           the same, of process i > 0 of a sweep of several processes (cdjax.multihost)
     .lock                          flock-ed by the process that trains in the directory (process 0 of several)
@@ -33,6 +35,7 @@ from cdjax.io.records import (READABLE_VERSIONS, RUN_VERSION, check_record, data
                               hparams_to_json, json_float, metric_rows, phase_rows)
 from cdjax.io.rundir import LEFT_BEFORE_A_RUN, RunDir
 from cdjax.io.tensorboard import TensorBoard
+from cdjax.io.timings import Timings, read_timings
 
 
 def host(tree):
@@ -47,4 +50,4 @@ __all__ = ["RunDir", "RunDirError", "WriteError", "CheckpointMismatch", "Checkpo
            "metric_rows", "phase_rows", "json_float", "snapshot",
            "dataclass_to_json", "dataclass_from_json", "hparams_to_json", "host", "reason", "writing", "WRITE_FAILED",
            "PACKED", "ROW_CHECKS", "jsonl_exists", "jsonl_source", "write_packed", "READABLE_VERSIONS", "RUN_VERSION",
-           "LEFT_BEFORE_A_RUN"]
+           "LEFT_BEFORE_A_RUN", "Timings", "read_timings"]

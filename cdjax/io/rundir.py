@@ -32,6 +32,10 @@ class RunDir:
         return self.path / "eval.jsonl"
 
     @property
+    def timings(self) -> pathlib.Path:
+        return self.path / "timings.jsonl"
+
+    @property
     def phase(self) -> pathlib.Path:
         """Diagnostics of the pre-update phase (the update-0 rows of metrics.jsonl, kept apart for reading)."""
         return self.path / "phase.jsonl"

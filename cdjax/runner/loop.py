@@ -33,11 +33,10 @@ from typing import Callable, Mapping, Sequence
 import jax
 import numpy as np
 
-from cdjax import io, multihost, runtime
+from cdjax import budget, io, multihost, runtime
 from cdjax.protocol import ConfigError, Setting
-from cdjax import budget
 from cdjax.runner.arms import (Arm, abstract_state, build, check_evaluation, check_memory, compile_all, evaluate_arms,
-                               expectation, finished_evaluation, host_time, nanmean, restore, unreadable_text)
+                               expectation, finished_evaluation, nanmean, restore, unreadable_text)
 from cdjax.runner.console import Clock, Progress, StopFlag, Stopped, library_log, stopped
 from cdjax.runner.plan import plan_arms, return_note, run_record, same_run, without_retired
 from cdjax.runner.spec import SweepSpec, out_dir, resolve
@@ -173,9 +172,10 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     """
     rd = io.RunDir(out_dir(spec))
     writer = multihost.is_writer()
+    timings = io.Timings(multihost.index())
     try:
         with multihost.together():  # several processes: each refuses what one refuses (in one sentence)
-            with host_time("plan"):
+            with timings.time("all", "plan", "host"):
                 runtime.environment_options()  # $CDJAX_XLA_OPTIONS refused now, not after the build
                 spec, setting, plans, record = _prepare(spec, resume)
             rd = io.RunDir(pathlib.Path(spec.out))
@@ -187,10 +187,12 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
                 raise ConfigError(f"--restart-arm {unknown[0]}: the run has no such arm; its arms are "
                                   f"{', '.join(p.name for p in plans)}.")
             progress = Progress(spec.progress, record["total_env_steps"], quiet=not writer)
-            with host_time("build"):
+            with timings.time("all", "build", "host"):
                 arms = [build(plan, spec, setting) for plan in plans]
+            for arm in arms:
+                arm.timings = timings
             check_evaluation(arms, spec, resume, progress.say)
-            with host_time("memory"):
+            with timings.time("all", "memory", "host"):
                 states = check_memory(arms, spec)
             for arm in arms:
                 arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
@@ -210,7 +212,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
                                  f"{budget.gb(wide or 0)} beside the states' {budget.gb(states)}, and there are "
                                  f"{budget.gb(have)} {where}; in order it needs {budget.gb(narrow or 0)}.")
             # init's output is the state, already counted; the phase and chunk programs donate it and return it
-            with host_time("programs"):
+            with timings.time("all", "programs", "host"):
                 spare = budget.check_programs(states, {f"{arm.name} {what}": p for arm in arms
                                                        for what, p in arm.programs.items() if what != "init"})
     except KeyboardInterrupt as err:
@@ -236,7 +238,8 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             # A checkpoint's copy of the states on the devices (the next chunk starts before it goes to the host)
             # where they have room for it, with a tenth of the rest to spare.
             return _train(Loop(rd, spec, setting, arms, record["chunk_updates"], progress, after_chunk,
-                               record=record, restart=restart, snapshots=states <= 0.9 * spare), resume, t_compile)
+                               record=record, restart=restart, snapshots=states <= 0.9 * spare, timings=timings), resume,
+                          t_compile)
     except (Interrupted, Stopped):
         raise
     except KeyboardInterrupt as err:  # between the compilation and the loop: run.json may be written, no update
@@ -273,6 +276,7 @@ def _train(loop: "Loop", resume: bool, t_compile: float) -> pathlib.Path:
                 loop.close()
             try:
                 loop.finish()
+                loop.write_timings()  # the final evaluation's and the plots' rows
             except KeyboardInterrupt as err:
                 raise stopped(err, f"Interrupted after training (every arm is trained and checkpointed) during the "
                                    f"final evaluation or plots; `{_resume_hint(loop.rd)}` makes them.") from None
@@ -310,6 +314,7 @@ class Loop:
     restart: set = dataclasses.field(default_factory=set)  # arms a resume trains again from update 0
     started: bool = False  # `start` is done
     writer: bool = dataclasses.field(default_factory=multihost.is_writer)  # this process writes the run directory
+    timings: io.Timings = dataclasses.field(default_factory=io.Timings)  # where the time goes (timings.jsonl)
 
     def say(self, text: str) -> None:
         self.progress.say(text)
@@ -319,7 +324,8 @@ class Loop:
         say the plan."""
         t0 = time.perf_counter()
         for arm in self.arms:
-            arm.state = arm.programs.pop("init")(arm.keys, arm.hps)
+            with self.timings.time(arm.name, "init", "init"):  # one arm's init at a time, to time each
+                arm.state = jax.block_until_ready(arm.programs.pop("init")(arm.keys, arm.hps))
             arm.ckpt = io.Checkpoints(self.rd.checkpoints(arm.name))
             if not resume:
                 continue
@@ -328,7 +334,10 @@ class Loop:
                 self.say(f"Restarting arm {arm.name} from update 0"
                          + (f"; its checkpoints were moved aside ({', '.join(p.name for p in moved)})." if moved
                             else "."))
-            elif not restore(arm) and arm.ckpt.unreadable:
+                continue
+            with self.timings.time(arm.name, "checkpoint", "restore"):
+                restored = restore(arm)
+            if not restored and arm.ckpt.unreadable:
                 raise io.RunDirError(
                     f"{self.rd.path}: no checkpoint of arm {arm.name!r} can be read "
                     f"({unreadable_text(arm.ckpt.unreadable)}; moved aside, kept); add --restart-arm {arm.name} to "
@@ -357,6 +366,7 @@ class Loop:
             self.say(note)
         purge = {a.name: a.env_steps(a.updates + 1) for a in self.arms} if resume else None
         self.tb = io.TensorBoard(self.rd, purge_steps=purge)
+        self.timings.add("all", "setup", "host", t0)
         self.started = True
 
     def _trim_logs(self) -> None:
@@ -473,8 +483,10 @@ class Loop:
         arm.unlogged = None
         with multihost.together():  # a failed write ends every process before any checkpoint holds its updates
             if self.writer:
-                io.append_jsonl(self.rd.metrics, rows)
-                self.tb.write(rows)
+                with self.timings.time(arm.name, "metrics.jsonl", "write"):
+                    io.append_jsonl(self.rd.metrics, rows)
+                with self.timings.time(arm.name, "tensorboard", "write"):
+                    self.tb.write(rows)
         ret = self.setting.metrics.ret
         if ret in metrics:
             arm.last_return = nanmean(metrics[ret][:, -1])
@@ -517,7 +529,8 @@ class Loop:
         if arm.saved != arm.updates:
             done = {"updates": arm.updates, "env_steps": arm.env_steps(), "wall_s": arm.wall_offset + self.clock.now(),
                     "chunk_updates": self.chunk, "run": arm.identity}
-            arm.ckpt.save(arm.updates, arm.state if state is None else state, done, keep=self._keep(arm))
+            with self.timings.time(arm.name, "checkpoint", "write"):  # the host's part: orbax writes in a thread
+                arm.ckpt.save(arm.updates, arm.state if state is None else state, done, keep=self._keep(arm))
             arm.saved = arm.updates
 
     @staticmethod
@@ -656,6 +669,15 @@ class Loop:
         for arm in self.arms:
             if arm.ckpt is not None:
                 arm.ckpt.close()
+        # Called on the way out of an error too: a failure to write the timings must not hide the error in flight
+        # (a full disk is said by the write that met it), so it is passed over here and said by `finish`'s write.
+        with contextlib.suppress(io.WriteError):
+            self.write_timings()
+
+    def write_timings(self) -> None:
+        """Append the timings not yet written to timings.jsonl (process 0, once run.json is there)."""
+        if self.writer and self.rd.exists():
+            self.timings.flush(self.rd.timings)
 
     def finish(self) -> None:
         """Say how training went; the final evaluation (once per run) and the plots (process 0)."""
@@ -684,5 +706,6 @@ class Loop:
             self.say(f"No plots or summary: {err}; `cdjax plot {self.rd.path}` makes them where it is installed.")
             return
         note = return_note(self.setting, [a.plan for a in self.arms])  # said at the start, kept under the table
-        written = plot_run(self.rd.path, reps=self.spec.bootstrap_reps, say=self.say, notes=[note] if note else [])
+        with self.timings.time("all", "plots", "write"):
+            written = plot_run(self.rd.path, reps=self.spec.bootstrap_reps, say=self.say, notes=[note] if note else [])
         self.say(f"Wrote {', '.join(str(p) for p in written.values())}.")
