@@ -9,6 +9,7 @@ import itertools
 import math
 import pathlib
 import subprocess
+import sys
 from typing import Any, Mapping, Sequence
 
 from cdjax import agents, io
@@ -169,9 +170,8 @@ def _checkout() -> dict:
     """code_record's versions and git state, read once per process."""
     import jax
 
-    import cdjax
-
-    here = pathlib.Path(cdjax.__file__).resolve().parent
+    cdjax = sys.modules[__name__.partition(".")[0]]  # the package, loaded before any of its modules: its version
+    here = pathlib.Path(__file__).resolve().parents[1]
 
     def git(*args: str) -> str | None:
         try:
