@@ -8,9 +8,10 @@ logs, checkpoints, exact resume, evaluation and plots.
     run_sweep(preset_spec("runs/ant", config={"env": "ant"}, seeds=5))  # as `cdjax sweep --env ant --seeds 5`:
                                                   # the ant preset's values under the ones given
 
-Rooms: `spec` (what is asked, bounds), `plan` (arms, grids, run.json, resume compatibility), `cdjax.budget`
-(memory; below the runner, since evaluation compiles with it too, and importable as `cdjax.runner.budget`), `arms` (one arm's programs and state, evaluation), `loop` (the chunk loop), `console`
-(progress, clock, Ctrl-C, library messages into cdjax.log).
+Rooms: `spec` (what is asked, bounds), `plan` (arms, grids, run.json, resume compatibility), `cdjax.budget` (memory;
+below the runner, since evaluation compiles with it too, and importable as `cdjax.runner.budget`), `arms` (one arm's
+programs and state, evaluation), `loop` (run_sweep), `rounds` (the chunk loop), `console` (progress, clock, Ctrl-C,
+library messages into cdjax.log).
 """
 
 from cdjax import budget  # noqa: F401  (`from cdjax.runner import budget` works)
