@@ -442,7 +442,7 @@ def test_plan_grids_labels_and_refusals(tmp_path):
 @pytest.mark.parametrize("field,kept,other", [("cc_chain_impl", "xla", "pallas"), ("cc_clip", True, False)])
 def test_a_record_naming_a_removed_field_reads_as_cdjax_trains_now_and_refuses_another(tmp_path, field, kept, other):
     """A run.json written while Config had a field since removed (cc_chain_impl with the Pallas chain, cc_clip with
-    the unclipped term, both 2026-11-26) names it in its base config and each arm's: the value that trained as cdjax
+    the unclipped term) names it in its base config and each arm's: the value that trained as cdjax
     trains now is read without it (resume and the recorded spec); any other value is refused in one sentence."""
     spec = SweepSpec(out=tmp_path / "a", config=POINT, arms=("mbmf", "cd"), seeds=1)
     _write_record(spec)

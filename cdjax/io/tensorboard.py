@@ -54,9 +54,9 @@ class TensorBoard:
             for row in rows:
                 writer = self._writer(row["arm"], row["hp"], row["seed"])
                 touched.add(id(writer))
-                # One event per row holding all its scalars (TensorBoard reads each value as its own series): one
-                # event per scalar took ~0.45 ms a row, ~0.9 s of host time for a 10-run chunk of 200 updates while
-                # the GPU waited for the next chunk.
+                # One event per row holding all its scalars (TensorBoard reads each value as its own series): an
+                # event per scalar multiplies the host's work per row, which a chunk's logging makes the devices
+                # wait for.
                 values = [Summary.Value(tag=_TAG_UNSAFE.sub("_", name), simple_value=float(value))
                           for name, value in row.items() if name not in skip and value is not None]
                 writer.write_event(Event(wall_time=time.time(), step=int(row["env_steps"]),

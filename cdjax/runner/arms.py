@@ -349,8 +349,7 @@ def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
     Each program is handed to a compiling thread as soon as it is traced, so the tracing of one (Python) overlaps
     the compilation of the others (XLA, without the GIL); the arms with the largest states (the largest programs,
     in practice) first. An arm's init goes before its chunk: its compile fills cores that the serial lowering of
-    the chunks leaves idle (with the chunks first and the inits after them, 2026-11-27 on one H100 of 16 cores, the
-    inits compiled beside the chunks and slowed them: 371 against 237 thread-seconds of compiling,
+    the chunks leaves idle, where inits queued after the chunks would compile beside them and slow them (measured in
     benchmarks/results/2026-11-27-h100-shared-physics/). Programs this process compiled before are taken from its
     cache.
     """

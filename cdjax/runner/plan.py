@@ -253,10 +253,8 @@ def _known(old, new):
 # trained its runs as cdjax trains them now, what the other values were). A record holding that value is read
 # without the field; another value is refused.
 RETIRED = {
-    "cc_chain_impl": ("xla", "the consistency chain as Pallas kernels, removed on 2026-11-26: slower than XLA's chain, "
-                             "its gradients wrong on a GPU"),
-    "cc_clip": (True, "the consistency term without the normalisation's clip, removed on 2026-11-26: slower on a GPU "
-                      "than the clipped term"),
+    "cc_chain_impl": ("xla", "the consistency chain as Pallas kernels, since removed: slower than XLA's chain"),
+    "cc_clip": (True, "the consistency term without the normalisation's clip, since removed"),
 }
 
 
