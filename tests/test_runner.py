@@ -595,7 +595,7 @@ def test_memory_check_traces_a_shared_reset_once_and_counts_what_init_gives(monk
     assert len(traced) == before + 2  # the shared reset over the runs, and the evaluation environments' reset
     arm = built[0]
     arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
-    arms._lowered(arm, "reset", arm.sweep.reset.lower, arm.keys, owner=arm.sweep.reset)
+    arms._lowered(arm, "reset", arm.sweep.reset.trace, arm.keys, owner=arm.sweep.reset)  # as compile_all does
     assert len(traced) == before + 2  # the lowering of the reset program reused check_memory's trace
     key, hp = jax.random.key(0), HParams()
     for arm in built:
