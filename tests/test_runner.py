@@ -153,6 +153,7 @@ def test_the_timings_record_says_where_each_process_of_a_sweep_spent_its_time(tm
     first = io.read_timings(out)
     assert first and first.skipped == 0 and first[0]["what"] == "plan" and {r["process"] for r in first} == {0}
     assert all(r["s"] >= 0 and r["start"] >= 0 for r in first)
+    assert all(abs((r["at"] - first[0]["at"]) - (r["start"] - first[0]["start"])) < 1e-3 for r in first)
     steps = {(r["arm"], r["what"], r["step"]) for r in first}
     assert {("all", what, "host") for what in ("plan", "build", "memory", "programs", "setup")} <= steps
     for arm in SPEC.arms:

@@ -10,6 +10,8 @@ A row (JSON object):
             first would not fit), "host", "init", "restore", "evaluate", "write"
     s       seconds the step took (wall clock of the thread that ran it)
     start   when it began, in seconds since the sweep's process called run_sweep
+    at      when it began, as a Unix time (time.time()): to place the rows in a whole process's time (its imports
+            before run_sweep, its plots after)
     process the index of the process that timed it (cdjax.multihost); only process 0 writes the file
 
 Programs are traced and lowered in the calling thread and compiled in compile threads, so compile rows overlap
@@ -31,7 +33,7 @@ from cdjax.errors import writing
 from cdjax.io.jsonl import Rows, read_jsonl
 
 STEPS = ("trace", "lower", "compile", "compile in order", "host", "init", "restore", "evaluate", "write")
-FIELDS = ("arm", "what", "step", "s", "start", "process")
+FIELDS = ("arm", "what", "step", "s", "start", "at", "process")
 
 
 class Timings:
@@ -40,6 +42,7 @@ class Timings:
     def __init__(self, process: int = 0):
         self.process = process
         self.origin = time.perf_counter()  # `start` 0
+        self.wall_origin = time.time()  # the Unix time of `origin`
         self.rows: list[dict] = []
         self._written = 0
         self._lock = threading.Lock()
@@ -50,7 +53,7 @@ class Timings:
             raise ValueError(f"timing step {step!r}: choose one of {STEPS}")
         end = time.perf_counter() if end is None else end
         row = {"arm": arm, "what": what, "step": step, "s": end - t0, "start": t0 - self.origin,
-               "process": self.process}
+               "at": self.wall_origin + (t0 - self.origin), "process": self.process}
         with self._lock:
             self.rows.append(row)
         return row
@@ -86,7 +89,7 @@ class Timings:
 def timing_row_ok(row: dict) -> bool:
     """A row of timings.jsonl: the fields of FIELDS with their types."""
     return (all(isinstance(row.get(k), str) for k in ("arm", "what", "step"))
-            and all(isinstance(row.get(k), (int, float)) and not isinstance(row.get(k), bool) for k in ("s", "start"))
+            and all(isinstance(row.get(k), (int, float)) and not isinstance(row.get(k), bool) for k in ("s", "start", "at"))
             and isinstance(row.get("process"), int))
 
 
