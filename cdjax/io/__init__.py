@@ -29,6 +29,7 @@ import numpy as np
 
 from cdjax.errors import (  # the errors' old home: `from cdjax.io import RunDirError` works
     WRITE_FAILED, CheckpointMismatch, CheckpointWarning, RunDirError, WriteError, reason, writing)
+from cdjax.io.checkpoints import Checkpoints, snapshot
 from cdjax.io.jsonl import (PACKED, ROW_CHECKS, Rows, append_jsonl, eval_row_ok, jsonl_exists, jsonl_source,
                             metric_row_ok, read_jsonl, truncate_jsonl, write_packed)
 from cdjax.io.records import (READABLE_VERSIONS, RUN_VERSION, check_record, dataclass_from_json, dataclass_to_json,
@@ -42,8 +43,6 @@ def host(tree):
     """Device arrays -> numpy (blocks until they are computed)."""
     return jax.tree.map(np.asarray, jax.device_get(tree))
 
-
-from cdjax.io.checkpoints import Checkpoints, snapshot  # noqa: E402  (checkpoints imports the errors above)
 
 __all__ = ["RunDir", "RunDirError", "WriteError", "CheckpointMismatch", "CheckpointWarning", "Checkpoints", "TensorBoard", "Rows",
            "read_jsonl", "append_jsonl", "truncate_jsonl", "check_record", "metric_row_ok", "eval_row_ok",
