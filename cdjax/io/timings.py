@@ -88,9 +88,11 @@ class Timings:
 
 def timing_row_ok(row: dict) -> bool:
     """A row of timings.jsonl: the fields of FIELDS with their types."""
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
     return (all(isinstance(row.get(k), str) for k in ("arm", "what", "step"))
-            and all(isinstance(row.get(k), (int, float)) and not isinstance(row.get(k), bool) for k in ("s", "start", "at"))
-            and isinstance(row.get("process"), int))
+            and all(number(row.get(k)) for k in ("s", "start", "at")) and isinstance(row.get("process"), int))
 
 
 def read_timings(run_dir: str | os.PathLike) -> Rows:
