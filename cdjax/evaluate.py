@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import os
 import pathlib
+import time
 from typing import Any, Callable, Sequence
 
 import jax
@@ -24,7 +25,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from cdjax import budget
 from cdjax.io import json_float
+from cdjax.io.timings import Timings
 from cdjax.protocol import Trainer
 
 
@@ -119,15 +122,16 @@ def evaluate(trainer: Trainer, policy: Any, key: jax.Array, *, episodes: int, hp
     }
 
 
-def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool,
-                   max_steps: int | None = None) -> Callable[..., dict[str, jax.Array]]:
+def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool, max_steps: int | None = None,
+                   timings: Timings | None = None, arm: str = "all") -> Callable[..., dict[str, jax.Array]]:
     """jit(vmap(evaluate)) over runs: fn(policy [R], keys [R], hps [R]) -> results [R, ...].
 
     Feed it `trainer.policy(state)` of a sweep's state and the stacked HParams of the same runs. Compiled as cdjax
-    compiles its other programs, once per kind of input (`cdjax.runner.budget.compile_fitting`): with the compile
+    compiles its other programs, once per kind of input (`cdjax.budget.compile_fitting`): with the compile
     mode in force when it was made (so `--compile-mode deterministic` reaches the evaluations too) and the GPU's
     data-flow scheduling, in program order where that would not fit in the device's free memory. Called inside
-    a trace (under your own jit), it is the plain jit(vmap(evaluate)).
+    a trace (under your own jit), it is the plain jit(vmap(evaluate)). `timings`: where the trace, lowering and
+    compilation of each of its programs are timed (rows of `arm`, what "evaluator"; cdjax.io.timings).
     """
     from cdjax import runtime
 
@@ -143,11 +147,18 @@ def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool,
         args = (policy, keys, hps)
         if any(_is_tracer(x) for x in jax.tree.leaves(args)):
             return program(*args)
-        from cdjax.runner import budget  # here: the runner imports this module
-
         key = budget.signature(args)
         if key not in compiled:
-            compiled[key] = budget.compile_fitting(program.lower(*args), mode=mode)[0]
+            t0 = time.perf_counter()
+            traced = program.trace(*args)
+            t1 = time.perf_counter()
+            lowered = traced.lower()
+            t2 = time.perf_counter()
+            compiled[key] = budget.compile_fitting(lowered, mode=mode)[0]
+            if timings is not None:
+                timings.add(arm, "evaluator", "trace", t0, t1)
+                timings.add(arm, "evaluator", "lower", t1, t2)
+                timings.add(arm, "evaluator", "compile", t2)
         return compiled[key](*args)
 
     return evaluator

@@ -31,6 +31,9 @@ import threading
 import jax
 import numpy as np
 
+from cdjax.errors import CheckpointMismatch, PeerLost, Refused, RunDirError, WriteError
+from cdjax.protocol import ConfigError
+
 PEER_LOST_STATUS = 69  # EX_UNAVAILABLE: a process of the sweep was lost; the run directory can be resumed
 DEFAULT_HEARTBEAT_S = 100  # jax.distributed.initialize's own default: a silent process is declared dead after this
 _MESSAGE_BYTES = 2048  # what one process can say in an exchange (a sentence; longer ones are cut)
@@ -38,19 +41,6 @@ _MESSAGE_BYTES = 2048  # what one process can say in an exchange (a sentence; lo
 # Set once a peer was lost: from then on nothing waits for the others (checkpoint managers are not closed, since
 # closing waits at a barrier that the dead process will never reach).
 LOST = threading.Event()
-
-
-class PeerLost(RuntimeError):
-    """Another process of the sweep stopped answering (killed, or its host failed); one sentence. `complete`: the
-    sentence already says what is intact and how to go on."""
-
-    def __init__(self, sentence: str, complete: bool = False):
-        super().__init__(sentence)
-        self.complete = complete
-
-
-class Refused(ValueError):
-    """What another process refused or failed at, said by this one (the same sentence)."""
 
 
 def count() -> int:
@@ -69,8 +59,6 @@ def is_writer() -> bool:
 
 
 def _check_coordinator(coordinator: str) -> None:
-    from cdjax.protocol import ConfigError
-
     host, _, port = coordinator.rpartition(":")
     if not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise ConfigError(f"--coordinator must be HOST:PORT (e.g. node001:1234, the address of process 0 and a free "
@@ -85,8 +73,6 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     collectives go over gloo. ConfigError (one sentence) when the arguments cannot work, JAX has already started,
     or the others cannot be reached."""
     from jax._src import xla_bridge
-
-    from cdjax.protocol import ConfigError
 
     if coordinator is not None:
         _check_coordinator(coordinator)
@@ -195,10 +181,7 @@ def from_writer(text: str) -> str:
 
 # What a process refused or failed at, as one letter in an exchange: the same class is raised on every process.
 def _kinds():
-    from cdjax import io
-    from cdjax.protocol import ConfigError
-
-    return {"W": io.WriteError, "M": io.CheckpointMismatch, "D": io.RunDirError, "C": ConfigError}
+    return {"W": WriteError, "M": CheckpointMismatch, "D": RunDirError, "C": ConfigError}
 
 
 def _encode(err: BaseException | None) -> str:
@@ -233,12 +216,9 @@ def together():
     if count() == 1:
         yield
         return
-    from cdjax import io
-    from cdjax.protocol import ConfigError
-
     try:
         yield
-    except (ConfigError, io.RunDirError) as err:
+    except (ConfigError, RunDirError) as err:
         settle(err)
     else:
         settle(None)

@@ -90,7 +90,11 @@ class Sweep:
         """The lowered program of up to `length` updates: compiled, it is called as (state, hps, n) and runs the
         first n <= length of them (metrics [R, length], rows n.. NaN). One program serves a run's full chunks and
         its last, shorter one."""
-        return self._chunk.lower(state, hps, length, jnp.int32(length))
+        return self.trace_chunk(state, hps, length).lower()
+
+    def trace_chunk(self, state: State, hps: HP, length: int):
+        """The traced program of `lower_chunk` (call .lower() on it to time tracing and lowering apart)."""
+        return self._chunk.trace(state, hps, length, jnp.int32(length))
 
     def phase(self, state: State, hps: HP):
         """The phase of every run: (state [R] ready for the updates, info {name: [R]})."""
@@ -98,7 +102,11 @@ class Sweep:
 
     def lower_phase(self, state: State, hps: HP):
         """The lowered phase program (call .compile() on it to time compilation apart)."""
-        return self._phase_program().lower(state, hps)
+        return self.trace_phase(state, hps).lower()
+
+    def trace_phase(self, state: State, hps: HP):
+        """The traced phase program (call .lower() on it to time tracing and lowering apart)."""
+        return self._phase_program().trace(state, hps)
 
     def _phase_program(self) -> Callable:
         if self._phase is None:

@@ -134,6 +134,59 @@ def test_interrupted_run_keeps_logs_and_checkpoints_and_resume_gives_the_same_nu
     _assert_same_states(_states(out), _states(uninterrupted))
 
 
+def test_the_timings_record_says_where_each_process_of_a_sweep_spent_its_time(tmp_path, monkeypatch):
+    """timings.jsonl: the first process's rows (each arm's programs traced, lowered and compiled; init; log and
+    checkpoint writes) kept by the interrupt, then the resume's (restores, the evaluator's compile apart from the
+    evaluation itself, eval.jsonl and plots), each process opening with its plan; `Timings` sums them."""
+    import cdjax.runner.arms as arms
+
+    monkeypatch.setattr(arms, "_BUILT", {})  # nothing from this process's cache: every program traced and compiled
+    monkeypatch.setattr(arms, "_COMPILED", {})
+    out = tmp_path / "timed"
+
+    def ctrl_c(chunks, updates):
+        if chunks == 1:
+            raise KeyboardInterrupt
+
+    with pytest.raises(Interrupted):
+        run_sweep(dataclasses.replace(SPEC, out=out, eval_episodes=1, final_eval=True), after_chunk=ctrl_c)
+    first = io.read_timings(out)
+    assert first and first.skipped == 0 and first[0]["what"] == "plan" and {r["process"] for r in first} == {0}
+    assert all(r["s"] >= 0 and r["start"] >= 0 for r in first)
+    assert all(abs((r["at"] - first[0]["at"]) - (r["start"] - first[0]["start"])) < 1e-3 for r in first)
+    steps = {(r["arm"], r["what"], r["step"]) for r in first}
+    assert {("all", what, "host") for what in ("plan", "build", "memory", "programs", "setup")} <= steps
+    for arm in SPEC.arms:
+        for what in ("init", "chunk"):
+            assert {(arm, what, "trace"), (arm, what, "lower")} <= steps, (arm, what)
+        assert {(arm, "init", "init"), (arm, "metrics.jsonl", "write"), (arm, "checkpoint", "write")} <= steps, arm
+        assert (arm, "checkpoint", "restore") not in steps
+    compiled = [r["what"] for r in first if r["step"] == "compile"]
+    assert "chunk" in compiled and "init" in compiled and "evaluator" not in compiled
+    # a compile row ends after the trace and lowering of the same program began
+    for arm in SPEC.arms:
+        traced = next(r for r in first if (r["arm"], r["what"], r["step"]) == (arm, "chunk", "trace"))
+        lowered = next(r for r in first if (r["arm"], r["what"], r["step"]) == (arm, "chunk", "lower"))
+        assert traced["start"] + traced["s"] <= lowered["start"] + 1e-6
+
+    run_sweep(resume_spec(out, progress=False), resume=True)
+    rows = io.read_timings(out)
+    assert rows[:len(first)] == list(first)  # appended after the first process's rows
+    second = rows[len(first):]
+    assert second[0]["what"] == "plan"
+    steps = {(r["arm"], r["what"], r["step"]) for r in second}
+    for arm in SPEC.arms:
+        assert {(arm, "checkpoint", "restore"), (arm, "evaluator", "trace"), (arm, "evaluator", "lower"),
+                (arm, "evaluator", "compile"), (arm, "evaluation", "evaluate")} <= steps, arm
+    assert {("all", "eval.jsonl", "write"), ("all", "plots", "write")} <= steps
+    timings = io.Timings()
+    timings.add("a", "chunk", "compile", 0.0, 2.0)
+    timings.add("b", "chunk", "compile", 1.0, 2.5)
+    assert timings.total("compile") == 3.5 and timings.total("compile", arm="b") == 1.5
+    with pytest.raises(ValueError, match="timing step 'nap'"):
+        timings.add("a", "chunk", "nap", 0.0)
+
+
 def test_a_second_sweep_in_the_process_builds_traces_and_compiles_nothing(uninterrupted, tmp_path, monkeypatch):
     """run_sweep of the same spec again in this process (another --out): every trainer, sweep and program comes
     from the process's cache (nothing is built, lowered or compiled), and the run is the same."""
@@ -390,7 +443,7 @@ def test_plan_grids_labels_and_refusals(tmp_path):
 @pytest.mark.parametrize("field,kept,other", [("cc_chain_impl", "xla", "pallas"), ("cc_clip", True, False)])
 def test_a_record_naming_a_removed_field_reads_as_cdjax_trains_now_and_refuses_another(tmp_path, field, kept, other):
     """A run.json written while Config had a field since removed (cc_chain_impl with the Pallas chain, cc_clip with
-    the unclipped term, both 2026-11-26) names it in its base config and each arm's: the value that trained as cdjax
+    the unclipped term) names it in its base config and each arm's: the value that trained as cdjax
     trains now is read without it (resume and the recorded spec); any other value is refused in one sentence."""
     spec = SweepSpec(out=tmp_path / "a", config=POINT, arms=("mbmf", "cd"), seeds=1)
     _write_record(spec)
@@ -493,11 +546,10 @@ def test_programs_compiled_in_parallel_threads_give_the_same_run(phased, tmp_pat
     monkeypatch.setattr(arms, "_BUILT", {})  # nothing from this process's cache: every program compiled again
     monkeypatch.setattr(arms, "_COMPILED", {})
     out = tmp_path / "threads"
-    arms.COMPILE_TIMES.clear()
     run_sweep(dataclasses.replace(PHASE_SPEC, out=out))
     assert _rows(out) == _rows(phased)
     # the three arms act in the same environments: one reset program compiled for all, an init per arm
-    compiled = [(r["what"], r["arm"]) for r in arms.COMPILE_TIMES if r["step"] == "compile"]
+    compiled = [(r["what"], r["arm"]) for r in io.read_timings(out) if r["step"] == "compile"]
     assert [what for what, _ in compiled].count("reset") == 1
     assert sorted(arm for what, arm in compiled if what == "init") == sorted(PHASE_SPEC.arms)
 
@@ -544,7 +596,7 @@ def test_memory_check_traces_a_shared_reset_once_and_counts_what_init_gives(monk
     assert len(traced) == before + 2  # the shared reset over the runs, and the evaluation environments' reset
     arm = built[0]
     arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
-    arms._lowered(arm, "reset", arm.sweep.reset.lower, arm.keys, owner=arm.sweep.reset)
+    arms._lowered(arm, "reset", arm.sweep.reset.trace, arm.keys, owner=arm.sweep.reset)  # as compile_all does
     assert len(traced) == before + 2  # the lowering of the reset program reused check_memory's trace
     key, hp = jax.random.key(0), HParams()
     for arm in built:

@@ -41,17 +41,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from cdjax import multihost
-from cdjax.io import RunDirError, WriteError, reason
+from cdjax.errors import CheckpointMismatch, CheckpointWarning, WriteError, reason
 
 MAX_TO_KEEP = 2
-
-
-class CheckpointWarning(UserWarning):
-    """A checkpoint could not be restored and an older one is used instead."""
-
-
-class CheckpointMismatch(RunDirError):
-    """A readable checkpoint of another run than the one asked for (one sentence; nothing was changed)."""
 
 
 class _Unreadable(Exception):
@@ -115,10 +107,9 @@ def compact(tree, keep=None) -> tuple[dict[str, Any], dict]:
 
 @jax.jit
 def _copies(leaves: list) -> list:
-    """Fresh device buffers holding `leaves` (arrays, typed keys too): one program per list of shapes, where copying
-    leaf by leaf compiled one per shape, and the first checkpoint of a chunked sweep waited on all of them (200
-    leaves: 2.3 s against 0.05 s on a 2-core CPU; the pixel sweeps' second round started 1.2-1.8 s late on one
-    H200, later rounds 0.05-0.10 s, 2026-11-26)."""
+    """Fresh device buffers holding `leaves` (arrays, typed keys too): one program per list of shapes. Copying leaf
+    by leaf would compile one program per shape, and the first checkpoint of a chunked sweep (the second round's
+    start) would wait on all of those compiles."""
     return [jnp.copy(x) for x in leaves]
 
 

@@ -7,12 +7,16 @@ logs, checkpoints, exact resume, evaluation and plots.
     run_sweep(spec, after_chunk=TimeLimit(3600))   # stop (checkpointed, resumable) before an hour is past
     run_sweep(preset_spec("runs/ant", config={"env": "ant"}, seeds=5))  # as `cdjax sweep --env ant --seeds 5`:
                                                   # the ant preset's values under the ones given
+    rows = cdjax.io.read_timings(run_dir)     # where its time went: each program's trace, lowering and compile,
+                                              # init, restores, evaluations, writes (cdjax.io.timings)
 
-Rooms: `spec` (what is asked, bounds), `plan` (arms, grids, run.json, resume compatibility), `budget`
-(memory), `arms` (one arm's programs and state, evaluation), `loop` (the chunk loop), `console`
-(progress, clock, Ctrl-C, library messages into cdjax.log).
+Rooms: `spec` (what is asked, bounds), `plan` (arms, grids, run.json, resume compatibility), `cdjax.budget` (memory;
+below the runner, since evaluation compiles with it too, and importable as `cdjax.runner.budget`), `arms` (one arm's
+programs and state, evaluation), `loop` (run_sweep), `rounds` (the chunk loop), `console` (progress, clock, Ctrl-C,
+library messages into cdjax.log).
 """
 
+from cdjax import budget  # noqa: F401  (`from cdjax.runner import budget` works)
 from cdjax.runner.arms import EVAL_TAG, Arm, evaluate_arms, restore_arms
 from cdjax.runner.loop import Interrupted, TimeLimit, prepare, run_sweep
 from cdjax.runner.plan import ArmPlan, chunk_size, plan_arms, resume_spec, run_record, spec_of, validate_grid

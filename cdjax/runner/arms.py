@@ -16,10 +16,9 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from cdjax import io, multihost, runtime
+from cdjax import budget, io, multihost, runtime
 from cdjax.evaluate import MAX_EVAL_EPISODE_STEPS, episode_steps, eval_records, make_evaluator
 from cdjax.protocol import ConfigError, Setting, Trainer
-from cdjax.runner import budget
 from cdjax.runner.plan import ArmPlan, plan_arms, recorded
 from cdjax.runner.spec import SweepSpec
 from cdjax.sweep import Sweep, make_sweep
@@ -29,28 +28,19 @@ EVAL_TAG = 0x0E7A1  # folded into each run's training key to get its evaluation 
 # same spec (a notebook's next cell, a resume in the same process) builds, traces and compiles nothing again.
 _BUILT: dict = {}
 _COMPILED: dict = {}
-# Where compile time goes: a row per program this process lowered or compiled ({"arm", "what", "step": "lower" or
-# "compile", "s", "end": time.perf_counter() when it ended}; lowering runs in the calling thread, compiling in
-# compile_all's threads, so the compile rows overlap in time), and a row per host-side step before training
-# ("step": "host", "arm": "all": planning, building the trainers, the memory checks). Read by
-# benchmarks.compile_time; cleared by whoever reads it.
-COMPILE_TIMES: list[dict] = []
 
 
-def _timed(arm: str, what: str, step: str, t0: float) -> None:
-    """A COMPILE_TIMES row for a step that began at time.perf_counter() t0 and ends now."""
-    end = time.perf_counter()
-    COMPILE_TIMES.append({"arm": arm, "what": what, "step": step, "s": end - t0, "end": end})
+def timed(timings: io.Timings | None, arm: str, what: str, step: str):
+    """A context that times its block as a row of `timings` (cdjax.io.timings); None: not timed."""
+    return contextlib.nullcontext() if timings is None else timings.time(arm, what, step)
 
 
-@contextlib.contextmanager
-def host_time(what: str):
-    """Time a host-side step of a sweep's start into COMPILE_TIMES."""
-    t0 = time.perf_counter()
-    try:
-        yield
-    finally:
-        _timed("all", what, "host", t0)
+def _timed(arm, what: str, step: str, t0: float) -> None:
+    """A row of the arm's timings (cdjax.io.timings) for a step that began at time.perf_counter() t0 and ends now;
+    nothing for an arm that keeps none (a caller's stand-in)."""
+    timings = getattr(arm, "timings", None)
+    if timings is not None:
+        timings.add(arm.name, what, step, t0)
 
 
 @dataclasses.dataclass
@@ -82,6 +72,7 @@ class Arm:
     skipped_said: int = 0  # how many runs the last sentence about skipped steps named
     room: int | None = None  # bytes a program may take beside every arm's states (None: no limit; _compiled)
     in_order: dict = dataclasses.field(default_factory=dict)  # program -> (bytes scheduled by data flow, in order)
+    timings: io.Timings | None = None  # where the sweep's time goes (run_sweep's record; None: not timed)
 
     @property
     def name(self) -> str:
@@ -102,14 +93,14 @@ class Arm:
     def phase_program(self):
         """The compiled phase (compiled now if it was not in advance, e.g. every checkpoint was unreadable)."""
         if "phase" not in self.programs:
-            self.programs["phase"] = _compiled(self, "phase", self.sweep.lower_phase, self.abstract, self.hps)
+            self.programs["phase"] = _compiled(self, "phase", self.sweep.trace_phase, self.abstract, self.hps)
         return self.programs.pop("phase")
 
     def chunk_program(self):
         """The compiled program of up to `chunk` updates, called (state, hps, n) (compiled now if it was not in
         advance)."""
         if "chunk" not in self.programs:
-            self.programs["chunk"] = _compiled(self, "chunk", self.sweep.lower_chunk, self.abstract, self.hps,
+            self.programs["chunk"] = _compiled(self, "chunk", self.sweep.trace_chunk, self.abstract, self.hps,
                                                self.chunk)
         return self.programs["chunk"]
 
@@ -184,13 +175,19 @@ def expectation(arm: Arm) -> Callable[[dict | None], str | None]:
 
 def _lowered(arm: Arm, what: str, lower: Callable, *args, owner=None):
     """lower(*args) of arm's sweep (or of `owner`, a function several sweeps share), from this process's cache when
-    it was lowered before for the same inputs."""
+    it was lowered before for the same inputs. `lower` may also be a trace (a jitted function's `.trace`, a sweep's
+    `trace_*`): its result is lowered here, and the trace and the lowering are timed apart."""
     owner = arm.sweep if owner is None else owner
     key = (id(owner), what, "lowered", budget.signature(args))
     if key not in _COMPILED:
         t0 = time.perf_counter()
-        _COMPILED[key] = (owner, lower(*args))  # the owner held: its id stays its own while the entry lives
-        _timed(arm.name, what, "lower", t0)
+        staged = lower(*args)
+        if isinstance(staged, jax.stages.Traced):
+            _timed(arm, what, "trace", t0)
+            t0 = time.perf_counter()
+            staged = staged.lower()
+        _COMPILED[key] = (owner, staged)  # the owner held: its id stays its own while the entry lives
+        _timed(arm, what, "lower", t0)
     return _COMPILED[key][1]
 
 
@@ -226,13 +223,13 @@ def _compiled(arm: Arm, what: str, lower: Callable, *args, pool=None, owner=None
         t0 = time.perf_counter()
         if key not in _COMPILED:
             _COMPILED[key] = (owner, lowered.compile(options))
-            _timed(arm.name, what, "compile", t0)
+            _timed(arm, what, "compile", t0)
         if (program := cached()) is not None:
             return program
         t0 = time.perf_counter()
         second = lowered.compile(runtime.compiler_options(mode, in_order=True))
         _COMPILED[key + ("in order",)] = (owner, second)
-        _timed(arm.name, what, "compile in order", t0)
+        _timed(arm, what, "compile in order", t0)
         _note_in_order(arm, what, _COMPILED[key][1], second)
         return second
 
@@ -352,8 +349,7 @@ def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
     Each program is handed to a compiling thread as soon as it is traced, so the tracing of one (Python) overlaps
     the compilation of the others (XLA, without the GIL); the arms with the largest states (the largest programs,
     in practice) first. An arm's init goes before its chunk: its compile fills cores that the serial lowering of
-    the chunks leaves idle (with the chunks first and the inits after them, 2026-11-27 on one H100 of 16 cores, the
-    inits compiled beside the chunks and slowed them: 371 against 237 thread-seconds of compiling,
+    the chunks leaves idle, where inits queued after the chunks would compile beside them and slow them (measured in
     benchmarks/results/2026-11-27-h100-shared-physics/). Programs this process compiled before are taken from its
     cache.
     """
@@ -367,25 +363,25 @@ def compile_all(arms: list[Arm], chunk: int, done: dict[str, int]) -> None:
                 return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), out)
 
             if arm.sweep.reset is None:
-                lowered_init = _lowered(arm, "init", arm.sweep.init.lower, arm.keys, arm.hps)
-                jobs.append((arm, "init", _compiled(arm, "init", arm.sweep.init.lower, arm.keys, arm.hps, pool=pool)))
+                lowered_init = _lowered(arm, "init", arm.sweep.init.trace, arm.keys, arm.hps)
+                jobs.append((arm, "init", _compiled(arm, "init", arm.sweep.init.trace, arm.keys, arm.hps, pool=pool)))
             else:  # the environments' reset, shared by the arms in the same ones, then the rest of the init
                 reset = arm.sweep.reset
                 shared = (id(reset), budget.signature((arm.keys,)))
                 if shared not in resets:
-                    resets[shared] = _compiled(arm, "reset", reset.lower, arm.keys, pool=pool, owner=reset)
-                envs = abstract(_lowered(arm, "reset", reset.lower, arm.keys, owner=reset).out_info)
-                lowered_init = _lowered(arm, "init", arm.sweep.init_from.lower, arm.keys, arm.hps, envs)
-                jobs.append((arm, "init", (resets[shared], _compiled(arm, "init", arm.sweep.init_from.lower, arm.keys,
+                    resets[shared] = _compiled(arm, "reset", reset.trace, arm.keys, pool=pool, owner=reset)
+                envs = abstract(_lowered(arm, "reset", reset.trace, arm.keys, owner=reset).out_info)
+                lowered_init = _lowered(arm, "init", arm.sweep.init_from.trace, arm.keys, arm.hps, envs)
+                jobs.append((arm, "init", (resets[shared], _compiled(arm, "init", arm.sweep.init_from.trace, arm.keys,
                                                                      arm.hps, envs, pool=pool))))
             arm.abstract = abstract(lowered_init.out_info)
             start = done.get(arm.name, -1)  # updates of the checkpoint a resume will restore (-1: none)
             if not arm.phase_done and start < 0:
-                jobs.append((arm, "phase", _compiled(arm, "phase", arm.sweep.lower_phase, arm.abstract, arm.hps,
+                jobs.append((arm, "phase", _compiled(arm, "phase", arm.sweep.trace_phase, arm.abstract, arm.hps,
                                                      pool=pool)))
             arm.chunk = min(chunk, arm.num_updates)
             if arm.num_updates - max(start, 0) > 0:
-                jobs.append((arm, "chunk", _compiled(arm, "chunk", arm.sweep.lower_chunk, arm.abstract, arm.hps,
+                jobs.append((arm, "chunk", _compiled(arm, "chunk", arm.sweep.trace_chunk, arm.abstract, arm.hps,
                                                      arm.chunk, pool=pool)))
         def done(job):
             return job.result() if isinstance(job, concurrent.futures.Future) else job
@@ -462,14 +458,21 @@ def evaluate_arms(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int,
     t0 = time.perf_counter()
     records = []
     for arm in arms:
-        evaluator = make_evaluator(arm.trainer, episodes=episodes, deterministic=deterministic)
+        evaluator = make_evaluator(arm.trainer, episodes=episodes, deterministic=deterministic, timings=arm.timings,
+                                   arm=arm.name)
+        compiling = arm.timings.total(arm=arm.name, what="evaluator") if arm.timings is not None else 0.0
+        started = time.perf_counter()
         keys = jax.vmap(lambda k: jax.random.fold_in(k, EVAL_TAG))(arm.keys)
         results = multihost.fetch(evaluator(arm.trainer.policy(arm.state), keys, arm.hps))
+        if arm.timings is not None:  # the episodes alone: the evaluator's trace and compile have rows of their own
+            row = arm.timings.add(arm.name, "evaluation", "evaluate", started)
+            row["s"] -= arm.timings.total(arm=arm.name, what="evaluator") - compiling
         records += eval_records(results, arm=arm.name, hp_labels=list(arm.plan.labels), seeds=range(num_seeds),
                                 deterministic=deterministic, update=arm.updates, env_steps=arm.env_steps())
     with multihost.together():
         if multihost.is_writer():
-            io.append_jsonl(rd.eval, records)
+            with timed(arms[0].timings if arms else None, "all", "eval.jsonl", "write"):
+                io.append_jsonl(rd.eval, records)
     means: dict[str, list[float]] = {}
     for row in records:
         if row.get("eval/return") is not None:

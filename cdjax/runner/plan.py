@@ -9,6 +9,7 @@ import itertools
 import math
 import pathlib
 import subprocess
+import sys
 from typing import Any, Mapping, Sequence
 
 from cdjax import agents, io
@@ -169,9 +170,8 @@ def _checkout() -> dict:
     """code_record's versions and git state, read once per process."""
     import jax
 
-    import cdjax
-
-    here = pathlib.Path(cdjax.__file__).resolve().parent
+    cdjax = sys.modules[__name__.partition(".")[0]]  # the package, loaded before any of its modules: its version
+    here = pathlib.Path(__file__).resolve().parents[1]
 
     def git(*args: str) -> str | None:
         try:
@@ -253,10 +253,8 @@ def _known(old, new):
 # trained its runs as cdjax trains them now, what the other values were). A record holding that value is read
 # without the field; another value is refused.
 RETIRED = {
-    "cc_chain_impl": ("xla", "the consistency chain as Pallas kernels, removed on 2026-11-26: slower than XLA's chain, "
-                             "its gradients wrong on a GPU"),
-    "cc_clip": (True, "the consistency term without the normalisation's clip, removed on 2026-11-26: slower on a GPU "
-                      "than the clipped term"),
+    "cc_chain_impl": ("xla", "the consistency chain as Pallas kernels, since removed: slower than XLA's chain"),
+    "cc_clip": (True, "the consistency term without the normalisation's clip, since removed"),
 }
 
 

@@ -109,9 +109,9 @@ def compile_fitting(lowered, room: int | None = None, mode: str | None = None) -
     """(compiled program, whether in program order): `lowered` compiled with runtime.compiler_options(mode) and, where
     those schedule the GPU's kernels by data flow (runtime.SCHEDULING) and the program's outputs and temporaries
     exceed `room` bytes (default: what is free on the device now, beside the arrays it holds), compiled again in
-    XLA's program order, which reuses buffers between kernels (about half the bytes, updates 10-20% slower on an
-    H100). For a program compiled outside a sweep (a benchmark's, a notebook's); a sweep does the same per program
-    (cdjax.runner.arms._compiled)."""
+    XLA's program order, which reuses buffers between kernels (about half the bytes; the updates run somewhat slower,
+    as measured in benchmarks/README.md). For a program compiled outside a sweep (a benchmark's, a notebook's); a
+    sweep does the same per program (cdjax.runner.arms._compiled)."""
     options = runtime.compiler_options(mode)
     program = lowered.compile(options)
     if not runtime.concurrent(options) or fits(program, available()[0] if room is None else room):
