@@ -22,8 +22,8 @@ runtime.configure(cache_dir=CACHE)
 # The files that take longest (the slowest tests of fresh-clone runs) first: the suite runs on two workers, a file
 # to a worker (--dist loadfile) in collection order, so with the alphabetical order the heaviest files (test_sweep,
 # test_swimmer, test_train) came last and one worker finished alone. Files not named keep their order after these.
-HEAVY_FIRST = ("test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_sweep.py", "test_atari_cli.py",
-               "test_multihost.py", "test_cli.py", "test_mpc.py", "test_notebook.py")
+HEAVY_FIRST = ("test_docs.py", "test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_sweep.py", "test_atari_cli.py",
+               "test_multihost.py", "test_cli.py", "test_mpc.py")
 
 
 def pytest_collection_modifyitems(session, config, items):
