@@ -49,7 +49,7 @@ def one_cpu():
 
 def test_notebooks_are_committed_without_outputs():
     nbformat = pytest.importorskip("nbformat")
-    assert {p.name for p in NOTEBOOKS} >= {"quickstart.ipynb", "atari.ipynb"}
+    assert {p.name for p in NOTEBOOKS} >= {"quickstart.ipynb", "atari.ipynb", "pixel.ipynb"}
     for path in NOTEBOOKS:
         for cell in nbformat.read(path, as_version=4).cells:
             if cell.cell_type == "code":
@@ -89,5 +89,7 @@ def test_the_site_builds_strictly_with_executed_notebooks_and_the_api_reference(
     assert re.search(r"eval return, alpha=1\.0: .* mean -?\d+\.\d+", quick)
     atari = (site / "notebooks" / "atari" / "index.html").read_text()
     assert "30 updates of 2 seeds in" in atari and "data:image/png" in atari
-    assert "Traceback" not in quick + atari
+    pixel = (site / "notebooks" / "pixel" / "index.html").read_text()
+    assert "20 updates in" in pixel and "data:image/png" in pixel
+    assert "Traceback" not in quick + atari + pixel
     shutil.rmtree(work, ignore_errors=True)
