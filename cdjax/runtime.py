@@ -269,9 +269,9 @@ def versions(backend: bool = True) -> dict:
     """The versions a result record names: cdjax's, and those of jax, jaxlib, brax, mujoco and mujoco-mjx as installed
     (None for one that is not), read from the installed distributions' metadata, so nothing is imported; with
     `backend`, JAX's default backend too ("cpu", "gpu", "tpu"), which starts one."""
-    from cdjax import __version__
+    import cdjax  # the package itself (light: its names load on use)
 
-    record = {"cdjax": __version__, **{name: installed(name) for name in VERSIONED}}
+    record = {"cdjax": cdjax.__version__, **{name: installed(name) for name in VERSIONED}}
     if backend:
         import jax
 
