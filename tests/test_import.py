@@ -107,3 +107,16 @@ def test_versions_names_the_packages_a_result_record_needs():
     assert record["mujoco-mjx"] == metadata.version("mujoco-mjx") and record["backend"] == jax.default_backend()
     assert "backend" not in runtime.versions(backend=False)
     assert runtime.installed("no-such-distribution-here") is None
+
+
+def test_run_records_and_benchmark_records_name_the_versions():
+    from benchmarks.common import device_info
+    from cdjax import runtime
+    from cdjax.runner import plan
+
+    expected = runtime.versions()
+    code = plan.code_record()
+    assert {name: code[name] for name in expected} == expected  # run.json's "code" entry
+    recorded = device_info()["versions"]
+    assert {name: recorded[name] for name in runtime.VERSIONED} == {name: expected[name] for name in runtime.VERSIONED}
+    assert recorded["cdjax"] == expected["cdjax"]
