@@ -3,4 +3,6 @@
 One entry command: `python -m benchmarks.run --help` (see benchmarks/README.md).
 """
 
-import cdjax  # noqa: F401 - first: its XLA flags go into XLA_FLAGS before any benchmark starts a JAX backend
+from cdjax import runtime as _runtime
+
+_runtime.apply_xla_defaults()  # first: cdjax's XLA flags, before any benchmark starts a JAX backend

@@ -194,8 +194,9 @@ def markdown(rows: list[dict], meta: dict) -> str:
 
 def main(argv=None) -> dict:
     args = parse(argv)
-    import cdjax  # noqa: F401 - before JAX's backends start (its XLA:CPU flag)
     from cdjax import io, runtime
+
+    runtime.apply_xla_defaults()  # before JAX's backends start (its XLA:CPU flag)
     from cdjax.protocol import ConfigError
 
     out = pathlib.Path(args.out) if args.out else None

@@ -268,14 +268,7 @@ def device_info() -> dict:
     from cdjax import runtime
 
     devs = jax.devices()
-    versions = {"jax": jax.__version__}
-    for name in ("jaxlib", "brax", "mujoco", "mujoco_mjx", "flax", "optax"):
-        try:
-            from importlib.metadata import version
-
-            versions[name] = version(name.replace("_", "-"))
-        except Exception:  # noqa: BLE001
-            pass
+    versions = {**runtime.versions(backend=False), **{name: runtime.installed(name) for name in ("flax", "optax")}}
     return {
         "device": getattr(devs[0], "device_kind", str(devs[0])),
         "platform": devs[0].platform,

@@ -445,6 +445,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     started = time.monotonic()  # --time-limit counts from here (the imports before are not counted)
     as_program = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
+    runtime.apply_xla_defaults()  # cdjax's XLA flags, before a backend starts (importing cdjax adds none)
     if as_program and not isinstance(sys.stderr, _QuietForeignThreads):
         quiet = _QuietForeignThreads(sys.stderr)
         for handler in logging.getLogger().handlers:  # orbax's import gives the root logger a handler on stderr

@@ -1,65 +1,55 @@
 """The one place for runtime switches: XLA's flags, the compilation cache, the compile mode, NaN checks,
-disabling jit.
+disabling jit, and the versions a result record names.
 
-`cdjax` adds its XLA flags when it is imported (`apply_xla_defaults`, before JAX starts its backends), and compiles
-its own programs with per-program options (`compiler_options`: the compile mode's, the GPU's data-flow scheduling
-of CUDA graphs, which the sweep runner drops for a program that would not fit in memory, and $CDJAX_XLA_OPTIONS).
-Everything else goes through `configure`, which the CLI (--cache-dir, --compile-mode, --debug-nans,
---disable-jit), the tests, the benchmarks and the examples call:
+Importing cdjax changes nothing in the process. cdjax's XLA flags (`XLA_DEFAULTS`) are applied by its entry points
+(the `cdjax` command, `cdjax.runner.run_sweep`, the benchmarks) and by a notebook that opts in, first thing, before
+anything starts a JAX backend:
+
+    import cdjax
+    cdjax.runtime.apply_xla_defaults()
+
+cdjax compiles its own programs with per-program options (`compiler_options`: the compile mode's, the GPU's data-flow
+scheduling of CUDA graphs, which the sweep runner drops for a program that would not fit in memory, and
+$CDJAX_XLA_OPTIONS). Everything else goes through `configure`, which the CLI (--cache-dir, --compile-mode,
+--debug-nans, --disable-jit), the tests, the benchmarks and the examples call:
 
     cdjax.runtime.configure(cache_dir=cdjax.runtime.default_cache_dir())
 
-One switch lives beside the code it switches: $CDJAX_CHAIN_KERNEL=1 runs the consistency chain as hand-written CUDA
-kernels where they fit (`cdjax.kernels.chain`, read when a chain is traced; off by default, slower than XLA's chain as
-measured on 2026-11-27).
+What each flag and mode was measured to do on GPUs is on the docs site's speed page (docs/speed.md).
 """
 
 from __future__ import annotations
 
 import os
 import pathlib
+import sys
 import warnings
 
-# XLA:CPU's concurrency-optimised scheduler deadlocks some of cdjax's vmapped programs on a 2-core
-# machine (seen with jax 0.10.2: 6 vmapped runs of the point-mass agent hang in BlockUntilReady every
-# time, 2, 4 and 8 do not; with this flag, or pinned to one core, they run). It only affects the CPU backend.
+# XLA:CPU's concurrency-optimised scheduler deadlocks some of cdjax's vmapped programs on a 2-core machine (several
+# vmapped runs of the point-mass agent hang in BlockUntilReady; with this flag, or pinned to one core, they run).
+# Only the CPU backend reads it.
 CPU_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
-# XLA:GPU's autotuner at level 1: it still times each GEMM and convolution candidate and keeps the fastest, but
-# skips XLA's default (level 4) extras: filling the candidates' buffers with random data, refilling them between
-# runs and comparing every candidate's result with a reference (which, at level 4, only logs a mismatch). One H200
-# (2026-11-26, benchmarks/results/2026-11-26-h200-autotune/): the cold 4-arm ant sweep compiled in 68.7 s instead
-# of 145.7 s (2026-11-25, level 4), while model-free, Mb-Mf and the paper's CD ran 0.98-0.999x the time per
-# update of level 4 in the compare suite; one H100 in one lease (2026-11-26, benchmarks/results/2026-11-26-h100-levels/)
-# 77.7 s against 87.2 s, the pixel update 1.0% slower. Only the GPU backend reads it. A user who names the level in XLA_FLAGS
-# (e.g. --xla_gpu_autotune_level=4, XLA's own default) keeps theirs.
+# XLA:GPU's autotuner at level 1: it still times each GEMM and convolution candidate and keeps the fastest, but skips
+# the extras of XLA's default level 4 (random-filled buffers, refills between runs, comparing every candidate with a
+# reference), which about halve a cold sweep's compile time at no measured cost per update (docs/speed.md). Only the
+# GPU backend reads it. A user who names the level in XLA_FLAGS keeps theirs.
 GPU_AUTOTUNE_FLAG = "--xla_gpu_autotune_level=1"
 # XLA:GPU's cost model keeps the 2 best of its default Triton GEMM tilings (by its estimate) for the autotuner to
-# time, not all of them (about 2,100 candidate kernels in the cold 4-arm ant sweep, whose compiling took about 660 of
-# the 1,574 core-seconds on a 16-core host; benchmarks/results/2026-11-27-h100x4-compile-cores/). One H100 of a
-# 16-core host, one lease (2026-11-27, benchmarks/results/2026-11-27-h100-gemm-tilings/): the cold 4-arm ant sweep
-# started training after 65.4 s instead of 86.1 s, while Mb-Mf and the paper's CD ran 0.457 against 0.457 and 0.741
-# against 0.740 s per update (the compare suite). cuBLAS stays among the candidates. A user who names the option in
-# XLA_FLAGS keeps theirs: `--xla_gpu_experimental_cost_model_gemm_tiling_options=` (empty) is XLA's own search.
-# An experimental XLA option: jax is pinned (pyproject.toml), and XLA aborts on an option it does not know, so a
-# jax upgrade must keep it or drop it here.
+# time, not all of them: thousands fewer candidate kernels in a cold sweep, so it starts training sooner, at the same
+# time per update (docs/speed.md). cuBLAS stays among the candidates. A user who names the option in XLA_FLAGS keeps
+# theirs: `--xla_gpu_experimental_cost_model_gemm_tiling_options=` (empty) is XLA's own search. An experimental XLA
+# option, and XLA aborts on an option it does not know: a JAX outside the tested range must keep it or drop it here.
 GPU_GEMM_TILINGS_FLAG = "--xla_gpu_experimental_cost_model_gemm_tiling_options=top=2,top_from_default=1"
-XLA_DEFAULTS = (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG)  # what `import cdjax` adds to XLA_FLAGS
+XLA_DEFAULTS = (CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG)  # what apply_xla_defaults adds
 # XLA:GPU's CUDA graphs (command buffers) scheduled by data flow, asked for per program (compiler_options), not in
 # XLA_FLAGS: each kernel of a graph waits only on the kernels whose buffers it reads or overwrites, so independent ones
 # run side by side (XLA's default, LHS, runs them in program order). cdjax's updates are chains of small kernels that
-# leave most of the GPU idle, and many of them are independent: the policy's and the value network's passes, a layer's
-# bias sum beside its weight product, the consistency term's model rollout beside its GRU passes. One H100, one lease
-# (2026-11-27, benchmarks/results/2026-11-27-h100-concurrent/, then process-wide): per update model-free 0.359 against
-# 0.408 s, Mb-Mf 0.410 against 0.453, the paper's CD 0.618 against 0.735, at 10 vmapped seeds Mb-Mf 0.342 and the
-# paper's CD 0.529 (0.403 and 0.675 in program order). Per program, on another H100 (2026-11-27,
-# benchmarks/results/2026-11-27-h100-per-program/): model-free 0.373, Mb-Mf 0.388, the paper's CD 0.618 s, and with
-# XLA's deterministic ops and no autotuning the same arrays as program order, bit for bit. The price is memory:
-# buffers are no longer reused between kernels that may run at once, so XLA's compiled footprint about doubles (1.44
-# against 0.72 GiB for the paper's CD at 4096 envs), and the pixel presets' update of 30 runs no longer fits an H100 (it asked for 49.5 GiB at once;
-# benchmarks/results/2026-11-27-h100-identity/). Hence per program, where cdjax can fall back: the sweep runner
-# compiles a program again in program order when it would not fit beside the states (`compile_fitting`), and the
-# process's other programs (Brax's, a user's own) keep XLA's scheduling. A user who names the option in XLA_FLAGS
-# (--xla_gpu_command_buffer_scheduling_mode=LHS: XLA's own) keeps theirs for every program.
+# leave most of the GPU idle, and many are independent (the policy's and the value network's passes, the consistency
+# term's model rollout beside its GRU passes), so updates run faster (docs/speed.md). The price is memory: buffers are
+# no longer reused between kernels that may run at once, so XLA's compiled footprint about doubles. Hence per program,
+# where cdjax can fall back: the sweep runner compiles a program again in program order when it would not fit beside
+# the states (`compile_fitting`), and the process's other programs (Brax's, a user's own) keep XLA's scheduling. A user
+# who names the option in XLA_FLAGS (--xla_gpu_command_buffer_scheduling_mode=LHS: XLA's own) keeps theirs.
 SCHEDULING_OPTION = "xla_gpu_command_buffer_scheduling_mode"
 SCHEDULING = {SCHEDULING_OPTION: "CONCURRENT"}
 CACHE_ENV = "CDJAX_JAX_CACHE"  # environment variable naming the persistent compilation cache
@@ -74,30 +64,18 @@ OPTIONS_ENV = "CDJAX_XLA_OPTIONS"
 # per-program compiler options, so a notebook can change mode between cells, and part of the persistent cache's key.
 COMPILE_MODES: dict[str, dict] = {
     "default": {},  # XLA's own settings
-    # Triton's GEMM fusions off (GPU): cuBLAS alone, far fewer kernels for the autotuner to try. One H200
-    # (2026-11-25, benchmarks/results/2026-11-25-h200-compile-{flags,speed}/): the cold 4-arm ant sweep started
-    # training after 77.4 s (process-wide flag) or 109.1 s (this per-program option) instead of 145.7 s, but every
-    # update then runs 1.05-1.19x longer (1.19x: the paper's CD schedule), so it is not the default: it is for
-    # notebook iteration and short checks. No effect on a CPU.
+    # Triton's GEMM fusions off (GPU): cuBLAS alone, far fewer kernels for the autotuner to try, so a cold sweep
+    # compiles sooner, but every update runs longer: for notebook iteration and short checks. No effect on a CPU.
     "fast": {"xla_gpu_enable_triton_gemm": False},
     # For a GPU run that another process can repeat bit for bit (a CPU's already is): XLA's deterministic
     # implementations of the ops that otherwise sum with atomics (scatter-adds, in the physics among others), and no
-    # autotuning, whose choice of GEMM kernel depends on timings. On one H100 (2026-11-27,
-    # benchmarks/results/2026-11-27-h100-identity/) two processes at XLA's settings differed in about half the arrays of
-    # the ant's state after 3 updates; with these two settings in XLA_FLAGS, model-free, Mb-Mf and the paper's CD gave
-    # identical arrays (benchmarks/results/2026-11-27-h100-per-program/). The price: 1.71-1.87x the time per update
-    # there. Its own two-process check, with init compiled in the mode too, gave identical arrays for model-free and
-    # the paper's CD; XLA's deterministic ops alone cost about 1.86x (2026-11-27, H100,
-    # benchmarks/results/2026-11-27-h100-determinism/). No effect on a CPU.
+    # autotuning, whose choice of GEMM kernel depends on timings. The price is a slower update (docs/speed.md).
+    # No effect on a CPU.
     "deterministic": {"xla_gpu_deterministic_ops": True, "xla_gpu_autotune_level": 0},
     # XLA's own autotuning for cdjax's programs: its default level (4) and its full search of Triton GEMM tilings, in
-    # place of the two flags `import cdjax` adds for compile time (GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG). For long
-    # sweeps, where a compile is paid once and every update is faster. One H100 (2026-11-27,
-    # benchmarks/results/2026-11-27-h100-tuned/): at 10 vmapped seeds of 256 envs the paper's CD ran 0.528 against
-    # 0.586 s per update (Mb-Mf 0.326 against 0.331), its program compiling 38 against 28 s; the cold 4-arm ant sweep
-    # started training after 97 s (76 s at the defaults, on another host). The gain is the tiling search's: the cost
-    # model's top two miss the batched GEMMs of the vmapped chain. At 4096 envs and one seed the arms ran within the
-    # spread between processes (benchmarks/results/2026-11-27-h100-outer/). No effect on a CPU.
+    # place of the two compile-time flags of XLA_DEFAULTS (GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG). For long sweeps,
+    # where a compile is paid once and every update is faster: the cost model's top two tilings miss the batched GEMMs
+    # of the vmapped chain (docs/speed.md). No effect on a CPU.
     "tuned": {"xla_gpu_autotune_level": 4, "xla_gpu_experimental_cost_model_gemm_tiling_options": ""},
 }
 _mode: str | None = None  # set by configure; None: $CDJAX_COMPILE_MODE, else "default"
@@ -110,9 +88,9 @@ def _named(option: str, flags: str) -> bool:
 
 def apply_xla_defaults() -> None:
     """Add cdjax's XLA flags (XLA_DEFAULTS: CPU_SCHEDULER_FLAG, GPU_AUTOTUNE_FLAG, GPU_GEMM_TILINGS_FLAG) to XLA_FLAGS,
-    each unless the user set that option already. XLA reads XLA_FLAGS when a backend starts: `import cdjax` calls this
-    first thing, and warns when a JAX backend had started before, so that the flags it adds cannot apply in
-    this process."""
+    each unless the user set that option already. XLA reads XLA_FLAGS when a backend starts: the `cdjax` command,
+    `run_sweep` and the benchmarks call this first thing, a notebook calls it in its first cell; it warns when a JAX
+    backend had started before, so that the flags it adds cannot apply in this process."""
     flags = os.environ.get("XLA_FLAGS", "")
     added = []
     for flag in XLA_DEFAULTS:
@@ -121,8 +99,8 @@ def apply_xla_defaults() -> None:
             added.append(flag)
     os.environ["XLA_FLAGS"] = flags
     if added and _backends_started():
-        warnings.warn(f"A JAX backend started before cdjax was imported, so the XLA flags cdjax adds ({' '.join(added)}) "
-                      "do not apply in this process (XLA reads XLA_FLAGS when a backend starts): import cdjax before "
+        warnings.warn(f"A JAX backend started before cdjax.runtime.apply_xla_defaults() was called, so the XLA flags cdjax adds ({' '.join(added)}) "
+                      "do not apply in this process (XLA reads XLA_FLAGS when a backend starts): call it before "
                       "anything that calls JAX, or put them in XLA_FLAGS yourself.", RuntimeWarning, stacklevel=3)
 
 
@@ -273,3 +251,30 @@ def configure(*, cache_dir: str | os.PathLike | None = None, debug_nans: bool = 
         jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_time_s)
     jax.config.update("jax_debug_nans", debug_nans)
     jax.config.update("jax_disable_jit", disable_jit)
+
+
+VERSIONED = ("jax", "jaxlib", "brax", "mujoco", "mujoco-mjx")  # the packages a result record names, beside cdjax
+
+
+def installed(name: str) -> str | None:
+    """The installed version of distribution `name` (None when it is not installed), without importing it."""
+    from importlib import metadata
+
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def versions(backend: bool = True) -> dict:
+    """The versions a result record names: cdjax's, and those of jax, jaxlib, brax, mujoco and mujoco-mjx as installed
+    (None for one that is not), read from the installed distributions' metadata, so nothing is imported; with
+    `backend`, JAX's default backend too ("cpu", "gpu", "tpu"), which starts one."""
+    package = sys.modules[__name__.partition(".")[0]]  # cdjax itself, loaded before any of its modules
+
+    record = {"cdjax": package.__version__, **{name: installed(name) for name in VERSIONED}}
+    if backend:
+        import jax
+
+        record["backend"] = jax.default_backend()
+    return record

@@ -1,3 +1,5 @@
 """Experiments built on cdjax: one package per paper setting (run with `python -m experiments.<name>`)."""
 
-import cdjax  # noqa: F401 - first: its XLA flags go into XLA_FLAGS before any experiment starts a JAX backend
+from cdjax import runtime as _runtime
+
+_runtime.apply_xla_defaults()  # first: cdjax's XLA flags, before any experiment starts a JAX backend

@@ -1,6 +1,6 @@
 """Shared test setup: JAX's persistent compilation cache (MJX compiles slowly on CPU), through cdjax.runtime, and
 XLA's CPU backend at optimisation level 0 for the whole test session (and the processes it starts, which inherit
-XLA_FLAGS): the tests' programs are tiny and compiling them is most of the suite's time; level 0 compiles them in
+XLA_FLAGS), with cdjax's own XLA defaults on top (as its entry points apply them): the tests' programs are tiny and compiling them is most of the suite's time; level 0 compiles them in
 about half the time (test_train's compile-once tests: 96 s -> 47 s) and computes the same operations, so every
 comparison the tests make (vmapped against alone, resumed against uninterrupted, fused against scanned) is made
 between programs compiled alike. Set CDJAX_TEST_XLA_OPT=default to test with XLA's own optimisation level."""
@@ -14,14 +14,16 @@ if os.environ.get("CDJAX_TEST_XLA_OPT", "0") != "default" and "xla_backend_optim
 
 from cdjax import runtime  # noqa: E402
 
+runtime.apply_xla_defaults()  # as the `cdjax` command does: XLA:CPU's scheduler flag keeps vmapped programs from hanging
+
 CACHE = pathlib.Path(os.environ.get(runtime.CACHE_ENV, pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"))
 runtime.configure(cache_dir=CACHE)
 
 # The files that take longest (the slowest tests of fresh-clone runs) first: the suite runs on two workers, a file
 # to a worker (--dist loadfile) in collection order, so with the alphabetical order the heaviest files (test_sweep,
 # test_swimmer, test_train) came last and one worker finished alone. Files not named keep their order after these.
-HEAVY_FIRST = ("test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_sweep.py", "test_atari_cli.py",
-               "test_multihost.py", "test_cli.py", "test_mpc.py", "test_notebook.py")
+HEAVY_FIRST = ("test_docs.py", "test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_sweep.py", "test_atari_cli.py",
+               "test_multihost.py", "test_cli.py", "test_mpc.py")
 
 
 def pytest_collection_modifyitems(session, config, items):

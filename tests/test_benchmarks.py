@@ -758,7 +758,7 @@ def test_compile_workers_reads_its_variable(monkeypatch):
     assert arms.usable_cores() == (os.cpu_count() or 1)
 
 
-def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch):
+def test_apply_xla_defaults_adds_cdjaxs_flags_and_keeps_the_users_own(monkeypatch):
     from cdjax import runtime
 
     monkeypatch.delenv("XLA_FLAGS", raising=False)
@@ -790,7 +790,7 @@ def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch)
     # with a backend already started, adding a flag is told of (naming it), adding none is not
     monkeypatch.setattr(runtime, "_backends_started", lambda: True)
     monkeypatch.setenv("XLA_FLAGS", " ".join(ours[1:]))
-    with pytest.warns(RuntimeWarning, match="started before cdjax was imported.*concurrency_optimized_scheduler=false"
+    with pytest.warns(RuntimeWarning, match=r"started before cdjax.runtime.apply_xla_defaults\(\) was called.*concurrency_optimized_scheduler=false"
                                            r"\) do not apply"):
         runtime.apply_xla_defaults()
     import warnings
@@ -798,7 +798,7 @@ def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         runtime.apply_xla_defaults()
-    # a fresh process: importing cdjax sets them before JAX starts, and XLA:CPU accepts the GPU flags (it aborts on
+    # a fresh process: importing benchmarks (an entry point) sets them before JAX starts, and XLA:CPU accepts the GPU flags (it aborts on
     # a flag it does not know); `import benchmarks` imports cdjax first (the suites start a backend to name the
     # device); a backend started before cdjax is imported is told of, naming the flags that cannot apply
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
@@ -807,9 +807,9 @@ def test_importing_cdjax_adds_its_xla_flags_and_keeps_the_users_own(monkeypatch)
                                "print(os.environ['XLA_FLAGS'])"],
         env=env, capture_output=True, text=True, check=True, cwd=pathlib.Path(__file__).parents[1]).stdout
     assert all(flag in flags for flag in ours)
-    late = subprocess.run([sys.executable, "-c", "import jax; jax.devices(); import cdjax"], env=env,
-                          capture_output=True, text=True, check=True).stderr
-    assert "A JAX backend started before cdjax was imported" in late and runtime.GPU_AUTOTUNE_FLAG in late
+    late = subprocess.run([sys.executable, "-c", "import jax; jax.devices(); import benchmarks"], env=env,
+                          capture_output=True, text=True, check=True, cwd=pathlib.Path(__file__).parents[1]).stderr
+    assert "A JAX backend started before cdjax.runtime.apply_xla_defaults() was called" in late and runtime.GPU_AUTOTUNE_FLAG in late
 
 
 def test_compile_mode_goes_to_xla_with_each_program_the_runner_compiles(monkeypatch):

@@ -32,7 +32,6 @@ import jax.numpy as jnp
 from flax import struct
 
 from cdjax.envs.episodes import EpisodeStats  # noqa: F401  (re-exported: every setting's running returns)
-from cdjax.envs.point import PointMass
 
 # Action repeats up to this many are unrolled in the step's program (the presets' 1 and 4); more run as one loop, so
 # that a large repeat does not grow the program (at 1000 unrolled point-mass steps the compile ran out of 24 GB).
@@ -60,13 +59,19 @@ def _brax_env(name: str, **kwargs):
     return brax_envs.get_environment(name, backend="mjx", **kwargs)
 
 
+def _point(**kwargs):
+    from cdjax.envs.point import PointMass  # here, not at the top: its Brax base class must not load with cdjax.envs
+
+    return PointMass(**kwargs)
+
+
 def _swimmer(**kwargs):
     return _quiet_import("cdjax.envs.swimmer").Swimmer(**kwargs)
 
 
 def _registry() -> dict[str, Callable[..., Any]]:
     table: dict[str, Callable[..., Any]] = {name: functools.partial(_brax_env, name) for name in BRAX_MJX_ENVS}
-    table["point"] = PointMass  # tiny deterministic pure-JAX system for plumbing tests
+    table["point"] = _point  # tiny deterministic pure-JAX system for plumbing tests
     table["swimmer"] = _swimmer  # an MJX swimmer (cdjax/envs/swimmer.py)
     return table
 

@@ -120,6 +120,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
     run, `Interrupted` when stopped early (after saving a checkpoint of every arm), console.Stopped (a sentence
     true for the moment) when a KeyboardInterrupt comes outside the chunk loop.
     """
+    runtime.apply_xla_defaults()  # cdjax's XLA flags (importing cdjax adds none); a no-op when the CLI applied them
     rd = io.RunDir(out_dir(spec))
     writer = multihost.is_writer()
     timings = io.Timings(multihost.index())

@@ -167,10 +167,10 @@ def code_record() -> dict:
 
 @functools.lru_cache(maxsize=1)
 def _checkout() -> dict:
-    """code_record's versions and git state, read once per process."""
-    import jax
+    """code_record's versions (cdjax, jax, jaxlib, brax, mujoco, mujoco-mjx, the backend) and git state, read once per
+    process."""
+    from cdjax import runtime
 
-    cdjax = sys.modules[__name__.partition(".")[0]]  # the package, loaded before any of its modules: its version
     here = pathlib.Path(__file__).resolve().parents[1]
 
     def git(*args: str) -> str | None:
@@ -183,7 +183,7 @@ def _checkout() -> dict:
     # a checkout that tracks cdjax itself (not a project whose repository holds a virtual environment cdjax is in)
     commit = git("rev-parse", "HEAD") if git("ls-files", "--error-unmatch", "__init__.py") is not None else None
     status = git("status", "--porcelain", "--untracked-files=no") if commit else None
-    return {"cdjax": cdjax.__version__, "jax": jax.__version__, "commit": commit,
+    return {**runtime.versions(), "commit": commit,
             "modified": None if status is None else bool(status)}
 
 

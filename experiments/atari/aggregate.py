@@ -298,7 +298,9 @@ def main(argv=None) -> str:
     parser.add_argument("--tier", choices=("minatar", "ale"), default="minatar")
     parser.add_argument("--bootstrap-reps", type=int, default=2000)
     args = parser.parse_args(argv)
-    import cdjax  # noqa: F401 - its XLA:CPU flag before JAX starts
+    from cdjax import runtime
+
+    runtime.apply_xla_defaults()  # its XLA:CPU flag before JAX starts
 
     if args.tier == "ale":
         return ale_main(args.out, args.bootstrap_reps)

@@ -98,7 +98,7 @@ def main(argv=None) -> int:
                    help="MbMfPhase overrides for every variant, e.g. num_envs=16 random_steps=200")
     p.add_argument("--out", help="write the results here (JSON)")
     args = p.parse_args(argv)
-    import cdjax  # noqa: F401  (XLA flags before anything runs)
+    import experiments  # noqa: F401  (cdjax's XLA flags before anything runs)
     from cdjax.agents.obs.mbmf import MbMfPhase
 
     types = {f.name: f.type for f in dataclasses.fields(MbMfPhase)}

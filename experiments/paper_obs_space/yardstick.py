@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=STEPS)
     p.add_argument("--seed", type=int, default=SEED)
     args = p.parse_args(argv)
-    import cdjax  # noqa: F401  (XLA flags before anything runs)
+    import experiments  # noqa: F401  (cdjax's XLA flags before anything runs)
     from cdjax.agents.obs import yardstick
 
     for task in args.tasks:
