@@ -9,7 +9,6 @@ import itertools
 import math
 import pathlib
 import subprocess
-import sys
 from typing import Any, Mapping, Sequence
 
 from cdjax import agents, io
