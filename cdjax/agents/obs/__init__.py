@@ -74,10 +74,12 @@ check_hparam = HP_RANGES.check_one
 
 
 @functools.lru_cache(maxsize=None)
-def _needed_env_leaves(env_name: str, num_envs: int, episode_length: int, action_repeat: int, reset_mode: str):
+def _needed_env_leaves(env_name: str, num_envs: int, episode_length: int, action_repeat: int, reset_mode: str,
+                       physics_backend: str = "auto"):
     """The env-state leaves a resume needs; every leaf (a bigger checkpoint, never a wrong one) when the
     analysis of the traced step fails on a JAX release whose primitives it does not know."""
-    env = envs.batched(env_name, num_envs, episode_length, action_repeat, reset_mode)
+    env = envs.batched(env_name, num_envs, episode_length, action_repeat, reset_mode,
+                       physics_backend=physics_backend)
     try:
         return needed_leaves(env)
     except Exception as err:  # noqa: BLE001 - an optimisation of the checkpoint's size must not end a run
@@ -97,7 +99,7 @@ def make_trainer(config: Config) -> Trainer:
         shapes = jax.eval_shape(agent.init, jax.random.key(0), HParams())
         every = jax.tree.map(lambda _: True, shapes)
         env = _needed_env_leaves(config.env, config.num_envs, config.episode_length, config.action_repeat,
-                                 config.reset_mode)
+                                 config.reset_mode, config.physics_backend)
         # Each env's reset target (`first`) is set by init and never changes (the Mb-Mf phase acts in its own
         # environments): a restore fills it from the fresh init of the same keys, so it is not stored.
         env = env.replace(first=jax.tree.map(lambda _: False, env.first))
@@ -114,7 +116,7 @@ def make_trainer(config: Config) -> Trainer:
 
     # everything cdjax.envs.make_env builds the environments from: arms equal in these share one reset program
     env_key = ("obs", config.env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode,
-               bool(getattr(config, "stagger_resets", False)))
+               bool(getattr(config, "stagger_resets", False)), config.physics_backend)
     return Trainer(
         config=config, init=agent.init, update=agent.update, reset=agent.reset, init_from=agent.init_from,
         env_key=env_key,
