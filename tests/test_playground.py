@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import json
+import os
 import sys
 
 import jax
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 from cdjax import envs
-from cdjax.envs import playground as pg
+from cdjax.envs import playground as pg, rewards
 
 HAVE_PLAYGROUND = importlib.util.find_spec("mujoco_playground") is not None
 needs_playground = pytest.mark.skipif(not HAVE_PLAYGROUND, reason="the playground extra is not installed")
@@ -31,6 +32,33 @@ def test_names_and_the_missing_extra_in_one_sentence(monkeypatch):
     assert str(info.value) == pg.MISSING and 'pip install -e ".[playground]"' in str(info.value)
     with pytest.raises(ValueError, match="choose one of auto, jax, warp"):
         pg.resolve_backend("cuda")
+    # the Mb-Mf phase's MPC refuses, in one sentence, the tasks whose reward is not a function of the observation
+    assert rewards.reward_fn("dmc-cheetah-run") is None
+    assert "observation does not hold" in rewards.why_not("dmc-cheetah-run")
+    assert all(rewards.reward_fn(name) is not None for name in WITH_REWARDS + (TASK,))
+
+
+# The tasks whose reward cdjax.envs.rewards writes from observations, besides the pendulum (checked below); each
+# compiles for about half a minute on a CPU, so they are checked only where CDJAX_PLAYGROUND_REWARDS is set.
+WITH_REWARDS = ("dmc-cartpole-balance", "dmc-cartpole-balance-sparse", "dmc-cartpole-swingup",
+                "dmc-cartpole-swingup-sparse", "dmc-reacher-easy", "dmc-reacher-hard", "dmc-point-mass")
+
+
+@needs_playground
+@pytest.mark.skipif(not os.environ.get("CDJAX_PLAYGROUND_REWARDS"), reason="set CDJAX_PLAYGROUND_REWARDS=1")
+@pytest.mark.parametrize("name", WITH_REWARDS)
+def test_rewards_of_observations_are_playgrounds(name):
+    env = pg.PlaygroundEnv(name, backend="jax")
+    reset, step = envs.physics(env)
+    state = reset(jax.random.split(jax.random.key(0), 64))
+    key, reward_of_obs, earned = jax.random.key(1), rewards.reward_fn(name), 0.0
+    for _ in range(30):
+        key, k = jax.random.split(key)
+        action = jax.random.uniform(k, (64, env.action_size), minval=-1, maxval=1)
+        after = step(state, action)
+        np.testing.assert_allclose(reward_of_obs(state.obs, action, after.obs), after.reward, atol=1e-6)
+        earned, state = max(earned, float(after.reward.max())), after
+    assert earned > 0 or name.endswith("swingup-sparse")  # the sparse swing-up earns nothing in 30 random steps
 
 
 @needs_playground
@@ -72,16 +100,22 @@ def test_final_observations_are_kept_at_time_outs_and_terminations():
     batch = envs.BatchedEnv(env, num_envs=2, episode_length=3)
     state = batch.reset(jax.random.key(0))
     state = state.replace(t=jnp.array([0, 2], jnp.int32))  # env 1 one step before its time limit
+    # env 0's pole near upright, env 1's hanging: one earns the swing-up's reward on the first step, the other not
+    core = state.core
+    state = state.replace(core=core.replace(data=core.data.replace(qpos=jnp.array([[0.05], [jnp.pi - 0.05]]))))
     own_step = jax.jit(jax.vmap(env.raw.step))  # Playground's own step of the same states
     step = jax.jit(batch.step)
     action = jnp.array([[0.5], [-0.5]])
-    ends = []
-    for _ in range(3):
+    ends, reward_of_obs = [], rewards.reward_fn(TASK)
+    for i in range(3):
         core = state.core
         raw = own_step(State(core.data, core.obs, core.reward, core.done, core.metrics, core.info), action)
         state, out = step(state, action)
         np.testing.assert_allclose(out.next_obs, raw.obs, rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(out.reward, raw.reward, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(reward_of_obs(core.obs, action, out.next_obs), out.reward, atol=1e-6)
+        if i == 0:
+            assert out.reward.tolist() == [1.0, 0.0]
         ended = np.asarray(out.terminated | out.truncated)
         restart = np.asarray(state.first.obs)  # cached resets: each env's own first start
         np.testing.assert_array_equal(np.asarray(state.obs)[ended], restart[ended])
