@@ -22,15 +22,21 @@ needs_playground = pytest.mark.skipif(not HAVE_PLAYGROUND, reason="the playgroun
 TASK = "dmc-pendulum-swingup"
 
 
-def test_names_and_the_missing_extra_in_one_sentence(monkeypatch):
+def test_names_and_the_missing_extra_in_one_sentence(monkeypatch, capsys, tmp_path):
+    from cdjax.cli import main
+    from cdjax.protocol import ConfigError
+    from _shared import fail_in_one_sentence
+
     assert pg.cdjax_name("CheetahRun") == "dmc-cheetah-run" and pg.cdjax_name("BallInCup") == "dmc-ball-in-cup"
     assert pg.NAMES["dmc-swimmer-swimmer6"] == "SwimmerSwimmer6" and len(pg.NAMES) == len(pg.TASKS) == 25
     assert set(pg.NAMES) <= set(envs.available_envs())
     monkeypatch.setitem(sys.modules, "mujoco_playground", None)  # what an install without the extra sees
-    with pytest.raises(ImportError) as info:
+    with pytest.raises(ConfigError) as info:
         envs.make_single_env(TASK)
     assert str(info.value) == pg.MISSING and 'pip install -e ".[playground]"' in str(info.value)
-    with pytest.raises(ValueError, match="choose one of auto, jax, warp"):
+    said = fail_in_one_sentence(capsys, main, ["sweep", "--env", TASK, "--out", str(tmp_path), "--no-progress"])
+    assert said == f"cdjax: {pg.MISSING}"
+    with pytest.raises(ConfigError, match="choose one of auto, jax, warp"):
         pg.resolve_backend("cuda")
     # the Mb-Mf phase's MPC refuses, in one sentence, the tasks whose reward is not a function of the observation
     assert rewards.reward_fn("dmc-cheetah-run") is None

@@ -28,6 +28,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from cdjax.protocol import ConfigError
+
 MISSING = 'MuJoCo Playground is not installed; install cdjax\'s extra with pip install -e ".[playground]".'
 BACKENDS = ("auto", "jax", "warp")
 
@@ -55,9 +57,20 @@ def is_playground(name: str) -> bool:
 def _import_suite():
     try:
         from mujoco_playground import dm_control_suite
-    except ImportError as err:
-        raise ImportError(MISSING) from err
+    except ImportError:
+        raise ConfigError(MISSING) from None
     return dm_control_suite
+
+
+def check(backend: str) -> None:
+    """Raise ConfigError (one sentence) where a Playground task cannot run with `backend`; imports nothing heavy."""
+    try:
+        found = importlib.util.find_spec("mujoco_playground") is not None
+    except ValueError:  # a module set to None in sys.modules (how the tests hide the extra)
+        found = False
+    if not found:
+        raise ConfigError(MISSING)
+    resolve_backend(backend)
 
 
 def warp_available() -> bool:
@@ -68,11 +81,11 @@ def warp_available() -> bool:
 def resolve_backend(backend: str = "auto") -> str:
     """The physics backend that `backend` (one of BACKENDS) gives on this machine: "jax" or "warp"."""
     if backend not in BACKENDS:
-        raise ValueError(f"Unknown physics backend {backend!r}; choose one of {', '.join(BACKENDS)}.")
+        raise ConfigError(f"Unknown physics backend {backend!r}; choose one of {', '.join(BACKENDS)}.")
     if backend == "auto":
         return "warp" if warp_available() else "jax"
     if backend == "warp" and not warp_available():
-        raise ValueError("physics_backend='warp' needs the mujoco_warp package and an NVIDIA GPU; use 'jax' or "
+        raise ConfigError("physics_backend='warp' needs the mujoco_warp package and an NVIDIA GPU; use 'jax' or "
                          "'auto'.")
     return backend
 
