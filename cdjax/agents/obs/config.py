@@ -121,6 +121,8 @@ def validate(config: Config) -> None:
         raise ConfigError(
             f"Unknown env {config.env!r}; choose one of: {', '.join(sorted(envs.available_envs()))}."
         )
+    if envs.playground.is_playground(config.env):
+        envs.playground.check(config.physics_backend)  # the extra installed, the backend one that runs here
     if not _is_activation(getattr(_linen(), config.activation, None)):
         raise ConfigError(f"Unknown activation {config.activation!r}; use a flax.linen activation such as swish, "
                           "tanh or relu.")
