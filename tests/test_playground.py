@@ -169,6 +169,7 @@ def test_a_sweep_runs_resumes_exactly_and_evaluates(whole, tmp_path):
 
     run = json.loads((whole / "run.json").read_text())
     assert run["base_config"]["env"] == TASK and run["base_config"]["physics_backend"] == "jax"
+    assert [c["physics_backend"] for c in run["code"]] == ["jax"]  # which ran
     rows = logged_rows(whole)
     assert sorted((r["seed"], r["update"]) for r in rows) == [(s, u) for s in range(2) for u in range(1, UPDATES + 1)]
     assert all(np.isfinite(r["loss/value"]) and r["env/invalid_fraction"] == 0 for r in rows)

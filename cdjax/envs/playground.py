@@ -90,6 +90,14 @@ def resolve_backend(backend: str = "auto") -> str:
     return backend
 
 
+def backend_record(config) -> dict:
+    """{"physics_backend": the backend a run of `config` gets here} for a Playground task, {} for the others (the run
+    record's code entry; a resume on another machine adds its own)."""
+    if not is_playground(getattr(config, "env", "")):
+        return {}
+    return {"physics_backend": resolve_backend(getattr(config, "physics_backend", "auto"))}
+
+
 def flat_obs(obs) -> jax.Array:
     """An observation as one float32 vector: an array raveled, a dict's entries in sorted key order."""
     if isinstance(obs, dict):
