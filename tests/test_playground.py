@@ -42,6 +42,9 @@ def test_names_and_the_missing_extra_in_one_sentence(monkeypatch, capsys, tmp_pa
     assert rewards.reward_fn("dmc-cheetah-run") is None
     assert "observation does not hold" in rewards.why_not("dmc-cheetah-run")
     assert all(rewards.reward_fn(name) is not None for name in WITH_REWARDS + (TASK,))
+    with pytest.raises(ValueError, match="needs action_repeat = 1"):
+        rewards.reward_fn(TASK)(jnp.zeros(3), jnp.zeros(1), jnp.zeros(3), action_repeat=2)
+    assert rewards.needs_action_repeat_one(TASK) and not rewards.needs_action_repeat_one("halfcheetah")
 
 
 # The tasks whose reward cdjax.envs.rewards writes from observations, besides the pendulum (checked below); each
@@ -188,3 +191,17 @@ def test_a_sweep_runs_resumes_exactly_and_evaluates(whole, tmp_path):
         assert all(a[m] == b[m] for m in ("env/reward_mean", "loss/policy", "loss/value")), key(a)
     evals = io.read_jsonl(tmp_path / "cut" / "eval.jsonl")
     assert sorted(e["seed"] for e in evals) == [0, 1] and all(e["update"] == UPDATES for e in evals)
+
+
+@needs_playground
+def test_the_mbmf_phase_takes_the_true_reward_only_where_it_is_written():
+    from cdjax import Config
+    from cdjax.agents.obs.mbmf import MbMfPhase, validate_phase
+    from cdjax.protocol import ConfigError
+
+    true = MbMfPhase(mpc_reward="true")
+    with pytest.raises(ConfigError, match="dmc-cheetah-run has none: its reward reads"):
+        validate_phase(Config(env="dmc-cheetah-run"), true)
+    with pytest.raises(ConfigError, match=f"on {TASK} needs action_repeat = 1"):
+        validate_phase(Config(env=TASK, action_repeat=2), true)
+    validate_phase(Config(env=TASK), true)

@@ -163,6 +163,11 @@ WHY_NOT = {
 }
 
 
+def needs_action_repeat_one(env: str) -> bool:
+    """Whether the task's reward from observations holds only for one physics step per agent step."""
+    return env == "point" or env.startswith("dmc-")
+
+
 def reward_fn(env: str) -> RewardFn | None:
     """The task's reward as a function of (obs, action, next_obs[, action_repeat]); None where there is none."""
     return REWARDS.get(env)
