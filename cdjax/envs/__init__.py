@@ -18,8 +18,9 @@
 
 Beside it: `episodes.py` (every setting's running returns, `EpisodeStats`), `render.py` (videos from
 MuJoCo's renderer), `resume.py` (which leaves of the state a resumed run needs), `swimmer.py` and
-`point.py` (tasks). Brax prints that its environments are no longer maintained; replacing them means
-replacing this package, nothing else.
+`point.py` (tasks), `playground.py` (MuJoCo Playground's DM Control Suite, `dmc-*`; an optional extra).
+Brax prints that its environments are no longer maintained; replacing them means replacing this package, nothing
+else.
 """
 
 from __future__ import annotations
