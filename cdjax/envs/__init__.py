@@ -18,8 +18,9 @@
 
 Beside it: `episodes.py` (every setting's running returns, `EpisodeStats`), `render.py` (videos from
 MuJoCo's renderer), `resume.py` (which leaves of the state a resumed run needs), `swimmer.py` and
-`point.py` (tasks). Brax prints that its environments are no longer maintained; replacing them means
-replacing this package, nothing else.
+`point.py` (tasks), `playground.py` (MuJoCo Playground's DM Control Suite, `dmc-*`; an optional extra).
+Brax prints that its environments are no longer maintained; replacing them means replacing this package, nothing
+else.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from cdjax.envs.episodes import EpisodeStats  # noqa: F401  (re-exported: every setting's running returns)
+from cdjax.envs import playground
 
 # Action repeats up to this many are unrolled in the step's program (the presets' 1 and 4); more run as one loop, so
 # that a large repeat does not grow the program (at 1000 unrolled point-mass steps the compile ran out of 24 GB).
@@ -73,6 +75,8 @@ def _registry() -> dict[str, Callable[..., Any]]:
     table: dict[str, Callable[..., Any]] = {name: functools.partial(_brax_env, name) for name in BRAX_MJX_ENVS}
     table["point"] = _point  # tiny deterministic pure-JAX system for plumbing tests
     table["swimmer"] = _swimmer  # an MJX swimmer (cdjax/envs/swimmer.py)
+    # MuJoCo Playground's DM Control Suite (cdjax/envs/playground.py; the `playground` extra)
+    table.update({name: functools.partial(playground.PlaygroundEnv, name) for name in playground.NAMES})
     return table
 
 
@@ -265,20 +269,23 @@ def observation_size(name: str, env) -> int:
 _SHARED_ENVS: dict[str, Any] = {}
 
 
-def shared_env(name: str):
-    """make_single_env(name), made once per name in this process: the arms of a sweep, their phases and evaluations
-    act in one env object, so they share its jitted physics (`physics`). The process keeps the object and its traced
-    physics: after changing an env's code in a running notebook, restart it (or clear `_SHARED_ENVS`)."""
-    if name not in _SHARED_ENVS:
-        _SHARED_ENVS[name] = make_single_env(name)
-    return _SHARED_ENVS[name]
+def shared_env(name: str, physics_backend: str = "auto"):
+    """make_single_env(name), made once per name (and, for a Playground task, physics backend: `playground.BACKENDS`)
+    in this process: the arms of a sweep, their phases and evaluations act in one env object, so they share its
+    jitted physics (`physics`). The process keeps the object and its traced physics: after changing an env's code in
+    a running notebook, restart it (or clear `_SHARED_ENVS`)."""
+    kwargs = {"backend": physics_backend} if playground.is_playground(name) else {}
+    key = f"{name}@{physics_backend}" if kwargs else name
+    if key not in _SHARED_ENVS:
+        _SHARED_ENVS[key] = make_single_env(name, **kwargs)
+    return _SHARED_ENVS[key]
 
 
 def batched(name: str, num_envs: int, episode_length: int, action_repeat: int = 1, reset_mode: str = "cached",
-            stagger: bool = False) -> BatchedEnv:
+            stagger: bool = False, physics_backend: str = "auto") -> BatchedEnv:
     """`num_envs` auto-resetting copies of make_single_env(name) (BatchedEnv; the observation size traced once
     per name in this process)."""
-    env = shared_env(name)
+    env = shared_env(name, physics_backend)
     return BatchedEnv(env, num_envs, episode_length, action_repeat, reset_mode, stagger,
                       observation_size(name, env))
 
@@ -286,4 +293,5 @@ def batched(name: str, num_envs: int, episode_length: int, action_repeat: int = 
 def make_env(config) -> BatchedEnv:
     """The batched, auto-resetting environment that `config` describes."""
     return batched(config.env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode,
-                   stagger=getattr(config, "stagger_resets", False))
+                   stagger=getattr(config, "stagger_resets", False),
+                   physics_backend=getattr(config, "physics_backend", "auto"))

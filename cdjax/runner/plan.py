@@ -12,6 +12,7 @@ import subprocess
 from typing import Any, Mapping, Sequence
 
 from cdjax import agents, io
+from cdjax.envs import playground
 from cdjax.protocol import ConfigError, Setting
 from cdjax.runner.spec import INT32_MAX, SweepSpec, check_bounds, resolve
 
@@ -215,7 +216,8 @@ def run_record(spec: SweepSpec, plans: list[ArmPlan], setting: Setting) -> dict:
         "metrics": {"return": m.ret, "discounted_return": m.discounted_ret, "panels": [list(p) for p in m.panels],
                     **({"skipped": m.skipped} if m.skipped is not None else {})},
         "command": spec.command,
-        "code": [code_record()],  # a resume with other code adds it (runner.loop)
+        # a resume with other code (or, for a Playground task, another physics backend) adds it (runner.loop)
+        "code": [code_record() | playground.backend_record(spec.config)],
     }
 
 

@@ -22,6 +22,7 @@ from cdjax.protocol import ConfigError
 Arm = Literal["model-free", "mbmf", "cd"]
 Encoder = Literal["grounded-gru", "gru", "frozen-gru", "l2"]
 ResetMode = Literal["cached", "fresh"]
+PhysicsBackend = Literal["auto", "jax", "warp"]  # cdjax.envs.playground.BACKENDS
 PolicyStd = Literal["state", "global"]
 Entropy = Literal["squashed", "gaussian"]
 Init = Literal["orthogonal", "lecun"]
@@ -47,6 +48,7 @@ class Config:
     action_repeat: int = 1  # physics control steps per agent step
     reset_mode: ResetMode = "cached"  # cached: each env resets to its own first start (as Brax); fresh: new random start
     stagger_resets: bool = False  # each env starts at a random point of its time limit (that first episode is not logged)
+    physics_backend: PhysicsBackend = "auto"  # Playground (dmc-*) tasks: MJX's jax, MuJoCo warp, or auto (warp where it runs)
     activation: str = "swish"  # activation of the policy and value MLPs (a flax.linen name: swish, tanh, ...)
     policy_std: PolicyStd = "state"  # policy std: state (softplus head, as Brax) or global (one log-std per dim)
     entropy: Entropy = "squashed"  # entropy bonus: of the tanh-squashed action (one-sample) or of the Gaussian
@@ -119,6 +121,8 @@ def validate(config: Config) -> None:
         raise ConfigError(
             f"Unknown env {config.env!r}; choose one of: {', '.join(sorted(envs.available_envs()))}."
         )
+    if envs.playground.is_playground(config.env):
+        envs.playground.check(config.physics_backend)  # the extra installed, the backend one that runs here
     if not _is_activation(getattr(_linen(), config.activation, None)):
         raise ConfigError(f"Unknown activation {config.activation!r}; use a flax.linen activation such as swish, "
                           "tanh or relu.")

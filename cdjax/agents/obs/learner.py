@@ -486,7 +486,7 @@ def make_trainer(config: Config) -> Trainer:
 
     # everything cdjax.envs.make_env builds the environments from: arms equal in these share one reset program
     env_key = ("obs", config.env, config.num_envs, config.episode_length, config.action_repeat, config.reset_mode,
-               bool(getattr(config, "stagger_resets", False)))
+               bool(getattr(config, "stagger_resets", False)), config.physics_backend)
     return Trainer(
         config=config, init=agent.init, update=agent.update, reset=agent.reset, init_from=agent.init_from,
         env_key=env_key,

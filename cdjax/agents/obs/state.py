@@ -87,10 +87,12 @@ def to_segments(x: jax.Array, segment: int) -> jax.Array:
     return jnp.swapaxes(x.reshape((S, segment, B) + x.shape[2:]), 0, 1).reshape((segment, S * B) + x.shape[2:])
 
 
-def _needed_env_leaves(env_name: str, num_envs: int, episode_length: int, action_repeat: int, reset_mode: str):
+def _needed_env_leaves(env_name: str, num_envs: int, episode_length: int, action_repeat: int, reset_mode: str,
+                       physics_backend: str = "auto"):
     """The env-state leaves a resume needs; every leaf (a bigger checkpoint, never a wrong one) when the
     analysis of the traced step fails on a JAX release whose primitives it does not know."""
-    env = envs.batched(env_name, num_envs, episode_length, action_repeat, reset_mode)
+    env = envs.batched(env_name, num_envs, episode_length, action_repeat, reset_mode,
+                       physics_backend=physics_backend)
     try:
         return needed_leaves(env)
     except Exception as err:  # noqa: BLE001 - an optimisation of the checkpoint's size must not end a run
@@ -104,7 +106,7 @@ def saved_leaves(config, init: Callable, hparams) -> TrainState:
     (cdjax.envs.resume) and its reset targets: True where a checkpoint keeps the leaf."""
     every = jax.tree.map(lambda _: True, jax.eval_shape(init, jax.random.key(0), hparams))
     env = _needed_env_leaves(config.env, config.num_envs, config.episode_length, config.action_repeat,
-                             config.reset_mode)
+                             config.reset_mode, config.physics_backend)
     # Each env's reset target (`first`) is set by init and never changes (the Mb-Mf phase acts in its own
     # environments): a restore fills it from the fresh init of the same keys, so it is not stored.
     env = env.replace(first=jax.tree.map(lambda _: False, env.first))

@@ -97,8 +97,8 @@ def validate_phase(config: Config, phase: MbMfPhase) -> None:
         if rewards.reward_fn(config.env) is None:
             raise ConfigError(f"MbMfPhase.mpc_reward='true' needs the task's reward as a function of observations, and "
                               f"{config.env} has none: {rewards.why_not(config.env)}; use mpc_reward='model'.")
-        if config.env == "point" and config.action_repeat != 1:
-            raise ConfigError("MbMfPhase.mpc_reward='true' on the point mass needs action_repeat = 1.")
+        if rewards.needs_action_repeat_one(config.env) and config.action_repeat != 1:
+            raise ConfigError(f"MbMfPhase.mpc_reward='true' on {config.env} needs action_repeat = 1.")
     if phase.mpc_elites > phase.mpc_candidates:
         raise ConfigError(f"MbMfPhase.mpc_elites={phase.mpc_elites} is more than its {phase.mpc_candidates} candidates.")
     if not (isinstance(phase.onpolicy_fraction, (int, float)) and not isinstance(phase.onpolicy_fraction, bool)
