@@ -131,3 +131,16 @@ def test_the_self_predictive_target_receives_no_gradient(replayed):
     assert all(not np.asarray(g).any() for g in jax.tree.leaves(grads))
     online = _grads("self-pred", state, batch, HParams(alpha=1.0))
     assert any(np.asarray(g).any() for g in jax.tree.leaves(online["encoder"]))  # the online encoder learns
+
+
+def test_sac_learns_to_hold_the_point_mass_at_the_origin():
+    """Random actions for the first 256 env steps, then 2 gradient steps per batched env step: within 9600 env steps
+    the return of 30-step episodes (at most 30: reward 1 - |x|^2) rises well above the early policy's."""
+    config = Config(env="point", num_envs=8, steps_per_update=8, updates_per_step=2, buffer_steps=512, batch_size=64,
+                    learning_starts=256, num_updates=150, episode_length=30, actor_hidden=(32, 32),
+                    critic_hidden=(32, 32), encoder_hidden=(32,), latent_dim=16)
+    hp = HParams(gamma=0.9, lr_actor=1e-3, lr_critic=1e-3, lr_alpha=1e-3, init_alpha=0.1)
+    _, metrics = jax.jit(make_train(config))(jax.random.key(0), hp)
+    returns = np.asarray(metrics["episode/return"])
+    early, late = np.nanmean(returns[4:30]), np.nanmean(returns[-30:])
+    assert late > early + 5.0 and late > 15.0, (early, late)
