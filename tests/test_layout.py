@@ -8,7 +8,8 @@ import cdjax
 
 ROOT = pathlib.Path(cdjax.__file__).resolve().parent
 SETTINGS = sorted(p.name for p in (ROOT / "agents").iterdir() if (p / "__init__.py").is_file())
-SHARED = ("checks", "consistency", "envs", "kernels", "normalize", "numerics", "optim", "protocol", "replay", "runtime")
+SHARED = ("checks", "consistency", "envs", "kernels", "normalize", "numerics", "optim", "protocol", "replay", "runtime",
+          "selfpredictive")
 FACE = "cdjax"  # cdjax/__init__.py re-exports the observation-space agent's public names
 
 
@@ -38,8 +39,8 @@ def _setting_of(module: str) -> str | None:
 MODULES = {_module(p): _imports(p) for p in ROOT.rglob("*.py")}
 
 
-def test_the_three_settings_are_packages_alike():
-    assert SETTINGS == ["atari", "obs", "pixel"]
+def test_the_settings_are_packages_alike():
+    assert SETTINGS == ["atari", "obs", "offpolicy", "pixel"]
     for name in SETTINGS:
         assert (ROOT / "agents" / name / "config.py").is_file(), name  # each setting's Config and HParams
     for old in ("config", "train", "losses", "networks", "rollout", "mpc", "presets", "mbmf"):
