@@ -1,6 +1,6 @@
 """The off-policy setting through the host side: a sweep (two arms, two seeds), evaluation, plots, and a run
 interrupted after its first chunk and resumed by `cdjax sweep --resume` that equals the uninterrupted one, replay
-buffer and all (the checkpoint keeps the whole TrainState)."""
+buffer and all."""
 
 from __future__ import annotations
 
@@ -57,3 +57,11 @@ def test_interrupted_and_resumed_by_the_command_line_is_the_same_run(whole, tmp_
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
         for x, y in zip(jax.tree.leaves(a.state.params), jax.tree.leaves(b.state.params)):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_a_checkpoint_keeps_the_buffer_and_not_the_reset_targets():
+    from cdjax.agents.offpolicy import make_trainer
+
+    saved = make_trainer(CONFIG).saved_leaves()
+    assert all(jax.tree.leaves(saved.buffer)) and all(jax.tree.leaves(saved.params))
+    assert not any(jax.tree.leaves(saved.env_state.first)) and saved.env_state.obs

@@ -1,15 +1,18 @@
 """The off-policy learner: one jitted update collects `steps_per_update` batched env steps into a replay buffer held
 in the TrainState and takes `grad_steps` SGD steps on sequences sampled from it.
 
-What a checkpoint keeps: the whole TrainState (saved_leaves None): parameters, target parameters, optimiser
-moments, observation statistics, the environments' state, the running episode returns, the PRNG key and the replay
-buffer, which is most of it (buffer_steps x num_envs transitions). A run resumed from it continues with the same
-numbers as one that was never stopped (exact on a CPU; `tests/test_offpolicy_host.py`).
+What a checkpoint keeps (`saved_leaves`): parameters, target parameters, optimiser moments, observation statistics,
+the running episode returns, the PRNG key, the replay buffer, which is most of it (buffer_steps x num_envs
+transitions), and of the environments' state the leaves a later step reads (`cdjax.envs.resume.needed_leaves`: an
+MJX state is mostly derived physics data), not each env's reset target, which init gives again from the same key. A
+run resumed from it continues with the same numbers as one that was never stopped (exact on a CPU;
+`tests/test_offpolicy_host.py`).
 """
 
 from __future__ import annotations
 
 import functools
+import warnings
 from typing import Callable
 
 import jax
@@ -24,6 +27,7 @@ from cdjax.agents.offpolicy.losses import total_loss
 from cdjax.agents.offpolicy.networks import Nets
 from cdjax.checks import check_type
 from cdjax.envs import EnvState, EpisodeStats
+from cdjax.envs.resume import needed_leaves
 from cdjax.optim import skip_if_not_finite
 from cdjax.protocol import Trainer
 from cdjax.replay import RingBuffer, sample_sequences
@@ -175,12 +179,23 @@ def make_train(config: Config) -> Callable[[jax.Array, HParams], tuple[TrainStat
 
 
 def make_trainer(config: Config) -> Trainer:
-    """The learner of `config` as the host side runs it (`cdjax.protocol.Trainer`); checkpoints keep every leaf."""
+    """The learner of `config` as the host side runs it (`cdjax.protocol.Trainer`)."""
     learner = Learner(config)
+
+    @functools.cache
+    def saved_leaves():
+        every = jax.tree.map(lambda _: True, jax.eval_shape(learner.init, jax.random.key(0), HParams()))
+        try:
+            env = needed_leaves(learner.env)
+        except Exception as err:  # noqa: BLE001 - an optimisation of the checkpoint's size must not end a run
+            warnings.warn(f"checkpoints keep the whole {config.env} state: the analysis of which leaves a resume "
+                          f"needs failed ({type(err).__name__}: {err})", stacklevel=2)
+            return every
+        return every.replace(env_state=env.replace(first=jax.tree.map(lambda _: False, env.first)))
 
     def eval_env(num_envs: int) -> envs.BatchedEnv:
         return envs.batched(config.env, num_envs, config.episode_length, config.action_repeat, config.reset_mode)
 
     return Trainer(config=config, init=learner.init, update=learner.update,
                    policy=lambda s: {"actor": s.params["actor"], "encoder": s.params["encoder"], "norm": s.norm},
-                   act=learner.act, eval_env=eval_env, inner=learner)
+                   act=learner.act, eval_env=eval_env, saved_leaves=saved_leaves, inner=learner)
