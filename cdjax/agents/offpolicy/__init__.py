@@ -64,12 +64,12 @@ def preset_of_env(given) -> str | None:
 SETTING = Setting(
     name="offpolicy", about="an off-policy SAC-family learner with a latent model and either consistency term",
     config_type=Config, hparams_type=HParams, make_trainer=make_trainer, arm_config=arm_config, arm_fields=("arm",),
-    arms_help=", ".join(ARMS), default_arms=("model", "paper-cd", "self-pred"),
+    arms_help=", ".join(ARMS), default_arms=ARMS,
     unused_hparams=lambda config, phase: {name: FIXED.get(name) for name in UNUSED[config.arm]},
     shown_hparams=lambda config: ("alpha",) if config.use_consistency else (),
     check_hparam=HP_RANGES.check_one,
     metrics=Metrics(ret=RETURN, discounted_ret=DISC_RETURN, skipped="train/skipped_steps", panels=(
-        ("loss/critic", "critic loss", True), ("train/alpha", "entropy temperature", True),
+        ("loss/critic", "critic loss", True), ("train/temperature", "entropy temperature", True),
         ("loss/model", "model loss (one step)", True), ("loss/self_predictive", "self-predictive loss", True),
         ("loss/consistency", "paper's consistency loss", True))),
     presets=PRESETS, default_preset=preset_of_env)

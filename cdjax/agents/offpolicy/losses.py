@@ -73,7 +73,7 @@ def total_loss(params: dict, target: dict, norm: nz.RunningStats, batch: dict, h
     target_entropy = -hp.target_entropy_scale * A
     temperature = masked_mean(-params["log_alpha"] * jax.lax.stop_gradient(logp + target_entropy), valid0)
     total = critic + actor + temperature
-    metrics = {"loss/critic": critic, "loss/actor": actor, "loss/temperature": temperature, "train/alpha": alpha_t,
+    metrics = {"loss/critic": critic, "loss/actor": actor, "loss/temperature": temperature, "train/temperature": alpha_t,
                "train/entropy": -masked_mean(jax.lax.stop_gradient(logp), valid0),
                "train/q": masked_mean(jax.lax.stop_gradient(q.mean(0)), usable),
                "train/usable_fraction": usable.astype(jnp.float32).mean()}
