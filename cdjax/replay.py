@@ -1,7 +1,8 @@
 """Fixed-size datasets inside jitted programs: a ring buffer, and epochs of shuffled minibatches over it.
 
 Used by the Mb-Mf phase (model and distillation data); any setting that fits a network to a growing,
-statically shaped dataset (imitation from expert trajectories, say) can use the same two pieces.
+statically shaped dataset (imitation from expert trajectories, say) can use the same two pieces. The off-policy
+setting's replay buffer is a RingBuffer of time steps of parallel environments, read by `sample_sequences`.
 """
 
 from __future__ import annotations
@@ -44,6 +45,25 @@ class RingBuffer:
         idx = (self.count + jnp.arange(n)) % self.size
         data = jax.tree.map(lambda d, x: d.at[idx].set(x.astype(d.dtype)), self.data, items)
         return RingBuffer(data, self.count + n)
+
+
+def sample_sequences(buffer: RingBuffer, key: jax.Array, batch: int, length: int) -> Any:
+    """`batch` sequences of `length` consecutive items of a buffer whose items are batches of streams (leaves
+    [N, E, ...]: one time step of E parallel environments per item), time-major: leaves [length, batch, ...].
+
+    Each sequence is one stream e (uniform over E) read from item t to t + length - 1, t uniform over the starts
+    whose whole sequence lies among the items held (oldest first, never across the write position where the
+    newest item meets the oldest). The caller makes sure at least `length` items are held.
+    """
+    size = buffer.size
+    streams = jax.tree.leaves(buffer.data)[0].shape[1]
+    filled = buffer.filled
+    oldest = buffer.count - filled
+    key_t, key_e = jax.random.split(key)
+    start = jax.random.randint(key_t, (batch,), 0, jnp.maximum(filled - length + 1, 1))
+    t = (oldest + start[None, :] + jnp.arange(length)[:, None]) % size  # [length, batch]
+    e = jax.random.randint(key_e, (batch,), 0, streams)
+    return jax.tree.map(lambda d: d[t, e[None, :]], buffer.data)
 
 
 def fit(loss_fn: Callable, params, opt_state, tx: optax.GradientTransformation, buffer: RingBuffer,

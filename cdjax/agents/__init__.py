@@ -16,7 +16,7 @@ from cdjax.protocol import ConfigError, Setting
 
 DEFAULT = "obs"  # the setting of `cdjax sweep` without --setting
 _BUILTIN = {"obs": "cdjax.agents.obs", "atari": "cdjax.agents.atari",  # name -> module defining SETTING
-            "pixel": "cdjax.agents.pixel"}
+            "pixel": "cdjax.agents.pixel", "offpolicy": "cdjax.agents.offpolicy"}
 _REGISTRY: dict[str, Setting] = {}
 
 

@@ -1,0 +1,146 @@
+"""The off-policy setting's pieces on the point mass: the replay sampler, the n-step target, compile-once, vmap over
+seeds, the consistency arms at alpha 0, the self-predictive target's gradient, and a short learning run."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cdjax.agents.offpolicy import Config, HParams, Learner, make_train
+from cdjax.agents.offpolicy.losses import n_step_target, total_loss
+from cdjax.replay import RingBuffer, sample_sequences
+
+TINY = Config(env="point", num_envs=4, steps_per_update=2, buffer_steps=32, batch_size=8, learning_starts=16,
+              num_updates=6, actor_hidden=(16,), critic_hidden=(16,), encoder_hidden=(16,), model_hidden=(16,),
+              latent_dim=8, cc_dim=8, episode_length=20)
+
+
+def test_the_ring_buffer_wraps_and_samples_whole_sequences_of_one_stream():
+    # 5 slots of 2 streams; item t of stream e holds 10 t + e. After 7 items, slots hold items 5, 6, 2, 3, 4.
+    buffer = RingBuffer.create(jnp.zeros((2,), jnp.int32), 5)
+    for t in range(7):
+        buffer = buffer.add((10 * t + jnp.arange(2, dtype=jnp.int32))[None])
+    np.testing.assert_array_equal(np.asarray(buffer.data)[:, 0], [50, 60, 20, 30, 40])
+    assert int(buffer.filled) == 5 and int(buffer.count) == 7
+    seqs = np.asarray(sample_sequences(buffer, jax.random.key(0), 400, 3))  # [3, 400]
+    assert seqs.shape == (3, 400)
+    np.testing.assert_array_equal(np.diff(seqs, axis=0), 10)  # consecutive items of one stream, never across the
+    starts = seqs[0] // 10  # write position (item 6 is followed by the oldest, item 2)
+    assert set(starts.tolist()) == {2, 3, 4} and set((seqs[0] % 10).tolist()) == {0, 1}
+    # before the buffer is full: only the items written (3 of them: one sequence of 3, from item 0)
+    part = RingBuffer.create(jnp.zeros((2,), jnp.int32), 5)
+    for t in range(3):
+        part = part.add((10 * t + jnp.arange(2, dtype=jnp.int32))[None])
+    seqs = np.asarray(sample_sequences(part, jax.random.key(1), 50, 3))
+    np.testing.assert_array_equal(seqs[:, :] // 10, np.broadcast_to(np.arange(3)[:, None], (3, 50)))
+
+
+def test_the_n_step_target_stops_at_episode_ends_and_bootstraps_time_outs():
+    # 4 sequences of 3 steps, rewards 1, 2, 4; gamma 0.5, reward scale 2.
+    f, t = False, True
+    batch = {
+        "reward": jnp.array([[1.0] * 4, [2.0] * 4, [4.0] * 4]),
+        "ended": jnp.array([[f, t, f, f], [f, f, t, f], [f, f, f, f]]),
+        "terminated": jnp.array([[f, t, f, f], [f, f, f, f], [f, f, f, f]]),  # seq 2: a time-out at step 1
+        "valid": jnp.array([[t, t, t, t], [t, t, t, f], [t, t, t, t]]),
+        "next_obs": jnp.arange(3 * 4, dtype=jnp.float32).reshape(3, 4, 1),
+    }
+    ret, boot, discount, usable = n_step_target(batch, 3, 0.5, 2.0)
+    np.testing.assert_allclose(ret, 2 * np.array([1 + 1 + 1, 1, 1 + 1, 1 + 1 + 1]))  # 1 + 0.5*2 + 0.25*4 = 3
+    np.testing.assert_allclose(boot[:, 0], [8, 1, 6, 11])  # next_obs at the last step inside the episode
+    np.testing.assert_allclose(discount, [0.125, 0.0, 0.25, 0.125])  # a termination: 0; a time-out: gamma^2
+    np.testing.assert_array_equal(usable, [t, t, t, f])  # seq 3: an invalid step inside its n steps
+
+
+def test_the_update_compiles_once():
+    learner = Learner(TINY)
+    traced = []
+
+    def update(state, hp):
+        traced.append(1)
+        return learner.update(state, hp)
+
+    step = jax.jit(update)
+    state = learner.init(jax.random.key(0), HParams())
+    for _ in range(12):  # through the random-action phase into learning
+        state, metrics = step(state, HParams().as_float32())
+    assert len(traced) == 1
+    assert np.isfinite(float(metrics["loss/critic"])) and int(state.buffer.count) == 24
+
+
+def test_vmap_over_seeds_equals_each_seed_alone():
+    config = TINY.replace(arm="self-pred", num_updates=10)
+    train = jax.jit(make_train(config))
+    keys = jax.random.split(jax.random.key(3), 2)
+    runs = [HParams(alpha=0.5), HParams(alpha=2.0)]
+    hps = jax.tree.map(lambda *v: jnp.asarray(v, jnp.float32), *runs)
+    states, metrics = jax.jit(jax.vmap(make_train(config)))(keys, hps)
+    for i in range(2):
+        state, alone = train(keys[i], runs[i])
+        for name in alone:
+            np.testing.assert_allclose(metrics[name][i], alone[name], rtol=2e-5, atol=1e-6, err_msg=name)
+        for a, b in zip(jax.tree.leaves(states.params), jax.tree.leaves(state.params)):
+            np.testing.assert_allclose(a[i], b, rtol=2e-5, atol=1e-6)
+    assert not np.allclose(metrics["loss/critic"][0, -1], metrics["loss/critic"][1, -1])  # the runs differ
+
+
+@pytest.fixture(scope="module")
+def replayed():
+    """A state past learning_starts and a batch sampled from its buffer."""
+    learner = Learner(TINY.replace(arm="paper-cd"))
+    state = learner.init(jax.random.key(1), HParams())
+    step = jax.jit(learner.update)
+    for _ in range(10):
+        state, _ = step(state, HParams())
+    batch = sample_sequences(state.buffer, jax.random.key(2), 16, 3)
+    return state, batch
+
+
+def _grads(arm, state, batch, hp, wrt="params"):
+    config = TINY.replace(arm=arm)
+    nets = Learner(config).nets
+    params = dict(state.params)
+    if arm != "paper-cd":
+        params.pop("cc_encoder")
+    fn = lambda p, t: total_loss(p, t, state.norm, batch, hp.as_float32(), jax.random.key(4), nets=nets,  # noqa: E731
+                                 config=config)
+    return jax.jit(jax.grad(lambda p, t: fn(p, t)[0], argnums=0 if wrt == "params" else 1))(params, state.target)
+
+
+@pytest.mark.parametrize("arm", ["paper-cd", "self-pred"])
+def test_the_consistency_arms_at_alpha_0_take_the_model_arms_gradients(replayed, arm):
+    state, batch = replayed
+    model = _grads("model", state, batch, HParams())
+    at_zero = _grads(arm, state, batch, HParams(alpha=0.0))
+    at_one = _grads(arm, state, batch, HParams(alpha=1.0))
+    for group in model:
+        for a, b in zip(jax.tree.leaves(at_zero[group]), jax.tree.leaves(model[group])):
+            np.testing.assert_allclose(a, b, rtol=2e-5, atol=1e-7, err_msg=group)  # another program: rounding only
+    changed = [not np.allclose(a, b) for a, b in zip(jax.tree.leaves(at_one["model"]), jax.tree.leaves(model["model"]))]
+    assert any(changed)  # the term does reach the model at alpha 1
+    if arm == "paper-cd":  # and the actor, along the policy path
+        assert any(not np.allclose(a, b) for a, b in zip(jax.tree.leaves(at_one["actor"]),
+                                                         jax.tree.leaves(model["actor"])))
+
+
+def test_the_self_predictive_target_receives_no_gradient(replayed):
+    state, batch = replayed
+    grads = _grads("self-pred", state, batch, HParams(alpha=1.0), wrt="target")
+    assert all(not np.asarray(g).any() for g in jax.tree.leaves(grads))
+    online = _grads("self-pred", state, batch, HParams(alpha=1.0))
+    assert any(np.asarray(g).any() for g in jax.tree.leaves(online["encoder"]))  # the online encoder learns
+
+
+def test_sac_learns_to_hold_the_point_mass_at_the_origin():
+    """Random actions for the first 256 env steps, then 2 gradient steps per batched env step: within 9600 env steps
+    the return of 30-step episodes (at most 30: reward 1 - |x|^2) rises well above the early policy's."""
+    config = Config(env="point", num_envs=8, steps_per_update=8, updates_per_step=2, buffer_steps=512, batch_size=64,
+                    learning_starts=256, num_updates=150, episode_length=30, actor_hidden=(32, 32),
+                    critic_hidden=(32, 32), encoder_hidden=(32,), latent_dim=16)
+    hp = HParams(gamma=0.9, lr_actor=1e-3, lr_critic=1e-3, lr_alpha=1e-3, init_alpha=0.1)
+    _, metrics = jax.jit(make_train(config))(jax.random.key(0), hp)
+    returns = np.asarray(metrics["episode/return"])
+    early, late = np.nanmean(returns[4:30]), np.nanmean(returns[-30:])
+    assert late > early + 5.0 and late > 15.0, (early, late)
