@@ -33,7 +33,9 @@ space, latent states of a pixel model, a CNN's features) can use the same term.
 
 Modules: `weights` (the two paths' weights, `scale_gradient`), `windows` (the sequence encoder and the windows of a
 batch), `chain` (the fused k-step chain of an MLP model and a GRU encoder), `term` (`consistency_loss` and the
-grounded encoder's loss), `collapse` (the sweep's watch for a collapsed encoder). Every public name is here too.
+grounded encoder's loss), `collapse` (the sweep's watch for a collapsed encoder), `selfpredictive` (the self-predictive
+term of SPR/TD-MPC2/MR.Q beside the paper's, and what both share on replayed sequences). Every public name of the
+first five is here too.
 """
 
 from cdjax.consistency.chain import MLPModel, fused_chain, gru_gates, gru_weights, mlp_step

@@ -19,9 +19,9 @@ Arms (Config.arm), the same code with switches:
 - `paper-cd`: the model arm plus the paper's term (`cdjax.consistency.consistency_loss`): a GRU encoding of the real
   k-step window of observations against one of the window the model imagines from its first state. The model path
   reaches the encoder and the model (alpha x cc_model); the policy path (alpha x cc_policy) is defined off-policy by
-  a straight-through action (`cdjax.selfpredictive.policy_path`): the window keeps the replayed actions' values,
+  a straight-through action (`cdjax.consistency.selfpredictive.policy_path`): the window keeps the replayed actions' values,
   older policies' choices, and their gradient goes to the current actor's deterministic action at the same states.
-- `self-pred`: the model arm plus the self-predictive term (`cdjax.selfpredictive`): the latent transition rolled out
+- `self-pred`: the model arm plus the self-predictive term (`cdjax.consistency.selfpredictive`): the latent transition rolled out
   k steps from enc(s_0) under the replayed actions against an EMA target encoder's latents, weight alpha.
 Every arm with a model has the actor and critic read the encoder's latent (as TD-MPC2 and MR.Q do), the critic's
 gradient and the model's losses shaping it and the actor reading it under stop_gradient, so that the representation

@@ -31,7 +31,7 @@ from cdjax.envs.resume import needed_leaves
 from cdjax.optim import skip_if_not_finite
 from cdjax.protocol import Trainer
 from cdjax.replay import RingBuffer, sample_sequences
-from cdjax.selfpredictive import polyak
+from cdjax.consistency.selfpredictive import polyak
 
 LR_OF = {"actor": "lr_actor", "critic": "lr_critic", "encoder": "lr_critic", "log_alpha": "lr_alpha",
          "model": "lr_model", "cc_encoder": "lr_model"}  # parameter group -> its learning rate's HParams field

@@ -8,7 +8,7 @@ trains, by where its inputs are cut (stop_gradient), so one gradient of the sum 
 - temperature (log alpha): -log alpha (log pi + target entropy);
 - model, every arm but model-free (encoder, transition, reward head, decoder): the decoded predicted next
   observation against the normalised real one, and the predicted reward, one step, weight model_coef;
-- self-pred (encoder, transition): `cdjax.selfpredictive.self_predictive_loss`, k steps against the target encoder,
+- self-pred (encoder, transition): `cdjax.consistency.selfpredictive.self_predictive_loss`, k steps against the target encoder,
   weight alpha;
 - paper-cd (the model and its encoder at alpha x cc_model, the actor at alpha x cc_policy, the GRU encoder):
   `cdjax.consistency.consistency_loss` on the k-step window of observations, the imagined one made by the model as
@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from cdjax import consistency
 from cdjax import normalize as nz
-from cdjax import selfpredictive as sp
+from cdjax.consistency import selfpredictive as sp
 from cdjax.numerics import masked_mean
 
 
