@@ -1,6 +1,6 @@
 """cdjax: consistent dynamics models (Sodhani et al., 2019) as one jitted JAX pipeline on MuJoCo-MJX.
 
-One face for every setting (observation space, pixels, Atari): `make_train(config)` takes any setting's Config and
+One face for every setting (observation space, pixels, Atari, off-policy): `make_train(config)` takes any setting's Config and
 gives `train(key, hp) -> (state, metrics)`, which the caller jits and vmaps:
 
     import cdjax
@@ -33,9 +33,6 @@ __all__ = sorted(_LAZY)
 def __getattr__(name: str):
     if name in _LAZY:
         module = importlib.import_module(_LAZY[name])
-        if name in ("make_train", "make_trainer") and not hasattr(module, name):
-            # until the registry's dispatch (cdjax.agents.make_train) is in this tree: the obs setting's, as before
-            module = importlib.import_module("cdjax.agents.obs")
         value = getattr(module, name)
         globals()[name] = value  # asked once
         return value

@@ -26,7 +26,6 @@ import logging
 import math
 import os
 import pathlib
-import re
 import shlex
 import signal
 import sys
@@ -34,23 +33,12 @@ import time
 from typing import Sequence
 
 from cdjax import agents, io, multihost, options, runtime
+from cdjax.options import Parser, UsageError  # noqa: F401  (cdjax.cli.Parser for the benchmarks' commands)
 from cdjax.protocol import ConfigError, Setting
 from cdjax.runner.spec import FLAGS, INT32_MAX, SweepSpec
 
 SPEC_SKIP = ("out", "config", "grid", "phase", "command")  # SweepSpec fields that are not options of their own
 RESUME_OPTIONS = ("total_env_steps", "progress")  # options a resume may give (the rest is read from run.json)
-
-
-class UsageError(ValueError):
-    """Command-line input that cannot run; one sentence."""
-
-
-class Parser(argparse.ArgumentParser):
-    """argparse that reports errors in one line (no usage block) and exits with status 2."""
-
-    def error(self, message: str):
-        message = re.sub(r"^unrecognized arguments: ", "unknown option(s): ", message)
-        raise UsageError(f"{message.replace(chr(10), ' ')}; see `{self.prog} --help`.")
 
 
 def _runtime_options() -> argparse.ArgumentParser:

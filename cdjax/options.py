@@ -16,6 +16,7 @@ import argparse
 import dataclasses
 import inspect
 import io
+import re
 import textwrap
 import tokenize
 import typing
@@ -166,3 +167,15 @@ def given(args: argparse.Namespace, dest: str) -> dict[str, Any]:
         if key.startswith(dest) and value is not None:
             out[key[len(dest):]] = tuple(value) if isinstance(value, list) else value
     return out
+
+
+class UsageError(ValueError):
+    """Command-line input that cannot run; one sentence."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse that reports errors in one line (no usage block) and exits with status 2."""
+
+    def error(self, message: str):
+        message = re.sub(r"^unrecognized arguments: ", "unknown option(s): ", message)
+        raise UsageError(f"{message.replace(chr(10), ' ')}; see `{self.prog} --help`.")

@@ -94,7 +94,7 @@ def _layer(module: str) -> int | None:
     top = module.split(".")[1]
     if top in SHARED:
         return 1
-    if module == REGISTRY or _setting_of(module) is not None:
+    if module == REGISTRY or module.startswith(REGISTRY + "."):  # the registry, what sits beside it, the settings
         return 2
     if top in HOST:
         return 3

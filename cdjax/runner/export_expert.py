@@ -39,7 +39,7 @@ def export_from_run(run_dir: str | pathlib.Path, path: str | pathlib.Path, arm: 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """The command (argv None: this process's arguments); bad input ends with one sentence and exit status 2."""
-    from cdjax.cli import Parser, UsageError
+    from cdjax.options import Parser, UsageError
     from cdjax.io import RunDirError
 
     p = Parser(prog=PROG, description=__doc__)
