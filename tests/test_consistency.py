@@ -417,37 +417,6 @@ def test_mlp_step_is_the_agents_model_step():
                                agent.model_step(params["model"], norms, s, a)[0], rtol=1e-6, atol=1e-6)
 
 
-def test_chain_check_measures_the_fused_chain_against_the_plain_loop(tmp_path):
-    """`benchmarks.chain_check` (run on a GPU to see what its matmul precision costs the chain): on CPU, in float32,
-    the fused chain follows its plain-loop reference to float32 rounding, for the value and every input's gradient,
-    and so do the rows beside it (the plain loop at the default precision, the fused chain at the highest); it writes
-    them to results.json; a chain with a wrong gradient shows in the fused rows only."""
-    from benchmarks import chain_check
-
-    sizes = ["--windows", "16", "--horizon", "6", "--obs", "4", "--act", "2", "--hidden", "16", "--enc", "8"]
-    result = chain_check.main(sizes + ["--out", str(tmp_path)])
-    assert json.loads((tmp_path / "results.json").read_text()) == result
-    rows = result["relative_error"]
-    assert list(rows) == [name for name, _, _ in chain_check.ROWS]
-    for row in rows.values():
-        assert set(row) == {"value", *chain_check.ARGS} and max(row.values()) < 1e-5, rows
-    right = cc._outer  # the fused backward's weight gradients (every layer's, the GRU's), doubled
-
-    def doubled(a, b):
-        return jax.tree.map(lambda x: 2 * x, right(a, b))
-
-    cc._outer = doubled
-    try:
-        bad = chain_check.check(16, 6, 4, 2, 16, 8)["relative_error"]
-    finally:
-        cc._outer = right
-    assert bad["fused chain"]["model"] > 0.5 and bad["fused chain"]["s0"] < 1e-5
-    assert bad["fused chain, highest"]["model"] > 0.5 and max(bad["plain loop"].values()) < 1e-5
-    for size in ("0", "-3", "two"):  # a size that is no width: one sentence from argparse, no traceback
-        with pytest.raises(SystemExit, match="2"):
-            chain_check.main(["--windows", size])
-
-
 def _transposes(jaxpr) -> int:
     """How many transpose operations a jaxpr holds, its sub-jaxprs' included."""
     return sum(e.primitive.name == "transpose" for e in jaxpr.eqns) + sum(
