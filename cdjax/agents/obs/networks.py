@@ -21,9 +21,7 @@ from cdjax.consistency import SequenceEncoder, init_encoder
 MODEL_LOG_STD_MIN = -6.0  # bounds of the dynamics model's predicted log standard deviation
 MODEL_LOG_STD_MAX = 1.0
 MIN_POLICY_STD = 1e-3  # floor of the state-dependent policy standard deviation (softplus(x) + floor)
-# The dense layer of the agent's MLPs (policy, value, dynamics model): flax's. A module global so that a what-if of
-# `benchmarks.variants` (outer-dense) can swap in a layer of the same parameters for one process.
-Dense = nn.Dense
+Dense = nn.Dense  # the dense layer of the agent's MLPs (policy, value, dynamics model)
 
 
 def action_distribution(mean: jax.Array, std: jax.Array) -> distrax.MultivariateNormalDiag:
