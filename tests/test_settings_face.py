@@ -1,4 +1,4 @@
-"""The three settings wear one face: the same role modules, the same public names, and `make_train(config)` that
+"""The settings wear one face: the same role modules, the same public names, and `make_train(config)` that
 runs a whole (tiny) run on a CPU and gives a state of the Config's shapes and the setting's metric names;
 `cdjax.agents.make_train` dispatches on the Config's type."""
 
@@ -11,11 +11,12 @@ import pytest
 
 from cdjax import agents
 from cdjax.agents.atari import AtariConfig, AtariHParams
+from cdjax.agents.offpolicy import Config as OffPolicyConfig
 from cdjax.protocol import ConfigError
 
 from _shared import PIXEL_HP, PIXEL_TINY, POINT
 
-SETTINGS = ("obs", "pixel", "atari")
+SETTINGS = ("obs", "pixel", "atari", "offpolicy")
 ROLES = ("config", "learner", "networks", "losses", "presets")
 FACE = ("Config", "HParams", "TrainState", "make_train", "make_trainer", "PRESETS", "SETTING")
 UPDATES = 2
@@ -25,6 +26,10 @@ TINY = {
     "atari": (AtariConfig(env="breakout", arm="a2c-cd", num_envs=4, rollout_len=8, horizon=4, conv_channels=4,
                           latent=16, model_hidden=16, encoder_dim=8, episode_length=100, num_updates=UPDATES),
               AtariHParams(lr=3e-3)),
+    "offpolicy": (OffPolicyConfig(env="point", num_envs=4, steps_per_update=4, buffer_steps=32, batch_size=8,
+                                  learning_starts=12, num_updates=UPDATES, actor_hidden=(16,), critic_hidden=(16,),
+                                  encoder_hidden=(16,), model_hidden=(16,), latent_dim=8, cc_dim=8,
+                                  episode_length=20), None),
 }
 
 
@@ -53,7 +58,8 @@ def test_make_train_runs_a_tiny_run_with_the_configs_shapes_and_the_settings_met
     package = importlib.import_module(f"cdjax.agents.{name}")
     config, hp = TINY[name]
     hp = package.HParams() if hp is None else hp
-    config = package.SETTING.arm_config(package.SETTING.default_arms[-1], config)  # the arm with the consistency term
+    arm = "paper-cd" if name == "offpolicy" else package.SETTING.default_arms[-1]  # an arm with the paper's term
+    config = package.SETTING.arm_config(arm, config)
     train = agents.make_train(config)  # the registry's dispatch on the Config's type
     state, metrics = jax.jit(train)(jax.random.key(0), hp)
     assert isinstance(state, package.TrainState)
@@ -62,7 +68,9 @@ def test_make_train_runs_a_tiny_run_with_the_configs_shapes_and_the_settings_met
     for got, want in zip(jax.tree.leaves(state), jax.tree.leaves(expected)):
         assert (got.shape, got.dtype) == (want.shape, want.dtype)
     m = package.SETTING.metrics
+    # every panel's metric, but the self-predictive term's, which only the offpolicy setting's self-pred arm has
     names = {m.ret, m.discounted_ret, m.skipped, "loss/consistency"} | {panel[0] for panel in m.panels}
+    names -= {"loss/self_predictive"}
     assert names <= set(metrics), names - set(metrics)
     for key, value in metrics.items():
         assert value.shape[0] == UPDATES, key  # one row per update, scalars inside the scan

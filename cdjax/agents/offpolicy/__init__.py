@@ -63,7 +63,8 @@ def preset_of_env(given) -> str | None:
 
 SETTING = Setting(
     name="offpolicy", about="an off-policy SAC-family learner with a latent model and either consistency term",
-    config_type=Config, hparams_type=HParams, make_trainer=make_trainer, arm_config=arm_config, arm_fields=("arm",),
+    config_type=Config, hparams_type=HParams, make_train=make_train, make_trainer=make_trainer, arm_config=arm_config,
+    arm_fields=("arm",),
     arms_help=", ".join(ARMS), default_arms=ARMS,
     unused_hparams=lambda config, phase: {name: FIXED.get(name) for name in UNUSED[config.arm]},
     shown_hparams=lambda config: ("alpha",) if config.use_consistency else (),
