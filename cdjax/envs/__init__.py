@@ -94,7 +94,8 @@ def describe() -> dict[str, str]:
         missing = ""
     except playground.ConfigError:
         missing = '; needs the playground extra: pip install -e ".[playground]"'
-    about = {name: "Brax, MJX" for name in BRAX_MJX_ENVS} | {"point": "cdjax.envs.point", "swimmer": "cdjax.envs.swimmer"}
+    about = {name: "Brax, MJX" for name in BRAX_MJX_ENVS}
+    about |= {"point": "cdjax.envs.point", "swimmer": "cdjax.envs.swimmer"}
     about |= {name: f"MuJoCo Playground {task}{missing}" for name, task in playground.NAMES.items()}
     return {name: about[name] + ("; true reward for MPC" if rewards.reward_fn(name) else "")
             for name in available_envs()}
