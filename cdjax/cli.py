@@ -1,4 +1,4 @@
-"""The `cdjax` command: sweep, eval, plot.
+"""The `cdjax` command: sweep, eval, plot, envs.
 
     cdjax sweep --env ant --seeds 16 --alpha 0 1.0 --horizon 20 --steps 50_000_000 --out runs/ant-cd
     cdjax sweep --out runs/ant-cd --resume
@@ -110,7 +110,7 @@ def _add_sweep(sub, setting: Setting, parents: list) -> None:
         description="Train every arm (one compiled program each) on the grid of the hyper-parameters given "
                     "as lists times --seeds, vmapped; log, checkpoint and show progress between chunks.\n"
                     f"Setting {setting.name}: {setting.about}; arms: {setting.arms_help}.\n" + precedence,
-        epilog=f"presets:\n{presets}")
+        epilog=f"presets:\n{presets}\n\nenv names (--env): `cdjax envs` lists them; docs/envs.md says what each is.")
     run = sweep.add_argument_group("sweep (cdjax.runner.SweepSpec)")
     run.add_argument("--out", required=True, metavar="DIR", help="run directory (refuses one that holds another run)")
     run.add_argument("--resume", action="store_true", help="continue the run in --out from its latest checkpoint")
@@ -148,7 +148,7 @@ def build_parser(setting: Setting | None = None) -> Parser:
     setting = setting or agents.get(agents.DEFAULT)
     parser = Parser(prog="cdjax", allow_abbrev=False,
                     description="Consistent dynamics models (Sodhani et al., 2019) on MuJoCo-MJX in JAX.")
-    sub = parser.add_subparsers(dest="command", metavar="{sweep,eval,plot}", required=True, parser_class=Parser)
+    sub = parser.add_subparsers(dest="command", metavar="{sweep,eval,plot,envs}", required=True, parser_class=Parser)
     runtime_parent = _runtime_options()
     distributed_parent = _distributed_options()
     _add_sweep(sub, setting, [runtime_parent, distributed_parent])
@@ -171,6 +171,7 @@ def build_parser(setting: Setting | None = None) -> Parser:
                       help="write plots/ and summary.{md,csv} here (needed for several RUN_DIRs; default RUN_DIR)")
     plot.add_argument("--bootstrap-reps", type=options.count, default=2000, metavar="N",
                       help="bootstrap replications of the 95%% intervals (default 2000)")
+    sub.add_parser("envs", help="list the env names --env takes", allow_abbrev=False)
     return parser
 
 
@@ -342,6 +343,14 @@ def cmd_plot(args: argparse.Namespace) -> None:
         print(f"Wrote {path}")
 
 
+def cmd_envs() -> None:
+    """Print every env name `--env` takes, one a line, with what it is (cdjax.envs.describe)."""
+    from cdjax import envs
+
+    for name, about in envs.describe().items():
+        print(f"{name:<29} {about}")
+
+
 class _QuietForeignThreads:
     """sys.stderr for the `cdjax` command: once a write has failed (io.WRITE_FAILED), text written from any thread
     but the main one (tensorstore's callbacks and orbax's own threads finishing its abandoned checkpoint writes:
@@ -450,9 +459,11 @@ def main(argv: Sequence[str] | None = None) -> None:
             try:
                 args = build_parser(setting).parse_args(argv)
             except UsageError as err:  # unknown options are reported by the top parser: name the subcommand
-                if argv and argv[0] in ("sweep", "eval", "plot"):
+                if argv and argv[0] in ("sweep", "eval", "plot", "envs"):
                     raise UsageError(str(err).replace("`cdjax --help`", f"`cdjax {argv[0]} --help`")) from None
                 raise
+            if args.command == "envs":
+                return cmd_envs()
             _configure(args)
             if args.command in ("sweep", "eval"):
                 _join(args)

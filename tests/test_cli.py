@@ -116,6 +116,31 @@ def test_options_are_derived_from_the_dataclasses(capsys):
     assert "cpu-smoke" in text
 
 
+def test_envs_lists_every_env_name_and_marks_the_missing_extra(capsys, monkeypatch):
+    from cdjax import envs
+    from cdjax.envs import playground, rewards
+
+    def listed() -> dict[str, str]:
+        main(["envs"])
+        rows = [line.split(None, 1) for line in capsys.readouterr().out.splitlines()]
+        return {name: about for name, about in rows}
+
+    names = listed()
+    assert list(names) == list(envs.available_envs())
+    assert set(playground.NAMES) | {"ant", "point", "swimmer"} <= set(names)
+    assert names["ant"].startswith("Brax, MJX") and names["dmc-cheetah-run"].startswith("MuJoCo Playground CheetahRun")
+    for name, about in names.items():  # the MPC mark where cdjax.envs.rewards writes the task's reward, only there
+        assert ("true reward for MPC" in about) == (rewards.reward_fn(name) is not None), name
+    monkeypatch.setitem(sys.modules, "mujoco_playground", None)  # what an install without the extra sees
+    hidden = listed()
+    assert list(hidden) == list(names)
+    for name, about in hidden.items():
+        assert ('pip install -e ".[playground]"' in about) == name.startswith("dmc-"), name
+    with pytest.raises(SystemExit):
+        main(["sweep", "--help"])
+    assert "`cdjax envs` lists them" in capsys.readouterr().out  # where sweep's help says the names are
+
+
 def test_help_comes_from_the_field_comments_read_with_the_tokenizer():
     import dataclasses as dc
 

@@ -84,6 +84,23 @@ def available_envs() -> tuple[str, ...]:
     return tuple(_registry())
 
 
+def describe() -> dict[str, str]:
+    """Every name of available_envs() -> where the task comes from, in words; whether the Mb-Mf phase's MPC can
+    score with its true reward (cdjax.envs.rewards); for the dmc-* tasks, whether their extra is missing."""
+    from cdjax.envs import rewards  # here: the listing is the only user of rewards in this module
+
+    try:
+        playground.check("auto")
+        missing = ""
+    except playground.ConfigError:
+        missing = '; needs the playground extra: pip install -e ".[playground]"'
+    about = {name: "Brax, MJX" for name in BRAX_MJX_ENVS}
+    about |= {"point": "cdjax.envs.point", "swimmer": "cdjax.envs.swimmer"}
+    about |= {name: f"MuJoCo Playground {task}{missing}" for name, task in playground.NAMES.items()}
+    return {name: about[name] + ("; true reward for MPC" if rewards.reward_fn(name) else "")
+            for name in available_envs()}
+
+
 def make_single_env(name: str, **kwargs):
     """One (unbatched) Brax-style environment with reset(key) -> State and step(State, a) -> State."""
     table = _registry()
