@@ -80,7 +80,7 @@ TASKS = {
 # cdjax learner options, each set back to its previous value (before the learner issue): the ablation.
 PREVIOUS = {"activation": "tanh", "policy_std": "global", "entropy": "gaussian", "gae_in_loss": False,
             "segment_len": 0, "weight_init": "orthogonal"}
-BRAX_HEAD = {"policy_head_scale": 1.0}  # lecun-uniform's own policy head (Brax's; the default until 2026-11-26)
+BRAX_HEAD = {"policy_head_scale": 1.0}  # lecun-uniform's own policy head (Brax's; cdjax's default before x0.1)
 VARIANTS: dict[str, tuple[dict, dict]] = {  # name -> (Config overrides, HParams overrides)
     "default": ({}, {}),
     "tanh": ({"activation": "tanh"}, {}),
@@ -90,14 +90,14 @@ VARIANTS: dict[str, tuple[dict, dict]] = {  # name -> (Config overrides, HParams
     "env-minibatches": ({"segment_len": 0}, {}),
     "adam-eps-1e-5": ({}, {"adam_eps": 1e-5}),
     "orthogonal-init": ({"weight_init": "orthogonal"}, {}),
-    # Brax's choices, tried against the gap on ant (lecun-uniform weights are the default since, its policy head x0.1 since
-    # 2026-11-26; the variants measured before then keep Brax's head)
+    # Brax's choices, tried against the gap on ant (lecun-uniform weights are the default since, and later its policy
+    # head x0.1; these variants keep Brax's head, as they were measured: LEARNING.md)
     "lecun-init": ({"weight_init": "lecun", **BRAX_HEAD}, {}),
     "joint-clip": ({"clip_scope": "policy-value"}, {}),
     "lecun-joint-clip": ({"weight_init": "lecun", "clip_scope": "policy-value", **BRAX_HEAD}, {}),
     "lecun-global-std": ({"weight_init": "lecun", "policy_std": "global", **BRAX_HEAD}, {}),
     # the policy head's initial weights 100x (orthogonal's head) and 10x smaller than lecun-uniform's, against
-    # half-cheetah's failed seeds (2026-11-26); head-0.1 is the default since, brax-head the default before
+    # half-cheetah's failed seeds; head-0.1 is the default since (LEARNING.md), brax-head the default before
     "lecun-small-head": ({"policy_head_scale": 0.01}, {}),
     "head-0.1": ({"policy_head_scale": 0.1}, {}),
     "brax-head": (BRAX_HEAD, {}),

@@ -75,7 +75,7 @@ class Task:
 
 
 # An arm of 20 runs (two weights x 10 seeds) runs its phase for all 20 at once: latency-bound, with twice the MPC
-# candidates per step; measured on ant (H200, 2026-11-24): 72 s for 20 runs, 40 s for 10.
+# candidates per step: the ratio of ant's measured phase at 20 runs to its phase at 10 (PLAN.md, the units' table).
 PHASE_20_RUNS = 1.8
 # Phases: ant's is measured (40 s, units ant-1 and ant-3); the others are the first plan's arithmetic (90-130 s, which
 # over-estimated ant's by 2.25x) scaled by ant's measured / estimated ratio, until their first unit prints theirs.

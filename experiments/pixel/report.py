@@ -118,7 +118,7 @@ def merge_units(unit_dirs) -> tuple[list[dict], list[dict], list[dict]]:
     for d in unit_dirs:
         run_dir = pathlib.Path(d) / "pixel"
         run = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").exists() else {}
-        evals = io.read_jsonl(run_dir / "eval.jsonl") if (run_dir / "eval.jsonl").exists() else []
+        evals = io.read_jsonl(run_dir / "eval.jsonl") if io.jsonl_exists(run_dir / "eval.jsonl") else []
         loaded.append((pathlib.Path(d), run, list(io.read_jsonl(run_dir / "metrics.jsonl")), list(evals)))
     values: dict[str, dict[str, set]] = {}  # arm -> hyper-parameter -> the values its sets take, over all sweeps
     for _, run, _, _ in loaded:

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 from cdjax import agents, runtime
 from experiments.pixel.data_cost import overrides, timed, write_json
 
-# matmul, measured on an H200 (data/roofline-h200): as slow as float32/grouped and near the memory limit; ask for it
+# matmul (data/roofline-h200/): as slow as float32/grouped and near the memory limit; ask for it
 # by name
 VARIANTS = ("float32/grouped", "float32/auto", "bfloat16/grouped", "bfloat16/per-run", "bfloat16/auto")
 

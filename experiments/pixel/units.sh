@@ -13,10 +13,8 @@
 #                  run (with REF_SET's switches, default none; until 2026-11-25, 28bb851, the presets ran
 #                  float32/grouped) and once with PIXEL_SET (default "--compute-dtype bfloat16 --conv-impl auto"),
 #                  then experiments.pixel.precision: held-out ELBO, log-likelihoods and imitation error per seed
-#                  (precision.md); each sweep stops by half the unit's time limit. Run twice on one H200:
-#                  2026-11-25 (float32/grouped against "--compute-dtype bfloat16 --conv-impl per-run", 491 s) and
-#                  2026-11-26 at 5848209 (the presets against "--output-grad-dtype bfloat16", now spelled
-#                  --output-grad compute, which the presets run since f4aa752; 272 s from start to end)
+#                  (precision.md); each sweep stops by half the unit's time limit. Its two runs:
+#                  data/precision-h200/ and data/precision-grad-h200/ (RESULTS.md)
 #   lr-check       the learning-rate check: the ltq arm on halfcheetah, 5 seeds, a vmapped grid of the model's rate
 #                  (--lr) x the policy's (--lr-policy; 0 = the model's), LR_UPDATES updates (default 500) or the
 #                  time limit; PIXEL_SET (e.g. "--compute-dtype bfloat16 --conv-impl per-run") picks the arrangement
@@ -24,18 +22,17 @@
 #   core           the update's speed with core_impl flax (the model of before) and fused (the filter's and prior's
 #                  steps with fewer products: PixelConfig.core_impl), halfcheetah's ltq-cd at the preset's sizes
 #                  (bfloat16/per-run), 10 runs as a TASK-ARM unit runs them, SyntheticWorld's frames, one roofline
-#                  process each (flax.json/.md, fused.json/.md) with its update's kernels per pass and per run from
-#                  its optimised HLO (loops-flax.log, loops-fused.log); about 3 minutes: whether the presets should
-#                  run fused
+#                  process each (flax.json/.md, fused.json/.md); about 3 minutes: whether the presets should run
+#                  fused (they do; the kernel counts of data/core-h200/ came from a removed HLO reader)
 #   grad-dtype     the update's speed with output_grad float32 (the model of before) and compute (the output layers'
 #                  gradients as bfloat16 products: PixelConfig.output_grad), halfcheetah's ltq-cd at the preset's
 #                  sizes (bfloat16/per-run, core fused), 30 runs, SyntheticWorld's frames, one roofline process each
-#                  (grad-float32.json/.md, grad-bfloat16.json/.md; 161 s from start to end on one H200 at 5848209)
+#                  (grad-float32.json/.md, grad-bfloat16.json/.md; its run: data/grad-dtype-h200/)
 #   profile        where the presets' update spends its time now: the roofline of halfcheetah's ltq-cd as the presets
 #                  run it (bfloat16/per-run, core fused, output_grad compute), 30 runs, SyntheticWorld's frames, with
 #                  a profile (presets.json/.md, profile/); then the same with XLA_FLAGS
 #                  --xla_gpu_enable_dynamic_slice_fusion=true (slice-fusion.json/.md; skipped where the image's XLA
-#                  refuses it): per-run convolutions read each run's operands as slices of the stacked runs, which
+#                  refuses it at start-up): per-run convolutions read each run's operands as slices of the stacked runs, which
 #                  XLA copies out unless it fuses the slice into the cuDNN call (about 4 minutes)
 #   sweep-speed    issue 22's before and after in one command: halfcheetah's preset sweep (30 runs: ltq and ltq-cd
 #                  with cc_policy 0 and 1, 10 seeds) for SPEED_UPDATES updates (default 200), once as the model
@@ -47,9 +44,8 @@
 #                  frames/s and the seconds between chunks, over a length where one round's fixed costs (the first
 #                  chunk, the last checkpoint's write) weigh as they did then (about 5-6 minutes)
 #   devices        (a multi-GPU machine, issue 25) the pixel sweep's frames/s on 1, 2 and 4 of its GPUs in one
-#                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah;
-#                  2026-11-27 on four H100s with DEVICE_COUNTS="1 4 2": 332 s from start to end, 2.02x on 2 GPUs and
-#                  3.98x on 4 (experiments/pixel/data/devices-h100x4/)
+#                  process (experiments.pixel.speed --devices; DEVICE_COUNTS, default "1 2 4"), 32 runs of halfcheetah
+#                  (its run: experiments/pixel/data/devices-h100x4/)
 #   TASK-ARM       the experiment at the presets' length: TASK halfcheetah, reacher or pusher, ARM ltq, ltq-cd
 #                  (alpha 100, cc_policy 0 and 1: 20 runs), ltq-cd0 or ltq-cd1 (ltq-cd with cc_policy 0 or 1
 #                  alone: 10 runs, `--arms ltq-cd --cc-policy N`; not the CLI's arm ltq-cdN, which is ltq-cd with
@@ -58,39 +54,10 @@
 #                  its own directory (TASK-ARM/pixel); `python -m experiments.pixel.report DIR` over a directory of
 #                  them puts a task's units side by side and compares them at the update all of them reached.
 #
-# The re-run's plan (issue 22): the nine units TASK-ltq, TASK-ltq-cd0 and TASK-ltq-cd1 for the three tasks, one per
-# lease (two per session where they fit: a one-GPU machine counted 67% of its held time in session 19, ~45 min held;
-# all of it in session 20, 30 min held), halfcheetah first. Estimated training time for 10,000 updates from
-# halfcheetah's bfloat16/per-run rates on one H200, taken as linear in the runs (ltq 6.6 ms per run and update: 40
-# runs at 0.265 s/update in the lr-check; ltq-cd 7.6 ms: 10 ltq + 20 ltq-cd runs at 0.218 s/update in the precision
-# unit), then about 1-3 minutes of setup and compile before and 4-6 minutes of
-# evaluation, plot and strips after:
-#   halfcheetah-ltq                      10 runs   ~11 min
-#   halfcheetah-ltq-cd0, -ltq-cd1        10 runs   ~13 min each
-#   halfcheetah-ltq-cd (both)            20 runs   ~25 min: past LIMIT_S, stops near 7,800 updates
-#   reacher-*, pusher-* (ltq, cd0, cd1)  10 runs   ~13, ~15, ~15 min: not measured in bfloat16; in float32 their
-#                                                  update took ~1.15x halfcheetah's per run (20 runs at 36,695 and
-#                                                  38,251 frames/s against 30 at 41,810), assumed the same here
-# Measured: halfcheetah-ltq on one H100 (2026-11-25, core_impl flax) trained 10,000 updates in 809 s (8.1 ms per run
-# and update), 1,008 s from start to end with evaluation and strips. On one H200 with core_impl fused (the presets
-# since 2026-11-26): halfcheetah-ltq-cd0 and -cd1 623 and 607 s (6.1-6.2 ms), 821 and 802 s from start to end;
-# reacher-ltq 562 s (5.6 ms), 732 s; after 4cf108f halfcheetah-ltq-cd0 and -cd1 606 and 617 s, 815 and 856 s, and
-# pusher-ltq 563 s (5.6 ms), 772 s; at f991e7a reacher-ltq-cd0 and -cd1 538 and 523 s (5.4 and 5.2 ms; 61 and 49 s
-# of it between chunks), 725 and 644 s, and pusher-ltq-cd0 541 s (5.4 ms; 64 s between chunks), 808 s; at 4e78328
-# (H200) pusher-ltq-cd1 544.8 s (5.4 ms, 146,847 frames/s), 799 s from start to end (its log's 469.5 s "between
-# chunks" is an artifact: the chunk's call blocks the thread on a GPU, so whole chunks were counted), then
-# sweep-long on the same machine (236.8 s, 141,902 frames/s; its 181.1 s "between chunks" the same artifact). Since
-# 5bf6219 the chunks are launched from a thread of their own, so that count is real again. Session 24 (2026-11-26,
-# one H200, at 5848209): grad-dtype 161 s and precision 272 s from start to end (precision's sweeps: 30 runs, 300
-# updates, "Trained in" 48.4 s with 3.9 s between chunks and 43.7 s with 3.8 s). At 2729efe (2026-11-26, one H200,
-# one machine, one after the other; experiments/pixel/data/speed-final-h200/): sweep-speed 427 s from start to end
-# ("Trained in" 116.6 s before, 31.4 s presets), sweep-long 267 s (191.8 s, 175,225 frames/s, 6.5 s between
-# chunks), profile 151 s.
-# One unit per machine (held 30 minutes at most), or one and sweep-speed, or a second unit with LIMIT_S/END_S cut to
-# the machine's time left (session 22: pusher-ltq with LIMIT_S=720 END_S=880 after halfcheetah-ltq-cd1; session 23:
-# reacher-ltq-cd1 with LIMIT_S=880 END_S=1000 after reacher-ltq-cd0; both still reached 10,000 updates). Run: all
-# nine (halfcheetah's cd0 and cd1 again after 4cf108f; the collapsed ones are in data/presets-length-collapsed/);
-# nothing of the plan is left. A unit
+# The presets' length (issue 22): the nine units TASK-ltq, TASK-ltq-cd0 and TASK-ltq-cd1 for the three tasks, one
+# per lease, all run (their times per unit and frames/s: RESULTS.md, "Fifth pass"; halfcheetah's cd units before
+# the encoder-balance fix: data/presets-length-collapsed/). One unit fits a one-GPU machine held 30 minutes, or one
+# and sweep-speed, or a second unit with LIMIT_S/END_S cut to the machine's time left. A unit
 # whose runs are slower than an estimate says in its log where --time-limit stopped it; each unit's "Trained in"
 # line gives its real rate. Fewer runs may not be proportionally faster (the update is bound by kernel launches).
 # The experts are the kept ones (experiments/pixel/data/three-tasks-x2/TASK/expert.msgpack). The first call starts
@@ -121,11 +88,9 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
         "--out $work/roofline.json" ;;
     core)
       local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 10 --variants bfloat16/per-run --synthetic"
-      local dump="--xla_dump_hlo_as_text --xla_dump_hlo_module_re=jit_update" line="" impl
+      local line="" impl
       for impl in flax fused; do
-        line+="XLA_FLAGS='--xla_dump_to=$work/dump-$impl $dump' $rf --set core_impl=$impl --out $work/$impl.json"
-        line+=" > $work/$impl.log 2>&1; python -m benchmarks.hlo_fusions $work/dump-$impl --loops --top 4"
-        line+=" > $work/loops-$impl.log 2>&1; grep 'jit_update.*kernels per run' $work/loops-$impl.log;"
+        line+="$rf --set core_impl=$impl --out $work/$impl.json > $work/$impl.log 2>&1;"
       done
       echo "$line cat $work/flax.md $work/fused.md" ;;
     grad-dtype)
@@ -138,9 +103,9 @@ command_of() {  # UNIT -> the unit's commands (one bash line)
       local rf="python -m experiments.pixel.roofline --env halfcheetah --runs 30 --variants bfloat16/per-run --synthetic"
       local flag=xla_gpu_enable_dynamic_slice_fusion=true
       echo "$rf --profile $work/profile --out $work/presets.json > $work/presets.log 2>&1;" \
-        "if python -m benchmarks.xla_flags --accepts $flag > /dev/null; then XLA_FLAGS=--$flag $rf" \
-        "--out $work/slice-fusion.json > $work/slice-fusion.log 2>&1; else echo 'this XLA refuses ${flag%%=*}';" \
-        "fi; cat $work/presets.md $work/slice-fusion.md; head -n 40 $work/profile/*.md" ;;
+        "XLA_FLAGS=--$flag $rf --out $work/slice-fusion.json > $work/slice-fusion.log 2>&1" \
+        "|| echo 'this XLA refuses ${flag%%=*} (slice-fusion.log)';" \
+        "cat $work/presets.md $work/slice-fusion.md; head -n 40 $work/profile/*.md" ;;
     sweep-speed)
       local sweep="python -m cdjax.cli sweep --setting pixel --preset pixel-halfcheetah"
       sweep="$sweep --expert $experts/halfcheetah/expert.msgpack --steps $(( ${SPEED_UPDATES:-200} * 800 ))"
