@@ -28,7 +28,7 @@ from cdjax.runner import loop
 ARGS = [*TINY_ARGS[:TINY_ARGS.index("--seeds")], "--seeds", "4", *TINY_ARGS[TINY_ARGS.index("--seeds") + 2:],
         "--arms", "model-free", "--eval-episodes", "2", "--bootstrap-reps", "50"]
 FINAL = str(12 * 192)
-README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
+README = pathlib.Path(__file__).resolve().parents[1] / "docs" / "sweeps.md"  # the docs page with the two-process example
 KILLS_ITSELF = pathlib.Path(__file__).with_name("_multihost_process.py")
 
 
@@ -128,10 +128,10 @@ def test_a_lost_process_leaves_a_run_that_two_processes_resume_to_one_process_nu
 
 
 def test_the_readme_runs_what_these_tests_run():
-    """README's two-process example is this file's command (another --out and port)."""
+    """The docs' two-process example (docs/sweeps.md) is this file's command (another --out and port)."""
     text = README.read_text()
     block = re.search(r"```bash\n(for i in 0 1; do.*?--process-id \$i &\ndone; wait)\n```", text, re.DOTALL)
-    assert block, "README has no two-process example"
+    assert block, "docs/sweeps.md has no two-process example"
     words = shlex.split(block.group(1).replace("\\\n", " "))
     command = words[words.index("cdjax") + 1:words.index("&")]
     port = int(command[command.index("--coordinator") + 1].split(":")[1])

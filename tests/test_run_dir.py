@@ -40,7 +40,7 @@ import jax
 import numpy as np
 import pytest
 
-from cdjax import Config, ConfigError, HParams, agents, io, make_train, make_trainer, stack_hparams
+from cdjax import Config, ConfigError, HParams, agents, io, make_train, stack_hparams
 from cdjax.agents.atari import AtariConfig, AtariHParams
 from cdjax.agents.pixel import PixelConfig, PixelHParams
 from cdjax.checks import Count, Flag, Real, Text, Widths
@@ -362,7 +362,7 @@ def test_the_library_checks_hyper_parameters_where_they_become_concrete():
         atari_trainer(AtariConfig(num_envs=2, rollout_len=4, horizon=2)).init(key, AtariHParams(lr=-1.0))
     with pytest.raises(ConfigError, match="must be a cdjax.agents.obs.config.Config, got a "
                                           "cdjax.agents.atari.config.AtariConfig"):
-        make_trainer(AtariConfig())
+        agents.get("obs").make_trainer(AtariConfig())  # the obs setting's own (cdjax.make_trainer dispatches)
 
 
 def test_a_config_of_another_setting_is_one_sentence(tmp_path, capsys):

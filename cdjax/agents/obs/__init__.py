@@ -67,7 +67,6 @@ def unused_hparams(config: Config, with_phase: bool) -> dict[str, float | None]:
 check_hparam = HP_RANGES.check_one
 
 
-@functools.lru_cache(maxsize=None)
 def _describe_phase(info: Mapping[str, float]) -> str:
     return (f"reward per step: random actions {info.get('random/reward_mean', math.nan):.3g}, MPC "
             f"{info.get('mpc/reward_mean_last', math.nan):.3g}, distilled policy "
