@@ -141,3 +141,13 @@ class Setting:
 
 
 __all__ = ["ConfigError", "Metrics", "Phase", "Preset", "Setting", "Trainer"]
+
+
+def scanned_train(init: Callable, update: Callable, num_updates: int) -> Callable:
+    """Every setting's `make_train`: train(key, hp) -> (final state, metrics with leaves [num_updates]), `init`
+    followed by a `lax.scan` of `update`; pure, the caller jits and vmaps it."""
+    def train(key, hp):
+        state = init(key, hp)
+        return jax.lax.scan(lambda s, _: update(s, hp), state, None, length=num_updates)
+
+    return train

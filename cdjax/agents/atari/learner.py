@@ -37,7 +37,7 @@ from cdjax.agents.atari.networks import ActorCritic, LatentModel, torso_of
 from cdjax.checks import check_type
 from cdjax.envs import EpisodeStats
 from cdjax.optim import skip_if_not_finite
-from cdjax.protocol import Trainer
+from cdjax.protocol import Trainer, scanned_train
 
 TERMS = ("a2c", "model", "consistency", "encoder_aux")
 
@@ -233,12 +233,7 @@ def make_train(config: AtariConfig) -> Callable[[jax.Array, AtariHParams], tuple
     """train(key, hp) -> (final state, metrics with leaves [num_updates]): pure, jit/vmap it yourself (a MinAtar
     game; an ALE game's emulators live outside JAX and run under the host side's sweep)."""
     agent = learner(config)
-
-    def train(key: jax.Array, hp: AtariHParams):
-        state = agent.init(key, hp)
-        return jax.lax.scan(lambda s, _: agent.update(s, hp), state, None, length=config.num_updates)
-
-    return train
+    return scanned_train(agent.init, agent.update, config.num_updates)
 
 
 def make_trainer(config: AtariConfig) -> Trainer:

@@ -34,7 +34,7 @@ from cdjax.agents.obs.state import Batch, History, TrainState, refresh_norms, sa
 from cdjax.checks import check_type
 from cdjax.envs import EnvState, EpisodeStats, make_env, strong_types
 from cdjax.numerics import masked_mean, masked_share
-from cdjax.protocol import Trainer
+from cdjax.protocol import Trainer, scanned_train
 
 
 def _norm(tree) -> jax.Array:
@@ -463,12 +463,7 @@ def make_agent(config: Config) -> ObsAgent:
 def make_train(config: Config) -> Callable[[jax.Array, HParams], tuple[TrainState, dict]]:
     """train(key, hp) -> (final state, metrics with leaves [num_updates]): pure, jit/vmap it yourself."""
     agent = make_agent(config)
-
-    def train(key: jax.Array, hp: HParams):
-        state = agent.init(key, hp)
-        return jax.lax.scan(lambda s, _: agent.update(s, hp), state, None, length=config.num_updates)
-
-    return train
+    return scanned_train(agent.init, agent.update, config.num_updates)
 
 
 def make_trainer(config: Config) -> Trainer:

@@ -29,7 +29,7 @@ from cdjax.checks import check_type
 from cdjax.envs import EnvState, EpisodeStats
 from cdjax.envs.resume import needed_leaves
 from cdjax.optim import skip_if_not_finite
-from cdjax.protocol import Trainer
+from cdjax.protocol import Trainer, scanned_train
 from cdjax.replay import RingBuffer, sample_sequences
 from cdjax.consistency.selfpredictive import polyak
 
@@ -170,12 +170,7 @@ class Learner:
 def make_train(config: Config) -> Callable[[jax.Array, HParams], tuple[TrainState, dict]]:
     """train(key, hp) -> (final state, metrics with leaves [num_updates]): pure, jit/vmap it yourself."""
     learner = Learner(config)
-
-    def train(key: jax.Array, hp: HParams):
-        state = learner.init(key, hp)
-        return jax.lax.scan(lambda s, _: learner.update(s, hp), state, None, length=config.num_updates)
-
-    return train
+    return scanned_train(learner.init, learner.update, config.num_updates)
 
 
 def make_trainer(config: Config) -> Trainer:

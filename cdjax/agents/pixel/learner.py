@@ -39,7 +39,7 @@ from cdjax.agents.pixel.chain import pixel_chain
 from cdjax.agents.pixel.model import LtqModel, core_weights, stack_frames
 from cdjax.checks import check_type
 from cdjax.optim import skip_if_not_finite
-from cdjax.protocol import Trainer
+from cdjax.protocol import Trainer, scanned_train
 
 HELDOUT_BATCH = 4  # held-out sequences scored per update
 
@@ -250,12 +250,7 @@ TrainState = PixelState  # the face every setting shares: cdjax.agents.<setting>
 def make_train(config: PixelConfig) -> Callable[[jax.Array, Any], tuple[PixelState, dict]]:
     """train(key, hp) -> (final state, metrics with leaves [num_updates]): pure, jit/vmap it yourself."""
     learner = PixelLearner(config)
-
-    def train(key: jax.Array, hp):
-        state = learner.init(key, hp)
-        return jax.lax.scan(lambda s, _: learner.update(s, hp), state, None, length=config.num_updates)
-
-    return train
+    return scanned_train(learner.init, learner.update, config.num_updates)
 
 
 def make_trainer(config: PixelConfig) -> Trainer:
