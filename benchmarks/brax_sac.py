@@ -35,7 +35,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import Parser, device_info, refuse  # noqa: E402
-from cdjax.options import positive  # noqa: E402
+from cdjax.options import non_negative, positive  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)
@@ -239,6 +239,8 @@ def main(argv=None) -> int:
     p.add_argument("--arms", nargs="+", default=["model-free"], help="cdjax off-policy arms (default model-free)")
     p.add_argument("--cdjax-plain", action="store_true", help="cdjax as Brax's SAC: 1-step, no LayerNorm, no encoder")
     p.add_argument("--seeds", type=positive, default=5)
+    p.add_argument("--first-seed", type=non_negative, default=0,
+                   help="seeds first-seed .. first-seed+seeds-1 (so that several processes can share a task's seeds)")
     p.add_argument("--evals", type=positive, help="override every task's number of evaluations")
     p.add_argument("--steps-per-eval", type=positive, help="override every task's env steps between evaluations")
     p.add_argument("--speed", action="store_true", help="the speed case (1 and 10 vmapped seeds against Brax SAC)")
@@ -272,9 +274,9 @@ def main(argv=None) -> int:
             continue
         if "cdjax" in args.frameworks:
             for arm in args.arms:
-                run_cdjax(name, task, args.seeds, rows, arm=arm, plain=args.cdjax_plain)
+                run_cdjax(name, task, args.seeds, rows, arm=arm, plain=args.cdjax_plain, seed=args.first_seed)
         if "brax" in args.frameworks:
-            for seed in range(args.seeds):
+            for seed in range(args.first_seed, args.first_seed + args.seeds):
                 run_brax(name, task, seed, rows)
     print(f"rows in {rows.path}", flush=True)
     return 0
