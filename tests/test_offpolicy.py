@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cdjax.agents.offpolicy import Config, HParams, Learner, make_train
-from cdjax.agents.offpolicy.losses import n_step_target, total_loss
+from cdjax.agents.offpolicy.losses import REACHES, loss_terms, n_step_target, total_loss
 from cdjax.replay import RingBuffer, sample_sequences
 
 TINY = Config(env="point", num_envs=4, steps_per_update=2, buffer_steps=32, batch_size=8, learning_starts=16,
@@ -131,6 +131,51 @@ def test_the_self_predictive_target_receives_no_gradient(replayed):
     assert all(not np.asarray(g).any() for g in jax.tree.leaves(grads))
     online = _grads("self-pred", state, batch, HParams(alpha=1.0))
     assert any(np.asarray(g).any() for g in jax.tree.leaves(online["encoder"]))  # the online encoder learns
+
+
+@pytest.mark.parametrize("arm", ["paper-cd", "self-pred"])
+def test_each_loss_term_reaches_only_the_groups_it_is_built_to_train(replayed, arm):
+    """The stop_gradients route every term as REACHES says: any other group's gradient is exactly zero, and each
+    group it names gets some gradient (the diagnostics' "grad/<term>/<group>" are those norms)."""
+    state, batch = replayed
+    config = TINY.replace(arm=arm)
+    nets = Learner(config).nets
+    params = dict(state.params)
+    if arm != "paper-cd":
+        params.pop("cc_encoder")
+    hp = HParams(alpha=1.0).as_float32()
+    terms = lambda p: loss_terms(p, state.target, state.norm, batch, hp, jax.random.key(4), nets=nets,  # noqa: E731
+                                 config=config)[0]
+    jac = jax.jit(jax.jacrev(terms))(params)
+    expected = {"critic", "actor", "temperature", "model"} | ({"consistency", "encoder_aux"} if arm == "paper-cd"
+                                                               else {"self_pred"})
+    assert set(jac) == expected
+    for term, grads in jac.items():
+        for group, g in grads.items():
+            reached = any(np.asarray(leaf).any() for leaf in jax.tree.leaves(g))
+            assert reached == (group in REACHES[term]), (term, group)
+
+
+def test_diagnostics_change_no_training_number_and_hold_their_envs_out_of_the_replay():
+    config = TINY.replace(arm="model", num_updates=10, heldout_envs=2)
+    hp = HParams()
+    plain_state, plain = jax.jit(make_train(config))(jax.random.key(5), hp)
+    state, metrics = jax.jit(make_train(config.replace(diagnostics=True)))(jax.random.key(5), hp)
+    for name in plain:
+        np.testing.assert_allclose(metrics[name], plain[name], rtol=2e-5, atol=1e-6, err_msg=name)
+    for a, b in zip(jax.tree.leaves(state.params), jax.tree.leaves(plain_state.params)):
+        np.testing.assert_allclose(a, b, rtol=2e-5, atol=1e-6)
+    learning = np.asarray(plain["loss/critic"])
+    assert np.isnan(learning[0]) and np.isfinite(learning[-1])  # the last updates learn, the first do not
+    for name in ("grad/critic/encoder", "grad/model/model", "latent/spread", "heldout/open_loop_mse_1",
+                 f"heldout/open_loop_mse_{config.horizon}"):
+        values = np.asarray(metrics[name])
+        assert np.isnan(values[0]) and np.isfinite(values[-1]) and values[-1] > 0, name
+    assert float(metrics["heldout/windows"][-1]) > 0
+    # the held-out envs' observations are nowhere in the replay buffer
+    replayed = np.asarray(state.buffer.data["obs"]).reshape(-1, np.asarray(state.buffer.data["obs"]).shape[-1])
+    held = np.asarray(state.heldout["window"]["obs"]).reshape(-1, replayed.shape[-1])
+    assert not (np.abs(replayed[:, None, :] - held[None]).max(-1) == 0).any()
 
 
 def test_sac_learns_to_hold_the_point_mass_at_the_origin():

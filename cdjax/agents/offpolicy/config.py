@@ -19,6 +19,7 @@ from cdjax.protocol import ConfigError
 Arm = Literal["model-free", "model", "paper-cd", "self-pred"]
 ARMS = ("model-free", "model", "paper-cd", "self-pred")
 ResetMode = Literal["cached", "fresh"]
+PhysicsBackend = Literal["auto", "jax", "warp"]  # cdjax.envs.playground.BACKENDS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +50,14 @@ class Config:
     episode_length: int = 1000  # time-out in physics steps: a truncation (bootstrapped)
     action_repeat: int = 1
     reset_mode: ResetMode = "cached"
+    physics_backend: PhysicsBackend = "auto"  # Playground (dmc-*) tasks: MJX's jax, MuJoCo warp, or auto (warp where it runs)
+    # Diagnostics (off: nothing computed): each update also reports, on one batch sampled beside its gradient steps,
+    # every loss term's gradient norm per parameter group it reaches ("grad/<term>/<group>"), the spread of the
+    # online and target latents ("latent/*"), and the model's open-loop error at each of the horizon's steps on the
+    # newest window of heldout_envs environments that the same policy steps beside the training ones and whose
+    # transitions are never replayed ("heldout/open_loop_mse_<j>"). It changes no training number.
+    diagnostics: bool = False
+    heldout_envs: int = 8
 
     def __post_init__(self):
         validate(self)
@@ -90,6 +99,8 @@ def validate(config: Config) -> None:
     FIELDS.check(config)
     if config.env not in envs.available_envs():
         raise ConfigError(f"Unknown env {config.env!r}; choose one of: {', '.join(sorted(envs.available_envs()))}.")
+    if envs.playground.is_playground(config.env):
+        envs.playground.check(config.physics_backend)  # the extra installed, the backend one that runs here
     if config.use_model and not config.latent:
         raise ConfigError(f"The {config.arm} arm trains the encoder's latent that the actor and critic read; it "
                           "needs latent=True.")
@@ -105,7 +116,7 @@ FIELDS = Fields(
     Config, cc_encoder=Choice(KINDS), num_envs=Count(1), steps_per_update=Count(1), updates_per_step=Count(1),
     num_updates=Count(1), buffer_steps=Count(2, INT32_MAX), batch_size=Count(1), learning_starts=Count(1),
     n_step=Count(1), horizon=Count(1), num_critics=Count(2), latent_dim=Count(1), cc_dim=Count(1),
-    episode_length=Count(1, INT32_MAX), action_repeat=Count(1))
+    episode_length=Count(1, INT32_MAX), action_repeat=Count(1), heldout_envs=Count(1))
 
 
 @struct.dataclass

@@ -23,7 +23,7 @@ from flax import struct
 from cdjax import envs
 from cdjax import normalize as nz
 from cdjax.agents.offpolicy.config import HP_RANGES, Config, HParams
-from cdjax.agents.offpolicy.losses import total_loss
+from cdjax.agents.offpolicy.losses import REACHES, loss_terms, total_loss
 from cdjax.agents.offpolicy.networks import Nets
 from cdjax.checks import check_type
 from cdjax.envs import EnvState, EpisodeStats
@@ -31,7 +31,9 @@ from cdjax.envs.resume import needed_leaves
 from cdjax.optim import skip_if_not_finite
 from cdjax.protocol import Trainer, scanned_train
 from cdjax.replay import RingBuffer, sample_sequences
-from cdjax.consistency.selfpredictive import polyak
+from cdjax.consistency import window_indices, window_mask
+from cdjax.consistency.selfpredictive import latent_rollout, polyak
+from cdjax.numerics import masked_mean
 
 LR_OF = {"actor": "lr_actor", "critic": "lr_critic", "encoder": "lr_critic", "log_alpha": "lr_alpha",
          "model": "lr_model", "cc_encoder": "lr_model"}  # parameter group -> its learning rate's HParams field
@@ -50,6 +52,7 @@ class TrainState:
     last_disc_return: jax.Array
     key: jax.Array
     step: jax.Array  # [] int32 updates done
+    heldout: dict  # Config.diagnostics: {"env_state", "window": the newest horizon steps of the held-out envs}; else {}
 
 
 def optimiser(hp: HParams, groups) -> optax.GradientTransformation:
@@ -77,6 +80,9 @@ class Learner:
         self.env = envs.make_env(config)
         self.nets = Nets(config, self.env.observation_size, self.env.action_size)
         self.loss = functools.partial(total_loss, nets=self.nets, config=config)
+        self.heldout_env = (envs.batched(config.env, config.heldout_envs, config.episode_length, config.action_repeat,
+                                         config.reset_mode, physics_backend=config.physics_backend)
+                            if config.diagnostics else None)
 
     def item(self, env_state: EnvState, action, out: envs.Step) -> dict:
         return {"obs": env_state.obs, "action": action, "reward": out.reward, "next_obs": out.next_obs,
@@ -95,12 +101,20 @@ class Learner:
                               truncated=jnp.zeros((E,), bool), valid=jnp.zeros((E,), bool))
         example = self.item(env_state, jnp.zeros((E, A), jnp.float32), zero_step)
         nan = jnp.full((), jnp.nan, jnp.float32)
+        heldout = {}
+        if self.heldout_env is not None:  # its own key: the training envs' and the learner's streams stay as they are
+            env_h = self.heldout_env.reset(jax.random.fold_in(key_env, 1))
+            H, k = c.heldout_envs, c.horizon
+            step_h = envs.Step(next_obs=env_h.obs, reward=jnp.zeros((H,)), terminated=jnp.zeros((H,), bool),
+                               truncated=jnp.zeros((H,), bool), valid=jnp.zeros((H,), bool))
+            item = self.item(env_h, jnp.zeros((H, A), jnp.float32), step_h)
+            heldout = {"env_state": env_h, "window": jax.tree.map(lambda x: jnp.stack([x] * k), item)}
         return TrainState(
             params=params, target={"critic": params["critic"], "encoder": params["encoder"]},
             opt_state=optimiser(hp, params).init(params), norm=nz.RunningStats.create(self.env.observation_size),
             buffer=RingBuffer.create(example, c.buffer_steps), env_state=env_state,
             episodes=EpisodeStats.create(E), last_return=nan, last_disc_return=nan, key=key,
-            step=jnp.zeros((), jnp.int32))
+            step=jnp.zeros((), jnp.int32), heldout=heldout)
 
     def act(self, policy: dict, obs: jax.Array, key: jax.Array | None) -> jax.Array:
         """policy: {"actor", "encoder", "norm"}; key None: the deterministic action tanh(mean)."""
@@ -124,7 +138,19 @@ class Learner:
             episodes = state.episodes.record(out.reward, out.terminated | out.truncated | ~out.valid,
                                              out.terminated | out.truncated, hp.gamma)
             buffer = state.buffer.add(jax.tree.map(lambda x: x[None], self.item(state.env_state, action, out)))
-            return state.replace(key=key, norm=norm, env_state=env_state, episodes=episodes, buffer=buffer), None
+            heldout = state.heldout
+            if self.heldout_env is not None:  # the same policy on the held-out envs; nothing of theirs is replayed
+                key_h, key_u = jax.random.split(jax.random.fold_in(key_act, 1))
+                obs_h = heldout["env_state"].obs
+                uniform_h = jax.random.uniform(key_u, obs_h.shape[:1] + (self.env.action_size,), minval=-1.0,
+                                               maxval=1.0)
+                action_h = jnp.where(random, uniform_h, self.act(policy, obs_h, key_h))
+                env_h, out_h = self.heldout_env.step(heldout["env_state"], action_h)
+                item = self.item(heldout["env_state"], action_h, out_h)
+                heldout = {"env_state": env_h, "window": jax.tree.map(lambda w, x: jnp.concatenate([w[1:], x[None]]),
+                                                                      heldout["window"], item)}
+            return state.replace(key=key, norm=norm, env_state=env_state, episodes=episodes, buffer=buffer,
+                                 heldout=heldout), None
 
         return jax.lax.scan(step, state, None, length=c.steps_per_update)[0]
 
@@ -148,7 +174,35 @@ class Learner:
         carry = (state.params, state.target, state.opt_state, state.key)
         (params, target, opt_state, key), metrics = jax.lax.scan(sgd, carry, None, length=c.grad_steps)
         metrics = jax.tree.map(lambda m: jnp.where(started, m.mean(), jnp.nan), metrics)
+        if c.diagnostics:  # at the parameters the gradient steps started from
+            metrics.update(jax.tree.map(lambda m: jnp.where(started, m, jnp.nan), self.diagnose(state, hp)))
         return state.replace(params=params, target=target, opt_state=opt_state, key=key), metrics
+
+    def diagnose(self, state: TrainState, hp: HParams) -> dict:
+        """Config.diagnostics' metrics (scalars) at state's parameters, on a batch of its own sampled with a key
+        folded from the state's (the learner's stream is not advanced)."""
+        c, nets = self.config, self.nets
+        key_batch, key_loss = jax.random.split(jax.random.fold_in(state.key, 0xD1A6))
+        batch = sample_sequences(state.buffer, key_batch, c.batch_size, c.seq_len)
+        terms = lambda p: loss_terms(p, state.target, state.norm, batch, hp, key_loss, nets=nets, config=c)[0]  # noqa: E731
+        out = {f"grad/{term}/{group}": optax.global_norm(grads[group])
+               for term, grads in jax.jacrev(terms)(state.params).items()
+               for group in REACHES[term] if jax.tree.leaves(grads.get(group, {}))}
+        if nets.encoder is not None:
+            obs = nz.normalize(state.norm, batch["obs"][0])
+            out["latent/spread"] = nets.features(state.params["encoder"], obs).std(0).mean()
+            out["latent/target_spread"] = nets.features(state.target["encoder"], obs).std(0).mean()
+        if c.use_model:  # the model's k-step open-loop prediction, decoded, on the held-out envs' newest window
+            w = state.heldout["window"]
+            mask = window_mask(w["ended"], w["valid"], window_indices(jnp.zeros((1,), jnp.int32), c.horizon))[0]
+            z0 = nets.features(state.params["encoder"], nz.normalize(state.norm, w["obs"][0]))
+            model = lambda z, *a, method: nets.model.apply(state.params["model"], z, *a, method=method)  # noqa: E731
+            latents = latent_rollout(functools.partial(model, method="transition"), z0, w["action"])
+            err = ((model(latents, method="decode") - nz.normalize(state.norm, w["next_obs"])) ** 2).mean(-1)
+            for j in range(c.horizon):
+                out[f"heldout/open_loop_mse_{j + 1}"] = jnp.where(mask.any(), masked_mean(err[j], mask), jnp.nan)
+            out["heldout/windows"] = mask.sum().astype(jnp.float32)
+        return out
 
     def update(self, state: TrainState, hp: HParams) -> tuple[TrainState, dict]:
         """One update: collect, then learn. Metrics are scalars (the losses: means over the SGD steps, NaN before
@@ -189,7 +243,8 @@ def make_trainer(config: Config) -> Trainer:
         return every.replace(env_state=env.replace(first=jax.tree.map(lambda _: False, env.first)))
 
     def eval_env(num_envs: int) -> envs.BatchedEnv:
-        return envs.batched(config.env, num_envs, config.episode_length, config.action_repeat, config.reset_mode)
+        return envs.batched(config.env, num_envs, config.episode_length, config.action_repeat, config.reset_mode,
+                            physics_backend=config.physics_backend)
 
     return Trainer(config=config, init=learner.init, update=learner.update,
                    policy=lambda s: {"actor": s.params["actor"], "encoder": s.params["encoder"], "norm": s.norm},

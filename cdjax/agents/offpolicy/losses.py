@@ -1,7 +1,8 @@
 """The off-policy setting's losses on a batch of replayed sequences (time-major, leaves [L, B, ...]).
 
-One function, `total_loss`, returns the sum of every term of an arm; each term reaches only the parameter groups it
-trains, by where its inputs are cut (stop_gradient), so one gradient of the sum updates every group:
+`loss_terms` returns every weighted term of an arm, `total_loss` their sum; each term reaches only the parameter
+groups it trains (REACHES), by where its inputs are cut (stop_gradient), so one gradient of the sum updates every
+group:
 
 - critic (the critics and the encoder): n-step clipped double-Q regression on the first step of each sequence;
 - actor (the actor): alpha log pi - min Q at the encoder's latent (not trained by the actor: stop_gradient);
@@ -49,6 +50,20 @@ def n_step_target(batch: dict, n: int, gamma, reward_scale) -> tuple[jax.Array, 
 def total_loss(params: dict, target: dict, norm: nz.RunningStats, batch: dict, hp, key: jax.Array, *, nets: Any,
                config: Any) -> tuple[jax.Array, dict]:
     """The sum of the arm's terms and their metrics (scalars). `target` holds the target critics and encoder."""
+    terms, metrics = loss_terms(params, target, norm, batch, hp, key, nets=nets, config=config)
+    return sum(terms.values()), metrics
+
+
+# The parameter groups each term is built to reach (its other gradients are zero by its stop_gradients):
+# what the gradient diagnostics report, and what tests/test_offpolicy.py checks of the routing.
+REACHES = {"critic": ("critic", "encoder"), "actor": ("actor",), "temperature": ("log_alpha",),
+           "model": ("encoder", "model"), "self_pred": ("encoder", "model"),
+           "consistency": ("encoder", "model", "actor", "cc_encoder"), "encoder_aux": ("cc_encoder",)}
+
+
+def loss_terms(params: dict, target: dict, norm: nz.RunningStats, batch: dict, hp, key: jax.Array, *, nets: Any,
+               config: Any) -> tuple[dict, dict]:
+    """The arm's weighted terms {name in REACHES: scalar} (their sum is the loss) and the metrics."""
     key_next, key_pi = jax.random.split(key)
     A = batch["action"].shape[-1]
     alpha_t = jnp.exp(jax.lax.stop_gradient(params["log_alpha"]))
@@ -72,13 +87,13 @@ def total_loss(params: dict, target: dict, norm: nz.RunningStats, batch: dict, h
     actor = masked_mean(alpha_t * logp - q_pi, valid0)
     target_entropy = -hp.target_entropy_scale * A
     temperature = masked_mean(-params["log_alpha"] * jax.lax.stop_gradient(logp + target_entropy), valid0)
-    total = critic + actor + temperature
+    terms = {"critic": critic, "actor": actor, "temperature": temperature}
     metrics = {"loss/critic": critic, "loss/actor": actor, "loss/temperature": temperature, "train/temperature": alpha_t,
                "train/entropy": -masked_mean(jax.lax.stop_gradient(logp), valid0),
                "train/q": masked_mean(jax.lax.stop_gradient(q.mean(0)), usable),
                "train/usable_fraction": usable.astype(jnp.float32).mean()}
     if not config.use_model:
-        return total, metrics
+        return terms, metrics
 
     # the model's one-step prediction (every arm with a model)
     obs1 = nz.normalize(norm, batch["next_obs"][0])
@@ -86,7 +101,7 @@ def total_loss(params: dict, target: dict, norm: nz.RunningStats, batch: dict, h
     obs_err = masked_mean(((obs1_pred - obs1) ** 2).mean(-1), valid0)
     rew_err = masked_mean((r_pred - batch["reward"][0] * hp.reward_scale) ** 2, valid0)
     model = obs_err + rew_err
-    total = total + hp.model_coef * model
+    terms["model"] = hp.model_coef * model
     metrics.update({"loss/model": model, "model/obs_mse": obs_err, "model/reward_mse": rew_err})
 
     k = config.horizon
@@ -99,7 +114,7 @@ def total_loss(params: dict, target: dict, norm: nz.RunningStats, batch: dict, h
         predicted = sp.latent_rollout(transition, z0, batch["action"][:k])
         targets = nets.features(target["encoder"], nz.normalize(norm, batch["next_obs"][:k]))
         term, sp_metrics = sp.self_predictive_loss(predicted, targets, mask, hp.rho)
-        total = total + hp.alpha * term
+        terms["self_pred"] = hp.alpha * term
         metrics.update(sp_metrics)
     elif config.arm == "paper-cd":
         obs_k = nz.normalize(norm, batch["obs"][:k])
@@ -111,11 +126,13 @@ def total_loss(params: dict, target: dict, norm: nz.RunningStats, batch: dict, h
             return nets.model.apply(p["model"], nets.model.apply(p["model"], z, a, method="transition"),
                                     method="decode")
 
-        terms, cc_metrics = consistency.consistency_loss(
+        cc_terms, cc_metrics = consistency.consistency_loss(
             model_step, {"encoder": params["encoder"], "model": params["model"]}, obs0, actions,
             nz.normalize(norm, batch["next_obs"][:k]), mask, kind=config.cc_encoder, normalize=lambda x: x,
             weights=consistency.path_weights(hp), encoder=nets.cc_encoder, encoder_params=params.get("cc_encoder"),
             fused=False)
-        total = total + hp.alpha * terms["consistency"] + hp.enc_aux_coef * terms.get("encoder_aux", 0.0)
+        terms["consistency"] = hp.alpha * cc_terms["consistency"]
+        if "encoder_aux" in cc_terms:
+            terms["encoder_aux"] = hp.enc_aux_coef * cc_terms["encoder_aux"]
         metrics.update(cc_metrics)
-    return total, metrics
+    return terms, metrics
