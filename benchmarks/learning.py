@@ -129,7 +129,7 @@ def playground_task(name: str, tiny: bool = False) -> Task:
                 clipping_epsilon=c.get("clipping_epsilon", 0.3), max_grad_norm=c.get("max_grad_norm"))
     if tiny:
         return Task(dataclasses.replace(spec, **PLAYGROUND_TINY), evals=2, updates_per_eval=2, eval_episodes=2,
-                    resets_per_eval=2)
+                    resets_per_eval=1)  # (Brax: one epoch of 2 updates per evaluation, then its envs reset)
     evals, resets = max(c.num_evals - 1, 1), max(c.num_resets_per_eval, 1)
     per_epoch = math.ceil(c.num_timesteps / (evals * spec.env_steps_per_update * resets))  # Brax's rounding
     return Task(spec, evals=evals, updates_per_eval=per_epoch * resets, eval_episodes=c.get("num_eval_envs", 128),
