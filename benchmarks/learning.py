@@ -4,7 +4,7 @@
     python -m benchmarks.learning --tasks ant --frameworks cdjax --variants tanh global-std --seeds 3 --out DIR
     python -m benchmarks.learning --tiny --out DIR                            # CPU smoke (point env)
     python -m benchmarks.learning --suite playground --tasks dmc-cheetah-run --frameworks brax --seeds 5 \
-        --time-limit 1380 --out DIR        # one unit of the Playground parity (README: the units, their times)
+        --time-limit 1200 --out DIR        # one unit of the Playground parity (README: the units, their times)
     python -m benchmarks.learning --suite playground --tiny --out DIR         # CPU smoke (Playground's pendulum)
     python -m benchmarks.learning --report DIR [DIR ...] --write benchmarks/LEARNING.md   # no device needed
 
