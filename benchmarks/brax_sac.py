@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
-import json
 import pathlib
 import sys
 import time
@@ -35,7 +34,7 @@ import time
 if __package__ in (None, ""):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import Parser, device_info, refuse  # noqa: E402
+from benchmarks.common import Parser, refuse  # noqa: E402
 from cdjax.options import non_negative, positive  # noqa: E402
 
 
@@ -236,10 +235,7 @@ def main(argv=None) -> int:
         task = TASKS[name]
         tasks[name] = dataclasses.replace(task, evals=args.evals or task.evals,
                                           steps_per_eval=args.steps_per_eval or task.steps_per_eval)
-    (out / "meta.json").write_text(json.dumps({
-        "command": "python -m benchmarks.brax_sac " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "date": str(datetime.date.today()), **device_info(),
-        "tasks": {n: dataclasses.asdict(t) for n, t in tasks.items()}}, indent=1, default=str))
+    rows.write_meta("brax_sac", argv, tasks={n: dataclasses.asdict(t) for n, t in tasks.items()})
     for name, task in tasks.items():
         if args.speed:
             speed(name, task, rows, seed_counts=(1, 2) if args.tiny else (1, 10), updates=4 if args.tiny else 50,

@@ -194,6 +194,17 @@ class Rows:
             f.write(json.dumps(row) + "\n")
         print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
 
+    def write_meta(self, module: str, argv, **fields) -> None:
+        """DIR/meta.json: the command (`python -m benchmarks.<module> <argv>`), date, device and `fields`; a unit
+        resuming the directory keeps the earlier units' command, date and device under "earlier"."""
+        path = self.path.parent / "meta.json"
+        meta = {"command": f"python -m benchmarks.{module} " + shlex.join(argv if argv is not None else sys.argv[1:]),
+                "date": str(datetime.date.today()), **device_info(), **fields}
+        if path.exists():
+            earlier = json.loads(path.read_text())
+            meta["earlier"] = earlier.pop("earlier", []) + [{k: earlier.get(k) for k in ("command", "date", "device")}]
+        path.write_text(json.dumps(meta, indent=1, default=str))
+
     def done(self, task: str, framework: str, variant: str, seeds, final_steps: int) -> bool:
         """Whether every one of `seeds` has its row at `final_steps` (an earlier unit ran them: skip them). If not,
         the rows those seeds have (a run stopped short) move to rows-stopped.jsonl, so that the rerun replaces them."""
@@ -408,22 +419,17 @@ def main(argv=None) -> int:
                                               updates_per_eval=args.updates_per_eval or task.updates_per_eval)
     except (ConfigError, ValueError) as err:  # the extra missing, or a schedule Brax cannot run
         refuse(p.prog, str(err))
-    meta = {"command": "python -m benchmarks.learning " + shlex.join(argv if argv is not None else sys.argv[1:]),
-            "date": str(datetime.date.today()), **device_info(),
-            "tasks": {n: {"spec": t.spec.describe(), "evals": t.evals, "updates_per_eval": t.updates_per_eval,
+    meta = {"tasks": {n: {"spec": t.spec.describe(), "evals": t.evals, "updates_per_eval": t.updates_per_eval,
                           "eval_episodes": t.eval_episodes, "budget": t.budget,
                           "resets_per_eval": t.resets_per_eval} for n, t in tasks.items()},
             "variants": {v: [VARIANTS[v][0], VARIANTS[v][1]] for v in args.variants}}
     meta["physics_backend"] = {n: playground.resolve_backend() for n in tasks if playground.is_playground(n)}
-    if (out / "meta.json").exists():  # a unit resuming this directory: the earlier units' commands stay
-        earlier = json.loads((out / "meta.json").read_text())
-        meta["earlier"] = earlier.pop("earlier", []) + [{k: earlier.get(k) for k in ("command", "date", "device")}]
     if "cdjax" in args.frameworks:  # what `default` and each variant meant when these rows ran: the whole Config
         from cdjax.runner.plan import code_record
 
         meta["code"] = code_record()
         meta["configs"] = {n: {v: io.dataclass_to_json(cdjax_config(t, v)) for v in args.variants} for n, t in tasks.items()}
-    (out / "meta.json").write_text(json.dumps(meta, indent=1, default=str))
+    rows.write_meta("learning", argv, **meta)
     t_start = time.perf_counter()
     deadline, last = t_start + args.time_limit, 0.0  # last: the previous Brax seed's seconds
     for name, task in tasks.items():
