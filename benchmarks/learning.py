@@ -343,8 +343,9 @@ def main(argv=None) -> int:
     p.add_argument("--suite", choices=["brax", "playground"], default="brax",
                    help="the default tasks: Brax's (ant halfcheetah reacher) or Playground's (" + " ".join(PLAYGROUND)
                         + "); with --tiny, the point mass or Playground's pendulum")
-    p.add_argument("--tasks", nargs="+", choices=[*TASKS, *sorted(NAMES)],
-                   help="Brax tasks at their published settings, or Playground's (dmc-*) at dm_control_suite_params'")
+    p.add_argument("--tasks", nargs="+", choices=[*TASKS, *sorted(NAMES)], metavar="TASK",
+                   help=f"{', '.join(TASKS)} (Brax's published settings) or a Playground task, dmc-* (`cdjax envs`), "
+                        "at dm_control_suite_params'")
     p.add_argument("--frameworks", nargs="+", default=["cdjax", "brax"], choices=["cdjax", "brax"])
     p.add_argument("--variants", nargs="+", default=["default"], choices=list(VARIANTS),
                    help="cdjax learner variants (default: the defaults)")
