@@ -42,7 +42,7 @@ run at Playground's published Brax PPO configuration, `dm_control_suite_params.b
     and lr_value, ent_coef, reward_scale, Config.episode_length, action_repeat); num_updates_per_batch -> num_epochs;
     normalize_observations -> both sides normalise (cdjax always does); clipping_epsilon, max_grad_norm and the
     networks are not in the config, so Playground's train script leaves Brax's defaults: clipping 0.3, no gradient
-    clipping (cdjax: max_grad_norm 1e30, which no finite float32 gradient norm reaches), policy (32,)*4 and value
+    clipping (cdjax: max_grad_norm 1e30, which only a diverged run's gradient norm reaches), policy (32,)*4 and value
     (256,)*5 (the Spec defaults); num_timesteps, num_evals and num_resets_per_eval -> Task.evals = num_evals - 1 and
     updates_per_eval = num_resets_per_eval x Brax's training steps per epoch, as Brax's arithmetic rounds them up:
     at 60M steps, 10 evaluations and 10 resets per evaluation Brax runs 9 x 10 updates of 983,040 env steps, 88.5M
