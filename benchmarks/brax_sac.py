@@ -14,8 +14,9 @@ evaluated deterministically (tanh of the mean) on `eval_episodes` fresh episodes
 cdjax runs its seeds vmapped in one program, Brax one after the other.
 
 Rows go to DIR/rows.jsonl in benchmarks.learning's row format (framework cdjax or brax, variant offpolicy-<arm> or
-brax-sac; the speed case's rows say case=speed). Brax evaluates at its own epoch ends, which count its prefill
-steps, so its env-step counts differ slightly from cdjax's.
+brax-sac; the speed case's rows say case=speed), so `python -m benchmarks.learning --report DIR ...` makes their
+table, intervals, verdicts and curves. Brax evaluates at its own epoch ends, which count its prefill steps, so its
+env-step counts differ slightly from cdjax's (the report compares final returns within 1% of env steps).
 
 Brax 0.14.2's SAC calls `jax.device_put_replicated`, which newer JAX releases no longer have: `replicate_on_one`
 stands in for it on one device (the tree with a leading axis of 1, put on that device).
@@ -26,7 +27,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
-import json
 import pathlib
 import sys
 import time
@@ -34,7 +34,7 @@ import time
 if __package__ in (None, ""):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import Parser, device_info, refuse  # noqa: E402
+from benchmarks.common import Parser, refuse  # noqa: E402
 from cdjax.options import non_negative, positive  # noqa: E402
 
 
@@ -108,43 +108,15 @@ def cdjax_hparams(task: SacTask):
 
 def run_cdjax(name: str, task: SacTask, seeds: int, rows, arm: str = "model-free", plain: bool = False,
               seed: int = 0) -> None:
-    """cdjax's off-policy arm, `seeds` vmapped runs, evaluated every steps_per_eval env steps."""
-    import jax
-    import numpy as np
-
+    """cdjax's off-policy arm, `seeds` vmapped runs, evaluated every steps_per_eval env steps (rounded up to whole
+    updates) by benchmarks.learning's loop."""
+    from benchmarks.learning import run_sweep
     from cdjax.agents import offpolicy
-    from cdjax.evaluate import make_evaluator
-    from cdjax.runner import budget
-    from cdjax.sweep import make_sweep, unpad
 
     config = cdjax_config(task, arm, plain)
-    updates_per_eval = -(-task.steps_per_eval // config.env_steps_per_update)
-    trainer = offpolicy.make_trainer(config)
-    sweep = make_sweep(trainer)
-    keys, hps = sweep.grid(seed=seed, num_seeds=seeds, hps=[cdjax_hparams(task)])
-    state = sweep.init(keys, hps)
-    evaluator = make_evaluator(trainer, episodes=task.eval_episodes, deterministic=True)
-    t0 = time.perf_counter()
-    program, _ = budget.compile_fitting(sweep.lower(state, hps, updates_per_eval))
-    compile_s = time.perf_counter() - t0
-    train_s = 0.0
-    variant = f"offpolicy-{arm}" + ("-plain" if plain else "")
-
-    def evaluate(i: int) -> None:
-        eval_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1000 + i))(keys)
-        returns = np.asarray(unpad(evaluator(trainer.policy(state), eval_keys, hps)["return_mean"], seeds))
-        for s in range(seeds):
-            rows.add(task=name, framework="cdjax", variant=variant, seed=seed * 1000 + s,
-                     env_steps=i * updates_per_eval * config.env_steps_per_update, eval_return=float(returns[s]),
-                     train_s=train_s, compile_s=compile_s)
-
-    evaluate(0)
-    for i in range(1, task.evals + 1):
-        t0 = time.perf_counter()
-        state, metrics = program(state, hps)
-        jax.block_until_ready(metrics)
-        train_s += time.perf_counter() - t0
-        evaluate(i)
+    run_sweep(name, f"offpolicy-{arm}" + ("-plain" if plain else ""), offpolicy.make_trainer(config),
+              cdjax_hparams(task), seeds, seed, task.evals, -(-task.steps_per_eval // config.env_steps_per_update),
+              task.eval_episodes, rows)
 
 
 def brax_kwargs(task: SacTask) -> dict:
@@ -263,10 +235,7 @@ def main(argv=None) -> int:
         task = TASKS[name]
         tasks[name] = dataclasses.replace(task, evals=args.evals or task.evals,
                                           steps_per_eval=args.steps_per_eval or task.steps_per_eval)
-    (out / "meta.json").write_text(json.dumps({
-        "command": "python -m benchmarks.brax_sac " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "date": str(datetime.date.today()), **device_info(),
-        "tasks": {n: dataclasses.asdict(t) for n, t in tasks.items()}}, indent=1, default=str))
+    rows.write_meta("brax_sac", argv, tasks={n: dataclasses.asdict(t) for n, t in tasks.items()})
     for name, task in tasks.items():
         if args.speed:
             speed(name, task, rows, seed_counts=(1, 2) if args.tiny else (1, 10), updates=4 if args.tiny else 50,

@@ -85,7 +85,7 @@ class Spec:
     entropy_cost: float = 1e-2  # entropy bonus weight (both)
     learning_rate: float = 3e-4  # Adam learning rate (Brax: one optimiser; cdjax: policy and value alike)
     clipping_epsilon: float = 0.3  # PPO ratio clipping (Brax's default)
-    max_grad_norm: float = 1.0  # gradient clipping (Brax: global; cdjax: per parameter group)
+    max_grad_norm: float | None = 1.0  # gradient clipping (Brax: global; cdjax: per parameter group); None: none
     policy_hidden: tuple[int, ...] = BRAX_POLICY_HIDDEN  # policy MLP widths (both)
     value_hidden: tuple[int, ...] = BRAX_VALUE_HIDDEN  # value MLP widths (both)
     model_hidden: tuple[int, ...] = (500,)  # cdjax dynamics model widths (Mb-Mf: one layer of 500)
@@ -143,7 +143,8 @@ class Spec:
 
         fields = dict(gamma=self.discounting, reward_scale=self.reward_scaling, ent_coef=self.entropy_cost,
                       lr_policy=self.learning_rate, lr_value=self.learning_rate, clip_eps=self.clipping_epsilon,
-                      max_grad_norm=self.max_grad_norm, gae_lambda=0.95, vf_coef=0.5)
+                      max_grad_norm=1e30 if self.max_grad_norm is None else self.max_grad_norm, gae_lambda=0.95,
+                      vf_coef=0.5)
         return HParams(**{**fields, **overrides})
 
     def brax_kwargs(self) -> dict:

@@ -3,6 +3,9 @@
     python -m benchmarks.learning --tasks ant --seeds 5 --out DIR            # GPU: both learners, one task
     python -m benchmarks.learning --tasks ant --frameworks cdjax --variants tanh global-std --seeds 3 --out DIR
     python -m benchmarks.learning --tiny --out DIR                            # CPU smoke (point env)
+    python -m benchmarks.learning --suite playground --tasks dmc-cheetah-run --frameworks brax --seeds 5 \
+        --time-limit 1200 --out DIR        # one unit of the Playground parity (README: the units, their times)
+    python -m benchmarks.learning --suite playground --tiny --out DIR         # CPU smoke (Playground's pendulum)
     python -m benchmarks.learning --report DIR [DIR ...] --write benchmarks/LEARNING.md   # no device needed
 
 Both learners see the task's `Spec` (benchmarks.common): the same environments, rollout, minibatches
@@ -24,6 +27,40 @@ directories into a markdown table (final IQM with 95% stratified-bootstrap inter
 learner, area under the curve, env steps/s), the probability that a cdjax seed ends above a Brax PPO seed (rliable's
 P(X > Y), with its interval), and a curve plot. A seed whose run stopped before the last evaluation (a time limit)
 is left out and named, while at least half the learner's seeds reached it.
+
+Units that fit a loan: `--time-limit S` stops a run at its first evaluation past S seconds and starts no Brax seed
+that the previous one's time says would pass it; a later unit with the same --out skips each (task, learner, seed)
+whose rows reach the last evaluation and reruns, from its start, one that stopped short (its rows move to
+DIR/rows-stopped.jsonl first). Rows of several units and directories merge in `--report`.
+
+MuJoCo Playground's DM Control tasks (cdjax's names, `dmc-*`; `--suite playground` makes three of them the default)
+run at Playground's published Brax PPO configuration, `dm_control_suite_params.brax_ppo_config(task)`, which
+`playground_task` maps onto Spec and Task, field by field:
+    num_envs, unroll_length, batch_size, num_minibatches, discounting, learning_rate, entropy_cost, reward_scaling,
+    episode_length, action_repeat -> the Spec fields of those names (cdjax: Config.num_envs, rollout_len =
+    unroll_length x batch_size x num_minibatches / num_envs, segment_len = unroll_length, HParams.gamma, lr_policy
+    and lr_value, ent_coef, reward_scale, Config.episode_length, action_repeat); num_updates_per_batch -> num_epochs;
+    normalize_observations -> both sides normalise (cdjax always does); clipping_epsilon, max_grad_norm and the
+    networks are not in the config, so Playground's train script leaves Brax's defaults: clipping 0.3, no gradient
+    clipping (cdjax: max_grad_norm 1e30, which only a diverged run's gradient norm reaches), policy (32,)*4 and value
+    (256,)*5 (the Spec defaults); num_timesteps, num_evals and num_resets_per_eval -> Task.evals = num_evals - 1 and
+    updates_per_eval = num_resets_per_eval x Brax's training steps per epoch, as Brax's arithmetic rounds them up:
+    at 60M steps, 10 evaluations and 10 resets per evaluation Brax runs 9 x 10 updates of 983,040 env steps, 88.5M
+    env steps (Brax's budget, given to both sides).
+What cannot be matched exactly:
+  - num_resets_per_eval: Brax resets every env on the host after each of its num_resets_per_eval epochs per
+    evaluation (one update of 480 agent steps here, so its training never reaches a 1,000-step episode's end); cdjax
+    resets an env only at its episode's end (to its cached first start, as Playground's auto-reset does). cdjax has
+    no reset-everything-between-updates switch.
+  - Brax's training/sps counts num_resets_per_eval epochs over one epoch's time (10x too high here): the rows carry
+    Brax's training time measured here instead (wall clock between evaluations less the evaluations' own).
+  - Evaluation: both sides evaluate 128 episodes (Playground's num_eval_envs) deterministically (tanh of the mean);
+    Playground's script evaluates stochastically unless told --deterministic_eval. cdjax's evaluator runs fresh
+    episodes of its own (cdjax.evaluate), Brax's its eval env wrapped by wrap_for_brax_training.
+  - cdjax's learner is its own (lecun-uniform weights with a policy head x0.1, its loss and clipping per parameter
+    group): the comparison is of learners at equal data and schedule, not of identical code.
+  - Playground's override for the pendulum (action_repeat 4, 4 epochs) names "PendulumSwingUp", which is no task
+    ("PendulumSwingup" is), so it never applies; both sides take the config as Playground returns it.
 """
 
 from __future__ import annotations
@@ -32,6 +69,7 @@ import argparse
 import dataclasses
 import datetime
 import json
+import math
 import os
 import pathlib
 import shlex
@@ -42,6 +80,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import Parser, Spec, device_info, refuse, unwritable_file  # noqa: E402
+from cdjax.envs.playground import NAMES  # noqa: E402
 from cdjax.options import non_negative, positive, seconds  # noqa: E402
 
 
@@ -53,10 +92,48 @@ class Task:
     evals: int  # evaluations after the one at step 0
     updates_per_eval: int  # updates (Brax: training steps) between evaluations
     eval_episodes: int = 128  # deterministic episodes per evaluation and seed
+    resets_per_eval: int = 0  # Brax's num_resets_per_eval (it must divide updates_per_eval; cdjax has none)
+
+    def __post_init__(self):
+        if self.resets_per_eval and self.updates_per_eval % self.resets_per_eval:
+            raise ValueError(f"updates_per_eval={self.updates_per_eval} is not a multiple of Brax's "
+                             f"num_resets_per_eval={self.resets_per_eval}")
 
     @property
     def budget(self) -> int:
         return self.evals * self.updates_per_eval * self.spec.env_steps_per_update
+
+
+PLAYGROUND = ("dmc-cartpole-swingup", "dmc-cheetah-run", "dmc-humanoid-walk")  # --suite playground's tasks
+# --suite playground --tiny: the pendulum (Playground's cheapest task to compile on a CPU) at tiny sizes
+PLAYGROUND_TINY = dict(num_envs=4, unroll_length=4, batch_size=4, num_minibatches=2, num_epochs=2, horizon=4,
+                       episode_length=12, policy_hidden=(8,), value_hidden=(8,), eval_envs=2, eval_horizon=4)
+
+
+def playground_task(name: str, tiny: bool = False) -> Task:
+    """Task `name` (cdjax's dmc-* name) at MuJoCo Playground's published Brax PPO configuration (the module
+    docstring maps its fields); `tiny`: its schedule and Brax's resets at the CPU smoke's sizes."""
+    from mujoco_playground.config import dm_control_suite_params
+
+    from cdjax.envs import playground
+
+    playground.check("auto")  # the extra installed (one sentence where not)
+    c = dm_control_suite_params.brax_ppo_config(playground.NAMES[name])
+    if not c.normalize_observations or "network_factory" in c:
+        raise ValueError(f"Playground's config of {name} changed what this harness assumes (observation normalisation "
+                         "on, Brax's default networks)")
+    spec = Spec(env=name, num_envs=c.num_envs, unroll_length=c.unroll_length, batch_size=c.batch_size,
+                num_minibatches=c.num_minibatches, num_epochs=c.num_updates_per_batch, episode_length=c.episode_length,
+                action_repeat=c.action_repeat, discounting=c.discounting, reward_scaling=c.reward_scaling,
+                entropy_cost=c.entropy_cost, learning_rate=c.learning_rate,
+                clipping_epsilon=c.get("clipping_epsilon", 0.3), max_grad_norm=c.get("max_grad_norm"))
+    if tiny:
+        return Task(dataclasses.replace(spec, **PLAYGROUND_TINY), evals=2, updates_per_eval=2, eval_episodes=2,
+                    resets_per_eval=1)  # (Brax: one epoch of 2 updates per evaluation, then its envs reset)
+    evals, resets = max(c.num_evals - 1, 1), max(c.num_resets_per_eval, 1)
+    per_epoch = math.ceil(c.num_timesteps / (evals * spec.env_steps_per_update * resets))  # Brax's rounding
+    return Task(spec, evals=evals, updates_per_eval=per_epoch * resets, eval_episodes=c.get("num_eval_envs", 128),
+                resets_per_eval=c.num_resets_per_eval)
 
 
 # Brax's published PPO settings for these tasks (brax training notebook): ant as in the learner issue's
@@ -106,7 +183,7 @@ VARIANTS: dict[str, tuple[dict, dict]] = {  # name -> (Config overrides, HParams
 
 
 class Rows:
-    """rows.jsonl of an output directory, appended one row at a time."""
+    """rows.jsonl of an output directory, appended one row at a time; a later unit resumes what it holds."""
 
     def __init__(self, out: pathlib.Path):
         out.mkdir(parents=True, exist_ok=True)
@@ -117,87 +194,158 @@ class Rows:
             f.write(json.dumps(row) + "\n")
         print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
 
+    def write_meta(self, module: str, argv, **fields) -> None:
+        """DIR/meta.json: the command (`python -m benchmarks.<module> <argv>`), date, device and `fields`; a unit
+        resuming the directory keeps the earlier units' command, date and device under "earlier"."""
+        path = self.path.parent / "meta.json"
+        meta = {"command": f"python -m benchmarks.{module} " + shlex.join(argv if argv is not None else sys.argv[1:]),
+                "date": str(datetime.date.today()), **device_info(), **fields}
+        if path.exists():
+            earlier = json.loads(path.read_text())
+            meta["earlier"] = earlier.pop("earlier", []) + [{k: earlier.get(k) for k in ("command", "date", "device")}]
+        path.write_text(json.dumps(meta, indent=1, default=str))
+
+    def done(self, task: str, framework: str, variant: str, seeds, final_steps: int) -> bool:
+        """Whether every one of `seeds` has its row at `final_steps` (an earlier unit ran them: skip them). If not,
+        the rows those seeds have (a run stopped short) move to rows-stopped.jsonl, so that the rerun replaces them."""
+        from cdjax import io
+
+        rows = io.read_jsonl(self.path, check=None)
+        mine = [r.get("task") == task and r.get("framework") == framework and r.get("variant") == variant
+                and r.get("seed") in seeds for r in rows]
+        if {r["seed"] for r, m in zip(rows, mine) if m and r.get("env_steps") == final_steps} == set(seeds):
+            print(f"resume: {framework} {variant} seeds {list(seeds)} on {task} have their rows", flush=True)
+            return True
+        if any(mine):
+            with (self.path.parent / "rows-stopped.jsonl").open("a") as f:
+                f.writelines(json.dumps(r) + "\n" for r, m in zip(rows, mine) if m)
+            self.path.write_text("".join(json.dumps(r) + "\n" for r, m in zip(rows, mine) if not m))
+        return False
+
+
+def run_sweep(name: str, variant: str, trainer, hp, seeds: int, seed: int, evals: int, updates_per_eval: int,
+              eval_episodes: int, rows: Rows, deadline: float = math.inf) -> None:
+    """`seeds` vmapped runs of `trainer` (any setting's) with HParams `hp`, their keys from base key `seed` (rows
+    say seeds seed*1000 + s, never another base's), each evaluated deterministically on `eval_episodes` fresh
+    episodes at step 0 and after every `updates_per_eval` updates, `evals` times; the runs stop at the first
+    evaluation past `deadline` (time.perf_counter)."""
+    import jax
+    import numpy as np
+
+    from cdjax.evaluate import make_evaluator
+    from cdjax.runner import budget
+    from cdjax.sweep import make_sweep, unpad
+
+    sweep = make_sweep(trainer)
+    keys, hps = sweep.grid(seed=seed, num_seeds=seeds, hps=[hp])
+    state = sweep.init(keys, hps)
+    evaluator = make_evaluator(trainer, episodes=eval_episodes, deterministic=True)
+    t0 = time.perf_counter()
+    program, _ = budget.compile_fitting(sweep.lower(state, hps, updates_per_eval))  # as a sweep compiles it
+    compile_s, train_s = time.perf_counter() - t0, 0.0
+    for i in range(evals + 1):
+        if i:
+            t0 = time.perf_counter()
+            state, metrics = program(state, hps)
+            jax.block_until_ready(metrics)
+            train_s += time.perf_counter() - t0
+        eval_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1000 + i))(keys)
+        returns = np.asarray(unpad(evaluator(trainer.policy(state), eval_keys, hps)["return_mean"], seeds))
+        for s in range(seeds):
+            rows.add(task=name, framework="cdjax", variant=variant, seed=seed * 1000 + s,
+                     env_steps=i * updates_per_eval * trainer.config.env_steps_per_update,
+                     eval_return=float(returns[s]), train_s=train_s, compile_s=compile_s)
+        if time.perf_counter() > deadline and i < evals:
+            print(f"time limit: cdjax {variant} on {name} stopped after evaluation {i} of {evals}", flush=True)
+            return
+
 
 def cdjax_config(task: Task, variant: str):
     """The Config of cdjax's model-free arm on `task` with `variant`'s overrides."""
     return task.spec.config(arm="model-free", num_updates=task.evals * task.updates_per_eval, **VARIANTS[variant][0])
 
 
-def run_cdjax(name: str, task: Task, variant: str, seeds: int, rows: Rows, seed: int = 0) -> None:
-    """cdjax model-free, `seeds` vmapped runs, evaluated every task.updates_per_eval updates. With seed b > 0
-    the runs' keys come from base key b (rows say seeds b*1000 + s, so they never collide with b = 0's)."""
-    import jax
-    import numpy as np
-
+def run_cdjax(name: str, task: Task, variant: str, seeds: int, rows: Rows, seed: int = 0,
+              deadline: float = math.inf) -> None:
+    """cdjax model-free on `task`, `seeds` vmapped runs from base key `seed` (`run_sweep`)."""
     from cdjax.agents import obs
-    from cdjax.evaluate import make_evaluator
-    from cdjax.runner import budget
-    from cdjax.sweep import make_sweep, unpad
 
-    hp_over = VARIANTS[variant][1]
-    spec = task.spec
-    config = cdjax_config(task, variant)
-    trainer = obs.make_trainer(config)
-    sweep = make_sweep(trainer)
-    keys, hps = sweep.grid(seed=seed, num_seeds=seeds, hps=[spec.hparams(**hp_over)])
-    state = sweep.init(keys, hps)
-    evaluator = make_evaluator(trainer, episodes=task.eval_episodes, deterministic=True)
-    t0 = time.perf_counter()
-    program, _ = budget.compile_fitting(sweep.lower(state, hps, task.updates_per_eval))  # as a sweep compiles it
-    compile_s = time.perf_counter() - t0
-    train_s = 0.0
-
-    def evaluate(i: int) -> None:
-        eval_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1000 + i))(keys)
-        out = evaluator(trainer.policy(state), eval_keys, hps)
-        returns = np.asarray(unpad(out["return_mean"], seeds))
-        steps = i * task.updates_per_eval * spec.env_steps_per_update
-        for s in range(seeds):
-            rows.add(task=name, framework="cdjax", variant=variant, seed=seed * 1000 + s, env_steps=steps,
-                     eval_return=float(returns[s]), train_s=train_s, compile_s=compile_s)
-
-    evaluate(0)
-    for i in range(1, task.evals + 1):
-        t0 = time.perf_counter()
-        state, metrics = program(state, hps)
-        jax.block_until_ready(metrics)
-        train_s += time.perf_counter() - t0
-        evaluate(i)
+    if rows.done(name, "cdjax", variant, range(seed * 1000, seed * 1000 + seeds), task.budget):
+        return
+    run_sweep(name, variant, obs.make_trainer(cdjax_config(task, variant)), task.spec.hparams(**VARIANTS[variant][1]),
+              seeds, seed, task.evals, task.updates_per_eval, task.eval_episodes, rows, deadline)
 
 
-def run_brax(name: str, task: Task, seed: int, rows: Rows) -> None:
-    """Brax's PPO trainer on the task's Spec, evaluated by Brax at the same env-step counts."""
+class _TimeUp(Exception):
+    """Raised from Brax's progress callback to stop its run at an evaluation past the time limit."""
+
+
+def run_brax(name: str, task: Task, seed: int, rows: Rows, deadline: float = math.inf) -> None:
+    """Brax's PPO trainer on the task's Spec, evaluated by Brax at the same env-step counts; a Playground task through
+    Playground's own wrap_for_brax_training. Rows carry Brax's training time (wall clock less its evaluations)."""
     import functools
 
+    from brax.training import acting
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.agents.ppo import train as ppo
 
     from benchmarks.brax_ppo import install_shim
-    from cdjax.envs import make_single_env
+    from cdjax.envs import make_single_env, playground
 
+    if rows.done(name, "brax", "brax-ppo", [seed], task.budget):
+        return
     install_shim()
     spec = task.spec
-    env = make_single_env(spec.env)
+    if playground.is_playground(spec.env):
+        from mujoco_playground import wrapper
+
+        env = {"environment": playground.PlaygroundEnv(spec.env).raw, "wrap_env_fn": wrapper.wrap_for_brax_training}
+    else:
+        env = {"environment": make_single_env(spec.env)}
     factory = functools.partial(ppo_networks.make_ppo_networks, policy_hidden_layer_sizes=spec.policy_hidden,
                                 value_hidden_layer_sizes=spec.value_hidden)
-    t_start = time.perf_counter()
-    marks: list[float] = []
+    evaluate, clock = acting.Evaluator.run_evaluation, {"eval": 0.0, "train": 0.0, "mark": None}
+
+    def timed_evaluation(self, *args, **kwargs):  # Brax's evaluation returns host numbers: it has finished
+        t0 = time.perf_counter()
+        out = evaluate(self, *args, **kwargs)
+        clock["eval"] += time.perf_counter() - t0
+        return out
 
     def progress(step, metrics):
-        marks.append(time.perf_counter())
+        now, evals = time.perf_counter(), clock["eval"]
+        if clock["mark"] is not None:
+            clock["train"] += now - clock["mark"][0] - (evals - clock["mark"][1])
+        clock["mark"] = (now, evals)
         rows.add(task=name, framework="brax", variant="brax-ppo", seed=seed, env_steps=int(step),
-                 eval_return=float(metrics["eval/episode_reward"]), train_s=float(metrics.get("training/sps", 0.0)),
-                 wall_s=marks[-1] - t_start)
+                 eval_return=float(metrics["eval/episode_reward"]), train_s=clock["train"], eval_s=evals)
+        if now > deadline and step < task.budget:
+            raise _TimeUp
 
-    ppo.train(environment=env, num_timesteps=task.budget, num_evals=task.evals + 1, num_eval_envs=task.eval_episodes,
-              deterministic_eval=True, seed=seed, network_factory=factory, max_devices_per_host=1,
-              progress_fn=progress, **spec.brax_kwargs())
+    acting.Evaluator.run_evaluation = timed_evaluation
+    try:
+        ppo.train(num_timesteps=task.budget, num_evals=task.evals + 1, num_eval_envs=task.eval_episodes,
+                  num_resets_per_eval=task.resets_per_eval, deterministic_eval=True, seed=seed,
+                  network_factory=factory, max_devices_per_host=1, progress_fn=progress, **env, **spec.brax_kwargs())
+    except _TimeUp:
+        print(f"time limit: brax seed {seed} on {name} stopped at an evaluation", flush=True)
+    finally:
+        acting.Evaluator.run_evaluation = evaluate
+
+
+def task_of(name: str, tiny: bool = False) -> Task:
+    return TASKS[name] if name in TASKS else playground_task(name, tiny)
 
 
 def main(argv=None) -> int:
     p = Parser(prog="python -m benchmarks.learning", description=__doc__,
                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--tasks", nargs="+", default=["ant", "halfcheetah", "reacher"], choices=list(TASKS))
+    p.add_argument("--suite", choices=["brax", "playground"], default="brax",
+                   help="the default tasks: Brax's (ant halfcheetah reacher) or Playground's (" + " ".join(PLAYGROUND)
+                        + "); with --tiny, the point mass or Playground's pendulum")
+    p.add_argument("--tasks", nargs="+", choices=[*TASKS, *sorted(NAMES)], metavar="TASK",
+                   help=f"{', '.join(TASKS)} (Brax's published settings) or a Playground task, dmc-* (`cdjax envs`), "
+                        "at dm_control_suite_params'")
     p.add_argument("--frameworks", nargs="+", default=["cdjax", "brax"], choices=["cdjax", "brax"])
     p.add_argument("--variants", nargs="+", default=["default"], choices=list(VARIANTS),
                    help="cdjax learner variants (default: the defaults)")
@@ -209,9 +357,13 @@ def main(argv=None) -> int:
                         "another B); Brax PPO runs seeds B ... B + seeds - 1")
     p.add_argument("--evals", type=positive, help="override every task's number of evaluations")
     p.add_argument("--updates-per-eval", type=positive, help="override every task's updates between evaluations")
-    p.add_argument("--tiny", action="store_true", help="CPU smoke: the point task, 2 seeds")
+    p.add_argument("--tiny", action="store_true", help="CPU smoke: the point task (--suite playground: the pendulum), "
+                   "2 seeds")
     p.add_argument("--budget-s", type=seconds, default=float("inf"),
                    help="start no new (task, learner, seed) after this many seconds")
+    p.add_argument("--time-limit", type=seconds, default=float("inf"), metavar="S",
+                   help="stop a run at its first evaluation past S seconds, start no Brax seed the last one's time "
+                        "says would pass it (a later unit with the same --out resumes: module docstring)")
     p.add_argument("--out", help="output directory (rows.jsonl, meta.json)")
     p.add_argument("--cache-dir", default=os.path.expanduser("~/.cache/cdjax/jax"),
                    help="JAX's persistent compilation cache (Brax's seeds after the first reuse its programs)")
@@ -226,9 +378,9 @@ def main(argv=None) -> int:
     if report_only and not args.report:  # (the benchmark would run, and ignore them)
         refuse(p.prog, f"{' and '.join(report_only)} go{'es' * (len(report_only) == 1)} with --report DIR (the table of "
                        "a benchmark's --out); without --report this command runs the benchmark")
-    run_only = [f"--{name.replace('_', '-')}" for name in ("tasks", "frameworks", "variants", "seeds", "first_seed",
-                                                            "evals", "updates_per_eval", "tiny", "budget_s", "out",
-                                                            "cache_dir")
+    run_only = [f"--{name.replace('_', '-')}" for name in ("suite", "tasks", "frameworks", "variants", "seeds",
+                                                            "first_seed", "evals", "updates_per_eval", "tiny",
+                                                            "budget_s", "time_limit", "out", "cache_dir")
                 if getattr(args, name) != p.get_default(name)]
     if args.report and run_only:  # (the report reads what its directories hold, and would ignore them)
         refuse(p.prog, f"{', '.join(run_only)} set{'s' * (len(run_only) == 1)} up a benchmark run, not --report's "
@@ -245,9 +397,12 @@ def main(argv=None) -> int:
             return 2
         print(text)
         return 0
+    playground = args.suite == "playground"
     if args.tiny:
-        args.tasks, args.seeds = ["point"], min(args.seeds, 2)
+        args.tasks, args.seeds = ["dmc-pendulum-swingup" if playground else "point"], min(args.seeds, 2)
+    args.tasks = args.tasks or (list(PLAYGROUND) if playground else ["ant", "halfcheetah", "reacher"])
     from cdjax import io, runtime
+    from cdjax.envs import playground
     from cdjax.protocol import ConfigError
 
     out = pathlib.Path(args.out or f"benchmarks/results/{datetime.date.today()}-learning")
@@ -258,37 +413,41 @@ def main(argv=None) -> int:
         refuse(p.prog, str(err))
     rows = Rows(out)
     tasks = {}
-    for name in args.tasks:
-        task = TASKS[name]
-        task = dataclasses.replace(
-            task, evals=task.evals if args.evals is None else args.evals,
-            updates_per_eval=task.updates_per_eval if args.updates_per_eval is None else args.updates_per_eval)
-        tasks[name] = task
-    meta = {"command": "python -m benchmarks.learning " + shlex.join(argv if argv is not None else sys.argv[1:]),
-            "date": str(datetime.date.today()), **device_info(),
-            "tasks": {n: {"spec": t.spec.describe(), "evals": t.evals, "updates_per_eval": t.updates_per_eval,
-                          "eval_episodes": t.eval_episodes, "budget": t.budget} for n, t in tasks.items()},
+    try:
+        for name in args.tasks:
+            task = task_of(name, args.tiny)
+            tasks[name] = dataclasses.replace(task, evals=args.evals or task.evals,
+                                              updates_per_eval=args.updates_per_eval or task.updates_per_eval)
+    except (ConfigError, ValueError) as err:  # the extra missing, or a schedule Brax cannot run
+        refuse(p.prog, str(err))
+    meta = {"tasks": {n: {"spec": t.spec.describe(), "evals": t.evals, "updates_per_eval": t.updates_per_eval,
+                          "eval_episodes": t.eval_episodes, "budget": t.budget,
+                          "resets_per_eval": t.resets_per_eval} for n, t in tasks.items()},
             "variants": {v: [VARIANTS[v][0], VARIANTS[v][1]] for v in args.variants}}
+    meta["physics_backend"] = {n: playground.resolve_backend() for n in tasks if playground.is_playground(n)}
     if "cdjax" in args.frameworks:  # what `default` and each variant meant when these rows ran: the whole Config
         from cdjax.runner.plan import code_record
 
         meta["code"] = code_record()
         meta["configs"] = {n: {v: io.dataclass_to_json(cdjax_config(t, v)) for v in args.variants} for n, t in tasks.items()}
-    (out / "meta.json").write_text(json.dumps(meta, indent=1, default=str))
+    rows.write_meta("learning", argv, **meta)
     t_start = time.perf_counter()
+    deadline, last = t_start + args.time_limit, 0.0  # last: the previous Brax seed's seconds
     for name, task in tasks.items():
         if "cdjax" in args.frameworks:
             for variant in args.variants:
-                if time.perf_counter() - t_start > args.budget_s:
+                if time.perf_counter() - t_start > min(args.budget_s, args.time_limit):
                     print(f"budget: skipped cdjax {variant} on {name}", flush=True)
                     continue
-                run_cdjax(name, task, variant, args.seeds, rows, seed=args.first_seed)
+                run_cdjax(name, task, variant, args.seeds, rows, seed=args.first_seed, deadline=deadline)
         if "brax" in args.frameworks:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
-                if time.perf_counter() - t_start > args.budget_s:
+                t0 = time.perf_counter()
+                if t0 - t_start > args.budget_s or t0 + last > deadline:
                     print(f"budget: skipped brax seed {seed} on {name}", flush=True)
                     continue
-                run_brax(name, task, seed, rows)
+                run_brax(name, task, seed, rows, deadline)
+                last = time.perf_counter() - t0
     print(f"rows in {rows.path}", flush=True)
     return 0
 

@@ -1,10 +1,14 @@
-"""The learning benchmark's report: rows.jsonl of one or more runs -> markdown table and curve plot.
+"""The learning benchmarks' report: rows.jsonl of one or more runs (benchmarks.learning: Brax PPO against cdjax's
+obs setting; benchmarks.brax_sac: Brax SAC against the off-policy setting) -> markdown table and curve plot.
 
-Per task and learner (framework + variant): the IQM over seeds of the deterministic evaluation return
-at the last evaluation, with a 95% stratified-bootstrap interval (cdjax.stats, rliable's
+Per task and learner (cdjax: its variant; Brax: brax-ppo or brax-sac): the IQM over seeds of the deterministic
+evaluation return at the last evaluation, with a 95% stratified-bootstrap interval (cdjax.stats, rliable's
 method), the same for the mean over all evaluations after step 0 (the normalised area under the
-curve), the seeds, and training env steps/s. A verdict compares each cdjax learner with Brax PPO on
-the final IQM: "cdjax >= brax" when cdjax's IQM is at least Brax's, and whether the intervals overlap.
+curve), the seeds, and training env steps/s. A verdict compares each cdjax learner with Brax's learner of its
+kind (offpolicy-* with Brax SAC, the others with Brax PPO) on the final IQM: whether cdjax's IQM is at least Brax's,
+and whether the intervals overlap. Both are read at their last evaluation, which must be at the same env steps
+within 1%: Brax SAC's evaluations count its prefill steps, so they fall a little off cdjax's (the line says both).
+Rows without an evaluation return (brax_sac's speed case) are not read.
 """
 
 from __future__ import annotations
@@ -55,7 +59,7 @@ def load(dirs: list[pathlib.Path | str]) -> tuple[list[dict], list[dict]]:
             raise ValueError(f"no rows in {d / 'rows.jsonl'}: its run measured nothing (yet)")
         for i, line in lines:
             row = _json(d / "rows.jsonl", line, f" line {i}")
-            if framework is None or row["framework"] == framework:
+            if "eval_return" in row and (framework is None or row["framework"] == framework):
                 rows.append({**row, "device": meta.get("device", "?"), "source": str(d),
                              **({"variant": name} if name else {})})
     if not rows:
@@ -67,7 +71,8 @@ def curves(rows: list[dict]) -> dict[tuple[str, str], dict]:
     """{(task, learner): {"steps": [P], "returns": [S, P] (NaN where missing), "seeds": [S], ...}}."""
     grouped: dict[tuple[str, str], list[dict]] = defaultdict(list)
     for r in rows:
-        learner = "brax-ppo" if r["framework"] == "brax" else f"cdjax {r['variant']}"
+        brax = "brax-sac" if r["variant"] == "brax-sac" else "brax-ppo"  # (PPO rows' variant: brax-ppo)
+        learner = brax if r["framework"] == "brax" else f"cdjax {r['variant']}"
         grouped[(r["task"], learner)].append(r)
     out = {}
     for key, rs in grouped.items():
@@ -89,20 +94,26 @@ def curves(rows: list[dict]) -> dict[tuple[str, str], dict]:
 
 
 def _sps(c: dict) -> float:
-    """Training env steps per second (for cdjax, all of a run's seeds together, the median over its runs; for Brax,
-    per seed, the median of Brax's own figure)."""
+    """Training env steps per second, the median over runs: for cdjax, all of a run's seeds together (its train_s
+    is after compilation); for Brax, one seed, from the training time benchmarks.learning measures (rows with
+    `eval_s`), leaving out the first interval (Brax compiles in it), else Brax's own training/sps (brax_sac's rows
+    say `sps`; benchmarks.learning's before they measured it kept it in `train_s`)."""
     rs = c["rows"]
-    if rs[0]["framework"] == "brax":
-        sps = [r["train_s"] for r in rs if r.get("train_s")]  # Brax's training/sps
+    brax = rs[0]["framework"] == "brax"
+    if brax and not all("eval_s" in r for r in rs):
+        sps = [r.get("sps", r.get("train_s")) for r in rs]
+        sps = [x for x in sps if x]
         return float(np.median(sps)) if sps else math.nan
     runs = defaultdict(list)  # a learner's seeds may come from several runs (sources), each with its own time
     for r in rs:
-        runs[r.get("source")].append(r)
+        runs[(r.get("source"), r["seed"] if brax else None)].append(r)
     sps = []
     for run in runs.values():
-        last = max(run, key=lambda r: r["env_steps"])
-        if last["train_s"]:
-            sps.append(last["env_steps"] * len({r["seed"] for r in run}) / last["train_s"])
+        run = sorted(run, key=lambda r: r["env_steps"])
+        first = run[1] if brax and len(run) > 2 else run[0]
+        if run[-1]["train_s"] > first["train_s"]:
+            steps = run[-1]["env_steps"] - first["env_steps"]
+            sps.append(steps * len({r["seed"] for r in run}) / (run[-1]["train_s"] - first["train_s"]))
     return float(np.median(sps)) if sps else math.nan
 
 
@@ -187,24 +198,25 @@ def verdicts(entries: list[dict], reps: int = 2000) -> list[str]:
     for e in entries:
         by_task[e["task"]][e["learner"]] = e
     for task, learners in by_task.items():
-        brax = learners.get("brax-ppo")
-        if brax is None:
-            continue
         for name, e in learners.items():
-            if name == "brax-ppo":
+            kind = "brax-sac" if name.startswith("cdjax offpolicy-") else "brax-ppo"
+            brax, them = learners.get(kind), "Brax " + kind[5:].upper()
+            if brax is None or name.startswith("brax"):
                 continue
-            if e["env_steps"] != brax["env_steps"]:
+            steps = f"{e['env_steps']:,} env steps" + (
+                f" (Brax's at {brax['env_steps']:,})" if e["env_steps"] != brax["env_steps"] else "")
+            if abs(e["env_steps"] - brax["env_steps"]) > 0.01 * max(e["env_steps"], brax["env_steps"]):
                 lines.append(f"- {task}: {name} not compared: its final return is read at {e['env_steps']:,} env "
-                             f"steps, Brax PPO's at {brax['env_steps']:,}.")
+                             f"steps, {them}'s at {brax['env_steps']:,}.")
                 continue
             ge = e["final"][0] >= brax["final"][0]
             overlap = not (e["final"][1] > brax["final"][2] or e["final"][2] < brax["final"][1])
             speed = e["sps"] / brax["sps"] if brax["sps"] else math.nan
             poi = (probability_of_improvement(e["final_values"], brax["final_values"], reps=reps)
                    if min(len(e["final_values"]), len(brax["final_values"])) > 1 else None)
-            poi = f"; P({name} > Brax PPO) = {poi[0]:.2f} [{poi[1]:.2f}, {poi[2]:.2f}]" if poi else ""
-            lines.append(f"- {task}: {name} final IQM {e['final'][0]:.1f} {'>=' if ge else '<'} Brax PPO's "
-                         f"{brax['final'][0]:.1f} at {e['env_steps']:,} env steps (intervals "
+            poi = f"; P({name} > {them}) = {poi[0]:.2f} [{poi[1]:.2f}, {poi[2]:.2f}]" if poi else ""
+            lines.append(f"- {task}: {name} final IQM {e['final'][0]:.1f} {'>=' if ge else '<'} {them}'s "
+                         f"{brax['final'][0]:.1f} at {steps} (intervals "
                          f"{'overlap' if overlap else 'disjoint'}{poi}); training env steps/s {speed:.2f}x Brax's "
                          "(cdjax: its seeds vmapped together, the median over its runs; Brax: one seed at a time).")
     return lines
@@ -230,7 +242,7 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
                 continue
             point, low, high, _ = interval_curve(c["returns"][kept], "iqm", reps=500)
             x = c["steps"] / 1e6
-            style = "--" if learner == "brax-ppo" else "-"
+            style = "--" if learner.startswith("brax") else "-"
             ax.plot(x, point, style, label=learner)
             ax.fill_between(x, low, high, alpha=0.15)
         ax.set_title(task)
@@ -258,9 +270,9 @@ def report(dirs: list[pathlib.Path], write: str | None = None, parity_variants: 
 def report_text(rows: list[dict], metas: list[dict], parity_variants: tuple[str, ...] = ("default",)) -> str:
     """The report's markdown for these rows (and the commands of `metas`)."""
     entries = table(rows)
-    wanted = {"brax-ppo"} | {f"cdjax {v}" for v in parity_variants}
-    parity = [e for e in entries if e["learner"] in wanted]
-    lines = ["### cdjax model-free against Brax PPO", "",
+    wanted = {f"cdjax {v}" for v in parity_variants}
+    parity = [e for e in entries if e["learner"] in wanted or e["learner"].startswith(("brax", "cdjax offpolicy-"))]
+    lines = ["### cdjax against Brax (PPO: the obs setting's model-free arm; SAC: the off-policy setting)", "",
              "| task | learner | seeds | env steps | final return IQM [95% CI] | mean over evals IQM [95% CI] | "
              "train env steps/s | device | final per seed |", "|---|---|---:|---:|---|---|---:|---|---|"]
     for e in parity:

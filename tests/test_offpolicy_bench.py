@@ -32,3 +32,30 @@ def test_both_learners_run_the_tiny_task(tmp_path):
     config = brax_sac.cdjax_config(task)  # equal update-to-data ratio and replay on both sides
     assert config.updates_per_step == brax_sac.brax_kwargs(task)["grad_updates_per_step"]
     assert config.buffer_steps * config.num_envs >= task.max_replay and config.learning_starts == task.min_replay
+
+
+def test_the_learning_report_reads_brax_sac_rows_beside_ppo_rows(tmp_path):
+    """brax_sac's rows (its speed rows among them) in benchmarks.learning --report: cdjax's off-policy arm set against
+    Brax SAC at their final evaluations (Brax's count its prefill, within 1%), the obs setting against Brax PPO, Brax
+    PPO's env steps/s from the training time the harness measures, less its first interval (its compilation)."""
+    import json
+
+    from benchmarks import learning_report
+
+    def row(framework, variant, seed, steps, ret, **timing):
+        return dict(task="ant", framework=framework, variant=variant, seed=seed, env_steps=steps, eval_return=ret,
+                    **timing)
+
+    rows = [row("cdjax", "offpolicy-model-free", s, st, 100.0 + s + st / 1000, train_s=st / 1000, compile_s=5.0)
+            for s in range(2) for st in (0, 1000)]
+    rows += [row("brax", "brax-sac", s, st, 50.0 + s, sps=400.0, wall_s=1.0) for s in range(2) for st in (0, 1008)]
+    rows.append(dict(task="ant", framework="cdjax", case="speed", seeds=10, env_steps_per_s=1e6))
+    # Brax PPO, two intervals of 100 env steps: the first 10 s (with its compilation), the second 2 s: 50 steps/s
+    rows += [row("brax", "brax-ppo", 0, st, 1.0, train_s=t, eval_s=1.0) for st, t in ((0, 0), (100, 10), (200, 12))]
+    (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    text = learning_report.report([tmp_path])
+    assert "| ant | brax-sac | 2 | 1,008 |" in text and "| ant | cdjax offpolicy-model-free | 2 | 1,000 |" in text
+    assert "cdjax offpolicy-model-free final IQM 101.5 >= Brax SAC's 50.5 at 1,000 env steps (Brax's at 1,008)" in text
+    by = {e["learner"]: e for e in learning_report.table(learning_report.load([tmp_path])[0], reps=50)}
+    assert by["brax-ppo"]["sps"] == 50.0 and by["brax-sac"]["sps"] == 400.0
+    assert by["cdjax offpolicy-model-free"]["sps"] == 2 * 1000 / 1.0  # both seeds of its one run
