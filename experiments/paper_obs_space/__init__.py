@@ -7,17 +7,18 @@ half-cheetah the consistency schedule of the presets (the first epoch only) agai
 every epoch). The experiment runs as UNITS, each one `cdjax sweep` (a unit may hold several, one after another) that finishes on one
 GPU within one device lease (PLAN.md):
 
-    python -m experiments.paper_obs_space units                          # the units, their budgets and estimates
-    python -m experiments.paper_obs_space train --unit ant-1 --out DIR    # one unit (its sweeps under DIR/)
-    bash experiments/paper_obs_space/device.sh ant-1                      # the same on a GPU machine (device.sh)
+    python -m experiments.paper_obs_space list                           # the units, their budgets and estimates
+    python -m experiments.paper_obs_space run ant-1 --out DIR             # one unit (its sweeps under DIR/)
+    python -m experiments.launch start paper_obs_space ant-1 --work DIR  # the same detached (poll, collect)
     python -m experiments.paper_obs_space keep runs/units-back/ant-1      # what came back -> data/ant-1/
     python -m experiments.paper_obs_space report                          # RESULTS.md from the kept data (data/)
     python -m experiments.paper_obs_space.phase_check --task halfcheetah  # the Mb-Mf phase's variants side by side
     python -m experiments.paper_obs_space.yardstick                       # the yardstick files (collected once)
 
-`train` is `cdjax sweep --preset paper-<task>` (cdjax/agents/obs/presets.py holds every setting) with the unit's
+A unit runs `cdjax sweep --preset paper-<task>` (cdjax/agents/obs/presets.py holds every setting) with the unit's
 arms, grid and budget, the task's yardstick (yardstick/<task>.npz) and a record of the machine; any further
-`cdjax sweep` option passes through (e.g. `--steps`, `--seeds` for a smaller try).
+`cdjax sweep` option passes through (e.g. `--steps`, `--seeds` for a smaller try); `train --task TASK` runs the
+task's preset as it stands, in one sweep.
 """
 
 from __future__ import annotations
