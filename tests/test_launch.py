@@ -54,7 +54,8 @@ def test_a_units_steps_run_in_turn_a_failure_does_not_stop_the_next_and_a_hang_i
 
 
 def test_a_step_that_ignores_its_signal_is_killed(tmp_path):
-    ignore = "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); time.sleep(30)"
+    ignore = ("import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); "
+              "time.sleep(30)")
     step = Step(("python", "-c", ignore), log="l", timeout=1, signal=signal.SIGTERM, kill_after=1)
     ctx = _ctx(tmp_path)
     ctx.out.mkdir()

@@ -1,4 +1,4 @@
-"""The Atari experiment's GPU units: `python -m experiments.atari list`, `python -m experiments.atari run UNIT --out DIR`.
+"""The Atari experiment's GPU units: `python -m experiments.atari list`, `... run UNIT --out DIR`.
 
   ale-GAME      the ALE tier (issue 23; GAME breakout, seaquest, mspacman or frostbite): `cdjax sweep --setting atari
                 --preset GAME --arms a2c a2c-cd --seeds 3 --steps STEPS` (default 1,000,000 agent steps = 4M frames

@@ -78,17 +78,13 @@ class Task:
 # An arm of 20 runs (two weights x 10 seeds) runs its phase for all 20 at once: latency-bound, with twice the MPC
 # candidates per step: the ratio of ant's measured phase at 20 runs to its phase at 10 (PLAN.md, the units' table).
 PHASE_20_RUNS = 1.8
-# Phases: ant's is measured (40 s, units ant-1 and ant-3); the others are the first plan's arithmetic (90-130 s, which
-# over-estimated ant's by 2.25x) scaled by ant's measured / estimated ratio, until their first unit prints theirs.
+# Rates and phases: what each task's units 1 and 3 measured on one H200 (PLAN.md, the units' table, has every figure).
 TASK_BUDGETS = {
-    "ant": Task("ant", 50_000_000, 1.6e6, "units ant-1..3 on one H200: 1.71M/s (model-free + Mb-Mf, 20 runs), "
-                "1.59M/s (CD k=20, 20 runs), 1.39M/s (CD k=5, 10 runs)", phase_s=40),  # MPC horizon 5
-    "halfcheetah": Task("halfcheetah", 10_000_000, 0.37e6, "units halfcheetah-1 and -3 on one H200: 0.37M/s "
-                        "(model-free + Mb-Mf, 20 runs), 0.29M/s (CD k=5, 10 runs)", phase_s=88),  # horizon 20
-    "humanoid": Task("humanoid", 10_000_000, 0.5e6, "units humanoid-1 and -3 on one H200: 0.65M/s (model-free + "
-                     "Mb-Mf, 20 runs), 0.43M/s (CD k=5, 10 runs)", phase_s=80),  # MPC horizon 5
-    "swimmer": Task("swimmer", 5_000_000, 0.24e6, "units swimmer-1 and -3 on one H200: 0.26M/s (model-free + Mb-Mf, "
-                    "20 runs), 0.21M/s (CD k=5, 10 runs)", phase_s=92),  # MPC horizon 20
+    "ant": Task("ant", 50_000_000, 1.6e6, "units ant-1..3 (PLAN.md)", phase_s=40),  # MPC horizon 5
+    "halfcheetah": Task("halfcheetah", 10_000_000, 0.37e6, "units halfcheetah-1 and -3 (PLAN.md)",
+                        phase_s=88),  # MPC horizon 20
+    "humanoid": Task("humanoid", 10_000_000, 0.5e6, "units humanoid-1 and -3 (PLAN.md)", phase_s=80),  # horizon 5
+    "swimmer": Task("swimmer", 5_000_000, 0.24e6, "units swimmer-1 and -3 (PLAN.md)", phase_s=92),  # horizon 20
 }
 
 

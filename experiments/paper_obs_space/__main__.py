@@ -184,7 +184,8 @@ def parse(argv) -> tuple[argparse.Namespace, list[str]]:
     t = sub.add_parser("train", help="one task's preset as it stands, in one sweep; other options go to cdjax sweep")
     t.add_argument("--task", choices=TASKS, required=True, help="the preset's arms in one sweep")
     t.add_argument("--out", help="the run directory (default runs/paper/<task>)")
-    k = sub.add_parser("keep", help="add a unit's run directories (a unit's directory, or its UNIT.tar.gz unpacked) to data/")
+    k = sub.add_parser("keep", help="add a unit's run directories (its directory, or its UNIT.tar.gz unpacked) "
+                                    "to data/")
     k.add_argument("paths", nargs="+", type=pathlib.Path)
     k.add_argument("--data", default=str(HERE / "data"))
     r = sub.add_parser("report", help="RESULTS.md, figures and tables from the kept data (or run directories)")
