@@ -14,10 +14,11 @@ commands are cut at 10), the same units run detached and are polled:
 
 `start` starts one process session (setsid: it outlives the call, not the machine) that runs the units one after
 another on GPU I (CUDA_VISIBLE_DEVICES), unit U in DIR/U/ with its output in DIR/U/unit.log and its exit status in
-DIR/U/exit_code; each gets the --time-limit or what is left of it when the unit before ended (a unit that would get
-less than --min-s is skipped). Several GPUs of one machine: one `start` per GPU, each with its own DIR. `collect`
-packs each ended unit: its run directories with their metrics thinned (experiments.thin_logs, with the
-experiment's THIN options), every other file it wrote but checkpoints and TensorBoard files.
+DIR/U/exit_code; with --time-limit each gets what is left of it when the unit before ended (a unit that would get
+less than --min-s is skipped), without it its own default. Several GPUs of one machine: one `start` per GPU, each
+with its own DIR. `collect` packs each ended unit: its run directories with their metrics thinned
+(experiments.thin_logs, with the experiment's THIN options), every other file it wrote but checkpoints and
+TensorBoard files.
 
 For pixel and atari the units are lists of `Step`s (a command, its log, its hang guard) run by `run_unit`;
 paper_obs_space's units are sweeps of cdjax, run in its own process.
@@ -196,17 +197,17 @@ def experiment(name: str):
 def _queue(work: pathlib.Path) -> int:
     """The detached process: the units of work/queue.json one after another."""
     q = json.loads((work / "queue.json").read_text())
-    deadline = q["started"] + q["time_limit"]
+    limit = q["time_limit"]  # None: each unit its own default
     for name in q["units"]:
         d = work / name
         d.mkdir(parents=True, exist_ok=True)
-        left = int(deadline - time.time())
-        if left < q["min_s"]:
+        left = None if limit is None else int(q["started"] + limit - time.time())
+        if left is not None and left < q["min_s"]:
             (d / "unit.log").write_text(f"skipped: {left} s left, it needs {q['min_s']}\n")
             (d / "exit_code").write_text(f"{SKIPPED}\n")
             continue
         argv = [sys.executable, "-m", package(q["experiment"]), "run", name, "--out", str(d),
-                "--time-limit", str(min(left, q["time_limit"])), *q["args"]]
+                *(() if left is None else ("--time-limit", str(left))), *q["args"]]
         (d / "command").write_text(shlex.join(["python", *argv[1:]]) + "\n")
         with open(d / "unit.log", "w") as log:
             code = subprocess.call(argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -220,8 +221,8 @@ def experiment_units(name: str) -> Mapping:
     return experiment(name).UNITS
 
 
-def start(experiment: str, units: Sequence[str], work: pathlib.Path, time_limit: int, gpu: int | None = None,
-          min_s: int = 0, args: Sequence[str] = ()) -> bool:
+def start(experiment: str, units: Sequence[str], work: pathlib.Path, time_limit: int | None = None,
+          gpu: int | None = None, min_s: int = 0, args: Sequence[str] = ()) -> bool:
     """Start the queue once (False where work/ already holds one: a poll finds it)."""
     unknown = [u for u in units if u not in experiment_units(experiment)]
     if unknown:
@@ -321,8 +322,9 @@ def main(argv=None) -> int:
     s.add_argument("experiment", help=f"{', '.join(EXPERIMENTS)} (or a package of units, run as python -m)")
     s.add_argument("units", nargs="+", metavar="UNIT")
     s.add_argument("--work", type=pathlib.Path, required=True, help="the queue's directory")
-    s.add_argument("--time-limit", type=int, default=1260, metavar="S",
-                   help="seconds the units' training may take in all (each unit's --time-limit; default 1260)")
+    s.add_argument("--time-limit", type=int, metavar="S",
+                   help="seconds the units' training may take in all, from the start (each unit gets what is left as "
+                        "its --time-limit; default: each unit its own default)")
     s.add_argument("--min-s", type=int, default=0, metavar="S", help="skip a unit left fewer seconds than this")
     s.add_argument("--gpu", type=int, help="the GPU (CUDA_VISIBLE_DEVICES) the units run on")
     s.add_argument("--arg", action="append", default=[], metavar="ARG",

@@ -155,6 +155,11 @@ def test_units_start_once_in_the_background_are_polled_and_collected_thinned(tmp
     assert launch.start("fakeexp", ["fail"], late, 5, min_s=30)
     assert launch.poll(late, 30) == 0 and launch.state(late) == {"fail": f"exit {launch.SKIPPED}"}
     assert "skipped" in (late / "fail" / "unit.log").read_text()
+    # without a time limit each unit runs at its own default (the fake experiment's 100 s)
+    free = tmp_path / "free"
+    assert launch.start("fakeexp", ["write"], free)
+    assert launch.poll(free, 60) == 0 and (free / "write" / "note.md").read_text() == "limit 100"
+    assert "--time-limit" not in (free / "write" / "command").read_text()
 
 
 def test_poll_of_nothing_started_says_so(tmp_path, capsys):
