@@ -2,11 +2,11 @@
 
     python -m experiments.compact_pngs [PATH ...]      # default: every PNG git tracks
 
-What travels with a device call (the tracked tree and the carried wheels) may not exceed 64 MiB, and on 2026-11-28 the
-tree's 159 PNGs held 12.4 of its 57 MB (`carry_size` in experiments/lease.sh counts it). Matplotlib writes full-colour
-RGBA; a plot has a few hundred colours, most of them anti-aliased edges. Each opaque PNG is quantised to 256 colours
-(median cut, no dithering) and rewritten when that is smaller: to the eye the same figure, about half the bytes (12.4
-to 6.1 MB then; in the worst figure 0.4% of the pixels moved by more than 16 of 255 in a channel, all of them edges).
+What travels with a device call (the tracked tree and the carried wheels) may not exceed 64 MiB (`carry_size` in
+experiments/wheels.sh counts it), and PNGs were a good part of the tree. Matplotlib writes full-colour RGBA; a plot
+has a few hundred colours, most of them anti-aliased edges. Each opaque PNG is quantised to 256 colours (median cut,
+no dithering) and rewritten when that is smaller: to the eye the same figure, about half the bytes (what it saved
+and moved when it ran: docs/development.md).
 A PNG with any transparency is left as it is (its background would change), and so is one already in a palette.
 The data behind every figure stays where it is; this changes only how the picture is stored.
 """

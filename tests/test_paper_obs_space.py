@@ -36,7 +36,7 @@ TINY = ["--env", "point", "--num-envs", "16", "--rollout-len", "12", "--horizon"
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     units = tmp_path_factory.mktemp("units")
-    assert cli.main(["train", "--unit", "swimmer-1", "--out", str(units / "swimmer-1"), *TINY]) == 0
+    assert cli.main(["run", "swimmer-1", "--out", str(units / "swimmer-1"), *TINY]) == 0
     return units
 
 
@@ -299,24 +299,25 @@ def test_every_unit_fits_a_lease_by_its_estimate():
         assert unit.estimate()["total"] < cli.UNIT_LIMIT_S * 0.9, unit.name
         for part in unit.parts:
             assert part.seeds >= (5 if part.name in ("schedule", "value0", "model-only") else 10)
-    assert cli.main(["units"]) == 0
+    assert cli.main(["list"]) == 0
 
 
 def test_the_command_refuses_what_it_cannot_take_in_one_sentence(tmp_path, capsys, monkeypatch):
-    """`train --limit` where it does not apply (--task) or below 1 second, `report` of a --runs that does not exist or
-    with --reps 0: one sentence naming the option and exit status 2; no sweep started, nothing written."""
+    """`run` of a unit that does not exist or with a --time-limit below 1 second, `train` without --task, `report`
+    of a --runs that does not exist or with --reps 0: one sentence naming the option and exit status 2; no sweep
+    started, nothing written."""
     monkeypatch.setattr(cli, "sweep", lambda *args: pytest.fail("a sweep started"))
     out = tmp_path / "out"
     for argv, said in (
-            (["train", "--task", "ant", "--limit", "600"], "--limit is the time of a unit's sweeps (--unit)"),
-            (["train", "--task", "ant", "--limit", "-5"], "argument --limit: '-5' is not a positive number"),
-            (["train", "--unit", "ant-1", "--limit", "-5"], "argument --limit: '-5' is not a positive number"),
+            (["run", "ant-9"], "argument UNIT: invalid choice: 'ant-9'"),
+            (["run", "ant-1", "--time-limit", "-5"], "argument --time-limit: '-5' is not a positive number"),
+            (["train", "--unit", "ant-1"], "the following arguments are required: --task"),
             (["report", "--runs", str(tmp_path / "none"), "--out", str(out)], f"--runs {tmp_path / 'none'}: no such"),
             (["report", "--runs", str(tmp_path), "--reps", "0", "--out", str(out)], "argument --reps: '0' is not"),
             (["report", "--runs", str(tmp_path), "--bogus", "--out", str(out)], "`python -m experiments.paper_obs_space "
                                                                                "report --help`")):
         capsys.readouterr()
-        assert cli.main([*argv, *(["--out", str(out)] if argv[0] == "train" else [])]) == 2
+        assert cli.main([*argv, *(["--out", str(out)] if argv[0] in ("run", "train") else [])]) == 2
         err = capsys.readouterr().err
         assert err.startswith("python -m experiments.paper_obs_space") and err.count("\n") == 1 and said in err, err
     assert list(tmp_path.iterdir()) == []
@@ -324,7 +325,7 @@ def test_the_command_refuses_what_it_cannot_take_in_one_sentence(tmp_path, capsy
 
 @pytest.mark.parametrize("name", sorted(UNITS))
 def test_every_units_sweeps_plan_without_an_error(name):
-    """Each part's `cdjax sweep` command line, as `train --unit` builds it, plans (arms, grid, phase, budget) with
+    """Each part's `cdjax sweep` command line, as `run UNIT` builds it, plans (arms, grid, phase, budget) with
     no ConfigError; nothing is compiled."""
     from cdjax import agents
     from cdjax.cli import build_parser, sweep_spec

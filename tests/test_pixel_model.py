@@ -362,7 +362,7 @@ def test_a_sweep_through_the_cli_resumes_and_equals_each_seed_alone(tmp_path, le
 
 
 def test_the_expert_is_the_best_evaluated_policy_of_a_model_free_sweep(tmp_path):
-    """export_expert (what device.sh runs between the expert's sweep and the pixel sweep) on the pure-JAX point
+    """export_expert (what the pixel units expert-TASK run after the expert's sweep) on the pure-JAX point
     mass: the saved policy and statistics are the restored ones of the run with the best deterministic evaluation."""
     from cdjax.agents.experts import load_expert
     from cdjax.runner.export_expert import main as export

@@ -1,4 +1,4 @@
-"""experiments.pixel.report: the sweeps of experiments/pixel/units.sh (one per task and arm, unpacked side by side)
+"""experiments.pixel.report: the sweeps of experiments/pixel/units.py (one per task and arm, unpacked side by side)
 read as one task, their arms compared at the update all of them reached, as the sweep of every arm reads."""
 
 import json
@@ -55,7 +55,7 @@ def test_units_of_one_task_are_merged_and_compared_at_the_update_all_reached(tmp
     _sweep(units / "halfcheetah-ltq", [("ltq", [("default", LTQ, 30)])], experts)
     _sweep(units / "halfcheetah-ltq-cd0", [("ltq-cd", [("alpha=100.0", CD[0], 25)])], experts)
     _sweep(units / "halfcheetah-ltq-cd1", [("ltq-cd", [("alpha=100.0", CD[1], 20)])], experts)
-    # the same runs as the sweep of every arm writes them (device.sh's OUT/TASK/pixel)
+    # the same runs as the sweep of every arm writes them (the earlier passes' OUT/TASK/pixel)
     whole = tmp_path / "whole"
     _sweep(whole / "halfcheetah", [("ltq", [("default", LTQ, 30)]),
                                    ("ltq-cd", [("alpha=100.0,cc_policy=0.0", CD[0], 25),

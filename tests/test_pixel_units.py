@@ -1,24 +1,27 @@
-"""experiments/pixel/units.sh: each unit of the re-run at the presets' length names the sweep it should (`--print-command`
-starts and writes nothing), and that sweep's command line plans the runs it should, with nothing compiled."""
+"""experiments/pixel/units.py: each unit of the re-run at the presets' length names the sweep it should (its steps,
+built without running anything), and that sweep's command line plans the runs it should, with nothing compiled."""
 
 import pathlib
-import shlex
-import subprocess
+import time
 
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+from experiments.launch import Context, unit_main
+from experiments.pixel import units as pixel_units
+
+UNITS = pixel_units.UNITS
+OUT = pathlib.Path("runs/pixel-units")
 
 
-def _command(unit: str, **env) -> subprocess.CompletedProcess:
-    return subprocess.run(["bash", "experiments/pixel/units.sh", "--print-command", unit], cwd=ROOT, text=True,
-                          capture_output=True, timeout=30, env={"PATH": "/usr/bin:/bin", **env})
+def _steps(unit: str, limit: int = 1260, end: int = 1680, **params):
+    u = UNITS[unit]
+    ctx = u.context(OUT / unit, limit, end, [f"{k}={v}" for k, v in params.items()])
+    return ctx, u.steps(ctx)
 
 
-def _sweep_argv(line: str) -> list[str]:
-    """The `cdjax.cli sweep` arguments of a unit's command line (its first command)."""
-    first = shlex.split(line.split(";")[0])
-    return first[first.index("cdjax.cli") + 1:]
+def _sweep_argv(step) -> list[str]:
+    """The `cdjax.cli sweep` arguments of a step."""
+    return list(step.argv[step.argv.index("cdjax.cli") + 1:])
 
 
 @pytest.mark.parametrize("unit, arms, cc_policy, runs", [
@@ -33,10 +36,8 @@ def test_a_units_sweep_has_its_arms_preset_and_time_limit_and_plans_its_runs(uni
     from cdjax.cli import build_parser, sweep_spec
     from cdjax.runner.plan import plan_arms
 
-    done = _command(unit, LIMIT_S="900")
-    assert done.returncode == 0, done.stderr
-    line = done.stdout.strip()
-    argv = _sweep_argv(line)
+    _, steps = _steps(unit, limit=900)
+    argv = _sweep_argv(steps[0])
     task = unit.split("-")[0]
 
     def values(flag):
@@ -49,7 +50,9 @@ def test_a_units_sweep_has_its_arms_preset_and_time_limit_and_plans_its_runs(uni
     assert values("--arms") == arms and values("--cc-policy") == cc_policy
     assert values("--out") == [f"runs/pixel-units/{unit}/pixel"]  # each unit its own work directory and tarball
     assert values("--expert") == [f"experiments/pixel/data/three-tasks-x2/{task}/expert.msgpack"]
-    assert f"cdjax.cli eval runs/pixel-units/{unit}/pixel" in line and "--strips" in line
+    assert steps[0].timeout == 900 + 300  # the hang guard
+    assert steps[1].argv[2:] == ("cdjax.cli", "eval", f"runs/pixel-units/{unit}/pixel", "--episodes", "4")
+    assert steps[3].argv[2:5] == ("experiments.pixel.report", "--strips", f"runs/pixel-units/{unit}/pixel")
 
     setting = agents.get("pixel")
     (plan,) = plan_arms(sweep_spec(build_parser(setting).parse_args(argv), setting))
@@ -73,15 +76,13 @@ def test_the_sweep_speed_unit_times_the_model_of_before_and_the_presets_on_the_s
     from cdjax.cli import build_parser, sweep_spec
     from cdjax.runner.plan import plan_arms
 
-    done = _command("sweep-speed", SPEED_UPDATES="150")
-    assert done.returncode == 0, done.stderr
-    commands = [c for c in done.stdout.split(";") if "cdjax.cli sweep" in c]
-    assert len(commands) == 2 and "Trained in" in done.stdout
+    _, steps = _steps("sweep-speed", updates=150)
+    assert len(steps) == 2 and [s.log for s in steps] == ["before.log", "presets.log"]
+    assert {s.timeout for s in steps} == {420}
     setting = agents.get("pixel")
     plans = []
-    for line in commands:
-        first = shlex.split(line)
-        argv = first[first.index("cdjax.cli") + 1:first.index(">")]
+    for step in steps:
+        argv = _sweep_argv(step)
         plans.append(plan_arms(sweep_spec(build_parser(setting).parse_args(argv), setting)))
     before, after = plans
     for arms in plans:
@@ -104,24 +105,47 @@ def test_the_sweep_long_unit_runs_the_presets_30_runs_at_the_length_of_the_sweep
     from cdjax.cli import build_parser, sweep_spec
     from cdjax.runner.plan import plan_arms
 
-    done = _command("sweep-long", LONG_LIMIT_S="400")
-    assert done.returncode == 0, done.stderr
-    argv = _sweep_argv(done.stdout)
+    _, (step,) = _steps("sweep-long", limit_s=400)
+    argv = _sweep_argv(step)
     assert argv[argv.index("--time-limit") + 1] == "400" and "--no-final-eval" in argv
-    assert done.stdout.startswith("timeout -s INT -k 60 520 ")
+    assert step.timeout == 520 and step.log == "presets.log"
     setting = agents.get("pixel")
-    spec = sweep_spec(build_parser(setting).parse_args(argv[:argv.index(">")]), setting)
+    spec = sweep_spec(build_parser(setting).parse_args(argv), setting)
     arms = plan_arms(spec)
     assert sum(len(p.hparams) * spec.seeds for p in arms) == 30 and {p.config.num_updates for p in arms} == {1400}
     assert {(p.config.compute_dtype, p.config.conv_impl, p.config.core_impl, p.config.output_grad) for p in arms} == {
         ("bfloat16", "per-run", "fused", "compute")}
 
 
-def test_the_evaluation_gets_what_is_left_before_the_units_end_and_unknown_units_are_refused():
-    line = _command("pusher-ltq", END_S="1700", EVAL_S="280").stdout
-    assert "s=$(( 1700 - $(date +%s) + $(cat runs/pixel-units/pusher-ltq/started) - 180 ));" in line
-    assert "timeout -k 30 $(( s > 280 ? 280 : s < 120 ? 120 : s )) python -m cdjax.cli eval" in line
+def test_the_evaluation_gets_what_is_left_before_the_units_end_and_unknown_units_are_refused(capsys):
+    ctx, steps = _steps("pusher-ltq", end=1700, eval_s=280)
+    evaluate = steps[1].timeout
+    assert evaluate(ctx) == 280  # at the start: all of eval_s
+    late = Context(ctx.out, ctx.limit, ctx.end, ctx.params, started=time.monotonic() - 1300)
+    assert 1700 - 1300 - 180 - 2 <= evaluate(late) <= 1700 - 1300 - 180  # what is left before the end, less strips
+    assert evaluate(Context(ctx.out, ctx.limit, ctx.end, ctx.params, started=time.monotonic() - 1600)) == 120
     for unit in ("pusher-ltq-cd2", "walker-ltq", "nothing"):
-        done = _command(unit)
-        assert done.returncode == 2 and "unknown" in done.stderr and not done.stdout
-    assert not (ROOT / "runs" / "pixel-units" / "nothing").exists()
+        with pytest.raises(SystemExit) as stop:
+            unit_main("python -m experiments.pixel", UNITS, 1260, 1680, ["run", unit, "--out", "unused"])
+        assert stop.value.code == 2 and "invalid choice" in capsys.readouterr().err
+    assert not pathlib.Path("unused").exists()
+
+
+def test_the_precision_unit_compares_its_reference_and_candidate_at_equal_updates_each_in_half_the_time():
+    from cdjax import agents
+    from cdjax.cli import build_parser, sweep_spec
+    from cdjax.runner.plan import plan_arms
+
+    ctx, steps = _steps("precision", limit=1000, updates=100)
+    reference, candidate, compare = steps
+    setting = agents.get("pixel")
+    configs = []
+    for step in (reference, candidate):
+        argv = _sweep_argv(step)
+        assert argv[argv.index("--time-limit") + 1] == "500" and step.timeout == 620
+        arms = plan_arms(sweep_spec(build_parser(setting).parse_args(argv), setting))
+        assert {p.config.num_updates for p in arms} == {100}
+        configs.append({(p.config.compute_dtype, p.config.conv_impl) for p in arms})
+    assert configs == [{("bfloat16", "per-run")}, {("bfloat16", "auto")}]  # the presets; the candidate's switches
+    assert compare.argv[2] == "experiments.pixel.precision" and compare.argv[-5:] == (
+        "--labels", "presets", "--compute-dtype bfloat16 --conv-impl auto", "--out", f"{ctx.out}/precision.md")

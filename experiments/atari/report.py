@@ -1,4 +1,5 @@
-"""Table and sample-efficiency figure of the Atari experiments, from the run directories of `device.sh`.
+"""Table and sample-efficiency figure of the Atari experiments, from the run directories of its units
+(experiments/atari/units.py).
 
     python -m experiments.atari.report RUN_DIR [RUN_DIR ...] --out DIR     # writes DIR/results.md, DIR/curves.png
 

@@ -7,17 +7,18 @@ half-cheetah the consistency schedule of the presets (the first epoch only) agai
 every epoch). The experiment runs as UNITS, each one `cdjax sweep` (a unit may hold several, one after another) that finishes on one
 GPU within one device lease (PLAN.md):
 
-    python -m experiments.paper_obs_space units                          # the units, their budgets and estimates
-    python -m experiments.paper_obs_space train --unit ant-1 --out DIR    # one unit (its sweeps under DIR/)
-    bash experiments/paper_obs_space/device.sh ant-1                      # the same on a GPU machine (device.sh)
+    python -m experiments.paper_obs_space list                           # the units, their budgets and estimates
+    python -m experiments.paper_obs_space run ant-1 --out DIR             # one unit (its sweeps under DIR/)
+    python -m experiments.launch start paper_obs_space ant-1 --work DIR  # the same detached (poll, collect)
     python -m experiments.paper_obs_space keep runs/units-back/ant-1      # what came back -> data/ant-1/
     python -m experiments.paper_obs_space report                          # RESULTS.md from the kept data (data/)
     python -m experiments.paper_obs_space.phase_check --task halfcheetah  # the Mb-Mf phase's variants side by side
     python -m experiments.paper_obs_space.yardstick                       # the yardstick files (collected once)
 
-`train` is `cdjax sweep --preset paper-<task>` (cdjax/agents/obs/presets.py holds every setting) with the unit's
+A unit runs `cdjax sweep --preset paper-<task>` (cdjax/agents/obs/presets.py holds every setting) with the unit's
 arms, grid and budget, the task's yardstick (yardstick/<task>.npz) and a record of the machine; any further
-`cdjax sweep` option passes through (e.g. `--steps`, `--seeds` for a smaller try).
+`cdjax sweep` option passes through (e.g. `--steps`, `--seeds` for a smaller try); `train --task TASK` runs the
+task's preset as it stands, in one sweep.
 """
 
 from __future__ import annotations
@@ -77,17 +78,13 @@ class Task:
 # An arm of 20 runs (two weights x 10 seeds) runs its phase for all 20 at once: latency-bound, with twice the MPC
 # candidates per step: the ratio of ant's measured phase at 20 runs to its phase at 10 (PLAN.md, the units' table).
 PHASE_20_RUNS = 1.8
-# Phases: ant's is measured (40 s, units ant-1 and ant-3); the others are the first plan's arithmetic (90-130 s, which
-# over-estimated ant's by 2.25x) scaled by ant's measured / estimated ratio, until their first unit prints theirs.
+# Rates and phases: what each task's units 1 and 3 measured on one H200 (PLAN.md, the units' table, has every figure).
 TASK_BUDGETS = {
-    "ant": Task("ant", 50_000_000, 1.6e6, "units ant-1..3 on one H200: 1.71M/s (model-free + Mb-Mf, 20 runs), "
-                "1.59M/s (CD k=20, 20 runs), 1.39M/s (CD k=5, 10 runs)", phase_s=40),  # MPC horizon 5
-    "halfcheetah": Task("halfcheetah", 10_000_000, 0.37e6, "units halfcheetah-1 and -3 on one H200: 0.37M/s "
-                        "(model-free + Mb-Mf, 20 runs), 0.29M/s (CD k=5, 10 runs)", phase_s=88),  # horizon 20
-    "humanoid": Task("humanoid", 10_000_000, 0.5e6, "units humanoid-1 and -3 on one H200: 0.65M/s (model-free + "
-                     "Mb-Mf, 20 runs), 0.43M/s (CD k=5, 10 runs)", phase_s=80),  # MPC horizon 5
-    "swimmer": Task("swimmer", 5_000_000, 0.24e6, "units swimmer-1 and -3 on one H200: 0.26M/s (model-free + Mb-Mf, "
-                    "20 runs), 0.21M/s (CD k=5, 10 runs)", phase_s=92),  # MPC horizon 20
+    "ant": Task("ant", 50_000_000, 1.6e6, "units ant-1..3 (PLAN.md)", phase_s=40),  # MPC horizon 5
+    "halfcheetah": Task("halfcheetah", 10_000_000, 0.37e6, "units halfcheetah-1 and -3 (PLAN.md)",
+                        phase_s=88),  # MPC horizon 20
+    "humanoid": Task("humanoid", 10_000_000, 0.5e6, "units humanoid-1 and -3 (PLAN.md)", phase_s=80),  # horizon 5
+    "swimmer": Task("swimmer", 5_000_000, 0.24e6, "units swimmer-1 and -3 (PLAN.md)", phase_s=92),  # horizon 20
 }
 
 

@@ -1,4 +1,4 @@
-"""python -m experiments.paper_obs_space {units,train,report} (see the package docstring)."""
+"""python -m experiments.paper_obs_space {list,run,train,keep,report} (see the package docstring)."""
 
 from __future__ import annotations
 
@@ -69,13 +69,15 @@ def sweep(task: str, out: pathlib.Path, args: list[str]) -> int:
 
 
 def cmd_train(args, passthrough: list[str]) -> int:
-    if args.task:
-        return sweep(args.task, pathlib.Path(args.out or f"runs/paper/{args.task}"), passthrough)
+    return sweep(args.task, pathlib.Path(args.out or f"runs/paper/{args.task}"), passthrough)
+
+
+def cmd_run(args, passthrough: list[str]) -> int:
     unit = UNITS[args.unit]
     out = pathlib.Path(args.out or f"runs/units/{unit.name}")
     out.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
-    limit = UNIT_LIMIT_S if args.limit is None else args.limit
+    limit = args.time_limit
     record = {"unit": unit.name, "task": unit.task, "limit_s": limit, "started": datetime.datetime.now().isoformat(
         timespec="seconds"), "estimate_s": round(unit.estimate()["total"]), "parts": []}
     estimates = unit.estimate()["parts"]
@@ -104,7 +106,7 @@ def cmd_train(args, passthrough: list[str]) -> int:
     return code
 
 
-def cmd_units(args) -> int:
+def cmd_list(args) -> int:
     print("| unit | task | parts (arms x seeds) | runs | env steps per run | estimated wall-clock |")
     print("|---|---|---|---|---|---|")
     for unit in UNITS.values():
@@ -163,24 +165,27 @@ def main(argv=None) -> int:
     except UsageError as err:
         print(f"{PROG}: {err}", file=sys.stderr)
         return 2
-    if args.command == "train":
-        return cmd_train(args, rest)
-    return {"units": cmd_units, "keep": cmd_keep, "report": cmd_report}[args.command](args)
+    if args.command in ("run", "train"):
+        return {"run": cmd_run, "train": cmd_train}[args.command](args, rest)
+    return {"list": cmd_list, "keep": cmd_keep, "report": cmd_report}[args.command](args)
 
 
 def parse(argv) -> tuple[argparse.Namespace, list[str]]:
-    """(arguments, the options `train` passes on to cdjax sweep); UsageError (one sentence) for what cannot run."""
+    """(arguments, the options `run` and `train` pass on to cdjax sweep); UsageError (one sentence) for what cannot
+    run."""
     p = Parser(prog=PROG, description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
-    u = sub.add_parser("units", help="the units of the experiment, their budgets and estimated wall-clock")
-    t = sub.add_parser("train", help="one unit (or one task's preset as it stands); other options go to cdjax sweep")
-    which = t.add_mutually_exclusive_group(required=True)
-    which.add_argument("--unit", choices=list(UNITS))
-    which.add_argument("--task", choices=TASKS, help="the preset's arms in one sweep")
-    t.add_argument("--out", help="the unit's directory (default runs/units/<unit>) or the run directory")
-    t.add_argument("--limit", type=options.seconds, metavar="SECONDS",
-                   help=f"--unit: seconds the unit's sweeps may take in all (default {UNIT_LIMIT_S})")
-    k = sub.add_parser("keep", help="add a unit's run directories (unpacked from device.sh's UNIT.tar.gz) to data/")
+    u = sub.add_parser("list", help="the units of the experiment, their budgets and estimated wall-clock")
+    n = sub.add_parser("run", help="one unit; other options go to cdjax sweep")
+    n.add_argument("unit", choices=list(UNITS), metavar="UNIT")
+    n.add_argument("--out", help="the unit's directory (default runs/units/<unit>)")
+    n.add_argument("--time-limit", type=options.seconds, default=UNIT_LIMIT_S, metavar="SECONDS",
+                   help=f"seconds the unit's sweeps may take in all (default {UNIT_LIMIT_S})")
+    t = sub.add_parser("train", help="one task's preset as it stands, in one sweep; other options go to cdjax sweep")
+    t.add_argument("--task", choices=TASKS, required=True, help="the preset's arms in one sweep")
+    t.add_argument("--out", help="the run directory (default runs/paper/<task>)")
+    k = sub.add_parser("keep", help="add a unit's run directories (its directory, or its UNIT.tar.gz unpacked) "
+                                    "to data/")
     k.add_argument("paths", nargs="+", type=pathlib.Path)
     k.add_argument("--data", default=str(HERE / "data"))
     r = sub.add_parser("report", help="RESULTS.md, figures and tables from the kept data (or run directories)")
@@ -195,11 +200,8 @@ def parse(argv) -> tuple[argparse.Namespace, list[str]]:
     r.add_argument("--arms", nargs="+", metavar="ARM",
                    help="only these arms (the report's arm keys, e.g. mbmf cd-k20); default every arm found")
     args, rest = p.parse_known_args(argv)
-    if args.command == "train" and args.task and args.limit is not None:
-        t.error("--limit is the time of a unit's sweeps (--unit); --task runs one sweep, whose limit is cdjax "
-                "sweep's --time-limit")
-    if args.command != "train" and rest:
-        {"units": u, "keep": k, "report": r}[args.command].error(f"unknown option(s): {' '.join(rest)}")
+    if args.command not in ("run", "train") and rest:
+        {"list": u, "keep": k, "report": r}[args.command].error(f"unknown option(s): {' '.join(rest)}")
     return args, rest
 
 

@@ -1,11 +1,12 @@
-"""The pixel experiment's table and figures from the directories of experiments/pixel/device.sh and units.sh.
+"""The pixel experiment's table and figures from the directories of its units (experiments/pixel/units.py).
 
     python -m experiments.pixel.report OUT                       # OUT/report.md, OUT/figures/*.png
     python -m experiments.pixel.report --strips RUN_DIR STRIPS   # PNG strips of seed 0 of each arm of a pixel sweep
     python -m experiments.pixel.report --compact-strips STRIPS SMALL   # what results keep (1 sequence, 20 steps)
 
 OUT holds one directory per sweep, each with its run directory in `pixel/`: either one per task holding every arm
-(device.sh: OUT/halfcheetah/pixel) or one per unit of experiments/pixel/units.sh, each its UNIT.tar.gz unpacked
+(the earlier passes: OUT/halfcheetah/pixel) or one per unit of `python -m experiments.pixel`, each unit's
+directory or its UNIT.tar.gz (experiments.launch collect) unpacked
 (OUT/halfcheetah-ltq/pixel, OUT/halfcheetah-ltq-cd0/pixel, ...). The sweeps are grouped by the task they trained
 (run.json's env) and their arms put side by side; a hyper-parameter that differs between sweeps of one arm joins
 the arm's label (two units of ltq-cd with cc_policy 0 and 1 read as the one sweep of both would), and two sweeps
@@ -153,7 +154,7 @@ def merge_units(unit_dirs) -> tuple[list[dict], list[dict], list[dict]]:
 
 def _task_files(unit_dirs, units: list[dict], name: str) -> pathlib.Path | None:
     """`name` (expert.msgpack, cost.json) in a sweep's directory, else beside the expert its run.json names
-    (relative to the working directory, else to the repository: units.sh trains from the kept experts)."""
+    (relative to the working directory, else to the repository: the units train from the kept experts)."""
     places = [pathlib.Path(d) for d in unit_dirs]
     for unit in units:
         expert = unit["run"].get("base_config", {}).get("expert")

@@ -43,7 +43,7 @@ def _ale(game: str, steps: int = 10_000_000) -> Preset:
     k = 4 (two windows per env per update); 3 seeds per arm, their 48 emulators one ale-py vector environment
     (cdjax.agents.atari.ale). Chunks of 250 updates (60k agent steps of the 3 runs), so that a time limit stops a run
     close to it. At this budget a game is hours of a 16-core host (experiments/atari/RESULTS.md): the GPU units run it
-    with --steps (experiments/atari/device.sh)."""
+    with --steps (`python -m experiments.atari run ale-GAME`)."""
     return Preset(
         about=f"ALE {game} (needs pip install -e \".[atari]\"): a2c vs a2c-cd, 3 seeds, {steps / 1e6:g}M agent steps",
         config=dict(env=f"ale-{game}", num_envs=16, rollout_len=5, horizon=4, latent=512, sticky_prob=0.25,
