@@ -5,7 +5,7 @@ An experiment's unit is one plain command on any GPU (a SLURM job's sbatch line 
     python -m experiments.EXPERIMENT list                          # its units, their budgets and wall-clock
     python -m experiments.EXPERIMENT run UNIT --out DIR [--time-limit S]
 
-(EXPERIMENT: paper_obs_space, pixel, atari). Where a command may not outlive a few minutes (a leased machine whose
+(EXPERIMENT: paper_obs_space, pixel, atari, offpolicy). Where a command may not outlive a few minutes (a leased machine whose
 commands are cut at 10), the same units run detached and are polled:
 
     python -m experiments.launch start EXPERIMENT UNIT [UNIT ...] --work DIR [--time-limit S] [--gpu I]
@@ -42,7 +42,7 @@ import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 
-EXPERIMENTS = ("paper_obs_space", "pixel", "atari")
+EXPERIMENTS = ("paper_obs_space", "pixel", "atari", "offpolicy")
 RUNNING = 3  # poll's exit status while a unit runs
 SKIPPED = 75  # a unit's exit status when too little time was left to start it (EX_TEMPFAIL, as --time-limit)
 CHECKPOINTS = ("checkpoints",)  # directories collect leaves behind
