@@ -5,7 +5,8 @@ the other, each figure the median (min, max) over them.
     python -m benchmarks.startup --tiny --runs 1 --out DIR                 # the point mass on CPU, in seconds
     python -m benchmarks.startup --env humanoid --runs 3 --out DIR -- --steps 20000000 --seeds 1
 
-Each process is `python -m cdjax sweep --env ENV --out DIR/run-N [what follows --]`, with its own empty persistent
+Each process is `cdjax sweep --env ENV --out DIR/run-N [what follows --]` (the command's own main, of this checkout
+or of --code, e.g. an export of an older commit for a before/after table), with its own empty persistent
 compilation cache (--cache cold: what a first run sees) or one cache shared by all, filled by an unrecorded first
 process (--cache warm). Its figures come from the sweep's timings.jsonl (cdjax.io.timings: start-up, each program's
 trace, lowering and compile, init, writes, evaluations, plots) and the wall clock measured here around the process.
@@ -60,9 +61,12 @@ def phases(rows: list[dict], launched: float, ended: float) -> dict[str, float]:
     compiled = last_end(lambda r: r["what"] == "programs", compiling)
     trained = last_end(lambda r: r["what"] == "setup", compiled)
     evaluations = [r for r in rows if (r["arm"], r["what"], r["step"]) == ("all", "evaluation", "host")]
-    final = evaluations[-1] if evaluations else None
-    evaluating = final["at"] if final else last_end(lambda r: r["what"] in ("checkpoint", "metrics.jsonl"), trained)
-    evaluated = end(final) if final else evaluating
+    written = last_end(lambda r: r["what"] in ("checkpoint", "metrics.jsonl", "tensorboard"), trained)
+    if evaluations:
+        evaluating, evaluated = evaluations[-1]["at"], end(evaluations[-1])
+    else:  # a cdjax without that row: from the first evaluator or evaluation row after training to eval.jsonl's write
+        evaluating = first(lambda r: r["what"] in ("evaluator", "evaluation") and r["at"] >= written, written)
+        evaluated = last_end(lambda r: r["what"] == "eval.jsonl", evaluating)
     plotted = last_end(lambda r: r["what"] == "plots", evaluated)
     cuts = [("start-up: interpreter", launched), ("start-up: imports and arguments", imported),
             ("planning (envs built, shapes)", plan), ("compiling the training programs", compiling),
@@ -103,15 +107,20 @@ def details(rows: list[dict], launched: float) -> dict[str, float]:
     return out
 
 
-def run_one(command: list[str], run_dir: pathlib.Path, env: dict, timeout: float) -> tuple[list[dict], float, float]:
-    """One whole process: (its timings rows, launch and end as Unix times)."""
+def run_one(command: list[str], run_dir: pathlib.Path, env: dict, code: str,
+            timeout: float) -> tuple[list[dict], float, float]:
+    """One whole process, in the directory `code` (Python puts it first on the path): (its timings rows, launch and
+    end as Unix times)."""
     with open(run_dir.parent / f"{run_dir.name}.log", "w") as log:
         launched = time.time()
-        done = subprocess.run(command + ["--out", str(run_dir)], env=env, stdout=log, stderr=subprocess.STDOUT,
-                              timeout=timeout)
+        try:
+            done = subprocess.run(command + ["--out", str(run_dir)], env=env, cwd=code, stdout=log,
+                                  stderr=subprocess.STDOUT, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            refuse("benchmarks.startup", f"{run_dir.name} was still running at --time-limit (see {log.name})")
         ended = time.time()
     if done.returncode:
-        refuse("benchmarks.startup", f"{' '.join(command)} ended with status {done.returncode} (see {log.name})")
+        refuse("benchmarks.startup", f"{run_dir.name} ended with status {done.returncode} (see {log.name})")
     rows = [json.loads(line) for line in (run_dir / "timings.jsonl").read_text().splitlines() if line.strip()]
     return rows, launched, ended
 
@@ -144,18 +153,21 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--cache-dir", help="one compilation cache for every process, as it is (instead of --cache)")
     parser.add_argument("--time-limit", type=float, default=3600.0,
                         help="seconds for the whole benchmark: no process starts that could not end within it")
+    parser.add_argument("--code", type=lambda p: str(pathlib.Path(p).resolve()),
+                        default=str(pathlib.Path(__file__).resolve().parents[1]),
+                        help="the checkout whose cdjax the processes run (default: this one)")
     parser.add_argument("--tiny", action="store_true", help="the point mass at tiny sizes (a CPU check)")
     args = parser.parse_args(argv)
     if args.runs < 1:
         refuse(parser.prog, "--runs must be at least 1")
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(args.out).absolute()
     if out.exists() and any(out.iterdir()):
         refuse(parser.prog, f"{out} exists and is not empty; choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     sweep = ["sweep", "--env", "point" if args.tiny else args.env] + (TINY if args.tiny else []) + extra
-    command = [sys.executable, "-m", "cdjax"] + sweep
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(pathlib.Path(__file__).resolve().parents[1])]
-                                                      + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    # the `cdjax` console script's main, as a program (argv[0] "cdjax": its start-up rows are recorded)
+    command = [sys.executable, "-c", "import sys; sys.argv[0] = 'cdjax'; from cdjax.cli import main; main()"] + sweep
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([args.code] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
     deadline = time.monotonic() + args.time_limit
     results, longest = [], 0.0
     warmup = args.cache == "warm" and not args.cache_dir
@@ -165,11 +177,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
             break
         env["CDJAX_JAX_CACHE"] = args.cache_dir or str(out / ("cache" if args.cache == "warm" else f"cache-{i}"))
         t0 = time.monotonic()
-        rows, launched, ended = run_one(command, out / f"run-{i}", env, max(deadline - time.monotonic(), 1.0))
+        rows, launched, ended = run_one(command, out / f"run-{i}", env, args.code,
+                                        max(deadline - time.monotonic(), 1.0))
         longest = max(longest, time.monotonic() - t0)
         if warmup and i == 0:
             continue  # it filled the cache
-        results.append({"run": i, "wall": ended - launched, "phases": phases(rows, launched, ended),
+        results.append({"run": i, "wall": ended - launched, "launched": launched, "phases": phases(rows, launched, ended),
                         "details": details(rows, launched)})
     if not results:
         refuse(parser.prog, "no process ran within --time-limit")
@@ -178,11 +191,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
             for kind in ("phases", "details"):
                 f.writelines(json.dumps({"run": r["run"], "kind": kind, "figure": name, "s": s}) + "\n"
                              for name, s in r[kind].items())
-            f.write(json.dumps({"run": r["run"], "kind": "wall", "figure": "total (wall clock)", "s": r["wall"]}) + "\n")
+            f.write(json.dumps({"run": r["run"], "kind": "wall", "figure": "total (wall clock)", "s": r["wall"],
+                                "launched": r["launched"], "ended": r["launched"] + r["wall"]}) + "\n")
     code = json.loads((out / f"run-{results[0]['run']}" / "run.json").read_text()).get("code", [{}])[-1]
     device = f"{code.get('backend', '?')} (jax {code.get('jax', '?')})"
     cache = f"{args.cache_dir} (as it was)" if args.cache_dir else args.cache
-    text = table(results, " ".join(["python -m cdjax"] + sweep + ["--out", "DIR"]), device, cache)
+    text = table(results, " ".join(["cdjax"] + sweep + ["--out", "DIR"]), device, cache)
+    text += f"\nCode: {args.code} ({code.get('commit', '?')[:10]}{', modified' if code.get('modified') else ''}).\n"
     (out / "table.md").write_text(text)
     print(text)
     return results

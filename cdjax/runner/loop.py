@@ -22,7 +22,9 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
+import importlib
 import pathlib
+import threading
 import time
 from typing import Sequence
 
@@ -159,6 +161,8 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             t_compile = time.perf_counter() - t_compile
             if spec.final_eval or spec.eval_every:  # compiled while training runs, not after it
                 compile_evaluators(arms, spec.eval_episodes, not setting.eval_sampled)
+            if writer and spec.final_eval:  # the plots' imports (matplotlib: about a second) while training runs
+                threading.Thread(target=_import_plots, name="cdjax-plots-import", daemon=True).start()
             for arm in arms:
                 for what, (wide, narrow) in arm.in_order.items():
                     progress.say(f"{arm.name}'s {what} program runs its GPU kernels in XLA's program order: with them "
@@ -204,6 +208,13 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             raise
         raise multihost.PeerLost(f"{err} before training started; no update was trained in {rd.path}"
                                  + (f"; resume with `{_resume_hint(rd)}`." if resume or rd.exists() else ".")) from None
+
+
+def _import_plots() -> None:
+    """Import cdjax.plots (the final plots import it again, then at once); an install without the plotting stack
+    says so there."""
+    with contextlib.suppress(ImportError):
+        importlib.import_module("cdjax.plots")
 
 
 def _train(loop: Loop, resume: bool, t_compile: float) -> pathlib.Path:
