@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     device = f"{code.get('backend', '?')} (jax {code.get('jax', '?')})"
     cache = f"{args.cache_dir} (as it was)" if args.cache_dir else args.cache
     text = table(results, " ".join(["cdjax"] + sweep + ["--out", "DIR"]), device, cache)
-    text += f"\nCode: {args.code} ({code.get('commit', '?')[:10]}{', modified' if code.get('modified') else ''}).\n"
+    text += f"\nCode: {args.code} ({(code.get('commit') or 'not a git checkout')[:10]}{', modified' if code.get('modified') else ''}).\n"
     (out / "table.md").write_text(text)
     print(text)
     return results
