@@ -117,10 +117,10 @@ def run_one(command: list[str], run_dir: pathlib.Path, env: dict, code: str,
             done = subprocess.run(command + ["--out", str(run_dir)], env=env, cwd=code, stdout=log,
                                   stderr=subprocess.STDOUT, timeout=timeout)
         except subprocess.TimeoutExpired:
-            refuse("benchmarks.startup", f"{run_dir.name} was still running at --time-limit (see {log.name})")
+            refuse("python -m benchmarks.startup", f"{run_dir.name} was still running at --time-limit (see {log.name})")
         ended = time.time()
     if done.returncode:
-        refuse("benchmarks.startup", f"{run_dir.name} ended with status {done.returncode} (see {log.name})")
+        refuse("python -m benchmarks.startup", f"{run_dir.name} ended with status {done.returncode} (see {log.name})")
     rows = [json.loads(line) for line in (run_dir / "timings.jsonl").read_text().splitlines() if line.strip()]
     return rows, launched, ended
 
@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     argv = sys.argv[1:] if argv is None else list(argv)
     extra = argv[argv.index("--") + 1:] if "--" in argv else []
     argv = argv[:argv.index("--")] if "--" in argv else argv
-    parser = Parser(prog="benchmarks.startup", description=__doc__.splitlines()[0])
+    parser = Parser(prog="python -m benchmarks.startup", description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="ant", help="the sweep's --env (default ant, at its preset)")
     parser.add_argument("--runs", type=int, default=3, help="whole processes timed one after the other")
     parser.add_argument("--out", required=True, help="directory for the runs, table.md and rows.jsonl")
@@ -182,7 +182,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         longest = max(longest, time.monotonic() - t0)
         if warmup and i == 0:
             continue  # it filled the cache
-        results.append({"run": i, "wall": ended - launched, "launched": launched, "phases": phases(rows, launched, ended),
+        results.append({"run": i, "wall": ended - launched, "launched": launched,
+                        "phases": phases(rows, launched, ended),
                         "details": details(rows, launched)})
     if not results:
         refuse(parser.prog, "no process ran within --time-limit")
@@ -197,7 +198,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     device = f"{code.get('backend', '?')} (jax {code.get('jax', '?')})"
     cache = f"{args.cache_dir} (as it was)" if args.cache_dir else args.cache
     text = table(results, " ".join(["cdjax"] + sweep + ["--out", "DIR"]), device, cache)
-    text += f"\nCode: {args.code} ({(code.get('commit') or 'not a git checkout')[:10]}{', modified' if code.get('modified') else ''}).\n"
+    commit = (code.get("commit") or "not a git checkout")[:10] + (", modified" if code.get("modified") else "")
+    text += f"\nCode: {args.code} ({commit}).\n"
     (out / "table.md").write_text(text)
     print(text)
     return results

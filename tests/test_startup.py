@@ -4,10 +4,12 @@ stretches from its timings.jsonl that sum to what was measured around it, and th
 import json
 import os
 import pathlib
+import sys
 
 import pytest
 
-from benchmarks import startup
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # `benchmarks` is not an installed package
+from benchmarks import startup  # noqa: E402
 
 KEPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks/results/2026-11-29-h200-sweep-smoke/ant/timings.jsonl"
 

@@ -18,10 +18,11 @@ A row (JSON object):
     process the index of the process that timed it (cdjax.multihost); only process 0 writes the file
 
 Programs are traced and lowered in the calling thread and compiled in compile threads, so compile rows overlap
-one another in time; a program taken from this process's cache (a second run_sweep of the same spec) has no row.
+one another in time (the evaluators' rows come from a background thread while training runs:
+cdjax.runner.evaluations); a program taken from this process's cache (a second run_sweep of the same spec) has no row.
 A resume appends its own rows after the earlier processes' (each process's `start` counts from its own call, and
-its rows open with its "plan" row; the start-up rows that follow it have a negative `start`). Timing costs a clock read and a dict per step:
-a few per chunk of training, none inside a compiled program.
+its rows open with its "plan" row; the start-up rows that follow it have a negative `start`). Timing costs a clock
+read and a dict per step: a few per chunk of training, none inside a compiled program.
 """
 
 from __future__ import annotations
