@@ -730,3 +730,29 @@ def test_evaluation_episodes_past_the_limit_are_refused_and_a_resume_is_warned(t
     with pytest.raises(ConfigError, match="--no-final-eval"):
         check_evaluation(*_built(tmp_path, 2 * LIMIT + 2, final_eval=False, eval_every=1), resume=False, say=said.append)
     assert len(said) == 1
+
+
+def test_an_evaluator_that_failed_to_compile_beside_training_is_compiled_again_for_the_evaluation(uninterrupted,
+                                                                                                 tmp_path, monkeypatch):
+    """The background compile of the evaluators (beside training, its memory in use) failed: the final evaluation
+    compiles them again and evaluates every run, as a sweep whose evaluators compiled in time. (The training programs
+    are the `uninterrupted` sweep's, from this process's cache.)"""
+    import cdjax.runner.evaluations as evaluations
+    import cdjax.runner.loop as loop
+
+    monkeypatch.setattr(evaluations, "_EVALUATORS", {})
+    failed = []
+
+    def failing(arms, episodes, deterministic):  # what the background thread hands over for an out-of-memory compile
+        for arm in arms:
+            arm.evaluating = evaluations.concurrent.futures.Future()
+            arm.evaluating.set_exception(RuntimeError("RESOURCE_EXHAUSTED: out of memory while compiling"))
+            failed.append(arm.name)
+
+    monkeypatch.setattr(loop, "compile_evaluators", failing)
+    out = tmp_path / "again"
+    run_sweep(dataclasses.replace(SPEC, out=out, eval_episodes=1, final_eval=True))
+    assert failed == list(SPEC.arms)
+    rows = io.read_jsonl(out / "eval.jsonl")
+    assert len(rows) == 2 + 4 and {r["arm"] for r in rows} == set(SPEC.arms)  # mbmf: 2 runs; cd: 2 alphas x 2 seeds
+    assert all(r["episodes"] == 1 and r["update"] == UPDATES and len(r["returns"]) == 1 for r in rows)

@@ -5,6 +5,7 @@ evaluated and its records appended to eval.jsonl."""
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import threading
 import time
 from typing import Callable
@@ -77,7 +78,8 @@ def eval_inputs(arm: Arm, abstract: bool = False) -> tuple:
 def compile_evaluators(arms: list[Arm], episodes: int, deterministic: bool) -> None:
     """Compile the arms' evaluation programs from shapes alone in a background thread, while training runs: each
     arm's `evaluating` is the future of its compiled program (arms that lower to the same program share it:
-    cdjax.evaluate). A failure is raised where an evaluation waits for it (evaluate_arms)."""
+    cdjax.evaluate). A compile that fails there (beside training, with its memory in use) is tried again where the
+    evaluation waits for it (evaluate_arms), which raises what that one meets."""
     def work(pairs):
         for arm, future in pairs:
             try:
@@ -111,7 +113,8 @@ def evaluate_arms(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int,
         ready = arm.evaluating
         if ready is not None:
             waited = time.perf_counter()
-            ready.result()  # the compile begun in the background (raises what it met)
+            with contextlib.suppress(Exception):  # a failed compile is tried again just below, training done
+                ready.result()
             _timed(arm, "evaluator", "wait", waited)
             arm.evaluating = None
         args = eval_inputs(arm)
