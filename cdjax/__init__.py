@@ -17,6 +17,9 @@ is imported on first use, so a MinAtar user never imports brax or MuJoCo.
 from __future__ import annotations
 
 import importlib
+import time as _time
+
+_imported_at = _time.time()  # when this process imported cdjax (the `cdjax` command's start-up rows: cdjax.io.timings)
 
 __version__ = "0.1.0"
 

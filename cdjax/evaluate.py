@@ -15,8 +15,10 @@ says why in one sentence and returns None.
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 import pathlib
+import threading
 import time
 from typing import Any, Callable, Sequence
 
@@ -123,15 +125,17 @@ def evaluate(trainer: Trainer, policy: Any, key: jax.Array, *, episodes: int, hp
 
 
 def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool, max_steps: int | None = None,
-                   timings: Timings | None = None, arm: str = "all") -> Callable[..., dict[str, jax.Array]]:
-    """jit(vmap(evaluate)) over runs: fn(policy [R], keys [R], hps [R]) -> results [R, ...].
+                   timings: Timings | None = None, arm: str = "all") -> "Evaluator":
+    """jit(vmap(evaluate)) over runs: fn(policy [R], keys [R], hps [R]) -> results [R, ...] (an `Evaluator`).
 
     Feed it `trainer.policy(state)` of a sweep's state and the stacked HParams of the same runs. Compiled as cdjax
     compiles its other programs, once per kind of input (`cdjax.budget.compile_fitting`): with the compile
     mode in force when it was made (so `--compile-mode deterministic` reaches the evaluations too) and the GPU's
-    data-flow scheduling, in program order where that would not fit in the device's free memory. Called inside
-    a trace (under your own jit), it is the plain jit(vmap(evaluate)). `timings`: where the trace, lowering and
-    compilation of each of its programs are timed (rows of `arm`, what "evaluator"; cdjax.io.timings).
+    data-flow scheduling, in program order where that would not fit in the device's free memory. Evaluators whose
+    programs lower to the same module (two arms whose policies differ only in values) share one compiled program in
+    this process. Called inside a trace (under your own jit), it is the plain jit(vmap(evaluate)). `timings`: where
+    the trace, lowering and compilation of each of its programs are timed (rows of `arm`, what "evaluator";
+    cdjax.io.timings).
     """
     from cdjax import runtime
 
@@ -139,29 +143,62 @@ def make_evaluator(trainer: Trainer, episodes: int, deterministic: bool, max_ste
         return evaluate(trainer, policy, key, episodes=episodes, hp=hp, deterministic=deterministic,
                         max_steps=max_steps)
 
-    program = jax.jit(jax.vmap(one))
-    mode = runtime.compile_mode()
-    compiled: dict = {}
+    return Evaluator(jax.jit(jax.vmap(one)), runtime.compile_mode(), timings, arm)
 
-    def evaluator(policy, keys, hps):
+
+# This process's compiled evaluation programs, by what XLA compiles: (a digest of the lowered module, the compile
+# mode). Arms whose policies differ only in values lower to the same module and so share one program; an arm whose
+# policy network, environment, episodes or run count differs lowers to another module and compiles its own.
+_PROGRAMS: dict[tuple[str, str], Any] = {}
+_COMPILING = threading.Lock()  # one evaluator program compiled at a time (a sweep's background thread, a caller)
+
+
+class Evaluator:
+    """A jitted evaluation program and its compiled forms, one per kind of input (`make_evaluator`)."""
+
+    def __init__(self, program: Callable, mode: str, timings: Timings | None, arm: str):
+        self.program = program  # jit(vmap(evaluate))
+        self.mode = mode  # the compile mode of its programs (cdjax.runtime)
+        self.timings = timings
+        self.arm = arm
+        self._compiled: dict = {}  # budget.signature of the inputs -> compiled program
+        self.compiles = 0  # programs this evaluator compiled itself (not taken from another's)
+
+    def __call__(self, policy, keys, hps) -> dict[str, jax.Array]:
         args = (policy, keys, hps)
         if any(_is_tracer(x) for x in jax.tree.leaves(args)):
-            return program(*args)
-        key = budget.signature(args)
-        if key not in compiled:
-            t0 = time.perf_counter()
-            traced = program.trace(*args)
-            t1 = time.perf_counter()
-            lowered = traced.lower()
-            t2 = time.perf_counter()
-            compiled[key] = budget.compile_fitting(lowered, mode=mode)[0]
-            if timings is not None:
-                timings.add(arm, "evaluator", "trace", t0, t1)
-                timings.add(arm, "evaluator", "lower", t1, t2)
-                timings.add(arm, "evaluator", "compile", t2)
-        return compiled[key](*args)
+            return self.program(*args)
+        return self.compiled(args)(*args)
 
-    return evaluator
+    def compiled(self, args: tuple, room: int | None = None):
+        """The compiled program for inputs like `args` ((policy, keys, hps): arrays or ShapeDtypeStructs with their
+        shardings), traced, lowered and compiled now if this evaluator has none yet; taken from this process's
+        programs when another evaluator lowered the same module. `room`: the bytes it may take (as
+        budget.compile_fitting; default: what is free on the device now)."""
+        key = budget.signature(args)
+        if key in self._compiled:
+            return self._compiled[key]
+        with _COMPILING:
+            if key not in self._compiled:
+                t0 = time.perf_counter()
+                traced = self.program.trace(*args)
+                t1 = time.perf_counter()
+                lowered = traced.lower()
+                digest = hashlib.sha256(lowered.as_text().encode()).hexdigest()
+                t2 = time.perf_counter()
+                self._timed("trace", t0, t1)
+                self._timed("lower", t1, t2)
+                shared = (digest, self.mode)
+                if shared not in _PROGRAMS:
+                    _PROGRAMS[shared] = budget.compile_fitting(lowered, room=room, mode=self.mode)[0]
+                    self.compiles += 1
+                    self._timed("compile", t2, time.perf_counter())
+                self._compiled[key] = _PROGRAMS[shared]
+        return self._compiled[key]
+
+    def _timed(self, step: str, t0: float, end: float) -> None:
+        if self.timings is not None:
+            self.timings.add(self.arm, "evaluator", step, t0, end)
 
 
 def _is_tracer(x) -> bool:

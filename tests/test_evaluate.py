@@ -226,3 +226,35 @@ def test_render_video_mjx(tmp_path):
     frames = iio.imread(result)
     assert frames.shape[0] == 13 and frames.shape[1:3] == (64, 96)  # the reset frame + 12 steps
     assert frames.std() > 1.0  # not a blank image
+
+
+def test_evaluators_of_the_same_program_share_one_compile_and_a_different_network_compiles_its_own(monkeypatch):
+    """Two arms' evaluators (the model-free and cd configs: policies that differ only in values) lower to one module
+    and share one compiled program, whose results equal, bit for bit, each evaluator's compiled alone; an arm whose
+    policy network is narrower lowers to another module and compiles its own."""
+    import cdjax.evaluate
+
+    monkeypatch.setattr(cdjax.evaluate, "_PROGRAMS", {})
+    hps = jax.tree.map(lambda x: jnp.stack([x, x]), HParams().as_float32())
+    keys = jax.random.split(jax.random.key(8), 2)
+
+    def inputs(config, seed):  # a trainer and two runs' untrained policies
+        trainer = host_trainer(config)
+        return trainer, jax.vmap(trainer.fresh_policy)(jax.random.split(jax.random.key(seed), 2))
+
+    arms = [inputs(dataclasses.replace(POINT, arm="model-free"), 1), inputs(POINT, 2)]
+    shared = [make_evaluator(trainer, episodes=2, deterministic=True) for trainer, _ in arms]
+    results = [ev(policy, keys, hps) for ev, (_, policy) in zip(shared, arms)]
+    assert [ev.compiles for ev in shared] == [1, 0] and len(cdjax.evaluate._PROGRAMS) == 1
+    assert not np.array_equal(results[0]["return"], results[1]["return"])  # different policies
+    for (trainer, policy), got in zip(arms, results):
+        monkeypatch.setattr(cdjax.evaluate, "_PROGRAMS", {})
+        alone = make_evaluator(trainer, episodes=2, deterministic=True)
+        want = alone(policy, keys, hps)
+        assert alone.compiles == 1
+        for name in ("return", "discounted_return", "length", "initial_obs"):
+            np.testing.assert_array_equal(got[name], want[name])
+    narrow = inputs(dataclasses.replace(POINT, policy_hidden=(8,)), 3)
+    evaluator = make_evaluator(narrow[0], episodes=2, deterministic=True)
+    evaluator(narrow[1], keys, hps)
+    assert evaluator.compiles == 1 and len(cdjax.evaluate._PROGRAMS) == 2

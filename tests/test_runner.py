@@ -136,12 +136,21 @@ def test_interrupted_run_keeps_logs_and_checkpoints_and_resume_gives_the_same_nu
 
 def test_the_timings_record_says_where_each_process_of_a_sweep_spent_its_time(tmp_path, monkeypatch):
     """timings.jsonl: the first process's rows (each arm's programs traced, lowered and compiled; init; log and
-    checkpoint writes) kept by the interrupt, then the resume's (restores, the evaluator's compile apart from the
-    evaluation itself, eval.jsonl and plots), each process opening with its plan; `Timings` sums them."""
+    checkpoint writes) kept by the interrupt, then the resume's (restores, the evaluator compiled once for both arms,
+    in the background while training ran, apart from the evaluation itself, eval.jsonl and plots), each process
+    opening with its plan; `Timings` sums them. The evaluations in eval.jsonl equal, bit for bit, what
+    cdjax.evaluate.make_evaluator gives when called directly on the same states and keys."""
+    import threading
+
+    import cdjax.evaluate
     import cdjax.runner.arms as arms
+    import cdjax.runner.evaluations as evaluations
+    from cdjax.runner import EVAL_TAG
 
     monkeypatch.setattr(arms, "_BUILT", {})  # nothing from this process's cache: every program traced and compiled
     monkeypatch.setattr(arms, "_COMPILED", {})
+    monkeypatch.setattr(evaluations, "_EVALUATORS", {})
+    monkeypatch.setattr(cdjax.evaluate, "_PROGRAMS", {})
     out = tmp_path / "timed"
 
     def ctrl_c(chunks, updates):
@@ -149,26 +158,34 @@ def test_the_timings_record_says_where_each_process_of_a_sweep_spent_its_time(tm
             raise KeyboardInterrupt
 
     with pytest.raises(Interrupted):
-        run_sweep(dataclasses.replace(SPEC, out=out, eval_episodes=1, final_eval=True), after_chunk=ctrl_c)
+        # one alpha: both arms have 2 runs, the evaluation's shapes, and policies that differ only in values
+        run_sweep(dataclasses.replace(SPEC, out=out, grid={}, eval_episodes=1, final_eval=True), after_chunk=ctrl_c)
+    for thread in threading.enumerate():  # the evaluators it began compiling in the background
+        if thread.name == "cdjax-evaluators":
+            thread.join()
     first = io.read_timings(out)
     assert first and first.skipped == 0 and first[0]["what"] == "plan" and {r["process"] for r in first} == {0}
     assert all(r["s"] >= 0 and r["start"] >= 0 for r in first)
     assert all(abs((r["at"] - first[0]["at"]) - (r["start"] - first[0]["start"])) < 1e-3 for r in first)
     steps = {(r["arm"], r["what"], r["step"]) for r in first}
     assert {("all", what, "host") for what in ("plan", "build", "memory", "programs", "setup")} <= steps
+    assert not {("all", what, "host") for what in ("interpreter", "imports")} & steps  # not the `cdjax` command
     for arm in SPEC.arms:
         for what in ("init", "chunk"):
             assert {(arm, what, "trace"), (arm, what, "lower")} <= steps, (arm, what)
         assert {(arm, "init", "init"), (arm, "metrics.jsonl", "write"), (arm, "checkpoint", "write")} <= steps, arm
         assert (arm, "checkpoint", "restore") not in steps
     compiled = [r["what"] for r in first if r["step"] == "compile"]
-    assert "chunk" in compiled and "init" in compiled and "evaluator" not in compiled
+    assert "chunk" in compiled and "init" in compiled
     # a compile row ends after the trace and lowering of the same program began
     for arm in SPEC.arms:
         traced = next(r for r in first if (r["arm"], r["what"], r["step"]) == (arm, "chunk", "trace"))
         lowered = next(r for r in first if (r["arm"], r["what"], r["step"]) == (arm, "chunk", "lower"))
         assert traced["start"] + traced["s"] <= lowered["start"] + 1e-6
 
+    # the resume as a new process would: its evaluators made and compiled again (its training programs are cached)
+    monkeypatch.setattr(evaluations, "_EVALUATORS", {})
+    monkeypatch.setattr(cdjax.evaluate, "_PROGRAMS", {})
     run_sweep(resume_spec(out, progress=False), resume=True)
     rows = io.read_timings(out)
     assert rows[:len(first)] == list(first)  # appended after the first process's rows
@@ -177,8 +194,29 @@ def test_the_timings_record_says_where_each_process_of_a_sweep_spent_its_time(tm
     steps = {(r["arm"], r["what"], r["step"]) for r in second}
     for arm in SPEC.arms:
         assert {(arm, "checkpoint", "restore"), (arm, "evaluator", "trace"), (arm, "evaluator", "lower"),
-                (arm, "evaluator", "compile"), (arm, "evaluation", "evaluate")} <= steps, arm
-    assert {("all", "eval.jsonl", "write"), ("all", "plots", "write")} <= steps
+                (arm, "evaluator", "wait"), (arm, "evaluation", "evaluate")} <= steps, arm
+    assert {("all", "eval.jsonl", "write"), ("all", "plots", "write"), ("all", "evaluation", "host")} <= steps
+    # the arms' policies differ only in values: one evaluation program, compiled once, beginning before the
+    # evaluation (while training ran)
+    compiles = [r for r in second if (r["what"], r["step"]) == ("evaluator", "compile")]
+    evaluation = next(r for r in second if (r["arm"], r["what"], r["step"]) == ("all", "evaluation", "host"))
+    assert len(compiles) == 1 and len(cdjax.evaluate._PROGRAMS) == 1
+    assert min(r["start"] for r in second if r["what"] == "evaluator") < evaluation["start"]
+
+    # the same evaluations from the evaluator called directly on the restored states and keys, compiled alone
+    monkeypatch.setattr(cdjax.evaluate, "_PROGRAMS", {})
+    kept = {(r["arm"], r["hp"], r["seed"]): r for r in io.read_jsonl(out / "eval.jsonl")}
+    _, restored = restore_arms(out)
+    for arm in restored:
+        evaluator = cdjax.evaluate.make_evaluator(arm.trainer, episodes=1, deterministic=True)
+        keys = jax.vmap(lambda k: jax.random.fold_in(k, EVAL_TAG))(arm.keys)
+        direct = cdjax.evaluate.eval_records(evaluator(arm.trainer.policy(arm.state), keys, arm.hps), arm=arm.name,
+                                             hp_labels=list(arm.plan.labels), seeds=range(SPEC.seeds),
+                                             deterministic=True)
+        for record in direct:
+            saved = kept[(record["arm"], record["hp"], record["seed"])]
+            assert saved["returns"] == record["returns"] and saved["lengths"] == record["lengths"], record["arm"]
+            assert saved["discounted_returns"] == record["discounted_returns"]
     timings = io.Timings()
     timings.add("a", "chunk", "compile", 0.0, 2.0)
     timings.add("b", "chunk", "compile", 1.0, 2.5)
@@ -676,7 +714,7 @@ def test_evaluation_episodes_past_the_limit_are_refused_and_a_resume_is_warned(t
     cannot change) is told and goes on."""
     from cdjax import ConfigError
     from cdjax.evaluate import MAX_EVAL_EPISODE_STEPS as LIMIT
-    from cdjax.runner.arms import check_evaluation
+    from cdjax.runner.evaluations import check_evaluation
 
     said = []
     arms, spec = _built(tmp_path, 2 * LIMIT + 2)  # LIMIT + 1 agent steps
@@ -692,3 +730,29 @@ def test_evaluation_episodes_past_the_limit_are_refused_and_a_resume_is_warned(t
     with pytest.raises(ConfigError, match="--no-final-eval"):
         check_evaluation(*_built(tmp_path, 2 * LIMIT + 2, final_eval=False, eval_every=1), resume=False, say=said.append)
     assert len(said) == 1
+
+
+def test_an_evaluator_that_failed_to_compile_beside_training_is_compiled_again_for_the_evaluation(uninterrupted,
+                                                                                                 tmp_path, monkeypatch):
+    """The background compile of the evaluators (beside training, its memory in use) failed: the final evaluation
+    compiles them again and evaluates every run, as a sweep whose evaluators compiled in time. (The training programs
+    are the `uninterrupted` sweep's, from this process's cache.)"""
+    import cdjax.runner.evaluations as evaluations
+    import cdjax.runner.loop as loop
+
+    monkeypatch.setattr(evaluations, "_EVALUATORS", {})
+    failed = []
+
+    def failing(arms, episodes, deterministic):  # what the background thread hands over for an out-of-memory compile
+        for arm in arms:
+            arm.evaluating = evaluations.concurrent.futures.Future()
+            arm.evaluating.set_exception(RuntimeError("RESOURCE_EXHAUSTED: out of memory while compiling"))
+            failed.append(arm.name)
+
+    monkeypatch.setattr(loop, "compile_evaluators", failing)
+    out = tmp_path / "again"
+    run_sweep(dataclasses.replace(SPEC, out=out, eval_episodes=1, final_eval=True))
+    assert failed == list(SPEC.arms)
+    rows = io.read_jsonl(out / "eval.jsonl")
+    assert len(rows) == 2 + 4 and {r["arm"] for r in rows} == set(SPEC.arms)  # mbmf: 2 runs; cd: 2 alphas x 2 seeds
+    assert all(r["episodes"] == 1 and r["update"] == UPDATES and len(r["returns"]) == 1 for r in rows)

@@ -12,12 +12,13 @@ logs, checkpoints, exact resume, evaluation and plots.
 
 Rooms: `spec` (what is asked, bounds), `plan` (arms, grids, run.json, resume compatibility), `cdjax.budget` (memory;
 below the runner, since evaluation compiles with it too, and importable as `cdjax.runner.budget`), `arms` (one arm's
-programs and state, evaluation), `loop` (run_sweep), `rounds` (the chunk loop), `console` (progress, clock, Ctrl-C,
-library messages into cdjax.log).
+programs and state), `evaluations` (its evaluator, compiled once per sweep), `loop` (run_sweep), `rounds` (the chunk
+loop), `console` (progress, clock, Ctrl-C, library messages into cdjax.log).
 """
 
 from cdjax import budget  # noqa: F401  (`from cdjax.runner import budget` works)
-from cdjax.runner.arms import EVAL_TAG, Arm, evaluate_arms, restore_arms
+from cdjax.runner.arms import Arm, restore_arms
+from cdjax.runner.evaluations import EVAL_TAG, evaluate_arms
 from cdjax.runner.loop import Interrupted, TimeLimit, prepare, run_sweep
 from cdjax.runner.plan import ArmPlan, chunk_size, plan_arms, resume_spec, run_record, spec_of, validate_grid
 from cdjax.runner.spec import SweepSpec, preset_spec

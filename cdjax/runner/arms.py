@@ -1,5 +1,5 @@
 """One arm on the host side: its trainer and compiled programs, its runs' state and progress; building,
-compiling, restoring and evaluating arms."""
+compiling and restoring arms (evaluating them: cdjax.runner.evaluations)."""
 
 from __future__ import annotations
 
@@ -16,14 +16,12 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from cdjax import budget, io, multihost, runtime
-from cdjax.evaluate import MAX_EVAL_EPISODE_STEPS, episode_steps, eval_records, make_evaluator
+from cdjax import budget, io, runtime
 from cdjax.protocol import ConfigError, Setting, Trainer
 from cdjax.runner.plan import ArmPlan, plan_arms, recorded
 from cdjax.runner.spec import SweepSpec
 from cdjax.sweep import Sweep, make_sweep
 
-EVAL_TAG = 0x0E7A1  # folded into each run's training key to get its evaluation key
 # This process's trainers, sweeps and compiled programs, by what they are built from: a second run_sweep of the
 # same spec (a notebook's next cell, a resume in the same process) builds, traces and compiles nothing again.
 _BUILT: dict = {}
@@ -73,6 +71,7 @@ class Arm:
     room: int | None = None  # bytes a program may take beside every arm's states (None: no limit; _compiled)
     in_order: dict = dataclasses.field(default_factory=dict)  # program -> (bytes scheduled by data flow, in order)
     timings: io.Timings | None = None  # where the sweep's time goes (run_sweep's record; None: not timed)
+    evaluating: concurrent.futures.Future | None = None  # its evaluator compiling in the background (compile_evaluators)
 
     @property
     def name(self) -> str:
@@ -280,29 +279,6 @@ def _eval_reset_shape(trainer: Trainer, episodes: int, key: jax.Array):
                          lambda: jax.eval_shape(trainer.eval_env(episodes).reset, key))
 
 
-def check_evaluation(arms: list[Arm], spec: SweepSpec, resume: bool, say: Callable[[str], None]) -> None:
-    """Refuse (ConfigError) a sweep whose evaluations would run impractically long: an arm's eval episodes time out
-    after more than MAX_EVAL_EPISODE_STEPS agent steps, stepped one after another. A resume, whose options cannot
-    change, is warned instead (training goes on)."""
-    if not (spec.final_eval or spec.eval_every):
-        return
-    for arm in arms:
-        steps = episode_steps(arm.trainer.eval_env(spec.eval_episodes))
-        if steps <= MAX_EVAL_EPISODE_STEPS:
-            continue
-        field = next((f for f in ("eval_episode_length", "episode_length") if hasattr(arm.plan.config, f)), None)
-        flag = f"--{field.replace('_', '-')}" if field else "episode length"
-        what = (f"arm {arm.name}'s evaluation episodes last up to {steps:,} agent steps"
-                + (f" ({flag} {getattr(arm.plan.config, field):,})" if field else "")
-                + ", stepped one after another, so the sweep's evaluations would run impractically long (the limit is "
-                f"{MAX_EVAL_EPISODE_STEPS:,} agent steps)")
-        if not resume:
-            raise ConfigError(f"{what[0].upper()}{what[1:]}: give a shorter {flag}, or --no-final-eval (and no "
-                              "--eval-every) to train without evaluating.")
-        say(f"Warning: {what}; stop them with Ctrl-C after training (the checkpoints are kept).")
-        return
-
-
 def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
     """budget.check_states from the shapes of one run's state and evaluation; returns the states' bytes. Nothing is
     drawn or computed for the runs (the reset program's trace is shared with compile_all: _init_shape)."""
@@ -445,52 +421,6 @@ def restore_arms(run_dir: str | pathlib.Path) -> tuple[SweepSpec, list[Arm]]:
                                  f"({unreadable_text(arm.ckpt.unreadable)}).")
         arms.append(arm)
     return spec, arms
-
-
-def evaluate_arms(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int, deterministic: bool,
-                  say: Callable[[str], None]) -> list[dict]:
-    """Evaluate every run of every arm at its current state; append the records to eval.jsonl.
-
-    One jit(vmap) program per arm over its runs (cdjax.evaluate.make_evaluator), fed only the policy
-    part of the state. Each run's evaluation key is its training key folded with EVAL_TAG. Several processes: every
-    process evaluates its runs and gets every record; process 0 appends them.
-    """
-    t0 = time.perf_counter()
-    records = []
-    for arm in arms:
-        evaluator = make_evaluator(arm.trainer, episodes=episodes, deterministic=deterministic, timings=arm.timings,
-                                   arm=arm.name)
-        compiling = arm.timings.total(arm=arm.name, what="evaluator") if arm.timings is not None else 0.0
-        started = time.perf_counter()
-        keys = jax.vmap(lambda k: jax.random.fold_in(k, EVAL_TAG))(arm.keys)
-        results = multihost.fetch(evaluator(arm.trainer.policy(arm.state), keys, arm.hps))
-        if arm.timings is not None:  # the episodes alone: the evaluator's trace and compile have rows of their own
-            row = arm.timings.add(arm.name, "evaluation", "evaluate", started)
-            row["s"] -= arm.timings.total(arm=arm.name, what="evaluator") - compiling
-        records += eval_records(results, arm=arm.name, hp_labels=list(arm.plan.labels), seeds=range(num_seeds),
-                                deterministic=deterministic, update=arm.updates, env_steps=arm.env_steps())
-    with multihost.together():
-        if multihost.is_writer():
-            with timed(arms[0].timings if arms else None, "all", "eval.jsonl", "write"):
-                io.append_jsonl(rd.eval, records)
-    means: dict[str, list[float]] = {}
-    for row in records:
-        if row.get("eval/return") is not None:
-            means.setdefault(row["arm"], []).append(row["eval/return"])
-    text = "  ".join(f"{arm} {np.mean(v):.1f}" for arm, v in means.items())
-    say(f"Evaluation ({episodes} episodes per run, {'deterministic' if deterministic else 'sampled'} actions, "
-        f"{time.perf_counter() - t0:.1f} s): return {text}")
-    return records
-
-
-def finished_evaluation(rd: io.RunDir, arms: list[Arm], num_seeds: int, episodes: int,
-                        deterministic: bool = True) -> bool:
-    """Whether eval.jsonl already holds the final evaluation (of that kind) of every run of every arm."""
-    final = {a.name: a.num_updates for a in arms}
-    have = {(r.get("arm"), r.get("hp"), r.get("seed")) for r in io.read_jsonl(rd.eval)
-            if r.get("deterministic", True) == deterministic and r.get("episodes") == episodes
-            and r.get("update") == final.get(r.get("arm"))}
-    return all((a.name, label, s) in have for a in arms for label in a.plan.labels for s in range(num_seeds))
 
 
 def nanmean(values) -> float:

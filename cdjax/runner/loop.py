@@ -22,15 +22,17 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
+import importlib
 import pathlib
+import threading
 import time
 from typing import Sequence
 
 from cdjax import budget, io, multihost, runtime
 from cdjax.protocol import ConfigError, Setting
-from cdjax.runner.arms import (Arm, abstract_state, build, check_evaluation, check_memory, compile_all, expectation,
-                               unreadable_text)
+from cdjax.runner.arms import Arm, abstract_state, build, check_memory, compile_all, expectation, unreadable_text
 from cdjax.runner.console import Progress, Stopped, library_log, stopped
+from cdjax.runner.evaluations import check_evaluation, compile_evaluators
 from cdjax.runner.plan import plan_arms, run_record, same_run, without_retired
 from cdjax.runner.rounds import (  # noqa: F401  (TimeLimit: importable from here as before)
     AfterChunk, Interrupted, Loop, TimeLimit, _resume_hint)
@@ -129,6 +131,7 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             with timings.time("all", "plan", "host"):
                 runtime.environment_options()  # $CDJAX_XLA_OPTIONS refused now, not after the build
                 spec, setting, plans, record = _prepare(spec, resume)
+            timings.add_startup()  # the `cdjax` command's start-up before this call, where it started the process
             rd = io.RunDir(pathlib.Path(spec.out))
             restart = set(restart)
             if restart and not resume:
@@ -156,6 +159,10 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
                 arm.room = have - states
             compile_all(arms, record["chunk_updates"], done)
             t_compile = time.perf_counter() - t_compile
+            if spec.final_eval or spec.eval_every:  # compiled while training runs, not after it
+                compile_evaluators(arms, spec.eval_episodes, not setting.eval_sampled)
+            if writer and spec.final_eval:  # the plots' imports (matplotlib: about a second) while training runs
+                threading.Thread(target=_import_plots, name="cdjax-plots-import", daemon=True).start()
             for arm in arms:
                 for what, (wide, narrow) in arm.in_order.items():
                     progress.say(f"{arm.name}'s {what} program runs its GPU kernels in XLA's program order: with them "
@@ -201,6 +208,13 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             raise
         raise multihost.PeerLost(f"{err} before training started; no update was trained in {rd.path}"
                                  + (f"; resume with `{_resume_hint(rd)}`." if resume or rd.exists() else ".")) from None
+
+
+def _import_plots() -> None:
+    """Import cdjax.plots (the final plots import it again, then at once); an install without the plotting stack
+    says so there."""
+    with contextlib.suppress(ImportError):
+        importlib.import_module("cdjax.plots")
 
 
 def _train(loop: Loop, resume: bool, t_compile: float) -> pathlib.Path:

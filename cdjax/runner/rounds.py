@@ -20,8 +20,9 @@ import numpy as np
 
 from cdjax import io, multihost, runtime
 from cdjax.protocol import Setting
-from cdjax.runner.arms import Arm, evaluate_arms, finished_evaluation, nanmean, restore, unreadable_text
+from cdjax.runner.arms import Arm, nanmean, restore, unreadable_text
 from cdjax.runner.console import Clock, Progress, StopFlag
+from cdjax.runner.evaluations import evaluate_arms, finished_evaluation
 from cdjax.runner.plan import return_note
 from cdjax.runner.spec import SweepSpec
 from cdjax.sweep import unpad
