@@ -9,9 +9,25 @@ instead of an MJX task. Dynamics (dt = 0.1, action in [-1, 1]^2):
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
 import jax
 import jax.numpy as jnp
-from brax.envs.base import State
+from flax import struct
+
+
+@struct.dataclass
+class State:
+    """The fields of Brax's `envs.base.State`, which Brax's training wrappers read and replace, without importing
+    Brax (and MJX) for a task that needs neither."""
+
+    pipeline_state: Any
+    obs: jax.Array
+    reward: jax.Array
+    done: jax.Array
+    metrics: dict = dataclasses.field(default_factory=dict)
+    info: dict = dataclasses.field(default_factory=dict)
 
 
 class PointMass:
