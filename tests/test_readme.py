@@ -104,6 +104,22 @@ def test_the_benchmarks_snippet_runs(tmp_path):
     assert results and (out / "results.md").is_file()
 
 
+def test_the_experiments_block_lists_the_units_it_runs_one_of():
+    """The `list` line runs (and names the unit); the `run` line trains on a GPU, so here its unit is checked to
+    exist and its arguments to be the experiment's own parser's (`run UNIT --out DIR`)."""
+    lines = next(lines for lines in shell_blocks() if any("experiments." in ln for ln in lines))
+    listed, run = (shlex.split(ln.split("#")[0]) for ln in lines)
+    assert listed[:3] == ["python", "-m", "experiments.paper_obs_space"] and listed[3:] == ["list"]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    done = subprocess.run([sys.executable, *listed[1:]], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    from experiments.paper_obs_space import UNITS
+
+    assert run[:4] == listed[:3] + ["run"] and run[4] in UNITS and f"| {run[4]} |" in done.stdout
+    assert run[5:] == ["--out", "runs/ant-1"]
+
+
 def test_the_citation_names_the_paper_and_cdjax():
     cff = (ROOT / "CITATION.cff").read_text()
     (bib,) = [body for lang, body in BLOCKS if lang == "bibtex"]
