@@ -166,9 +166,11 @@ def main(argv: Sequence[str] | None = None) -> None:
                 raise
             if args.command == "envs":
                 return cmd_envs()
+            runtime.check_xla_flags()  # before JAX's backend starts: XLA would end the process on a bad flag
             _configure(args)
             if args.command in ("sweep", "eval"):
                 _join(args)
+                runtime.check_backend()  # JAX_PLATFORMS naming a backend this machine lacks: one sentence
             if args.command == "sweep":
                 limit = TimeLimit(args.time_limit, start=started) if args.time_limit else None
                 cmd_sweep(args, setting, " ".join(["cdjax"] + [shlex.quote(a) for a in argv]), limit)

@@ -143,6 +143,10 @@ class RunDir:
         if len(os.fsencode(str(self.path.absolute()))) >= path_max:
             raise RunDirError(f"{option}: the path is {len(os.fsencode(str(self.path.absolute())))} bytes, longer than "
                               f"the {path_max} this file system allows; choose a shorter one.")
+        link = next((p for p in (self.path, *self.path.parents) if p.is_symlink() and not p.exists()), None)
+        if link is not None:
+            raise RunDirError(f"{option} {self.path}: {link} is a symbolic link to {os.readlink(link)}, which does not "
+                              "exist; create its target or name another path.")
 
     def check_writable(self) -> None:
         """RunDirError (one sentence) when the directory could not be made or written; writes nothing."""
