@@ -108,6 +108,8 @@ def cmd_plot(args: argparse.Namespace) -> None:
         rd = io.RunDir(pathlib.Path(run_dir))
         rd.check_name("RUN_DIR")
         runs.append(rd.read())  # a clear error for a directory that holds no run
+        rd.check_logs("nothing was plotted: restore it, or decompress its readable part into the plain log beside "
+                      "it (xz -dc or gzip -dc) and remove it, to plot what it holds.")
         _say_unnamed_arms(rd)
         dirs.append(rd.path)
     if len(set(d.resolve() for d in dirs)) < len(dirs):

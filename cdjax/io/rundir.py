@@ -80,6 +80,15 @@ class RunDir:
                 f"arm removed from run.json by hand?): {held}; the summary and plots rank their logged runs beside "
                 "this run's arms unless those are moved out.")
 
+    def check_logs(self, then: str) -> None:
+        """RunDirError (one sentence, ending with `then`: what was not done) when a compressed log of the run
+        (metrics, eval or phase: `metrics.jsonl.xz`, ...) is damaged, so that no command uses part of it as the
+        whole (cdjax.io.jsonl's one rule)."""
+        for path in (self.metrics, self.eval, self.phase):
+            damaged = read_jsonl(path).damaged
+            if damaged:
+                raise RunDirError(f"{damaged}; {then}")
+
     def exists(self) -> bool:
         try:
             return self.run_json.is_file()
