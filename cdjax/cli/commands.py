@@ -50,6 +50,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
     with multihost.together():
         rd.check_name("RUN_DIR")
         rd.read()  # a clear error for a directory that holds no run
+        if writer:  # what the evaluation writes, checked before any episode runs
+            rd.check_run_writable(dirs=("videos",) if args.video else (), files=("eval.jsonl", ".lock"))
     try:
         with contextlib.ExitStack() as held, library_log(rd.process_log(multihost.index()), tell):
             with multihost.together():

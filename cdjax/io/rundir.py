@@ -167,6 +167,44 @@ class RunDir:
             raise RunDirError(f"cannot write into {self.path}: {os.strerror(errno.ENOTDIR)}; choose another --out.")
         if not os.access(existing, os.W_OK | os.X_OK):
             raise RunDirError(f"cannot write into {self.path}: {os.strerror(errno.EACCES)} ({existing}); choose another --out.")
+        self.check_run_writable()
+
+    # What a run writes beside its logs: the folders probed by check_run_writable, and (below) its files.
+    WRITTEN_DIRS = ("checkpoints", "tb", "plots", "videos")
+    WRITTEN_FILES = ("run.json", "metrics.jsonl", "eval.jsonl", "phase.jsonl", "timings.jsonl", "summary.md",
+                     "summary.csv", ".lock")
+
+    def check_run_writable(self, dirs: Iterable[str] = WRITTEN_DIRS, files: Iterable[str] = WRITTEN_FILES) -> None:
+        """RunDirError (one sentence naming the path) when something the run will write into already exists and
+        cannot be written: its folders (checkpoints/ and each arm's, tb/, plots/, videos/: a file is made and removed
+        in each, which a read-only mount or an immutable folder refuses even to root) and its files (opened for
+        appending, nothing written), so that a fresh start or a resume is refused before any training rather than
+        at its first checkpoint. `dirs` and `files`: what the command writes (default: what a sweep does). Changes
+        no file."""
+        folders = [self.path] if self.path.is_dir() else []
+        for name in dirs:
+            top = self.path / name
+            if top.is_dir():
+                below = top.iterdir() if name == "checkpoints" else top.rglob("*")  # a checkpoint is written once
+                folders += [top, *sorted(p for p in below if p.is_dir())]
+        for folder in folders:
+            probe = folder / ".cdjax-write-test"
+            try:
+                probe.write_bytes(b"")
+                probe.unlink()
+            except OSError as err:
+                raise RunDirError(f"cannot write into {folder}: {reason(err)}; the command writes there, so nothing was "
+                                  "started: make it writable, then run the command again.") from None
+        paths = [self.path / name for name in files]
+        paths += [p for p in (self.path / "plots").glob("*") if p.is_file()] if "plots" in dirs else []
+        for path in paths:
+            if not path.is_file():
+                continue
+            try:
+                os.close(os.open(path, os.O_WRONLY | os.O_APPEND))
+            except OSError as err:
+                raise RunDirError(f"cannot write {path}: {reason(err)}; the command writes it, so nothing was started: "
+                                  "make it writable, then run the command again.") from None
 
     def create(self) -> None:
         """Make the directory (and its parents): RunDirError, one sentence, when that cannot be done."""
