@@ -40,7 +40,8 @@ def _join(args: argparse.Namespace) -> None:
     """--distributed: join the other processes before anything runs in JAX; its options alone are refused."""
     given = [flag for flag, value in (("--coordinator", args.coordinator), ("--num-processes", args.num_processes),
                                       ("--process-id", args.process_id), ("--heartbeat-timeout",
-                                                                          args.heartbeat_timeout)) if value is not None]
+                                                                          args.heartbeat_timeout),
+                                      ("--join-timeout", args.join_timeout)) if value is not None]
     if not args.distributed:
         if given:
             raise UsageError(f"{given[0]} goes with --distributed (every process of the sweep runs the same command "
@@ -50,7 +51,27 @@ def _join(args: argparse.Namespace) -> None:
         raise UsageError("--video renders on one process: run `cdjax eval RUN_DIR --video` without --distributed (one "
                          "process reads checkpoints that several wrote).")
     heartbeat = math.ceil(args.heartbeat_timeout) if args.heartbeat_timeout is not None else None
-    multihost.initialize(args.coordinator, args.num_processes, args.process_id, heartbeat)
+    join = args.join_timeout if args.join_timeout is not None else multihost.DEFAULT_JOIN_S
+    multihost.initialize(args.coordinator, args.num_processes, args.process_id, heartbeat, arguments=_agreed(args),
+                         join_s=join, say=say)
+
+
+# Options that may differ between the processes of one sweep: each process's own number and waits, where its
+# compilation cache is, how it compiles and reports, its own time limit (any process's stops all of them).
+_OWN = {"process_id", "heartbeat_timeout", "join_timeout", "cache_dir", "compile_mode", "debug_nans", "disable_jit",
+        "time_limit", "spec.progress", "coordinator"}
+
+
+def _agreed(args: argparse.Namespace) -> dict:
+    """What every process of a sweep must be given alike (out, arms, seeds, steps, config, grid, ...), as option
+    name -> value in words, exchanged when they join (cdjax.multihost.join)."""
+    def name(key: str) -> str:
+        return "--" + key.split(".", 1)[-1].replace("_", "-") if key not in ("command", "run_dir", "run_dirs") else key
+
+    def words(key: str, value) -> str:
+        return os.path.normpath(value) if key in ("out", "run_dir") and isinstance(value, str) else repr(value)
+
+    return {name(k): words(k, v) for k, v in sorted(vars(args).items()) if k not in _OWN}
 
 
 class _QuietForeignThreads:

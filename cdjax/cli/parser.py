@@ -53,6 +53,9 @@ def _distributed_options() -> argparse.ArgumentParser:
     group.add_argument("--heartbeat-timeout", type=options.seconds, metavar="SECONDS",
                        help=f"with --distributed: a process silent this long counts as lost (default "
                             f"{multihost.DEFAULT_HEARTBEAT_S}, JAX's)")
+    group.add_argument("--join-timeout", type=options.seconds, metavar="SECONDS",
+                       help=f"with --distributed: how long the processes wait for one another to join, and for JAX's "
+                            f"start-up, before ending with one sentence (default {multihost.DEFAULT_JOIN_S})")
     return parent
 
 
