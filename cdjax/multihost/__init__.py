@@ -98,16 +98,15 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     coordinator, num_processes, process_id = _found(coordinator, num_processes, process_id)
     if None not in (coordinator, num_processes, process_id) and num_processes > 1:
         rendezvous(coordinator, num_processes, process_id, arguments or {}, join_s, say or _stderr)
-    # Inside JAX's start-up nothing Python runs until it returns: SIGTERM ends the process as the system does, and
-    # a lost peer is noticed by the coordination service's heartbeats, which end this process with cdjax's sentence
-    # (`_heartbeats_missed`) rather than XLA's abort.
+    # Inside JAX's start-up nothing Python runs until it returns: SIGTERM ends the process as the system does. (A
+    # peer lost while this process waits inside JAX's coordination service ends it as JAX does: its callback for
+    # missed heartbeats cannot be given from Python in jax 0.10, the status it passes has no Python form.)
     previous = signal.signal(signal.SIGTERM, signal.SIG_DFL) if threading.current_thread() is threading.main_thread() \
         else None
     try:
-        with _on_missed_heartbeats():
-            jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
-                                       process_id=process_id, initialization_timeout=max(1, math.ceil(join_s)),
-                                       heartbeat_timeout_seconds=heartbeat_s or DEFAULT_HEARTBEAT_S)
+        jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
+                                   process_id=process_id, initialization_timeout=max(1, math.ceil(join_s)),
+                                   heartbeat_timeout_seconds=heartbeat_s or DEFAULT_HEARTBEAT_S)
     except (ValueError, TypeError) as err:  # what JAX could not find (no SLURM, Open MPI or TPU environment)
         missing = {"coordinator": "the coordinator's address", "number of processes": "the number of processes",
                    "process id": "this process's number"}
@@ -145,48 +144,6 @@ def _found(coordinator, num_processes, process_id):
                                                                         None)[:3]
     except Exception:  # noqa: BLE001 - nothing found, or a JAX without this function: JAX's initialize says it
         return coordinator, num_processes, process_id
-
-
-def _heartbeats_missed(*status) -> None:
-    """What JAX's coordination client calls (from its own thread) when the heartbeats stop: the one sentence, and the
-    process ends with PEER_LOST_STATUS at once (the default would abort it natively, exit 134)."""
-    LOST.set()
-    detail = " ".join(str(s) for s in status).strip().splitlines()[0][:160] if status else ""
-    sentence = (f"cdjax: Process {index() if _started() else '?'} stopped: another process of the sweep stopped "
-                f"answering (its heartbeats stopped{': ' + detail if detail else ''}); the run directory can be "
-                "resumed with --resume.\n")
-    with contextlib.suppress(OSError):
-        os.write(2, sentence.encode())
-    os._exit(PEER_LOST_STATUS)
-
-
-def _started() -> bool:
-    from jax._src import xla_bridge
-
-    return bool(xla_bridge.backends_are_initialized())
-
-
-@contextlib.contextmanager
-def _on_missed_heartbeats():
-    """Inside: JAX's coordination client is made with `_heartbeats_missed` as its callback for missed heartbeats
-    (jax.distributed.initialize offers no argument for it)."""
-    from jax._src import distributed
-
-    module = getattr(distributed, "_jax", None)
-    make = getattr(module, "get_distributed_runtime_client", None)
-    if make is None:
-        yield
-        return
-
-    def client(*args, **kwargs):
-        kwargs.setdefault("missed_heartbeat_callback", _heartbeats_missed)
-        return make(*args, **kwargs)
-
-    module.get_distributed_runtime_client = client
-    try:
-        yield
-    finally:
-        module.get_distributed_runtime_client = make
 
 
 @contextlib.contextmanager
