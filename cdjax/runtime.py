@@ -295,7 +295,7 @@ def _xla_flags_rejected() -> str | None:
     read, write = os.pipe()
     sys.stderr.flush()
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)  # fork with threads: the child only parses and exits
+        warnings.simplefilter("ignore")  # fork with threads (JAX warns of it): the child only parses and exits
         pid = os.fork()
     if pid == 0:  # the child: its stderr into the pipe, XLA parses the flags, and it ends without Python's shutdown
         try:
