@@ -127,6 +127,8 @@ def _serve(server: socket.socket, host: str, port: int, num_processes: int, argu
             else:
                 refusal = difference(arguments, message.get("args", {}), process)
                 joined.add(process)
+        if refusal is None:  # a duplicate that connected with the last one, still queued, is refused with it
+            refusal = _queued_duplicate(server, conns, num_processes)
         for conn in conns:
             _send_quietly(conn, {"refuse": refusal} if refusal is not None else {"go": True})
         for conn in conns:  # each process closes first, so that the port is free again for JAX's service
@@ -136,6 +138,23 @@ def _serve(server: socket.socket, host: str, port: int, num_processes: int, argu
             conn.close()
     if refusal is not None:
         raise ConfigError(refusal)
+
+
+def _queued_duplicate(server: socket.socket, conns: list, num_processes: int) -> str | None:
+    """The refusal for a process that connected after every process had joined (so given a number already taken),
+    found among the connections still queued; None when there is none."""
+    server.settimeout(0.2)
+    try:
+        conn, _ = server.accept()
+    except OSError:
+        return None
+    message = _receive(conn, time.monotonic() + 5) or {}
+    if not isinstance(message.get("id"), int):
+        conn.close()
+        return None
+    conns.append(conn)
+    return (f"two processes of this sweep were given --process-id {message['id']}; give each process its own number "
+            f"from 0 to {num_processes - 1}; none was started.")
 
 
 def _send_quietly(conn: socket.socket, message: dict) -> None:
