@@ -156,10 +156,14 @@ def _fields(tree) -> list[tuple[str, Any]]:
     return [(jax.tree_util.keystr(path), leaf) for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]]
 
 
-def check_one_run_hparams(hp) -> None:
+def check_one_run_hparams(hp, traced_only: bool = False) -> None:
     """ConfigError naming the first HParams field that is not one number: init, update and train take one run's
-    hyper-parameters (vmapped, a stacked field arrives one value at a time). Shapes only: free under jit and vmap."""
+    hyper-parameters (vmapped, a stacked field arrives one value at a time). Shapes only: free under jit and vmap.
+    `traced_only`: only the fields traced under jit or vmap (a setting's init checks concrete ones itself, values
+    and types first, `cdjax.checks.HParamRanges`)."""
     for name, value in _fields(hp):
+        if traced_only and not isinstance(value, jax.core.Tracer):
+            continue
         shape = getattr(value, "shape", ())
         if shape != ():
             raise ConfigError(f"HParams field {name} has shape {tuple(shape)} where one run takes one number: to train "
@@ -202,7 +206,7 @@ def guarded(init: Callable, update: Callable) -> tuple[Callable, Callable]:
     expected: list = []
 
     def checked_init(key, hp):
-        check_one_run_hparams(hp)
+        check_one_run_hparams(hp, traced_only=True)
         return init(key, hp)
 
     def checked_update(state, hp):

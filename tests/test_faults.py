@@ -48,8 +48,8 @@ def test_plot_writes_only_into_its_own_run_or_a_directory_of_no_run(run, tmp_pat
     (other / "summary.md").write_text("another run's summary")
     before = snapshot(other)
     line = fail_in_one_sentence(capsys, main, ["plot", str(run), "--out", str(other), "--bootstrap-reps", "50"])
-    assert line == (f"cdjax: --out {other} holds another run (its run.json), whose summary and plots these would "
-                    "replace; name that run's own directory or one that holds no run."), line
+    assert line == (f"cdjax: --out {other} holds another run (its run.json or checkpoints/), whose summary and "
+                    "plots these would replace; name that run's own directory or one that holds no run."), line
     assert snapshot(other) == before
     fresh = tmp_path / "fresh"  # a directory of no run, and the run's own, are written
     main(["plot", str(run), "--out", str(fresh), "--bootstrap-reps", "50"])
@@ -90,8 +90,8 @@ def test_a_damaged_compressed_log_is_refused_by_plot_and_resume_with_what_was_re
     rows = io.read_jsonl(out / "metrics.jsonl")
     assert 0 < len(rows) < len(data.splitlines()) and rows.damaged
     before = snapshot(out)
-    said = f"{out / 'metrics.jsonl.xz'} is damaged: it decompresses only in part ({len(rows)} rows read; the last row " \
-           f"read is model-free update {rows[-1]['update']})"
+    said = (f"{out / 'metrics.jsonl.xz'} is damaged: it decompresses only in part ({len(rows)} rows read; the last "
+            f"row read is model-free update {rows[-1]['update']})")
     for argv, then in ((["plot", str(out)], "nothing was plotted"),
                        (["sweep", "--out", str(out), "--resume", "--steps", MORE], "nothing was changed")):
         line = fail_in_one_sentence(capsys, main, argv)

@@ -130,8 +130,8 @@ def cmd_plot(args: argparse.Namespace) -> None:
                              "name another directory.")
         another = io.RunDir(out).exists() or (out / "checkpoints").is_dir()  # run.json, or a run's checkpoints
         if another and out.resolve() not in {d.resolve() for d in dirs}:
-            raise UsageError(f"--out {out} holds another run (its run.json), whose summary and plots these would "
-                             "replace; name that run's own directory or one that holds no run.")
+            raise UsageError(f"--out {out} holds another run (its run.json or checkpoints/), whose summary and plots "
+                             "these would replace; name that run's own directory or one that holds no run.")
     again = " ".join(shlex.quote(str(a)) for a in (*dirs, *(("--out", out) if args.out is not None else ())))
     notes = [note] if (note := recorded_return_note(runs)) else []  # what the sweep said of its ranking, as recorded
     try:

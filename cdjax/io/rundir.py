@@ -193,8 +193,8 @@ class RunDir:
                 probe.write_bytes(b"")
                 probe.unlink()
             except OSError as err:
-                raise RunDirError(f"cannot write into {folder}: {reason(err)}; the command writes there, so nothing was "
-                                  "started: make it writable, then run the command again.") from None
+                raise RunDirError(f"cannot write into {folder}: {reason(err)}; the command writes there, so nothing "
+                                  "was started: make it writable, then run the command again.") from None
         paths = [self.path / name for name in files]
         paths += [p for p in (self.path / "plots").glob("*") if p.is_file()] if "plots" in dirs else []
         for path in paths:
