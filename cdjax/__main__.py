@@ -1,0 +1,5 @@
+"""`python -m cdjax`: the `cdjax` command."""
+
+from cdjax.cli import main
+
+main()
