@@ -21,7 +21,7 @@ SETTINGS = sorted(p.name for p in (ROOT / "agents").iterdir() if (p / "__init__.
 SHARED = ("errors", "runtime", "numerics", "normalize", "optim", "replay", "checks", "protocol", "consistency",
           "envs", "options")
 REGISTRY = "cdjax.agents"  # the settings' registry: in the settings' layer, below every setting
-HOST = ("io", "multihost", "sweep", "evaluate", "stats", "plots", "runner", "cli", "budget")
+HOST = ("io", "multihost", "sweep", "evaluate", "stats", "plots", "runner", "cli", "budget", "__main__")
 FACE = "cdjax"  # cdjax/__init__.py re-exports the public names of every layer
 MAX_LINES = 500
 
