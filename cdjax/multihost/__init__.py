@@ -141,7 +141,7 @@ def _found(coordinator, num_processes, process_id):
         from jax._src import clusters
 
         return clusters.ClusterEnv.auto_detect_unset_distributed_params(coordinator, num_processes, process_id, None,
-                                                                        None)[:3]
+                                                                        None, None)[:3]
     except Exception:  # noqa: BLE001 - nothing found, or a JAX without this function: JAX's initialize says it
         return coordinator, num_processes, process_id
 
