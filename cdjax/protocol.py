@@ -63,6 +63,11 @@ class Trainer:
     # programs) or "local" (each device runs its own runs in a shard_map of the update programs: no collective)
     runs_split: str = "partition"
 
+    def __post_init__(self):  # the library's checks of what init and update are given (`guarded`), for every setting
+        init, update = guarded(self.init, self.update)
+        object.__setattr__(self, "init", init)
+        object.__setattr__(self, "update", update)
+
 
 @dataclasses.dataclass(frozen=True)
 class Phase:
@@ -140,12 +145,93 @@ class Setting:
     make_train: Callable[[ConfigT], Callable] | None = None
 
 
-__all__ = ["ConfigError", "Metrics", "Phase", "Preset", "Setting", "Trainer"]
+__all__ = ["ConfigError", "Metrics", "Phase", "Preset", "Setting", "Trainer", "check_one_run_hparams", "check_state",
+           "guarded", "scanned_train"]
+
+
+def _fields(tree) -> list[tuple[str, Any]]:
+    """(name, leaf) of a pytree: a dataclass's field names (HParams), else JAX's key paths."""
+    if dataclasses.is_dataclass(tree):
+        return [(f.name, getattr(tree, f.name)) for f in dataclasses.fields(tree)]
+    return [(jax.tree_util.keystr(path), leaf) for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]]
+
+
+def check_one_run_hparams(hp, traced_only: bool = False) -> None:
+    """ConfigError naming the first HParams field that is not one number: init, update and train take one run's
+    hyper-parameters (vmapped, a stacked field arrives one value at a time). Shapes only: free under jit and vmap.
+    `traced_only`: only the fields traced under jit or vmap (a setting's init checks concrete ones itself, values
+    and types first, `cdjax.checks.HParamRanges`)."""
+    for name, value in _fields(hp):
+        if traced_only and not isinstance(value, jax.core.Tracer):
+            continue
+        shape = getattr(value, "shape", ())
+        if shape != ():
+            raise ConfigError(f"HParams field {name} has shape {tuple(shape)} where one run takes one number: to train "
+                              "several runs, stack every field with one value per key and vmap both, "
+                              "jax.vmap(train)(keys, hps), each field of length len(keys).")
+
+
+def _is_traced(tree) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree))
+
+
+def check_state(state, expected, what: str = "update") -> None:
+    """ConfigError naming the first leaf of `state` whose place or shape differs from `expected` (shapes, e.g.
+    `jax.eval_shape` of init): a state made for another Config or setting."""
+    got, want = _fields_of_state(state), _fields_of_state(expected)
+    if set(got) != set(want):
+        missing = sorted(set(want) - set(got))[:3] or sorted(set(got) - set(want))[:3]
+        raise ConfigError(f"{what} got a state laid out unlike the one this trainer's init makes (leaves "
+                          f"{', '.join(missing)} differ): it was made for another Config or setting; pass the state "
+                          "of this trainer's init.")
+    for name, leaf in got.items():
+        if tuple(leaf) != tuple(want[name]):
+            raise ConfigError(f"{what} got a state whose leaf {name} has shape {tuple(leaf)} where this trainer's "
+                              f"Config makes {tuple(want[name])}: it was made for another Config (a field that sets "
+                              "shapes differs); pass the state of this trainer's init.")
+
+
+def _fields_of_state(tree) -> dict[str, tuple]:
+    return {jax.tree_util.keystr(path): tuple(getattr(leaf, "shape", ()))
+            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def guarded(init: Callable, update: Callable) -> tuple[Callable, Callable]:
+    """(init, update) that first check what they are given, each failure one ConfigError naming the field: every
+    HParams field one number (`check_one_run_hparams`), and, for update called outside jit and vmap, the state's
+    leaves shaped as init makes them for this Config (`check_state`; init's shapes are traced once, at the first such
+    call). Under jit and vmap only shapes are looked at, at trace time: nothing is added to the compiled program."""
+    if getattr(update, "guarded", False):
+        return init, update
+    expected: list = []
+
+    def checked_init(key, hp):
+        check_one_run_hparams(hp, traced_only=True)
+        return init(key, hp)
+
+    def checked_update(state, hp):
+        check_one_run_hparams(hp)
+        if not _is_traced(state):
+            if not expected:
+                try:
+                    expected.append(jax.eval_shape(init, jax.random.key(0), hp))
+                except Exception:  # noqa: BLE001 - an init that takes another kind of key: nothing to compare with
+                    expected.append(None)
+            if expected[0] is not None:
+                check_state(state, expected[0])
+        return update(state, hp)
+
+    checked_init.guarded = checked_update.guarded = True
+    checked_init.__wrapped__, checked_update.__wrapped__ = init, update
+    return checked_init, checked_update
 
 
 def scanned_train(init: Callable, update: Callable, num_updates: int) -> Callable:
     """Every setting's `make_train`: train(key, hp) -> (final state, metrics with leaves [num_updates]), `init`
-    followed by a `lax.scan` of `update`; pure, the caller jits and vmaps it."""
+    followed by a `lax.scan` of `update`; pure, the caller jits and vmaps it. The HParams are checked as `guarded`
+    does (one number per field: a vmapped train whose fields are not stacked like the keys names the field)."""
+    init, update = guarded(init, update)
+
     def train(key, hp):
         state = init(key, hp)
         return jax.lax.scan(lambda s, _: update(s, hp), state, None, length=num_updates)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import re
 import sys
 import warnings
 
@@ -92,6 +93,8 @@ def apply_xla_defaults() -> None:
     `run_sweep` and the benchmarks call this first thing, a notebook calls it in its first cell; it warns when a JAX
     backend had started before, so that the flags it adds cannot apply in this process."""
     flags = os.environ.get("XLA_FLAGS", "")
+    if flags.strip() and not flags.strip().startswith("-"):  # the name of a file holding the flags: left as it is
+        return
     added = []
     for flag in XLA_DEFAULTS:
         if not _named(flag.split("=")[0].lstrip("-"), flags):
@@ -278,3 +281,90 @@ def versions(backend: bool = True) -> dict:
 
         record["backend"] = jax.default_backend()
     return record
+
+
+# XLA aborts the whole process (a fatal log line, exit 134) on an XLA_FLAGS entry it does not know, when a backend
+# starts; `check_xla_flags` has a forked copy of the process parse them first (constructing compile options parses
+# XLA_FLAGS and starts no backend) and turns XLA's last words into one sentence.
+def _xla_flags_rejected() -> str | None:
+    """What XLA says of XLA_FLAGS when it rejects them, else None (also where this system cannot fork)."""
+    if not hasattr(os, "fork"):
+        return None
+    from jax._src.lib import _jax  # noqa: F401  (imported here, so that the child does not import it again)
+
+    read, write = os.pipe()
+    sys.stderr.flush()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # fork with threads (JAX warns of it): the child only parses and exits
+        pid = os.fork()
+    if pid == 0:  # the child: its stderr into the pipe, XLA parses the flags, and it ends without Python's shutdown
+        try:
+            os.close(read)
+            os.dup2(write, 2)
+            _jax.CompileOptions()
+        finally:
+            os._exit(0)
+    os.close(write)
+    with os.fdopen(read, "rb") as pipe:
+        said = pipe.read().decode("utf-8", "replace")
+    _, status = os.waitpid(pid, 0)
+    if os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0:
+        return None
+    logged = [line for line in said.splitlines() if re.match(r"[EF]\d{4} ", line)]  # glog's error and fatal lines
+    logged.sort(key=lambda line: line[0] != "E")  # an error line names the entry; the fatal one only says it failed
+    return logged[0].split("] ", 1)[-1].strip()[:300] if logged else f"it ended the process (status {status})"
+
+
+def check_xla_flags() -> None:
+    """ConfigError, one sentence naming the variable, the value and what it takes, for an XLA_FLAGS that would end
+    the process when JAX's backend starts (an entry XLA does not know, a file name that cannot be read) or that
+    leaves the CPU backend no device (--xla_force_host_platform_device_count below 1). Nothing to do once a backend
+    has started (XLA has read the flags then)."""
+    from cdjax.protocol import ConfigError
+
+    flags = os.environ.get("XLA_FLAGS", "").strip()
+    if not flags or _backends_started():
+        return
+    for word in flags.split():
+        name, _, value = word.partition("=")
+        if name == "--xla_force_host_platform_device_count" and not (value.isdigit() and int(value) >= 1):
+            raise ConfigError(f"XLA_FLAGS sets {word}, which leaves the CPU backend no device: it takes a whole "
+                              "number of CPU devices, at least 1 (e.g. --xla_force_host_platform_device_count=1).")
+    rejected = _xla_flags_rejected()
+    if rejected is not None:
+        flags = " ".join(word for word in flags.split() if word not in XLA_DEFAULTS)  # the user's words
+        raise ConfigError(f"XLA_FLAGS={flags!r} is refused by XLA ({rejected}); it takes --NAME=VALUE words naming "
+                          "XLA's own flags (or the name of a file holding them): correct or remove that entry.")
+
+
+def _platforms_here() -> list[str]:
+    """The backends JAX could start here, in words: the CPU's, and those whose plugins are installed."""
+    import importlib.util
+
+    from jax._src import xla_bridge
+
+    found = ["cpu"] + [name for name in ("cuda", "rocm") if name in xla_bridge._backend_factories]
+    if importlib.util.find_spec("libtpu") is not None:
+        found.append("tpu")
+    return found
+
+
+def check_backend() -> None:
+    """Start JAX's backend (what the command would do at its first array); ConfigError, one sentence naming
+    JAX_PLATFORMS, its value and the backends JAX could start here, when it cannot start."""
+    import jax
+
+    from cdjax.protocol import ConfigError
+
+    try:
+        jax.devices()
+    except RuntimeError as err:
+        asked = os.environ.get("JAX_PLATFORMS") or jax.config.jax_platforms or ""
+        why = str(err).splitlines()[0].split(" (set JAX_PLATFORMS")[0][:300] if str(err) else type(err).__name__
+        available = ", ".join(_platforms_here())
+        if asked:
+            raise ConfigError(f"JAX_PLATFORMS={asked} names a backend JAX cannot start on this machine ({why}); the "
+                              f"backends it can start here: {available} (e.g. JAX_PLATFORMS=cpu, or unset it)."
+                              ) from None
+        raise ConfigError(f"JAX could not start a backend ({why}); the backends it can start here: {available} "
+                          "(JAX_PLATFORMS names one).") from None

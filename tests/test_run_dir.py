@@ -495,9 +495,14 @@ def test_plot_refuses_rather_than_overwrite_a_summary_from_no_data(runs, tmp_pat
         metrics.unlink()
     before = snapshot(out)
     line = _fails(capsys, ["plot", str(out)])  # after a sentence counting the unreadable lines, if any
-    state = "is missing" if setup == "missing" else "holds no readable row"
-    assert line == (f"cdjax: {metrics} {state}, so there is nothing to plot; {out}/summary.md and plots/ were left as "
-                    "they were."), line
+    if setup.startswith("garbage"):  # a compressed copy that does not decompress: damaged, one rule for every reader
+        packed = out / f"metrics.jsonl.{setup[-2:]}"
+        assert line.startswith(f"cdjax: {packed} is damaged: it decompresses only in part (0 rows read; no row could "
+                               "be read)") and "nothing was plotted" in line, line
+    else:
+        state = "is missing" if setup == "missing" else "holds no readable row"
+        assert line == (f"cdjax: {metrics} {state}, so there is nothing to plot; {out}/summary.md and plots/ were left "
+                        "as they were."), line
     assert snapshot(out) == before
 
 
@@ -527,8 +532,9 @@ def test_a_kept_log_is_written_as_xz_and_read_as_the_file_it_replaces(runs, tmp_
     assert io.write_packed(plain, data).read_bytes() == packed.read_bytes()
     again = io.read_jsonl(plain)
     assert again == rows and again.skipped == rows.skipped == 0 and io.jsonl_exists(plain)
-    plain.write_bytes(data[: len(data) // 2])  # the file itself comes first
-    assert io.jsonl_source(plain) == plain and len(io.read_jsonl(plain)) < len(rows)
+    half = data[: data.rindex(b"\n", 0, len(data) // 2) + 1]  # whole lines: rows a resume appended beside the copy
+    plain.write_bytes(half)  # one rule: the compressed copy's rows, then the file's own
+    assert io.jsonl_source(plain) == plain and io.read_jsonl(plain) == rows + rows[: len(half.splitlines())]
 
 
 def test_phase_and_eval_logs_are_trimmed_like_the_metrics(tmp_path):

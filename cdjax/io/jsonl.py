@@ -1,5 +1,11 @@
 """JSONL files of the run directory: read (torn lines, bad bytes and mistyped rows skipped and counted), appended,
-truncated to a resume's checkpoints, and read from a compressed copy where the file itself is missing."""
+truncated to a resume's checkpoints.
+
+One rule for compressed logs, for every reader and the resume alike: a log's rows are those of its compressed copy
+(`metrics.jsonl.xz`, or an older `.gz`: the form experiments keep their logs in) followed by those of the plain file
+beside it, if either exists. A resume folds the compressed copy into the plain file it goes on appending to. A
+compressed copy that does not decompress to its end is damaged: `Rows.damaged` says where, and the plot and the
+resume refuse it in one sentence rather than use part of the log."""
 
 from __future__ import annotations
 
@@ -10,15 +16,17 @@ import pathlib
 import zlib
 from typing import Iterable, Mapping
 
-
 from cdjax.errors import RunDirError, reason, writing
 from cdjax.io.records import _count, _list_of, _number
 
+
 class Rows(list):
     """Rows of a JSONL file; `skipped` counts the lines left out: a torn line (a process killed while writing),
-    bytes that are not UTF-8, or a row whose fields have the wrong types for its file."""
+    bytes that are not UTF-8, or a row whose fields have the wrong types for its file. `damaged`: "" or, for a
+    compressed copy that does not decompress to its end, a sentence naming it, the rows read and the last update."""
 
     skipped: int = 0
+    damaged: str = ""
 
 
 def metric_row_ok(row: dict) -> bool:
@@ -113,29 +121,22 @@ def _row(line: bytes, check) -> dict | None:
     return row
 
 
-def read_jsonl(path: str | os.PathLike, check=...) -> Rows:
-    """The objects of a JSONL file ([] when it does not exist); lines that cannot be read are skipped and counted.
+def _packed(path: pathlib.Path) -> pathlib.Path | None:
+    """The compressed copy beside `path` (`path` + a suffix of `PACKED`, in that order), or None."""
+    return next((c for c in (path.with_name(path.name + suffix) for suffix in PACKED) if c.exists()), None)
 
-    `check(row) -> bool` says which rows have the right types (default: by the file's name, `ROW_CHECKS`; None:
-    any object). A kept copy compressed beside the missing file (`metrics.jsonl.xz` or `.gz`, as the committed
-    experiment data are stored: `jsonl_source`) is read in its place; what of it cannot be decompressed counts as
-    one torn line.
-    """
-    rows = Rows()
-    path = pathlib.Path(path)
-    if check is ...:
-        check = ROW_CHECKS.get(path.name)
-    try:
-        source = jsonl_source(path)
-        if source is None:
-            return rows
-        if source == path:
-            data = path.read_bytes()
-        else:
-            data, whole = _unpack(source)
-            rows.skipped += not whole
-    except OSError as err:
-        raise RunDirError(f"cannot read {path}: {reason(err)}.") from None
+
+def _damage(packed: pathlib.Path, rows: list) -> str:
+    """The sentence for a compressed copy cut or damaged after `rows` (the rows read from it)."""
+    last = next((r for r in reversed(rows) if "update" in r), None)
+    where = (f"the last row read is {last.get('arm', '?')} update {last['update']}" if last is not None
+             else "no row could be read")
+    return (f"{packed} is damaged: it decompresses only in part ({len(rows)} rows read; {where}), so the rows "
+            "after that are missing")
+
+
+def _lines(data: bytes, check, rows: Rows) -> list[dict]:
+    out = []
     for line in data.split(b"\n"):
         if not line.strip():
             continue
@@ -143,7 +144,34 @@ def read_jsonl(path: str | os.PathLike, check=...) -> Rows:
         if row is None:
             rows.skipped += 1
         else:
-            rows.append(row)
+            out.append(row)
+    return out
+
+
+def read_jsonl(path: str | os.PathLike, check=...) -> Rows:
+    """The objects of a JSONL file ([] when it does not exist); lines that cannot be read are skipped and counted.
+
+    `check(row) -> bool` says which rows have the right types (default: by the file's name, `ROW_CHECKS`; None:
+    any object). The rows of a compressed copy beside it (`metrics.jsonl.xz` or `.gz`, as the committed experiment
+    data are stored) come first, then the file's own (the module's one rule); a copy that does not decompress to its
+    end gives its readable rows, counts one torn line and sets `damaged`.
+    """
+    rows = Rows()
+    path = pathlib.Path(path)
+    if check is ...:
+        check = ROW_CHECKS.get(path.name)
+    try:
+        packed = _packed(path)
+        if packed is not None:
+            data, whole = _unpack(packed)
+            rows.extend(_lines(data, check, rows))
+            if not whole:
+                rows.skipped += 1
+                rows.damaged = _damage(packed, rows)
+        if path.exists():
+            rows.extend(_lines(path.read_bytes(), check, rows))
+    except OSError as err:
+        raise RunDirError(f"cannot read {path}: {reason(err)}.") from None
     return rows
 
 
@@ -171,12 +199,23 @@ def truncate_jsonl(path: pathlib.Path, done: Mapping[str, int]) -> tuple[int, in
     Drops the rows a killed process wrote after its last checkpoint, and what `read_jsonl` would skip (torn
     lines, bytes that are not UTF-8, rows of the wrong types). Returns (rows dropped, of which unreadable).
     """
+    packed = _packed(path)
     try:
-        data = path.read_bytes()
+        data = path.read_bytes() if path.exists() or packed is None else b""
     except FileNotFoundError:
         return 0, 0
     except OSError as err:
         raise RunDirError(f"cannot read {path}: {reason(err)}.") from None
+    if packed is not None:  # folded into the plain file, which the resume goes on appending to
+        try:
+            unpacked, whole = _unpack(packed)
+        except OSError as err:
+            raise RunDirError(f"cannot read {packed}: {reason(err)}.") from None
+        if not whole:
+            raise RunDirError(_damage(packed, _lines(unpacked, ROW_CHECKS.get(path.name), Rows()))
+                              + f"; a resume would log over the gap: restore it, or keep its readable part as {path} "
+                              f"(`xz -dc {packed} > {path}`, then remove {packed.name}) to go on without those rows.")
+        data = unpacked + (b"" if not unpacked or unpacked.endswith(b"\n") else b"\n") + data
     check = ROW_CHECKS.get(path.name)
     kept, dropped, torn = [], 0, 0
     lines = data.split(b"\n")
@@ -190,9 +229,11 @@ def truncate_jsonl(path: pathlib.Path, done: Mapping[str, int]) -> tuple[int, in
             kept.append(line + b"\n")
         else:
             dropped += 1
-    if dropped:
+    if dropped or packed is not None:
         tmp = path.with_suffix(".jsonl.tmp")
         with writing(path):
             tmp.write_bytes(b"".join(kept))
             tmp.replace(path)
+            if packed is not None:
+                packed.unlink()
     return dropped, torn

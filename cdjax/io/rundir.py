@@ -80,6 +80,15 @@ class RunDir:
                 f"arm removed from run.json by hand?): {held}; the summary and plots rank their logged runs beside "
                 "this run's arms unless those are moved out.")
 
+    def check_logs(self, then: str) -> None:
+        """RunDirError (one sentence, ending with `then`: what was not done) when a compressed log of the run
+        (metrics, eval or phase: `metrics.jsonl.xz`, ...) is damaged, so that no command uses part of it as the
+        whole (cdjax.io.jsonl's one rule)."""
+        for path in (self.metrics, self.eval, self.phase):
+            damaged = read_jsonl(path).damaged
+            if damaged:
+                raise RunDirError(f"{damaged}; {then}")
+
     def exists(self) -> bool:
         try:
             return self.run_json.is_file()
@@ -143,6 +152,10 @@ class RunDir:
         if len(os.fsencode(str(self.path.absolute()))) >= path_max:
             raise RunDirError(f"{option}: the path is {len(os.fsencode(str(self.path.absolute())))} bytes, longer than "
                               f"the {path_max} this file system allows; choose a shorter one.")
+        link = next((p for p in (self.path, *self.path.parents) if p.is_symlink() and not p.exists()), None)
+        if link is not None:
+            raise RunDirError(f"{option} {self.path}: {link} is a symbolic link to {os.readlink(link)}, which does not "
+                              "exist; create its target or name another path.")
 
     def check_writable(self) -> None:
         """RunDirError (one sentence) when the directory could not be made or written; writes nothing."""
@@ -154,6 +167,44 @@ class RunDir:
             raise RunDirError(f"cannot write into {self.path}: {os.strerror(errno.ENOTDIR)}; choose another --out.")
         if not os.access(existing, os.W_OK | os.X_OK):
             raise RunDirError(f"cannot write into {self.path}: {os.strerror(errno.EACCES)} ({existing}); choose another --out.")
+        self.check_run_writable()
+
+    # What a run writes beside its logs: the folders probed by check_run_writable, and (below) its files.
+    WRITTEN_DIRS = ("checkpoints", "tb", "plots", "videos")
+    WRITTEN_FILES = ("run.json", "metrics.jsonl", "eval.jsonl", "phase.jsonl", "timings.jsonl", "summary.md",
+                     "summary.csv", ".lock")
+
+    def check_run_writable(self, dirs: Iterable[str] = WRITTEN_DIRS, files: Iterable[str] = WRITTEN_FILES) -> None:
+        """RunDirError (one sentence naming the path) when something the run will write into already exists and
+        cannot be written: its folders (checkpoints/ and each arm's, tb/, plots/, videos/: a file is made and removed
+        in each, which a read-only mount or an immutable folder refuses even to root) and its files (opened for
+        appending, nothing written), so that a fresh start or a resume is refused before any training rather than
+        at its first checkpoint. `dirs` and `files`: what the command writes (default: what a sweep does). Changes
+        no file."""
+        folders = [self.path] if self.path.is_dir() else []
+        for name in dirs:
+            top = self.path / name
+            if top.is_dir():
+                below = top.iterdir() if name == "checkpoints" else top.rglob("*")  # a checkpoint is written once
+                folders += [top, *sorted(p for p in below if p.is_dir())]
+        for folder in folders:
+            probe = folder / ".cdjax-write-test"
+            try:
+                probe.write_bytes(b"")
+                probe.unlink()
+            except OSError as err:
+                raise RunDirError(f"cannot write into {folder}: {reason(err)}; the command writes there, so nothing "
+                                  "was started: make it writable, then run the command again.") from None
+        paths = [self.path / name for name in files]
+        paths += [p for p in (self.path / "plots").glob("*") if p.is_file()] if "plots" in dirs else []
+        for path in paths:
+            if not path.is_file():
+                continue
+            try:
+                os.close(os.open(path, os.O_WRONLY | os.O_APPEND))
+            except OSError as err:
+                raise RunDirError(f"cannot write {path}: {reason(err)}; the command writes it, so nothing was started: "
+                                  "make it writable, then run the command again.") from None
 
     def create(self) -> None:
         """Make the directory (and its parents): RunDirError, one sentence, when that cannot be done."""

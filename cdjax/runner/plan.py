@@ -311,5 +311,10 @@ def recorded(run: dict, out: str | pathlib.Path, **changes) -> tuple[SweepSpec, 
 
 
 def resume_spec(out: str | pathlib.Path, **changes) -> SweepSpec:
-    """The SweepSpec recorded in `out`/run.json (RunDirError if there is none), with `changes` applied."""
-    return spec_of(io.RunDir(pathlib.Path(out)).read(), out, **changes)
+    """The SweepSpec recorded in `out`/run.json (RunDirError if there is none, or if a compressed log of the run is
+    damaged: a resume would log over the gap), with `changes` applied."""
+    rd = io.RunDir(pathlib.Path(out))
+    record = rd.read()
+    rd.check_logs("nothing was changed: restore it, or decompress its readable part into the plain "
+                  "log beside it (xz -dc or gzip -dc) and remove it, to resume without the missing rows.")
+    return spec_of(record, out, **changes)

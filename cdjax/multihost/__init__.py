@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import re
+import signal
 import sys
 import threading
 
@@ -32,10 +34,12 @@ import jax
 import numpy as np
 
 from cdjax.errors import CheckpointMismatch, PeerLost, Refused, RunDirError, WriteError
+from cdjax.multihost.join import rendezvous
 from cdjax.protocol import ConfigError
 
 PEER_LOST_STATUS = 69  # EX_UNAVAILABLE: a process of the sweep was lost; the run directory can be resumed
 DEFAULT_HEARTBEAT_S = 100  # jax.distributed.initialize's own default: a silent process is declared dead after this
+DEFAULT_JOIN_S = 300  # how long the processes wait for one another to join (and JAX's start-up), by default
 _MESSAGE_BYTES = 2048  # what one process can say in an exchange (a sentence; longer ones are cut)
 
 # Set once a peer was lost: from then on nothing waits for the others (checkpoint managers are not closed, since
@@ -66,12 +70,17 @@ def _check_coordinator(coordinator: str) -> None:
 
 
 def initialize(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None,
-               heartbeat_s: int | None = None) -> None:
+               heartbeat_s: int | None = None, arguments: dict | None = None, join_s: float = DEFAULT_JOIN_S,
+               say=None) -> None:
     """Join the other processes of the sweep (`jax.distributed.initialize`), before anything runs in JAX.
 
     Arguments left None are found by JAX in SLURM, Open MPI and Cloud TPU environments. On the CPU, the processes'
-    collectives go over gloo. ConfigError (one sentence) when the arguments cannot work, JAX has already started,
-    or the others cannot be reached."""
+    collectives go over gloo. First the processes join over a channel of their own on the coordinator's port
+    (`rendezvous`): `arguments` (what must match: out, arms, seeds, steps, config, grid) are
+    compared and a duplicate process id refused, every process with the same sentence, before JAX starts; every wait
+    is bounded by `join_s` and says what it waits for (`say`). ConfigError (one sentence) when the arguments cannot
+    work, differ between processes or JAX has already started; PeerLost when the others do not join in time or one
+    is lost during the start-up."""
     from jax._src import xla_bridge
 
     if coordinator is not None:
@@ -86,9 +95,18 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
                           "started in this process; call cdjax.multihost.initialize first.")
     with contextlib.suppress(AttributeError, ValueError):  # CPU collectives (the default in jax 0.10, set for others)
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    coordinator, num_processes, process_id = _found(coordinator, num_processes, process_id)
+    if None not in (coordinator, num_processes, process_id) and num_processes > 1:
+        rendezvous(coordinator, num_processes, process_id, arguments or {}, join_s, say or _stderr)
+    # Inside JAX's start-up nothing Python runs until it returns: SIGTERM ends the process as the system does. (A
+    # peer lost while this process waits inside JAX's coordination service ends it as JAX does: its callback for
+    # missed heartbeats cannot be given from Python in jax 0.10, the status it passes has no Python form.)
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL) if threading.current_thread() is threading.main_thread() \
+        else None
     try:
         jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
-                                   process_id=process_id, heartbeat_timeout_seconds=heartbeat_s or DEFAULT_HEARTBEAT_S)
+                                   process_id=process_id, initialization_timeout=max(1, math.ceil(join_s)),
+                                   heartbeat_timeout_seconds=heartbeat_s or DEFAULT_HEARTBEAT_S)
     except (ValueError, TypeError) as err:  # what JAX could not find (no SLURM, Open MPI or TPU environment)
         missing = {"coordinator": "the coordinator's address", "number of processes": "the number of processes",
                    "process id": "this process's number"}
@@ -96,11 +114,36 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
         raise ConfigError(f"--distributed could not find {what} (no SLURM, Open MPI or Cloud TPU environment says "
                           "it); give --coordinator HOST:PORT --num-processes N --process-id I.") from None
     except RuntimeError as err:
+        if num_processes is not None and num_processes > 1 and coordinator is not None:  # they had joined: one left
+            raise PeerLost(f"Process {process_id} of {num_processes} stopped: another process stopped during JAX's "
+                           f"start-up ({_first_line(err)[:160]}); nothing was started, run the sweep again.", True
+                           ) from None
         raise ConfigError(f"--distributed could not join the other processes ({_first_line(err)}); check that every "
                           "process was started with the same --coordinator and --num-processes and that the "
                           "coordinator's port is free and reachable.") from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     with _quiet_stdout():  # gloo says on stdout that it connected, at the first collective: here, not in the output
         exchange("")
+
+
+def _stderr(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _found(coordinator, num_processes, process_id):
+    """The coordinator, number of processes and process id, those not given found as JAX finds them (SLURM, Open
+    MPI, Cloud TPU); what cannot be found stays None (JAX's initialize then says so)."""
+    if None not in (coordinator, num_processes, process_id):
+        return coordinator, num_processes, process_id
+    try:
+        from jax._src import clusters
+
+        return clusters.ClusterEnv.auto_detect_unset_distributed_params(coordinator, num_processes, process_id, None,
+                                                                        None, None)[:3]
+    except Exception:  # noqa: BLE001 - nothing found, or a JAX without this function: JAX's initialize says it
+        return coordinator, num_processes, process_id
 
 
 @contextlib.contextmanager
