@@ -19,11 +19,13 @@ runtime.apply_xla_defaults()  # as the `cdjax` command does: XLA:CPU's scheduler
 CACHE = pathlib.Path(os.environ.get(runtime.CACHE_ENV, pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"))
 runtime.configure(cache_dir=CACHE)
 
-# The files that take longest (the slowest tests of fresh-clone runs) first: the suite runs on two workers, a file
-# to a worker (--dist loadfile) in collection order, so with the alphabetical order the heaviest files (test_sweep,
-# test_swimmer, test_train) came last and one worker finished alone. Files not named keep their order after these.
-HEAVY_FIRST = ("test_docs.py", "test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_sweep.py", "test_atari_cli.py",
-               "test_multihost.py", "test_cli.py", "test_mpc.py")
+# The files that take longest on CI first, longest first (from the slowest tests of fresh-clone runs): the suite runs
+# on two workers, a file to a worker (--dist loadfile) in collection order (--no-loadscope-reorder in pyproject.toml),
+# each worker taking the next file when it is free, so long files handed out last would leave one worker finishing
+# alone. Files not named keep their order after these.
+HEAVY_FIRST = ("test_swimmer.py", "test_readme.py", "test_benchmarks.py", "test_train.py", "test_docs.py",
+               "test_multihost.py", "test_sweep.py", "test_atari_cli.py", "test_run_dir.py", "test_cli.py",
+               "test_mpc.py", "test_mbmf_options.py", "test_settings_face.py", "test_playground.py")
 
 
 def pytest_collection_modifyitems(session, config, items):
