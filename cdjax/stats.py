@@ -2,8 +2,9 @@
 value and area under the curve.
 
 Aggregation follows rliable (Agarwal et al., 2021): the IQM with a 95% stratified-bootstrap confidence
-interval (`rliable.library.get_interval_estimates`; when that module cannot be imported,
-`stratified_bootstrap` here does the same resampling). With a single task the stratified bootstrap
+interval (`rliable.library.get_interval_estimates`; when that module cannot be imported, `stratified_bootstrap`
+here does the same resampling). rliable is the optional extra `rliable` (`pip install -e ".[rliable]"`): it caps
+pandas below 3, which cdjax itself does not need. With a single task the stratified bootstrap
 resamples seeds. With fewer than 4 seeds the 25% trimmed mean trims nothing and the IQM is the plain
 mean; with one seed there is no interval (NaN). Missing values are NaN, and every statistic uses only
 the seeds that have a finite value at that point.
@@ -17,11 +18,14 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-try:  # rliable.library imports arch, whose 7.x releases (the ones rliable 1.2 accepts) fail under pandas 3; and a
-    # machine without rliable (the GPU image: no wheel) still plots, evaluates and draws strips with the fallback
+try:  # the extra `rliable`; without it (or under pandas 3, where the arch 7.x that rliable 1.2 accepts fails to
+    # import) cdjax still plots, evaluates and draws strips with the local bootstrap below
     from rliable import library as rly
 
     RLIABLE_ERROR = None
+except ModuleNotFoundError as _err:
+    rly = None
+    RLIABLE_ERROR = f"{_err.name} is not installed (it is the extra `rliable`: pip install -e \".[rliable]\")"
 except Exception as _err:  # noqa: BLE001 - any import-time failure of rliable/arch/pandas lands here
     rly = None
     RLIABLE_ERROR = f"{type(_err).__name__}: {_err}"
@@ -80,7 +84,7 @@ def probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000,
     """rliable's probability of improvement P(X > Y) (a run of X against a run of Y, ties counted half, averaged
     over tasks) with its 95% stratified-bootstrap interval, reproducibly (numpy's global generator seeded and put
     back, as `bootstrap`): x [runs, tasks] and y [runs', tasks], or one task's runs as 1-D arrays. None where
-    rliable does not import.
+    rliable does not import (the extra `rliable`; RLIABLE_ERROR says why).
 
     As every statistic here, it uses only the runs with a finite value (with several tasks, the runs finite on
     every task); NaN where either side has none left, and a NaN interval where either has one run (no spread to

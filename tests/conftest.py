@@ -19,11 +19,15 @@ runtime.apply_xla_defaults()  # as the `cdjax` command does: XLA:CPU's scheduler
 CACHE = pathlib.Path(os.environ.get(runtime.CACHE_ENV, pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"))
 runtime.configure(cache_dir=CACHE)
 
-# The files that take longest (the slowest tests of fresh-clone runs) first: the suite runs on two workers, a file
-# to a worker (--dist loadfile) in collection order, so with the alphabetical order the heaviest files (test_sweep,
-# test_swimmer, test_train) came last and one worker finished alone. Files not named keep their order after these.
-HEAVY_FIRST = ("test_docs.py", "test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_sweep.py", "test_atari_cli.py",
-               "test_multihost.py", "test_cli.py", "test_mpc.py")
+# The files that take longest first, longest first (the sums of their slowest tests in a whole-suite run with -n 2):
+# the suite runs on two workers, a file to a worker (--dist loadfile) in collection order (--no-loadscope-reorder in
+# pyproject.toml), each worker taking the next file when it is free, so a long file handed out last would leave one
+# worker finishing alone. Files not named keep their order after these.
+HEAVY_FIRST = ("test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_readme.py", "test_learner.py",
+               "test_pixel_model.py", "test_runner.py", "test_sweep.py", "test_settings_face.py", "test_run_dir.py",
+               "test_offpolicy.py", "test_mbmf.py", "test_atari_cli.py", "test_multihost.py", "test_docs.py",
+               "test_mpc.py", "test_cli.py", "test_offpolicy_host.py", "test_playground.py", "test_failures.py",
+               "test_mbmf_options.py", "test_offpolicy_bench.py")
 
 
 def pytest_collection_modifyitems(session, config, items):
