@@ -26,8 +26,9 @@ runtime.configure(cache_dir=CACHE)
 HEAVY_FIRST = ("test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_readme.py", "test_learner.py",
                "test_pixel_model.py", "test_runner.py", "test_sweep.py", "test_settings_face.py", "test_run_dir.py",
                "test_offpolicy.py", "test_mbmf.py", "test_atari_cli.py", "test_multihost.py", "test_docs.py",
-               "test_mpc.py", "test_cli.py", "test_offpolicy_host.py", "test_playground.py", "test_failures.py",
-               "test_mbmf_options.py", "test_offpolicy_bench.py")
+               "test_mpc.py", "test_cli.py", "test_offpolicy_host.py", "test_playground.py", "test_playground_bench.py",
+               "test_failures.py", "test_mbmf_options.py", "test_offpolicy_bench.py", "test_faults.py", "test_startup.py",
+               "test_offpolicy_experiment.py", "test_launch.py")
 
 
 def pytest_collection_modifyitems(session, config, items):
