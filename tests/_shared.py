@@ -101,3 +101,15 @@ def logged_rows(run_dir, name: str = "metrics.jsonl") -> list[dict]:
     rows = [{k: v for k, v in row.items() if k not in ("wall_s", "phase_wall_s")}
             for row in io.read_jsonl(pathlib.Path(run_dir) / name)]
     return sorted(rows, key=lambda r: (r["arm"], r["hp"], r["seed"], r.get("update", -1), r.get("deterministic", 0)))
+
+
+def ended(procs, timeout: float = 600) -> list[tuple[int, str, str]]:
+    """(exit status, stdout, stderr) of each subprocess.Popen once it has ended; any still running after `timeout`
+    seconds is killed (and the test fails on communicate's TimeoutExpired)."""
+    try:
+        said = [p.communicate(timeout=timeout) for p in procs]
+        return [(p.returncode, *outputs) for p, outputs in zip(procs, said)]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()

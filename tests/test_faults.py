@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from _shared import POINT, TINY_ARGS, fail_in_one_sentence, logged_rows
+from _shared import POINT, TINY_ARGS, ended as _ended, fail_in_one_sentence, logged_rows
 from conftest import CACHE
 
 from cdjax import io, multihost
@@ -218,16 +218,6 @@ def _process(argv, process: int, port: int, count: int = 2) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "cdjax.cli", *argv, "--distributed", "--coordinator",
                              f"127.0.0.1:{port}", "--num-processes", str(count), "--process-id", str(process)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-
-
-def _ended(procs, timeout):
-    try:
-        said = [p.communicate(timeout=timeout) for p in procs]
-        return [(p.returncode, *outputs) for p, outputs in zip(procs, said)]
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
 
 
 def _sentence(err: str) -> str:

@@ -15,7 +15,7 @@ import sys
 import types
 
 import pytest
-from _shared import TINY_ARGS, fail_in_one_sentence, logged_rows
+from _shared import TINY_ARGS, ended as _ended, fail_in_one_sentence, logged_rows
 from conftest import CACHE
 
 from cdjax import io, multihost
@@ -58,17 +58,6 @@ def _two(argv: list[str], program_of_1: list[str] | None = None) -> list[subproc
     """`cdjax <argv>` as processes 0 and 1 of one sweep (process 1 run by `program_of_1` when given)."""
     port = _port()
     return [_start([*argv, *distributed(port, 0)]), _start([*argv, *distributed(port, 1)], program=program_of_1)]
-
-
-def _ended(procs: list[subprocess.Popen], timeout: float = 600) -> list[tuple[int, str, str]]:
-    """(exit status, stdout, stderr) of each process once it has ended."""
-    try:
-        said = [p.communicate(timeout=timeout) for p in procs]
-        return [(p.returncode, *outputs) for p, outputs in zip(procs, said)]
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
 
 
 def _steps(out: pathlib.Path) -> list[int]:
