@@ -30,8 +30,8 @@ import numpy as np
 
 from cdjax import plots, stats
 from experiments.offpolicy import TASKS
-from experiments.paper_obs_space.report import _cell, _csv, _table, aggregate, find_runs, improvement, normalised, \
-    profiles_figure
+from experiments.paper_obs_space.report import _cell, _csv, _cut, _reached, _table, aggregate, find_runs, improvement, \
+    normalised, profiles_figure
 
 HERE = pathlib.Path(__file__).resolve().parent
 RETURN, DISC = plots.RETURN, plots.DISC_RETURN
@@ -102,8 +102,7 @@ def load(roots: Sequence[pathlib.Path]) -> list[Task]:
     tasks = []
     for name in [t for t in TASKS if t in found] + sorted(t for t in found if t not in TASKS):
         t = found[name]
-        reached = {k: float(np.nanmax(np.where(c.present.all(0), c.env_steps, np.nan)))
-                   if c.present.all(0).any() else 0.0 for k, c in t["curves"].items()}
+        reached = {k: _reached(c) for k, c in t["curves"].items()}
         complete = all(reached[k] >= t["planned"][k] for k in reached)
         budget = min(reached.values())
         curves, evals = t["curves"], t["evals"]
@@ -112,12 +111,6 @@ def load(roots: Sequence[pathlib.Path]) -> list[Task]:
             evals = {k: None for k in evals}
         tasks.append(Task(name, curves, evals, budget, max(t["planned"].values()), complete, t["commands"]))
     return tasks
-
-
-def _cut(c: plots.Curves, budget: float) -> plots.Curves:
-    keep = np.isfinite(c.env_steps) & (c.env_steps <= budget)
-    return dataclasses.replace(c, updates=c.updates[keep], env_steps=c.env_steps[keep], present=c.present[:, keep],
-                               metrics={k: v[:, keep] for k, v in c.metrics.items()})
 
 
 def final_scores(tasks: list[Task]) -> dict[str, dict[str, np.ndarray]]:
