@@ -86,37 +86,77 @@ def install_replicated():
     return True
 
 
-def cdjax_config(task: SacTask, arm: str = "model-free", plain: bool = False, num_updates: int = 1):
-    """The off-policy setting's Config matching `task` (one batched env step per update)."""
+def parse_sets(items) -> dict:
+    """["FIELD=VALUE", ...] -> {field: value} of the off-policy Config or HParams, each value of its field's type
+    (bool: true/false; tuple: comma-separated ints); an unknown field or a bad value refused by SystemExit."""
+    from cdjax.agents.offpolicy import Config, HParams
+
+    defaults = {**dataclasses.asdict(Config()), **dataclasses.asdict(HParams())}
+    out = {}
+    for item in items or ():
+        name, sep, text = item.partition("=")
+        if not sep or name not in defaults:
+            raise SystemExit(f"--cdjax-set {item!r}: give FIELD=VALUE with FIELD one of the off-policy Config or "
+                             f"HParams fields ({', '.join(sorted(defaults))}).")
+        default = defaults[name]
+        try:
+            if isinstance(default, bool):
+                if text.lower() not in ("true", "false"):
+                    raise ValueError(text)
+                out[name] = text.lower() == "true"
+            elif isinstance(default, tuple):
+                out[name] = tuple(int(w) for w in text.split(",") if w)
+            else:
+                out[name] = type(default)(text)
+        except ValueError:
+            raise SystemExit(f"--cdjax-set {item!r}: {text!r} is no {type(default).__name__}.") from None
+    return out
+
+
+def variant_name(arm: str, plain: bool = False, sets: dict | None = None) -> str:
+    """The rows' variant: offpolicy-<arm>, -plain for --cdjax-plain, +field=value for each --cdjax-set."""
+    return f"offpolicy-{arm}" + ("-plain" if plain else "") + "".join(
+        f"+{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in sorted((sets or {}).items()))
+
+
+def cdjax_config(task: SacTask, arm: str = "model-free", plain: bool = False, num_updates: int = 1,
+                 sets: dict | None = None):
+    """The off-policy setting's Config matching `task` (one batched env step per update), with the Config fields
+    of `sets` (parse_sets) put over it."""
     from cdjax.agents.offpolicy import Config
 
     steps = -(-task.max_replay // task.num_envs)
     extra = dict(latent=False, n_step=1, layer_norm=False) if plain else {}
-    return Config(env=task.env, arm=arm, num_envs=task.num_envs, steps_per_update=1,
-                  updates_per_step=task.updates_per_step, buffer_steps=steps, batch_size=task.batch_size,
-                  learning_starts=task.min_replay, actor_hidden=task.hidden, critic_hidden=task.hidden,
-                  episode_length=task.episode_length, num_updates=num_updates, **extra)
+    fields = {f.name for f in dataclasses.fields(Config)}
+    extra.update({k: v for k, v in (sets or {}).items() if k in fields})
+    return Config(**{**dict(env=task.env, arm=arm, num_envs=task.num_envs, steps_per_update=1,
+                            updates_per_step=task.updates_per_step, buffer_steps=steps, batch_size=task.batch_size,
+                            learning_starts=task.min_replay, actor_hidden=task.hidden, critic_hidden=task.hidden,
+                            episode_length=task.episode_length, num_updates=num_updates), **extra})
 
 
-def cdjax_hparams(task: SacTask):
+def cdjax_hparams(task: SacTask, sets: dict | None = None):
+    """The HParams matching `task`, with the HParams fields of `sets` put over them."""
     from cdjax.agents.offpolicy import HParams
 
     lr = task.learning_rate
-    return HParams(lr_actor=lr, lr_critic=lr, lr_alpha=lr, lr_model=lr, gamma=task.discounting, tau=task.tau,
-                   reward_scale=task.reward_scaling)
+    fields = {f.name for f in dataclasses.fields(HParams)}
+    given = dict(lr_actor=lr, lr_critic=lr, lr_alpha=lr, lr_model=lr, gamma=task.discounting, tau=task.tau,
+                 reward_scale=task.reward_scaling)
+    return HParams(**{**given, **{k: v for k, v in (sets or {}).items() if k in fields}})
 
 
 def run_cdjax(name: str, task: SacTask, seeds: int, rows, arm: str = "model-free", plain: bool = False,
-              seed: int = 0) -> None:
+              seed: int = 0, sets: dict | None = None) -> None:
     """cdjax's off-policy arm, `seeds` vmapped runs, evaluated every steps_per_eval env steps (rounded up to whole
     updates) by benchmarks.learning's loop."""
     from benchmarks.learning import run_sweep
     from cdjax.agents import offpolicy
 
-    config = cdjax_config(task, arm, plain)
-    run_sweep(name, f"offpolicy-{arm}" + ("-plain" if plain else ""), offpolicy.make_trainer(config),
-              cdjax_hparams(task), seeds, seed, task.evals, -(-task.steps_per_eval // config.env_steps_per_update),
-              task.eval_episodes, rows)
+    config = cdjax_config(task, arm, plain, sets=sets)
+    run_sweep(name, variant_name(arm, plain, sets), offpolicy.make_trainer(config), cdjax_hparams(task, sets),
+              seeds, seed, task.evals, -(-task.steps_per_eval // config.env_steps_per_update), task.eval_episodes,
+              rows)
 
 
 def brax_kwargs(task: SacTask) -> dict:
@@ -210,6 +250,8 @@ def main(argv=None) -> int:
     p.add_argument("--frameworks", nargs="+", default=["cdjax", "brax"], choices=["cdjax", "brax"])
     p.add_argument("--arms", nargs="+", default=["model-free"], help="cdjax off-policy arms (default model-free)")
     p.add_argument("--cdjax-plain", action="store_true", help="cdjax as Brax's SAC: 1-step, no LayerNorm, no encoder")
+    p.add_argument("--cdjax-set", action="append", metavar="FIELD=VALUE",
+                   help="put an off-policy Config or HParams field over cdjax's (repeatable; named in the variant)")
     p.add_argument("--seeds", type=positive, default=5)
     p.add_argument("--first-seed", type=non_negative, default=0,
                    help="seeds first-seed .. first-seed+seeds-1 (so that several processes can share a task's seeds)")
@@ -219,6 +261,7 @@ def main(argv=None) -> int:
     p.add_argument("--tiny", action="store_true", help="CPU smoke: the point task, 1 seed")
     p.add_argument("--out", help="output directory (rows.jsonl, meta.json)")
     args = p.parse_args(argv)
+    sets = parse_sets(args.cdjax_set)
     if args.tiny:
         args.tasks, args.seeds = ["point"], 1
     from cdjax import io
@@ -243,7 +286,8 @@ def main(argv=None) -> int:
             continue
         if "cdjax" in args.frameworks:
             for arm in args.arms:
-                run_cdjax(name, task, args.seeds, rows, arm=arm, plain=args.cdjax_plain, seed=args.first_seed)
+                run_cdjax(name, task, args.seeds, rows, arm=arm, plain=args.cdjax_plain, seed=args.first_seed,
+                          sets=sets)
         if "brax" in args.frameworks:
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 run_brax(name, task, seed, rows)
