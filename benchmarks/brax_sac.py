@@ -199,7 +199,8 @@ def run_brax(name: str, task: SacTask, seed: int, rows) -> None:
     sac.train(seed=seed, network_factory=factory, progress_fn=progress, **brax_env(task.env), **brax_kwargs(task))
 
 
-def speed(name: str, task: SacTask, rows, seed_counts=(1, 10), updates: int = 50, plain: bool = False) -> None:
+def speed(name: str, task: SacTask, rows, seed_counts=(1, 10), updates: int = 50, plain: bool = False,
+          sets: dict | None = None, brax: bool = True) -> None:
     """cdjax's env steps/s and gradient steps/s (all seeds together) over `updates` compiled updates, after one
     warm-up call, at each number of vmapped seeds; Brax SAC's from its own training/sps over a short run."""
     import functools
@@ -210,9 +211,9 @@ def speed(name: str, task: SacTask, rows, seed_counts=(1, 10), updates: int = 50
     from cdjax.sweep import make_sweep
 
     for seeds in seed_counts:
-        config = cdjax_config(task, plain=plain)
+        config = cdjax_config(task, plain=plain, sets=sets)
         sweep = make_sweep(offpolicy.make_trainer(config))
-        keys, hps = sweep.grid(seed=0, num_seeds=seeds, hps=[cdjax_hparams(task)])
+        keys, hps = sweep.grid(seed=0, num_seeds=seeds, hps=[cdjax_hparams(task, sets)])
         state = sweep.init(keys, hps)
         t0 = time.perf_counter()
         program = sweep.lower(state, hps, updates).compile()
@@ -223,9 +224,12 @@ def speed(name: str, task: SacTask, rows, seed_counts=(1, 10), updates: int = 50
         state, metrics = program(state, hps)
         jax.block_until_ready(metrics)
         wall = time.perf_counter() - t0
-        rows.add(task=name, framework="cdjax", case="speed", seeds=seeds, compile_s=compile_s,
+        rows.add(task=name, framework="cdjax", case="speed", variant=variant_name("model-free", plain, sets),
+                 seeds=seeds, compile_s=compile_s,
                  env_steps_per_s=seeds * updates * config.env_steps_per_update / wall,
                  grad_steps_per_s=seeds * updates * config.grad_steps / wall)
+    if not brax:
+        return
     # two epochs of Brax's training: the last one's training/sps is measured after its compilation
     short = dataclasses.replace(task, evals=2, steps_per_eval=task.min_replay + updates * task.num_envs * 4)
     marks = []
@@ -282,7 +286,7 @@ def main(argv=None) -> int:
     for name, task in tasks.items():
         if args.speed:
             speed(name, task, rows, seed_counts=(1, 2) if args.tiny else (1, 10), updates=4 if args.tiny else 50,
-                  plain=args.cdjax_plain)
+                  plain=args.cdjax_plain, sets=sets, brax="brax" in args.frameworks)
             continue
         if "cdjax" in args.frameworks:
             for arm in args.arms:
