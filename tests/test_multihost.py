@@ -233,7 +233,7 @@ def test_the_processes_watch_one_another_over_the_connections_they_joined_on(mon
             time.sleep(0.02)
         return said.pop() if said else None
 
-    lost = "Process 0 of 2 stopped: process 1 of the sweep stopped answering (killed, or its host failed: "
+    lost = "Process 0 of 2 stopped: another process of the sweep stopped answering (killed, or its host failed: "
     watched().close()
     assert waited() == lost + "its connection closed); where the run stands."
     peer = watched(silent_s=0.4)
@@ -277,9 +277,9 @@ def test_a_process_that_falls_silent_after_jax_started_ends_the_other_with_one_s
                 p.kill()
     tail = f"; nothing was added to {out / 'eval.jsonl'}."
     assert status == multihost.PEER_LOST_STATUS and "Traceback" not in err and "Check failure" not in err, err
-    assert _last_line(err) == ("cdjax: Process 0 of 2 stopped: process 1 of the sweep stopped answering (killed, or its "
-                               "host failed: it was silent for 3 s, --heartbeat-timeout)" + tail), err
+    assert _last_line(err) == ("cdjax: Process 0 of 2 stopped: another process of the sweep stopped answering (killed, "
+                               "or its host failed: it was silent for 3 s, --heartbeat-timeout)" + tail), err
     assert status1 == multihost.PEER_LOST_STATUS and "Traceback" not in err1, err1
-    assert _last_line(err1) == ("cdjax: Process 1 of 2 stopped: process 0 of the sweep stopped answering (killed, or "
-                                "its host failed: its connection closed)" + tail), err1
+    assert _last_line(err1) == ("cdjax: Process 1 of 2 stopped: another process of the sweep stopped answering "
+                                "(killed, or its host failed: its connection closed)" + tail), err1
     assert took < 90 and not out.exists()

@@ -162,7 +162,9 @@ class _Watch:
         except Exception:  # noqa: BLE001 - the sentence is said even when the run's state cannot be described
             where = ""
         try:
-            self.end(f"Process {self.me} of {self.count} stopped: process {peer} of the sweep stopped answering "
+            # the words of `cdjax.multihost.lost` (the same end noticed in an exchange), the peer unnamed: with more
+            # than two processes the one lost may be another than the one this process is connected to
+            self.end(f"Process {self.me} of {self.count} stopped: another process of the sweep stopped answering "
                      f"(killed, or its host failed: {how}){where}")
         finally:  # reached only where `end` returns (a test's): the watch is over
             _forget(self)
