@@ -209,7 +209,7 @@ def _join(host: str, port: int, num_processes: int, process_id: int, arguments: 
                           "program holds the port; give every process of this sweep a free port; nothing was started.")
     if answer is None:
         raise PeerLost(f"Process {process_id} of {num_processes} stopped: process 0 went away before every process "
-                       f"had joined (or did not answer within {timeout_s:g} s, --join-timeout); nothing was started",
+                       f"had joined (or did not answer within {timeout_s:g} s, --join-timeout); nothing was started.",
                        True)
     if "refuse" in answer:
         raise ConfigError(str(answer["refuse"]))
