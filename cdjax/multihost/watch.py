@@ -18,6 +18,7 @@ Whichever of the main thread and the watch ends the process first says the one s
 
 from __future__ import annotations
 
+import atexit
 import os
 import selectors
 import socket
@@ -44,6 +45,8 @@ def start(conns: dict[int, socket.socket], me: int, count: int, silent_s: float,
         return
     _current = _Watch(conns, me, count, silent_s, end or _end_process)
     _current.thread.start()
+    if end is None:  # a program that never calls `ending` (a library user's script) tells its peers as it exits
+        atexit.register(ending, 0)
 
 
 def tail(describe: Callable[[], str]) -> Callable[[], str] | None:
