@@ -4,8 +4,8 @@ Process 0 listens on the coordinator's port; every other process connects to it 
 and sends its process id, the number of processes and the arguments that must match (`arguments`: out, arms,
 seeds, steps, config, grid). Process 0 waits until every other process has joined, compares, and answers each one
 "go" or the one sentence that refuses the sweep (arguments that differ, a process id given twice, another number
-of processes), which every process then raises. Then the channel closes and JAX's coordination service takes the
-port; the connections stay open, for the processes to watch one another (cdjax.multihost.watch). Every wait is
+of processes), which every process then raises. Then process 0 stops listening and JAX's coordination service takes
+the port; the connections stay open, for the processes to watch one another (cdjax.multihost.watch). Every wait is
 bounded by the join timeout and says first what it waits for; a process that does not join in time, or a process 0
 that goes away, ends the others with `PeerLost` (exit 69). SIGTERM raised in Python (the `cdjax` command's handler)
 ends a waiting process, since every wait here is a short socket timeout in a loop.
@@ -142,7 +142,7 @@ def _serve(server: socket.socket, host: str, port: int, num_processes: int, argu
         if refusal is None:
             kept = joined  # open beside JAX's service on the port, until the process ends
             return joined
-        for conn in conns:  # each process closes first
+        for conn in conns:  # refused: each process closes first, having read the refusal
             _receive(conn, time.monotonic() + 5)
     finally:
         for conn in conns:
