@@ -251,3 +251,48 @@ def test_processes_of_one_sweep_refuse_to_start_apart(tmp_path):
     assert _sentence(g).startswith("cdjax: Process 0 of 2 stopped: process(es) 1 did not join within 3 s"), g
     assert "Traceback" not in e0 + e1 + f0 + f1 + g and not out.exists()
     assert time.monotonic() - started < 90
+
+
+def test_a_process_coming_to_a_port_held_by_a_started_sweep_or_another_program_is_refused_alone(tmp_path, capsys,
+                                                                                                monkeypatch):
+    """The coordinator's port held by JAX's coordination service (a sweep that has started: a duplicate
+    --process-id, or a command run twice) or by another program: the process comes as a client, is answered in another
+    protocol, and refuses in one sentence, before JAX starts and without touching what holds the port."""
+    from jax._src import xla_bridge
+    from jax._src.lib import _jax
+
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: False)  # JAX has started in pytest's process
+    port = _port()
+    service = _jax.get_distributed_runtime_service(f"[::]:{port}", 2)  # what process 0 of a started sweep runs
+
+    def joined(process: int, port: int) -> str:
+        return fail_in_one_sentence(capsys, main, ["eval", str(tmp_path / "run"), "--distributed", "--coordinator",
+                                                   f"127.0.0.1:{port}", "--num-processes", "2", "--process-id",
+                                                   str(process), "--join-timeout", "20"])
+
+    try:
+        for process in (0, 1):  # process 0 cannot listen on the port either, and comes as a client
+            started = time.monotonic()
+            line = joined(process, port)
+            assert line == (f"cdjax: the coordinator's port 127.0.0.1:{port} answers, but not as process 0 of a cdjax "
+                            "sweep waiting for its processes: a sweep given this --coordinator has already started "
+                            f"(JAX's service holds the port, and --process-id {process} of it is taken), or another "
+                            "program holds the port; give every process of this sweep a free port; nothing was "
+                            "started."), line
+            assert time.monotonic() - started < 10
+    finally:
+        service.shutdown()
+    import socket
+    import threading
+
+    other = socket.create_server(("127.0.0.1", 0))  # another program: answers anything with a line of its own
+
+    def answer():
+        conn, _ = other.accept()
+        with conn:
+            conn.recv(4096)
+            conn.sendall(b"HTTP/1.1 400 Bad Request\r\n\r\n")
+
+    threading.Thread(target=answer, daemon=True).start()
+    with other:
+        assert "answers, but not as process 0 of a cdjax sweep" in joined(1, other.getsockname()[1])

@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 import types
 
 import pytest
@@ -20,6 +21,7 @@ from conftest import CACHE
 
 from cdjax import io, multihost
 from cdjax.cli import main
+from cdjax.multihost import watch
 from cdjax.protocol import ConfigError
 from cdjax.runner import loop
 
@@ -48,10 +50,10 @@ def distributed(port: int, process: int) -> list[str]:
     return ["--distributed", "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(process)]
 
 
-def _start(argv: list[str], devices: int = 1, program: list[str] | None = None) -> subprocess.Popen:
+def _start(argv: list[str], devices: int = 1, program: list[str] | None = None, **env: str) -> subprocess.Popen:
     program = program or ["-m", "cdjax.cli"]
     return subprocess.Popen([sys.executable, *program, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=_env(devices))
+                            text=True, env={**_env(devices), **env})
 
 
 def _two(argv: list[str], program_of_1: list[str] | None = None) -> list[subprocess.Popen]:
@@ -210,3 +212,74 @@ def test_processes_stop_together_and_refuse_together(monkeypatch):
     said["1"] = ""
     with multihost.together():
         pass
+
+
+def test_the_processes_watch_one_another_over_the_connections_they_joined_on(monkeypatch):
+    """cdjax.multihost.watch on socket pairs (this end, the peer's end): a peer whose connection closes without a word,
+    or that falls silent while heartbeats go to it, ends this process with the sentence (`end` given here records it);
+    a peer that finished (end 0) is let go, one that ended otherwise is given END_GRACE_S; this process's own end
+    stands the watch down and tells the peer."""
+    said = []
+
+    def watched(silent_s=30.0):
+        here, peer = socket.socketpair()
+        watch.start({1: here}, 0, 2, silent_s, end=said.append)
+        watch.tail(lambda: "; where the run stands.")
+        return peer
+
+    def waited(seconds=5.0):
+        started = time.monotonic()
+        while not said and time.monotonic() - started < seconds:
+            time.sleep(0.02)
+        return said.pop() if said else None
+
+    lost = "Process 0 of 2 stopped: another process of the sweep stopped answering (killed, or its host failed: "
+    watched().close()
+    assert waited() == lost + "its connection closed); where the run stands."
+    peer = watched(silent_s=0.4)
+    assert waited() == lost + "it was silent for 0.4 s, --heartbeat-timeout); where the run stands."
+    assert peer.recv(64).startswith(b".\n")  # its heartbeats reached the peer
+    peer.close()
+    peer = watched()
+    peer.sendall(b".\nend 0\n")
+    peer.close()
+    assert waited(0.5) is None
+    watch.ending(0)  # the watch had stood down: nothing waits
+    monkeypatch.setattr(watch, "END_GRACE_S", 0.3)
+    peer = watched()
+    peer.sendall(b"end 2\n")
+    peer.close()
+    assert waited() == lost + "it ended with exit status 2 and this process did not within 0.3 s); where the run stands."
+    peer = watched()
+    watch.ending(143)
+    assert peer.recv(64).endswith(b"end 143\n")
+    peer.close()
+    assert waited(0.5) is None
+
+
+def test_a_process_that_falls_silent_after_jax_started_ends_the_other_with_one_sentence(tmp_path):
+    """Process 1 stops itself (SIGSTOP) once it has joined and JAX has started, its connections open: process 0, waiting
+    for it in its first exchange, ends after --heartbeat-timeout with exit 69 and one sentence (JAX's runtime, which
+    would abort it natively, is given twice as long); process 1, continued, finds process 0 gone and ends alike."""
+    port, out = _port(), tmp_path / "none"
+    argv = ["eval", str(out), "--heartbeat-timeout", "3"]
+    started = time.monotonic()
+    procs = [_start([*argv, *distributed(port, 0)]),
+             _start([*argv, *distributed(port, 1)], program=[str(KILLS_ITSELF)], CDJAX_TEST_STOP_AFTER_JOIN="1")]
+    try:
+        [(status, _, err)] = _ended(procs[:1], 120)
+        took = time.monotonic() - started
+        procs[1].send_signal(signal.SIGCONT)
+        [(status1, _, err1)] = _ended(procs[1:], 60)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    tail = f"; nothing was added to {out / 'eval.jsonl'}."
+    assert status == multihost.PEER_LOST_STATUS and "Traceback" not in err and "Check failure" not in err, err
+    assert _last_line(err) == ("cdjax: Process 0 of 2 stopped: another process of the sweep stopped answering (killed, "
+                               "or its host failed: it was silent for 3 s, --heartbeat-timeout)" + tail), err
+    assert status1 == multihost.PEER_LOST_STATUS and "Traceback" not in err1, err1
+    assert _last_line(err1) == ("cdjax: Process 1 of 2 stopped: another process of the sweep stopped answering "
+                                "(killed, or its host failed: its connection closed)" + tail), err1
+    assert took < 90 and not out.exists()

@@ -141,6 +141,7 @@ def _configure(args: argparse.Namespace) -> None:
 
 def _refused(sentence: str, as_program: bool) -> None:
     """End a command that cannot run: `cdjax: <sentence>` and exit status 2."""
+    multihost.ending(2)
     if as_program:  # stderr goes quiet first, and the sentence is written to a copy of it
         _say_last(f"cdjax: {sentence}")
     else:
@@ -152,6 +153,7 @@ def _interrupted(sentence: str, status: int, as_program: bool) -> None:
     """End an interrupted command with its sentence. As a program, the process then ends at once: XLA's threads may
     still be compiling or running the program the signal interrupted, and tearing the interpreter down under them
     crashes (SIGSEGV instead of 130/143). Whatever had to be written was written and closed before this point."""
+    multihost.ending(status)
     print(sentence, file=sys.stderr)
     if as_program:
         sys.stdout.flush()
@@ -199,16 +201,19 @@ def main(argv: Sequence[str] | None = None) -> None:
                 cmd_eval(args)
             else:
                 cmd_plot(args)
+            multihost.ending(0)  # the other processes of a sweep stop watching this one
     except (UsageError, ConfigError, io.RunDirError) as err:
         _refused(str(err), as_program)
     except Interrupted as err:
         done = ", ".join(f"{arm} {n}" for arm, n in err.updates.items())
         again = f"cdjax sweep --out {shlex.quote(str(err.run_dir))} --resume{multihost.resume_flags()}"
         if limit is not None and err.signum is None:  # (several processes: any process's time limit stops all)
+            multihost.ending(75)
             print(f"Stopped before the time limit ({args.time_limit:g} s); checkpoint saved (updates per arm: {done}). "
                   f"Continue with: {again}", file=sys.stderr)
             raise SystemExit(75) from None
         terminated = err.signum == signal.SIGTERM
+        multihost.ending(143 if terminated else 130)
         print(f"{'Stopped by SIGTERM' if terminated else 'Interrupted'}; checkpoint saved in {err.run_dir} (updates "
               f"per arm: {done}). Resume with: {again}", file=sys.stderr)
         raise SystemExit(143 if terminated else 130) from None
@@ -219,4 +224,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     except KeyboardInterrupt as err:  # before a command started (parsing, imports, the cache)
         _interrupted("Interrupted before the command started; nothing was written.",
                      143 if isinstance(err, Terminated) else 130, as_program)
+    except Exception:  # a bug: its traceback follows; the other processes of a sweep are told this one ended
+        multihost.ending(1)
+        raise
 

@@ -17,7 +17,12 @@ from cdjax.runner.spec import INT32_MAX
 def cmd_sweep(args: argparse.Namespace, setting: Setting, command: str, limit=None) -> None:
     from cdjax.runner import run_sweep
 
-    io.RunDir(pathlib.Path(args.out)).check_name()
+    rd = io.RunDir(pathlib.Path(args.out))
+    rd.check_name()
+    # what a lost process's sentence says before the sweep's loop says which checkpoints are intact (cdjax.runner)
+    multihost.tail(lambda: f" before training started; no update was trained in {rd.path}" + (
+        f"; resume with `cdjax sweep --out {shlex.quote(str(rd.path))} --resume --distributed`." if rd.exists()
+        else "; run the command again."))
     out = run_sweep(sweep_spec(args, setting, command), resume=args.resume, after_chunk=limit,
                     restart=tuple(args.restart_arm))
     if multihost.is_writer():
@@ -47,6 +52,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
     rd = io.RunDir(pathlib.Path(args.run_dir))
     writer = multihost.is_writer()
     tell = say if writer else (lambda text: None)  # several processes: process 0 speaks for all
+    multihost.tail(lambda: f"; nothing was added to {rd.eval}.")
     with multihost.together():
         rd.check_name("RUN_DIR")
         rd.read()  # a clear error for a directory that holds no run

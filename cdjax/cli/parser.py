@@ -51,8 +51,9 @@ def _distributed_options() -> argparse.ArgumentParser:
     group.add_argument("--process-id", type=options.count, metavar="I",
                        help="with --distributed: this process's number, 0 to N-1 (default: found by JAX)")
     group.add_argument("--heartbeat-timeout", type=options.seconds, metavar="SECONDS",
-                       help=f"with --distributed: a process silent this long counts as lost (default "
-                            f"{multihost.DEFAULT_HEARTBEAT_S}, JAX's)")
+                       help=f"with --distributed: a process silent this long counts as lost, and the others end "
+                            f"with exit status 69 (default {multihost.DEFAULT_HEARTBEAT_S}; JAX's runtime, which would "
+                            "abort them instead, is given twice as long)")
     group.add_argument("--join-timeout", type=options.seconds, metavar="SECONDS",
                        help=f"with --distributed: how long the processes wait for one another to join, and for JAX's "
                             f"start-up, before ending with one sentence (default {multihost.DEFAULT_JOIN_S})")

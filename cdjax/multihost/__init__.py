@@ -11,10 +11,11 @@ orbax writes each process's part of a checkpoint (the run directory must be on a
 
 What one process decides alone (a refusal, a failed write, a Ctrl-C or SIGTERM, its --time-limit) is exchanged at
 fixed points (`exchange`, `together`), so that every process refuses, stops after the same chunk or fails with the
-same sentence. A process that dies is noticed by the others at their next exchange (at once: its connections close)
-or, inside a checkpoint's barrier, within the heartbeat timeout; they end with one sentence (`PeerLost`). When the
-dead one is process 0, which hosts the coordinator, JAX's runtime ends the others itself, with its own message.
-The run directory stays resumable either way: a checkpoint is complete only once every process has written its part.
+same sentence. A process that dies is noticed by the others at their next exchange (at once: its connections close),
+or wherever they wait (a checkpoint's barrier, a compilation, a long chunk) by the watch over the connections of the
+join (`cdjax.multihost.watch`: at once when its connection closes, after --heartbeat-timeout when it falls silent);
+they end with one sentence (`PeerLost`, exit 69), before JAX's runtime would abort them. The run directory stays
+resumable either way: a checkpoint is complete only once every process has written its part.
 
 In one process (no --distributed) every function here is the identity, or does what one process would.
 """
@@ -34,11 +35,12 @@ import jax
 import numpy as np
 
 from cdjax.errors import CheckpointMismatch, PeerLost, Refused, RunDirError, WriteError
+from cdjax.multihost import watch
 from cdjax.multihost.join import rendezvous
+from cdjax.multihost.watch import PEER_LOST_STATUS, ending, tail  # noqa: F401  (cdjax.multihost.ending, ...)
 from cdjax.protocol import ConfigError
 
-PEER_LOST_STATUS = 69  # EX_UNAVAILABLE: a process of the sweep was lost; the run directory can be resumed
-DEFAULT_HEARTBEAT_S = 100  # jax.distributed.initialize's own default: a silent process is declared dead after this
+DEFAULT_HEARTBEAT_S = 100  # jax.distributed.initialize's own default: a silent process is declared lost after this
 DEFAULT_JOIN_S = 300  # how long the processes wait for one another to join (and JAX's start-up), by default
 _MESSAGE_BYTES = 2048  # what one process can say in an exchange (a sentence; longer ones are cut)
 
@@ -78,9 +80,11 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     collectives go over gloo. First the processes join over a channel of their own on the coordinator's port
     (`rendezvous`): `arguments` (what must match: out, arms, seeds, steps, config, grid) are
     compared and a duplicate process id refused, every process with the same sentence, before JAX starts; every wait
-    is bounded by `join_s` and says what it waits for (`say`). ConfigError (one sentence) when the arguments cannot
-    work, differ between processes or JAX has already started; PeerLost when the others do not join in time or one
-    is lost during the start-up."""
+    is bounded by `join_s` and says what it waits for (`say`); then the processes watch one another over the
+    connections they joined on (`watch`: a process lost from then on ends this one with exit 69 and one sentence,
+    within `heartbeat_s` where it went silent). ConfigError (one sentence) when the arguments cannot work, differ
+    between processes or JAX has already started; PeerLost when the others do not join in time or one is lost during
+    the start-up."""
     from jax._src import xla_bridge
 
     if coordinator is not None:
@@ -96,17 +100,19 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     with contextlib.suppress(AttributeError, ValueError):  # CPU collectives (the default in jax 0.10, set for others)
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
     coordinator, num_processes, process_id = _found(coordinator, num_processes, process_id)
+    heartbeat_s = heartbeat_s or DEFAULT_HEARTBEAT_S
     if None not in (coordinator, num_processes, process_id) and num_processes > 1:
-        rendezvous(coordinator, num_processes, process_id, arguments or {}, join_s, say or _stderr)
-    # Inside JAX's start-up nothing Python runs until it returns: SIGTERM ends the process as the system does. (A
-    # peer lost while this process waits inside JAX's coordination service ends it as JAX does: its callback for
-    # missed heartbeats cannot be given from Python in jax 0.10, the status it passes has no Python form.)
+        conns = rendezvous(coordinator, num_processes, process_id, arguments or {}, join_s, say or _stderr)
+        watch.start(conns, process_id, num_processes, heartbeat_s)
+        watch.tail(lambda: " during JAX's start-up; nothing was started, run the command again.")
+    # Inside JAX's start-up nothing Python runs in this thread until it returns: SIGTERM ends the process as the
+    # system does (the watch's thread still ends it with its sentence when a peer is lost meanwhile).
     previous = signal.signal(signal.SIGTERM, signal.SIG_DFL) if threading.current_thread() is threading.main_thread() \
         else None
     try:
         jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
                                    process_id=process_id, initialization_timeout=max(1, math.ceil(join_s)),
-                                   heartbeat_timeout_seconds=heartbeat_s or DEFAULT_HEARTBEAT_S)
+                                   heartbeat_timeout_seconds=watch.JAX_HEARTBEAT_FACTOR * heartbeat_s)
     except (ValueError, TypeError) as err:  # what JAX could not find (no SLURM, Open MPI or TPU environment)
         missing = {"coordinator": "the coordinator's address", "number of processes": "the number of processes",
                    "process id": "this process's number"}

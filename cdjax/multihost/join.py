@@ -4,13 +4,16 @@ Process 0 listens on the coordinator's port; every other process connects to it 
 and sends its process id, the number of processes and the arguments that must match (`arguments`: out, arms,
 seeds, steps, config, grid). Process 0 waits until every other process has joined, compares, and answers each one
 "go" or the one sentence that refuses the sweep (arguments that differ, a process id given twice, another number
-of processes), which every process then raises. Then the channel closes and JAX's coordination service takes the
-port. Every wait is bounded by the join timeout and says first what it waits for; a process that does not join in
-time, or a process 0 that goes away, ends the others with `PeerLost` (exit 69). SIGTERM raised in Python (the
-`cdjax` command's handler) ends a waiting process, since every wait here is a short socket timeout in a loop.
+of processes), which every process then raises. Then process 0 stops listening and JAX's coordination service takes
+the port; the connections stay open, for the processes to watch one another (cdjax.multihost.watch). Every wait is
+bounded by the join timeout and says first what it waits for; a process that does not join in time, or a process 0
+that goes away, ends the others with `PeerLost` (exit 69). SIGTERM raised in Python (the `cdjax` command's handler)
+ends a waiting process, since every wait here is a short socket timeout in a loop.
 
 Two processes given --process-id 0: the second cannot listen on the port the first holds, so it joins as a client
-and is refused with the first, by the first.
+and is refused with the first, by the first. A process that comes once its sweep has started (JAX's coordination
+service holds the port; a duplicate process id, or a command run twice) or to a port another program holds is
+answered in another protocol than this one, and refused alone: the sweep that holds the port goes on.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from cdjax.protocol import ConfigError
 
 _POLL_S = 0.5  # how often a wait looks again (and lets a signal's handler run)
 _LINE_BYTES = 1 << 16  # the most one message may hold
+FOREIGN = "foreign"  # what `_receive` gives for an answer in another protocol (JAX's coordination service, a web server)
 
 
 def _address(coordinator: str) -> tuple[str, int]:
@@ -36,8 +40,9 @@ def _send(conn: socket.socket, message: dict) -> None:
     conn.sendall(json.dumps(message).encode() + b"\n")
 
 
-def _receive(conn: socket.socket, deadline: float) -> dict | None:
-    """One message, or None when the other end closed or the deadline passed first."""
+def _receive(conn: socket.socket, deadline: float) -> dict | str | None:
+    """One message; None when the other end closed or the deadline passed first, having said nothing; FOREIGN when
+    it said something that is not a message of this protocol."""
     data = b""
     while not data.endswith(b"\n") and len(data) < _LINE_BYTES:
         conn.settimeout(max(0.01, min(_POLL_S, deadline - time.monotonic())))
@@ -48,15 +53,15 @@ def _receive(conn: socket.socket, deadline: float) -> dict | None:
                 return None
             continue
         except OSError:
-            return None
+            chunk = b""
         if not chunk:
-            return None
+            return FOREIGN if data else None
         data += chunk
     try:
         message = json.loads(data.decode("utf-8", "replace"))
     except json.JSONDecodeError:
-        return None
-    return message if isinstance(message, dict) else None
+        return FOREIGN
+    return message if isinstance(message, dict) else FOREIGN
 
 
 def difference(mine: dict, theirs: dict, process: int) -> str | None:
@@ -70,10 +75,12 @@ def difference(mine: dict, theirs: dict, process: int) -> str | None:
 
 
 def rendezvous(coordinator: str, num_processes: int, process_id: int, arguments: dict, timeout_s: float,
-               say: Callable[[str], None]) -> None:
-    """Join the other processes (see the module's docstring); returns once every process has joined and agreed.
-    ConfigError for arguments that differ or a process id given twice (the same sentence on every process);
-    PeerLost when the others do not join within `timeout_s` or process 0 goes away."""
+               say: Callable[[str], None]) -> dict[int, socket.socket]:
+    """Join the other processes (see the module's docstring); returns once every process has joined and agreed, with
+    the connections kept open (process id -> connection: process 0 holds one to each other process, the others
+    one to process 0). ConfigError for arguments that differ or a process id given twice (the same sentence on every
+    process), or a port that answers in another protocol; PeerLost when the others do not join within `timeout_s`
+    or process 0 goes away."""
     host, port = _address(coordinator)
     deadline = time.monotonic() + timeout_s
     server = None
@@ -85,24 +92,24 @@ def rendezvous(coordinator: str, num_processes: int, process_id: int, arguments:
             server = None  # the port is held: by another process 0 (refused as a duplicate by it), or not ours
     if server is not None:
         with server:
-            _serve(server, host, port, num_processes, arguments, deadline, timeout_s, say)
-    else:
-        _join(host, port, num_processes, process_id, arguments, deadline, timeout_s, say)
+            return _serve(server, host, port, num_processes, arguments, deadline, timeout_s, say)
+    return {0: _join(host, port, num_processes, process_id, arguments, deadline, timeout_s, say)}
 
 
 def _serve(server: socket.socket, host: str, port: int, num_processes: int, arguments: dict, deadline: float,
-           timeout_s: float, say: Callable[[str], None]) -> None:
+           timeout_s: float, say: Callable[[str], None]) -> dict[int, socket.socket]:
     others = set(range(1, num_processes))
     say(f"Process 0 of {num_processes}: waiting up to {timeout_s:g} s (--join-timeout) for process(es) "
         f"{', '.join(map(str, sorted(others)))} to join at {host}:{port}.")
-    joined: set[int] = set()
+    joined: dict[int, socket.socket] = {}
     conns: list[socket.socket] = []  # every process that joined, duplicates included: each gets the answer
+    kept: dict[int, socket.socket] = {}
     refusal = None
     server.settimeout(_POLL_S)
     try:
-        while joined != others and refusal is None:
+        while set(joined) != others and refusal is None:
             if time.monotonic() >= deadline:
-                missing = ", ".join(map(str, sorted(others - joined)))
+                missing = ", ".join(map(str, sorted(others - set(joined))))
                 for conn in conns:
                     _send_quietly(conn, {"lost": f"process(es) {missing} did not join within {timeout_s:g} s"})
                 raise PeerLost(f"Process 0 of {num_processes} stopped: process(es) {missing} did not join within "
@@ -112,7 +119,8 @@ def _serve(server: socket.socket, host: str, port: int, num_processes: int, argu
                 conn, _ = server.accept()
             except socket.timeout:
                 continue
-            message = _receive(conn, min(deadline, time.monotonic() + 10)) or {}
+            message = _receive(conn, min(deadline, time.monotonic() + 10))
+            message = message if isinstance(message, dict) else {}
             process, count = message.get("id"), message.get("n")
             if not isinstance(process, int):
                 conn.close()  # not one of ours (a port scan, a stray connection): ignored
@@ -126,18 +134,21 @@ def _serve(server: socket.socket, host: str, port: int, num_processes: int, argu
                            f"own number from 0 to {num_processes - 1}; none was started.")
             else:
                 refusal = difference(arguments, message.get("args", {}), process)
-                joined.add(process)
+                joined[process] = conn
         if refusal is None:  # a duplicate that connected with the last one, still queued, is refused with it
             refusal = _queued_duplicate(server, conns, num_processes)
         for conn in conns:
             _send_quietly(conn, {"refuse": refusal} if refusal is not None else {"go": True})
-        for conn in conns:  # each process closes first, so that the port is free again for JAX's service
+        if refusal is None:
+            kept = joined  # open beside JAX's service on the port, until the process ends
+            return joined
+        for conn in conns:  # refused: each process closes first, having read the refusal
             _receive(conn, time.monotonic() + 5)
     finally:
         for conn in conns:
-            conn.close()
-    if refusal is not None:
-        raise ConfigError(refusal)
+            if conn not in kept.values():
+                conn.close()
+    raise ConfigError(refusal)
 
 
 def _queued_duplicate(server: socket.socket, conns: list, num_processes: int) -> str | None:
@@ -148,8 +159,8 @@ def _queued_duplicate(server: socket.socket, conns: list, num_processes: int) ->
         conn, _ = server.accept()
     except OSError:
         return None
-    message = _receive(conn, time.monotonic() + 5) or {}
-    if not isinstance(message.get("id"), int):
+    message = _receive(conn, time.monotonic() + 5)
+    if not isinstance(message, dict) or not isinstance(message.get("id"), int):
         conn.close()
         return None
     conns.append(conn)
@@ -165,7 +176,7 @@ def _send_quietly(conn: socket.socket, message: dict) -> None:
 
 
 def _join(host: str, port: int, num_processes: int, process_id: int, arguments: dict, deadline: float,
-          timeout_s: float, say: Callable[[str], None]) -> None:
+          timeout_s: float, say: Callable[[str], None]) -> socket.socket:
     said = False
     while True:
         if time.monotonic() >= deadline:
@@ -182,12 +193,23 @@ def _join(host: str, port: int, num_processes: int, process_id: int, arguments: 
             time.sleep(_POLL_S)
             continue
         break
-    with conn:
+    try:
         _send(conn, {"id": process_id, "n": num_processes, "args": arguments})
         answer = _receive(conn, deadline)
+    except BaseException:
+        conn.close()
+        raise
+    if isinstance(answer, dict) and "go" in answer:
+        return conn  # kept open: the processes watch one another over it
+    conn.close()
+    if answer == FOREIGN:
+        raise ConfigError(f"the coordinator's port {host}:{port} answers, but not as process 0 of a cdjax sweep "
+                          f"waiting for its processes: a sweep given this --coordinator has already started (JAX's "
+                          f"service holds the port, and --process-id {process_id} of it is taken), or another "
+                          "program holds the port; give every process of this sweep a free port; nothing was started.")
     if answer is None:
         raise PeerLost(f"Process {process_id} of {num_processes} stopped: process 0 went away before every process "
-                       f"had joined (or did not answer within {timeout_s:g} s, --join-timeout); nothing was started",
+                       f"had joined (or did not answer within {timeout_s:g} s, --join-timeout); nothing was started.",
                        True)
     if "refuse" in answer:
         raise ConfigError(str(answer["refuse"]))

@@ -108,6 +108,7 @@ class Loop:
         """Initialise every arm (and restore it when resuming), write run.json, trim the logs to the checkpoints,
         say the plan."""
         t0 = time.perf_counter()
+        multihost.tail(lambda: f"; {self.intact('')}")  # a lost process's sentence names the intact checkpoints
         for arm in self.arms:
             with self.timings.time(arm.name, "init", "init"):  # one arm's init at a time, to time each
                 arm.state = jax.block_until_ready(arm.programs.pop("init")(arm.keys, arm.hps))
