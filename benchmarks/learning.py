@@ -190,6 +190,7 @@ class Rows:
         self.path = out / "rows.jsonl"
 
     def add(self, **row) -> None:
+        row["at"] = time.time()  # when it was measured (Unix time): a process's time to a row, from its launch
         with self.path.open("a") as f:
             f.write(json.dumps(row) + "\n")
         print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
@@ -242,19 +243,21 @@ def run_sweep(name: str, variant: str, trainer, hp, seeds: int, seed: int, evals
     evaluator = make_evaluator(trainer, episodes=eval_episodes, deterministic=True)
     t0 = time.perf_counter()
     program, _ = budget.compile_fitting(sweep.lower(state, hps, updates_per_eval))  # as a sweep compiles it
-    compile_s, train_s = time.perf_counter() - t0, 0.0
+    compile_s, train_s, eval_s = time.perf_counter() - t0, 0.0, 0.0
     for i in range(evals + 1):
         if i:
             t0 = time.perf_counter()
             state, metrics = program(state, hps)
             jax.block_until_ready(metrics)
             train_s += time.perf_counter() - t0
+        t0 = time.perf_counter()
         eval_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1000 + i))(keys)
         returns = np.asarray(unpad(evaluator(trainer.policy(state), eval_keys, hps)["return_mean"], seeds))
+        eval_s += time.perf_counter() - t0  # the evaluations so far, the first one's compile included
         for s in range(seeds):
             rows.add(task=name, framework="cdjax", variant=variant, seed=seed * 1000 + s,
                      env_steps=i * updates_per_eval * trainer.config.env_steps_per_update,
-                     eval_return=float(returns[s]), train_s=train_s, compile_s=compile_s)
+                     eval_return=float(returns[s]), train_s=train_s, compile_s=compile_s, eval_s=eval_s)
         if time.perf_counter() > deadline and i < evals:
             print(f"time limit: cdjax {variant} on {name} stopped after evaluation {i} of {evals}", flush=True)
             return
