@@ -147,6 +147,10 @@ TASKS = {
                          num_epochs=8, action_repeat=4, discounting=0.95, reward_scaling=5.0, entropy_cost=1e-3,
                          horizon=5),
                     evals=6, updates_per_eval=2),
+    # Brax's published humanoid settings, on the ant task's schedule (8 x 8 updates: 21M env steps), as issue 71 timed it
+    "humanoid": Task(Spec(env="humanoid", num_envs=2048, unroll_length=10, batch_size=1024, num_minibatches=32,
+                          num_epochs=8, discounting=0.97, reward_scaling=0.1, entropy_cost=1e-3),
+                     evals=8, updates_per_eval=8),
     # CPU smoke: the pure-JAX point mass (it has Brax's Env interface, so Brax PPO runs on it too).
     "point": Task(Spec(env="point", num_envs=16, unroll_length=4, batch_size=16, num_minibatches=2, num_epochs=2,
                        horizon=4, episode_length=40, policy_hidden=(16,), value_hidden=(16,), model_hidden=(16,),
