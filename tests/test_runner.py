@@ -623,6 +623,7 @@ def test_memory_check_traces_a_shared_reset_once_and_counts_what_init_gives(monk
     monkeypatch.setattr(arms, "_COMPILED", {})
     monkeypatch.setattr(envs, "_SHARED_ENVS", {})  # a fresh point env whose physics is traced anew
     monkeypatch.setattr(envs, "_PHYSICS", {})
+    monkeypatch.setattr(envs, "_OBSERVATION_SIZES", {})  # the size is learnt anew, from this env's reset
     monkeypatch.setattr(sweep, "_RESETS", {})
     traced = []
     reset = PointMass.reset
