@@ -10,6 +10,11 @@
 #                       learning.TASKS), one whole process each, timed here; each its own empty cache
 #   sweep-before-cold   the 4-arm sweep as above with the code of d1792b3 (OLD_CODE, or exported here by git)
 #   sweep-after-warm, sweep-before-warm   the same with the compilation cache their cold run-0 filled
+# PARTS="name ..." runs only those parts (a second loan: what the first left out; a warm part without its cold part's
+# cache fills one first). Estimates (H200, from the kept figures): sweep-after-cold 3 x ~110 s, the learning pairs
+# ~370 s (humanoid: cdjax ~140, Brax ~230) and ~270 s (ant), sweep-before-cold 3 x ~140 s, the warm parts 3 x ~45 and
+# 3 x ~70 s: about 29 minutes in all, so one 22-minute unit is expected to leave out the warm parts and perhaps the
+# last before-cold process (OUT/progress names them) for a second loan.
 # Then OUT/versus.md: cdjax's whole process, and its compile + training, over Brax's whole process, per task, and when
 # cdjax's evaluation return first reached Brax's final one (seconds after its launch, and of training).
 set -u
@@ -29,16 +34,23 @@ else  # estimates from the kept H200 figures (docs/speed.md, 2026-11-29-h200-swe
   size=(--env ant); tasks=(humanoid ant); est_sweep=140; est_warm=50; est_cdjax=130; est_brax=240
   sweep_args=(-- --arms model-free mbmf cd-k5 cd --seeds 3)
 fi
+# the code before issue 71's changes: OLD_CODE (e.g. carried to the device: `git archive d1792b3 cdjax | tar -x -C DIR`
+# here, DIR git-ignored), or exported from this checkout's git history where it has one
 old=${OLD_CODE:-$out/code-d1792b3}
 if [ ! -d "$old/cdjax" ]; then
-  mkdir -p "$old" && git archive d1792b3 cdjax | tar -x -C "$old" || { say "no $old/cdjax and no git to export it"; exit 1; }
+  mkdir -p "$old" && git archive d1792b3 cdjax 2> /dev/null | tar -x -C "$old" 2> /dev/null
+  [ -d "$old/cdjax" ] || say "no $old/cdjax (no OLD_CODE, no git history): the before parts will be skipped"
 fi
 say "start: $(left) s for the unit; $($py -c 'import jax; print(jax.__version__, jax.devices())' 2>&1 | tail -1)"
+
+wanted() { [ -z "${PARTS:-}" ] || [[ " $PARTS " == *" $1 "* ]] || { say "not in PARTS: $1"; return 1; }; }
 
 sweep() {  # name code runs estimate-per-process [--cache-dir DIR]
   local name=$1 code=$2 runs=$3 est=$4; shift 4
   if [ "$(left)" -lt "$est" ]; then say "skipped $name: $(left) s left, one process takes about $est s"; return; fi
-  if [ "${1:-}" = --cache-dir ] && [ ! -d "$2" ]; then say "skipped $name: no $2 (its cold part did not run)"; return; fi
+  wanted "$name" || return 0
+  if [ ! -d "$code/cdjax" ]; then say "skipped $name: no $code/cdjax"; return; fi
+  if [ "${1:-}" = --cache-dir ] && [ ! -d "$2" ]; then set -- --cache warm; fi  # no cold run here: one fills it first
   say "$name"
   timeout "$(left)" "$py" -m benchmarks.startup "${size[@]}" --runs "$runs" --code "$code" --time-limit "$(left)" \
     --out "$out/$name" "$@" ${sweep_args[@]+"${sweep_args[@]}"} > "$out/$name.log" 2>&1
@@ -47,6 +59,7 @@ sweep() {  # name code runs estimate-per-process [--cache-dir DIR]
 
 learning() {  # task framework estimate
   local name=learning-$1-$2
+  wanted "$name" || return 0
   if [ "$(left)" -lt "$3" ]; then say "skipped $name: $(left) s left, it takes about $3 s"; return; fi
   say "$name"
   local t0 t1 rc tiny=()
