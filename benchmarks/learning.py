@@ -147,6 +147,10 @@ TASKS = {
                          num_epochs=8, action_repeat=4, discounting=0.95, reward_scaling=5.0, entropy_cost=1e-3,
                          horizon=5),
                     evals=6, updates_per_eval=2),
+    # Brax's published humanoid settings, on the ant task's schedule (8 x 8 updates: 21M env steps), as issue 71 timed it
+    "humanoid": Task(Spec(env="humanoid", num_envs=2048, unroll_length=10, batch_size=1024, num_minibatches=32,
+                          num_epochs=8, discounting=0.97, reward_scaling=0.1, entropy_cost=1e-3),
+                     evals=8, updates_per_eval=8),
     # CPU smoke: the pure-JAX point mass (it has Brax's Env interface, so Brax PPO runs on it too).
     "point": Task(Spec(env="point", num_envs=16, unroll_length=4, batch_size=16, num_minibatches=2, num_epochs=2,
                        horizon=4, episode_length=40, policy_hidden=(16,), value_hidden=(16,), model_hidden=(16,),
@@ -190,6 +194,7 @@ class Rows:
         self.path = out / "rows.jsonl"
 
     def add(self, **row) -> None:
+        row["at"] = time.time()  # when it was measured (Unix time): a process's time to a row, from its launch
         with self.path.open("a") as f:
             f.write(json.dumps(row) + "\n")
         print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
@@ -242,19 +247,21 @@ def run_sweep(name: str, variant: str, trainer, hp, seeds: int, seed: int, evals
     evaluator = make_evaluator(trainer, episodes=eval_episodes, deterministic=True)
     t0 = time.perf_counter()
     program, _ = budget.compile_fitting(sweep.lower(state, hps, updates_per_eval))  # as a sweep compiles it
-    compile_s, train_s = time.perf_counter() - t0, 0.0
+    compile_s, train_s, eval_s = time.perf_counter() - t0, 0.0, 0.0
     for i in range(evals + 1):
         if i:
             t0 = time.perf_counter()
             state, metrics = program(state, hps)
             jax.block_until_ready(metrics)
             train_s += time.perf_counter() - t0
+        t0 = time.perf_counter()
         eval_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1000 + i))(keys)
         returns = np.asarray(unpad(evaluator(trainer.policy(state), eval_keys, hps)["return_mean"], seeds))
+        eval_s += time.perf_counter() - t0  # the evaluations so far, the first one's compile included
         for s in range(seeds):
             rows.add(task=name, framework="cdjax", variant=variant, seed=seed * 1000 + s,
                      env_steps=i * updates_per_eval * trainer.config.env_steps_per_update,
-                     eval_return=float(returns[s]), train_s=train_s, compile_s=compile_s)
+                     eval_return=float(returns[s]), train_s=train_s, compile_s=compile_s, eval_s=eval_s)
         if time.perf_counter() > deadline and i < evals:
             print(f"time limit: cdjax {variant} on {name} stopped after evaluation {i} of {evals}", flush=True)
             return

@@ -98,3 +98,19 @@ def test_the_arms_of_a_sweep_trace_their_envs_reset_once(monkeypatch):
     size = trace(make_single_env("point"))
     assert size == PointMass().observation_size
     assert [t.eval_env(3).observation_size for t in trainers] == [size] * 3 and len(traced) == 1
+
+
+def test_the_needed_leaves_are_analysed_once_per_env_and_settings(monkeypatch):
+    """The arms of a sweep act in one env object with the same settings: the analysis of their step (seconds on an
+    MJX task) runs once for all of them, and anew for other settings or another env object."""
+    from cdjax.envs import resume
+
+    analysed, analyse = [], resume._needed_leaves
+    monkeypatch.setattr(resume, "_NEEDED", {})
+    monkeypatch.setattr(resume, "_needed_leaves", lambda env: analysed.append(env) or analyse(env))
+    point = PointMass()
+    first = needed_leaves(BatchedEnv(point, 4, 10))
+    assert needed_leaves(BatchedEnv(point, 4, 10)) == first and len(analysed) == 1
+    fresh = needed_leaves(BatchedEnv(point, 4, 10, reset_mode="fresh"))
+    assert len(analysed) == 2 and fresh != first  # fresh resets need the key (the test above)
+    assert needed_leaves(BatchedEnv(PointMass(), 4, 10)) == first and len(analysed) == 3

@@ -609,9 +609,10 @@ def test_sweep_init_is_the_trainers_init_and_arms_share_a_reset_only_in_the_same
 
 
 def test_memory_check_traces_a_shared_reset_once_and_counts_what_init_gives(monkeypatch):
-    """check_memory's state bytes are those of each trainer's whole init, while the physics reset of arms in the
-    same environments is traced once for all of them, and that trace serves the reset program compile_all lowers
-    after it (the evaluation environments' reset is traced once more: another batch of the env)."""
+    """check_memory's state bytes are those of each trainer's whole init, while the env's physics reset is traced
+    once for its observation size and once more over the runs (their keys' shapes carry the sweep's mesh, which
+    JAX's trace cache tells apart), and every batch of it batches one of those traces: the reset over the arms' runs,
+    the evaluation environments' reset and the reset program compile_all lowers after them."""
     import cdjax.runner.arms as arms
     from cdjax import envs, sweep
     from cdjax.agents.obs import SETTING
@@ -622,6 +623,7 @@ def test_memory_check_traces_a_shared_reset_once_and_counts_what_init_gives(monk
     monkeypatch.setattr(arms, "_COMPILED", {})
     monkeypatch.setattr(envs, "_SHARED_ENVS", {})  # a fresh point env whose physics is traced anew
     monkeypatch.setattr(envs, "_PHYSICS", {})
+    monkeypatch.setattr(envs, "_OBSERVATION_SIZES", {})  # the size is learnt anew, from this env's reset
     monkeypatch.setattr(sweep, "_RESETS", {})
     traced = []
     reset = PointMass.reset
@@ -629,16 +631,18 @@ def test_memory_check_traces_a_shared_reset_once_and_counts_what_init_gives(monk
     spec = dataclasses.replace(SPEC, arms=("model-free", "mbmf", "cd-k3"), final_eval=True, eval_episodes=3)
     built = [arms.build(plan, spec, SETTING) for plan in plan_arms(spec)]
     assert len({id(arm.sweep.reset) for arm in built}) == 1
-    before = len(traced)  # building traced the env's reset once, for its observation size
+    assert len(traced) == 1  # building traced the env's reset once, for its observation size
     arms.check_memory(built, spec)  # from shapes: the runs' keys are not drawn yet
-    assert len(traced) == before + 2  # the shared reset over the runs, and the evaluation environments' reset
+    assert len(traced) == 2  # the shared reset over the runs and the evaluation environments' reset, one trace
     arm = built[0]
     arm.keys, arm.hps = arm.sweep.grid(spec.seed, spec.seeds, arm.plan.hparams)
     arms._lowered(arm, "reset", arm.sweep.reset.trace, arm.keys, owner=arm.sweep.reset)  # as compile_all does
-    assert len(traced) == before + 2  # the lowering of the reset program reused check_memory's trace
+    assert len(traced) == 2  # the reset program batches it too
     key, hp = jax.random.key(0), HParams()
     for arm in built:
         assert arm.state_bytes == budget.tree_bytes(jax.eval_shape(arm.trainer.init, key, hp)) > 0
+        assert (budget.tree_bytes(arms._eval_reset_shape(arm, 3, key))
+                == budget.tree_bytes(jax.eval_shape(arm.trainer.eval_env(3).reset, key)) > 0)
 
 
 class _Counted:

@@ -160,19 +160,31 @@ def _all_finite(tree, batch: int) -> jax.Array:
     return ok
 
 
-_PHYSICS: dict[int, tuple[Any, Callable, Callable]] = {}
+_PHYSICS: dict[int, tuple[Any, Callable, Callable, Callable]] = {}
+
+
+def _single_physics(env) -> tuple[Callable, Callable, Callable]:
+    """env's reset and step, each one `jax.jit` function of ONE environment per env object in this process, and their
+    batched forms (`physics`). JAX keeps a jitted function's trace per input shapes, and vmap batches that trace (its
+    operations) without running the env's Python again: so an MJX reset or step (thousands of operations, a second or
+    more of Python to trace) is traced once per process for every batch size that calls it (the training envs, the
+    evaluation envs, the runs' vmap), and the trace that learns the observation size is the one they all reuse. XLA
+    inlines the calls, so the compiled programs compute the same numbers."""
+    if id(env) not in _PHYSICS:  # the env is held in the entry, so its id stays its own while the entry lives
+        reset_one, step_one = jax.jit(env.reset), jax.jit(env.step)
+        _PHYSICS[id(env)] = (env, reset_one,
+                             jax.jit(lambda keys: strong_types(jax.vmap(reset_one)(keys))),
+                             jax.jit(lambda core, action: strong_types(jax.vmap(step_one)(core, action))))
+    return _PHYSICS[id(env)][1:]
 
 
 def physics(env) -> tuple[Callable, Callable]:
     """env's batched reset (keys [B] -> State [B]) and step ((State [B], actions [B, act]) -> State [B]), each one
     `jax.jit` function per env object in this process (strong-typed). Every program that calls them, in any arm,
-    chunk or evaluation, then traces and batches the env's physics once: JAX keeps a jitted function's trace (and
-    its vmapped trace) for the same input shapes, where a plain call is traced anew in every program (an MJX step
-    is thousands of operations). XLA inlines the calls, so the compiled programs are the same."""
-    if id(env) not in _PHYSICS:  # the env is held in the entry, so its id stays its own while the entry lives
-        _PHYSICS[id(env)] = (env, jax.jit(lambda keys: strong_types(jax.vmap(env.reset)(keys))),
-                             jax.jit(lambda core, action: strong_types(jax.vmap(env.step)(core, action))))
-    return _PHYSICS[id(env)][1:]
+    chunk or evaluation, then traces the env's physics once (`_single_physics`), where a plain call is traced anew in
+    every program (an MJX step is thousands of operations). XLA inlines the calls, so the compiled programs are the
+    same."""
+    return _single_physics(env)[1:]
 
 
 class BatchedEnv:
@@ -267,9 +279,12 @@ class BatchedEnv:
 
 
 def traced_observation_size(env) -> int:
-    """The size of env's observation, from its reset traced (Brax's observation_size property runs reset op by op:
-    ~30 s for an MJX env on a CPU; traced, ~1 s)."""
-    return int(jax.eval_shape(env.reset, jax.random.key(0)).obs.shape[-1])
+    """The size of env's observation, from the shapes of its reset (`jax.eval_shape`: traced, nothing computed; Brax's
+    observation_size property runs reset op by op, ~30 s for an MJX env on a CPU). The trace is the process's one
+    trace of env's reset (`_single_physics`), which every batched reset of env then batches instead of tracing the
+    env's Python again: learning the size costs no trace that a sweep would not make anyway."""
+    reset_one = _single_physics(env)[0]
+    return int(jax.eval_shape(reset_one, jax.random.key(0)).obs.shape[-1])
 
 
 _OBSERVATION_SIZES: dict[str, int] = {}

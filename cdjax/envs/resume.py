@@ -117,8 +117,20 @@ def _primitive(eqn, ins: list[int]) -> list[int]:
     return [union] * n_out
 
 
+# (physics env object, batched env's settings) -> (the env object, held so that its id stays its own; needed_leaves)
+_NEEDED: dict = {}
+
+
 def needed_leaves(env: BatchedEnv):
-    """An EnvState of bools: True for the leaves a resumed run must restore exactly."""
+    """An EnvState of bools: True for the leaves a resumed run must restore exactly. Analysed once per env object and
+    settings in this process (seconds for an MJX task): the arms of a sweep act in the same environments."""
+    key = (id(env.env), env.num_envs, env.episode_length, env.action_repeat, env.reset_mode, env.stagger)
+    if key not in _NEEDED:
+        _NEEDED[key] = (env.env, _needed_leaves(env))
+    return _NEEDED[key][1]
+
+
+def _needed_leaves(env: BatchedEnv):
     state = jax.eval_shape(env.reset, jax.random.key(0))
     action = jax.ShapeDtypeStruct((env.num_envs, env.action_size), jnp.float32)
 

@@ -273,10 +273,17 @@ def _init_shape(arm: Arm, key: jax.Array, hp):
     return jax.eval_shape(trainer.init_from, key, hp, envs)
 
 
-def _eval_reset_shape(trainer: Trainer, episodes: int, key: jax.Array):
-    """ShapeDtypeStructs of the evaluation environments' reset for `episodes` episodes (shared as _init_shape's)."""
-    return _shared_shape(trainer, ("eval", episodes),
-                         lambda: jax.eval_shape(trainer.eval_env(episodes).reset, key))
+def _eval_reset_shape(arm: Arm, episodes: int, key: jax.Array):
+    """ShapeDtypeStructs of one run's evaluation environments' reset for `episodes` episodes (shared as _init_shape's).
+    Traced as the evaluator calls it, under the vmap over the arm's runs' keys (`Sweep.key_shapes`): the env's physics
+    reset is then the trace the runs' reset already made (`cdjax.envs.physics`), only batched again."""
+    trainer = arm.trainer
+    if arm.sweep.reset is None:
+        return _shared_shape(trainer, ("eval", episodes), lambda: jax.eval_shape(trainer.eval_env(episodes).reset, key))
+    keys = arm.sweep.key_shapes(arm.num_runs)
+    runs = _shared_shape(trainer, ("eval", episodes, budget.signature((keys,))),
+                         lambda: jax.eval_shape(jax.vmap(trainer.eval_env(episodes).reset), keys))
+    return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[1:], s.dtype), runs)
 
 
 def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
@@ -290,7 +297,7 @@ def check_memory(arms: list[Arm], spec: SweepSpec) -> int:
         cache = (id(arm.sweep), "bytes", spec.eval_episodes if evaluated else 0, budget.signature(hp))
         if cache not in _COMPILED:
             state = budget.tree_bytes(_init_shape(arm, key, hp))
-            evaluation = budget.tree_bytes(_eval_reset_shape(arm.trainer, spec.eval_episodes, key)) if evaluated else 0
+            evaluation = budget.tree_bytes(_eval_reset_shape(arm, spec.eval_episodes, key)) if evaluated else 0
             _COMPILED[cache] = (arm.sweep, (state, evaluation))
         state, evaluation = _COMPILED[cache][1]
         arm.state_bytes = state

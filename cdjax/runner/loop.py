@@ -154,6 +154,10 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             progress.say(f"Compiling the programs of {', '.join(a.name for a in arms)} (nothing is written before "
                          "they are compiled and fit in memory).")
             t_compile = time.perf_counter()
+            # orbax (most of two seconds of imports, which the first checkpoint manager would run between the arms'
+            # inits) while the programs compile: the compiling threads leave this thread mostly waiting
+            threading.Thread(target=_import_ahead, args=("orbax.checkpoint",), name="cdjax-orbax-import",
+                             daemon=True).start()
             have, where = budget.available()
             for arm in arms:  # a program scheduled by data flow that would not fit is compiled in order instead
                 arm.room = have - states
@@ -162,7 +166,8 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
             if spec.final_eval or spec.eval_every:  # compiled while training runs, not after it
                 compile_evaluators(arms, spec.eval_episodes, not setting.eval_sampled)
             if writer and spec.final_eval:  # the plots' imports (matplotlib: about a second) while training runs
-                threading.Thread(target=_import_plots, name="cdjax-plots-import", daemon=True).start()
+                threading.Thread(target=_import_ahead, args=("cdjax.plots",), name="cdjax-plots-import",
+                                 daemon=True).start()
             for arm in arms:
                 for what, (wide, narrow) in arm.in_order.items():
                     progress.say(f"{arm.name}'s {what} program runs its GPU kernels in XLA's program order: with them "
@@ -210,11 +215,11 @@ def run_sweep(spec: SweepSpec, resume: bool = False, after_chunk: AfterChunk | N
                                  + (f"; resume with `{_resume_hint(rd)}`." if resume or rd.exists() else ".")) from None
 
 
-def _import_plots() -> None:
-    """Import cdjax.plots (the final plots import it again, then at once); an install without the plotting stack
-    says so there."""
+def _import_ahead(module: str) -> None:
+    """Import `module` ahead of its use (which imports it again, then at once); an install without it says so
+    there."""
     with contextlib.suppress(ImportError):
-        importlib.import_module("cdjax.plots")
+        importlib.import_module(module)
 
 
 def _train(loop: Loop, resume: bool, t_compile: float) -> pathlib.Path:

@@ -8,15 +8,17 @@ that builds that distribution; `squashed_entropy` the one place that estimates i
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
-import distrax
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
 from cdjax.agents.obs.config import Config
 from cdjax.consistency import SequenceEncoder, init_encoder
+
+if TYPE_CHECKING:
+    import distrax
 
 MODEL_LOG_STD_MIN = -6.0  # bounds of the dynamics model's predicted log standard deviation
 MODEL_LOG_STD_MAX = 1.0
@@ -25,7 +27,10 @@ Dense = nn.Dense  # the dense layer of the agent's MLPs (policy, value, dynamics
 
 
 def action_distribution(mean: jax.Array, std: jax.Array) -> distrax.MultivariateNormalDiag:
-    """Diagonal Gaussian over the pre-squash action u; the executed action is squash(u)."""
+    """Diagonal Gaussian over the pre-squash action u; the executed action is squash(u). distrax (with TensorFlow
+    Probability, most of a second to import) is imported here, at the first trace that needs it, not with cdjax."""
+    import distrax
+
     return distrax.MultivariateNormalDiag(mean, std * jnp.ones_like(mean))
 
 
