@@ -19,16 +19,19 @@ runtime.apply_xla_defaults()  # as the `cdjax` command does: XLA:CPU's scheduler
 CACHE = pathlib.Path(os.environ.get(runtime.CACHE_ENV, pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"))
 runtime.configure(cache_dir=CACHE)
 
-# The files that take longest first, longest first (the sums of their slowest tests in a whole-suite run with -n 2):
-# the suite runs on two workers, a file to a worker (--dist loadfile) in collection order (--no-loadscope-reorder in
-# pyproject.toml), each worker taking the next file when it is free, so a long file handed out last would leave one
-# worker finishing alone. Files not named keep their order after these.
+# The files that take longest first, longest first (the sums of their slowest tests in a whole-suite run with -n 2;
+# from test_consistency.py on, the sums of each file's tests run alone with -n 0): the suite runs on two workers, a
+# file to a worker (--dist loadfile) in collection order (--no-loadscope-reorder in pyproject.toml), each worker
+# taking the next file when it is free, so a long file handed out last would leave one worker finishing alone. Files
+# not named keep their order after these. test_paper_obs_space.py stays well after test_runner.py, whose phase sweep
+# it runs again (the compilation cache serves it once test_runner.py has compiled it).
 HEAVY_FIRST = ("test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_readme.py", "test_learner.py",
                "test_pixel_model.py", "test_runner.py", "test_sweep.py", "test_settings_face.py", "test_run_dir.py",
                "test_offpolicy.py", "test_mbmf.py", "test_atari_cli.py", "test_multihost.py", "test_docs.py",
                "test_mpc.py", "test_cli.py", "test_offpolicy_host.py", "test_playground.py", "test_playground_bench.py",
-               "test_failures.py", "test_mbmf_options.py", "test_offpolicy_bench.py", "test_faults.py", "test_startup.py",
-               "test_offpolicy_experiment.py", "test_launch.py")
+               "test_failures.py", "test_consistency.py", "test_mbmf_options.py", "test_paper_obs_space.py",
+               "test_pixels.py", "test_evaluate.py", "test_offpolicy_bench.py", "test_faults.py", "test_startup.py",
+               "test_env_resume.py", "test_losses.py", "test_atari.py", "test_launch.py", "test_offpolicy_experiment.py")
 
 
 def pytest_collection_modifyitems(session, config, items):

@@ -13,23 +13,32 @@ import jax
 import numpy as np
 import pytest
 
-from cdjax import agents, io
+from cdjax import agents, io, runtime
 from cdjax.agents.atari import AtariConfig, AtariHParams, make_trainer
 from cdjax.agents.atari.config import ale_available
 from cdjax.cli import main
 from cdjax.runner import Interrupted, restore_arms, resume_spec, run_sweep
 
-from _shared import logged_rows
+from _shared import OPTIMISED, logged_rows
 
 UPDATES, CHUNK = 320, 40  # 320 updates of 16 envs x 8 steps: 40,960 env steps per run
 ARGS = ["sweep", "--setting", "atari", "--preset", "cpu-minatar", "--arms", "a2c", "--steps", str(UPDATES * 128),
         "--chunk-updates", str(CHUNK), "--bootstrap-reps", "50", "--no-progress"]
 
 
+# The learning sweep runs long enough (320 updates) for executing its programs to cost more than compiling them, so
+# they are compiled at XLA's default optimisation level (tests/_shared.OPTIMISED, through $CDJAX_XLA_OPTIONS, which
+# reaches only cdjax's programs), not the session's 0; the test comparing its seeds with each seed alone compiles the
+# seed's programs with the same options.
+OPTIMISED_ENV = " ".join(f"{name}={value}" for name, value in OPTIMISED.items())
+
+
 @pytest.fixture(scope="module")
 def whole(tmp_path_factory):
     out = tmp_path_factory.mktemp("atari") / "whole"
-    main(ARGS + ["--out", str(out)])
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(runtime.OPTIONS_ENV, OPTIMISED_ENV)
+        main(ARGS + ["--out", str(out)])
     return out
 
 
@@ -65,7 +74,10 @@ def test_vmapped_runs_equal_each_seed_alone_whose_update_compiles_once_and_skips
     config, hp = AtariConfig(**arm["config"]), AtariHParams(**arm["hparams"][0])
     trainer = make_trainer(config)
     rows = [r for r in logged_rows(whole) if r["arm"] == "a2c" and r["update"] <= 3]
-    init, update = jax.jit(trainer.init), jax.jit(trainer.update)
+    with pytest.MonkeyPatch.context() as patch:  # the options the sweep compiled its programs with
+        patch.setenv(runtime.OPTIONS_ENV, OPTIMISED_ENV)
+        options = runtime.compiler_options()
+    init, update = jax.jit(trainer.init, compiler_options=options), jax.jit(trainer.update, compiler_options=options)
     for seed, key in enumerate(jax.random.split(jax.random.key(run["seed"]), run["seeds"])):
         state = init(key, hp)
         for u in range(1, 4):
