@@ -3,12 +3,8 @@
 The install lines (`pip install ...`) are not run: CI performs the install itself (.ci/run, with the README's test
 command), and here they are checked against pyproject.toml (the extras they name exist) and against .ci/run (the
 test command is CI's, word for word). The GPU block's sweep is parsed by the `cdjax` command's own parser (its
-preset resolved), not trained. The CPU block's sweep and the command-line block run in a temporary directory, each
-line through `cdjax.cli.main` (the installed entry point's function) in this process, one after the other as a reader
-runs them: at the README's own sizes, only without a fresh interpreter per line, so that the later sweeps take the
-first one's compiled programs from the process's cache instead of tracing them again (the runs, their checkpoints
-and the resume from disk are the same). Every other shell line runs in bash with `cdjax` as the command; the Python
-block runs in a fresh interpreter."""
+preset resolved), not trained. Every other shell line runs in a temporary directory with `cdjax` as the command
+(the installed entry point's `cdjax.cli.main`); the Python block runs in a fresh interpreter."""
 
 from __future__ import annotations
 
@@ -77,25 +73,10 @@ def test_the_gpu_sweep_parses_and_resolves_its_preset():
     assert setting_of(argv[1:]) is agents.get("obs")
 
 
-def run_cdjax_lines(lines: list[str], cwd: pathlib.Path, monkeypatch) -> None:
-    """Run README lines that are each one `cdjax ...` command (a trailing comment allowed) through cdjax.cli.main
-    in this process, in `cwd`; a command that ends with a non-zero status fails the test."""
-    from cdjax.cli import main
-
-    monkeypatch.chdir(cwd)
-    for line in lines:
-        argv = shlex.split(line, comments=True)
-        assert argv[0] == "cdjax", f"not a cdjax command: {line}"
-        try:
-            main(argv[1:])
-        except SystemExit as stop:
-            assert stop.code in (0, None), f"{line}: exit status {stop.code}"
-
-
-def test_the_cpu_install_block_and_the_command_line_block_run(tmp_path, monkeypatch):
+def test_the_cpu_install_block_and_the_command_line_block_run(tmp_path):
     cpu = shell_blocks()[0]
     command_line = next(lines for lines in shell_blocks() if any("--resume" in ln for ln in lines))
-    run_cdjax_lines(cpu[1:] + command_line, tmp_path, monkeypatch)
+    run_shell(cpu[1:] + command_line, tmp_path)
     assert (tmp_path / "runs" / "point" / "run.json").is_file()
     first = tmp_path / "runs" / "first"
     record = json.loads((first / "run.json").read_text())
