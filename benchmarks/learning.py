@@ -248,8 +248,9 @@ def run_sweep(name: str, variant: str, trainer, hp, seeds: int, seed: int, evals
     evaluator = make_evaluator(trainer, episodes=eval_episodes, deterministic=True)
     eval_keys = lambda i: jax.vmap(lambda k: jax.random.fold_in(k, 1000 + i))(keys)  # noqa: E731
     # the evaluator compiles in the background beside the training program (one program for every evaluation)
-    evaluating = concurrent.futures.ThreadPoolExecutor(1).submit(
-        evaluator.compiled, (trainer.policy(state), eval_keys(0), hps))
+    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="evaluator-compile")
+    evaluating = pool.submit(evaluator.compiled, (trainer.policy(state), eval_keys(0), hps))
+    pool.shutdown(wait=False)  # its one thread ends with that compile
     t0 = time.perf_counter()
     program, _ = budget.compile_fitting(sweep.lower(state, hps, updates_per_eval))  # as a sweep compiles it
     compile_s, train_s, eval_s = time.perf_counter() - t0, 0.0, 0.0
