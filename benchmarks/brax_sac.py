@@ -126,7 +126,7 @@ def cdjax_config(task: SacTask, arm: str = "model-free", plain: bool = False, nu
     from cdjax.agents.offpolicy import Config
 
     steps = -(-task.max_replay // task.num_envs)
-    extra = dict(latent=False, n_step=1, layer_norm=False) if plain else {}
+    extra = dict(inputs="obs", n_step=1, layer_norm=False) if plain else {}
     fields = {f.name for f in dataclasses.fields(Config)}
     extra.update({k: v for k, v in (sets or {}).items() if k in fields})
     return Config(**{**dict(env=task.env, arm=arm, num_envs=task.num_envs, steps_per_update=1,

@@ -10,6 +10,7 @@ import pytest
 
 from cdjax.agents.offpolicy import Config, HParams, Learner, make_train
 from cdjax.agents.offpolicy.losses import REACHES, loss_terms, n_step_target, total_loss
+from cdjax.protocol import ConfigError
 from cdjax.replay import RingBuffer, sample_sequences
 
 TINY = Config(env="point", num_envs=4, steps_per_update=2, buffer_steps=32, batch_size=8, learning_starts=16,
@@ -154,6 +155,33 @@ def test_each_loss_term_reaches_only_the_groups_it_is_built_to_train(replayed, a
         for group, g in grads.items():
             reached = any(np.asarray(leaf).any() for leaf in jax.tree.leaves(g))
             assert reached == (group in REACHES[term]), (term, group)
+
+
+def test_obs_plus_latent_inputs_put_the_observation_beside_the_latent_and_keep_the_routing(replayed):
+    """inputs="obs+latent": the actor and critic read [normalised obs, latent]; the model and the self-predictive
+    term still work on the latent alone; every term reaches what REACHES says. inputs="obs" has no encoder, which
+    the model arms refuse."""
+    state, batch = replayed
+    config = TINY.replace(arm="self-pred", inputs="obs+latent")
+    nets = Learner(config).nets
+    params = nets.init(jax.random.key(5))
+    target = {"critic": params["critic"], "encoder": params["encoder"]}
+    obs = batch["obs"][0]
+    z = nets.encode(params["encoder"], obs)
+    assert z.shape == (obs.shape[0], config.latent_dim)
+    np.testing.assert_array_equal(nets.features(params["encoder"], obs), jnp.concatenate([obs, z], axis=-1))
+    assert params["actor"]["params"]["MLP_0"]["Dense_0"]["kernel"].shape[0] == obs.shape[-1] + config.latent_dim
+    hp = HParams(alpha=1.0).as_float32()
+    terms = lambda p: loss_terms(p, target, state.norm, batch, hp, jax.random.key(4), nets=nets,  # noqa: E731
+                                 config=config)[0]
+    jac = jax.jit(jax.jacrev(terms))(params)
+    assert set(jac) == {"critic", "actor", "temperature", "model", "self_pred"}
+    for term, grads in jac.items():
+        for group, g in grads.items():
+            assert any(np.asarray(leaf).any() for leaf in jax.tree.leaves(g)) == (group in REACHES[term]), (term, group)
+    assert Learner(TINY.replace(inputs="obs")).nets.encoder is None
+    with pytest.raises(ConfigError, match="needs inputs latent or obs\\+latent"):
+        TINY.replace(arm="model", inputs="obs")
 
 
 def test_diagnostics_change_no_training_number_and_hold_their_envs_out_of_the_replay():

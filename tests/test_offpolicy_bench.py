@@ -65,15 +65,18 @@ def test_cdjax_set_puts_typed_fields_over_the_config_and_hparams_and_names_the_v
     """--cdjax-set: each value takes its field's type, lands in the Config or the HParams it belongs to, and is named
     in the rows' variant; an unknown field or a value of the wrong type is refused."""
     task = brax_sac.TASKS["point"]
-    sets = brax_sac.parse_sets(["latent_dim=256", "latent=false", "actor_hidden=32,32", "tau=0.01"])
-    assert sets == {"latent_dim": 256, "latent": False, "actor_hidden": (32, 32), "tau": 0.01}
+    sets = brax_sac.parse_sets(["latent_dim=256", "layer_norm=false", "actor_hidden=32,32", "tau=0.01",
+                                "inputs=obs+latent"])
+    assert sets == {"latent_dim": 256, "layer_norm": False, "actor_hidden": (32, 32), "tau": 0.01,
+                    "inputs": "obs+latent"}
     config = brax_sac.cdjax_config(task, sets=sets)
-    assert (config.latent_dim, config.latent, config.actor_hidden) == (256, False, (32, 32))
+    assert (config.latent_dim, config.layer_norm, config.actor_hidden, config.inputs) == (256, False, (32, 32),
+                                                                                          "obs+latent")
     assert config.critic_hidden == task.hidden  # untouched fields keep the task's
     assert float(brax_sac.cdjax_hparams(task, sets).tau) == 0.01
     assert brax_sac.variant_name("model-free", False, sets) == (
-        "offpolicy-model-free+actor_hidden=32,32+latent=False+latent_dim=256+tau=0.01")
+        "offpolicy-model-free+actor_hidden=32,32+inputs=obs+latent+latent_dim=256+layer_norm=False+tau=0.01")
     assert brax_sac.variant_name("model-free") == "offpolicy-model-free"
-    for bad in (["nope=1"], ["latent_dim"], ["latent_dim=wide"], ["latent=maybe"]):
+    for bad in (["nope=1"], ["latent_dim"], ["latent_dim=wide"], ["layer_norm=maybe"]):
         with pytest.raises(SystemExit):
             brax_sac.parse_sets(bad)

@@ -12,8 +12,9 @@ update-to-data ratio), uniform random actions until `learning_starts` env steps,
 terminations not, non-finite env states reset and their transitions masked (`cdjax.envs`).
 
 Arms (Config.arm), the same code with switches:
-- `model-free`: SAC. With latent=True (the default) the actor and critic read an encoder's latent that only the
-  critic's loss trains, so that the other arms differ from it by their losses alone.
+- `model-free`: SAC. With inputs="latent" (the default) or "obs+latent" the actor and critic read an encoder's latent
+  (beside the normalised observation for "obs+latent") that only the critic's loss trains, so that the other arms
+  differ from it by their losses alone; inputs="obs" has no encoder (Brax's SAC reads observations so).
 - `model`: a latent model (encoder, latent transition, reward head, observation decoder) trained by one-step
   prediction of the next observation and the reward; no consistency term.
 - `paper-cd`: the model arm plus the paper's term (`cdjax.consistency.consistency_loss`): a GRU encoding of the real
@@ -23,9 +24,10 @@ Arms (Config.arm), the same code with switches:
   older policies' choices, and their gradient goes to the current actor's deterministic action at the same states.
 - `self-pred`: the model arm plus the self-predictive term (`cdjax.consistency.selfpredictive`): the latent transition rolled out
   k steps from enc(s_0) under the replayed actions against an EMA target encoder's latents, weight alpha.
-Every arm with a model has the actor and critic read the encoder's latent (as TD-MPC2 and MR.Q do), the critic's
-gradient and the model's losses shaping it and the actor reading it under stop_gradient, so that the representation
-is what the auxiliary losses change. At alpha 0 both consistency arms take the model arm's gradients.
+Every arm with a model has the actor and critic read the encoder's latent (as TD-MPC2 and MR.Q do; with
+inputs="obs+latent" beside the observation, as OFENet does), the critic's gradient and the model's losses shaping it
+and the actor reading it under stop_gradient, so that the representation is what the auxiliary losses change. At
+alpha 0 both consistency arms take the model arm's gradients.
 
 The modules: `config` (Config, HParams), `learner` (the jitted update; make_train, make_trainer, what a checkpoint
 keeps), `networks`, `losses`, `presets`. This module adapts them to `cdjax.protocol` (SETTING).

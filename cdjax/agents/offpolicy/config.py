@@ -20,6 +20,7 @@ Arm = Literal["model-free", "model", "paper-cd", "self-pred"]
 ARMS = ("model-free", "model", "paper-cd", "self-pred")
 ResetMode = Literal["cached", "fresh"]
 PhysicsBackend = Literal["auto", "jax", "warp"]  # cdjax.envs.playground.BACKENDS
+Inputs = Literal["latent", "obs", "obs+latent"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,7 +42,7 @@ class Config:
     actor_hidden: tuple[int, ...] = (256, 256)
     critic_hidden: tuple[int, ...] = (256, 256)
     layer_norm: bool = True  # LayerNorm after every hidden layer of the critics (and of the model's MLPs)
-    latent: bool = True  # actor and critic read the encoder's latent (False: normalised observations; model-free only)
+    inputs: Inputs = "latent"  # what the actor and critic read: the latent, the normalised obs (model-free only), or both
     latent_dim: int = 64  # size of the encoder's latent
     encoder_hidden: tuple[int, ...] = (256,)
     model_hidden: tuple[int, ...] = (256,)  # the latent transition, reward head and observation decoder
@@ -65,6 +66,10 @@ class Config:
     @property
     def use_model(self) -> bool:
         return self.arm != "model-free"
+
+    @property
+    def use_encoder(self) -> bool:
+        return self.inputs != "obs"
 
     @property
     def use_consistency(self) -> bool:
@@ -101,9 +106,9 @@ def validate(config: Config) -> None:
         raise ConfigError(f"Unknown env {config.env!r}; choose one of: {', '.join(sorted(envs.available_envs()))}.")
     if envs.playground.is_playground(config.env):
         envs.playground.check(config.physics_backend)  # the extra installed, the backend one that runs here
-    if config.use_model and not config.latent:
-        raise ConfigError(f"The {config.arm} arm trains the encoder's latent that the actor and critic read; it "
-                          "needs latent=True.")
+    if config.use_model and not config.use_encoder:
+        raise ConfigError(f"The {config.arm} arm trains an encoder's latent for the actor and critic to read; it "
+                          "needs inputs latent or obs+latent.")
     if config.random_steps < config.seq_len:
         raise ConfigError(f"learning_starts={config.learning_starts} env steps fill fewer than the {config.seq_len} "
                           f"batched steps one sampled sequence needs (num_envs={config.num_envs}); raise it.")

@@ -190,12 +190,12 @@ class Learner:
                for group in REACHES[term] if jax.tree.leaves(grads.get(group, {}))}
         if nets.encoder is not None:
             obs = nz.normalize(state.norm, batch["obs"][0])
-            out["latent/spread"] = nets.features(state.params["encoder"], obs).std(0).mean()
-            out["latent/target_spread"] = nets.features(state.target["encoder"], obs).std(0).mean()
+            out["latent/spread"] = nets.encode(state.params["encoder"], obs).std(0).mean()
+            out["latent/target_spread"] = nets.encode(state.target["encoder"], obs).std(0).mean()
         if c.use_model:  # the model's k-step open-loop prediction, decoded, on the held-out envs' newest window
             w = state.heldout["window"]
             mask = window_mask(w["ended"], w["valid"], window_indices(jnp.zeros((1,), jnp.int32), c.horizon))[0]
-            z0 = nets.features(state.params["encoder"], nz.normalize(state.norm, w["obs"][0]))
+            z0 = nets.encode(state.params["encoder"], nz.normalize(state.norm, w["obs"][0]))
             model = lambda z, *a, method: nets.model.apply(state.params["model"], z, *a, method=method)  # noqa: E731
             latents = latent_rollout(functools.partial(model, method="transition"), z0, w["action"])
             err = ((model(latents, method="decode") - nz.normalize(state.norm, w["next_obs"])) ** 2).mean(-1)

@@ -5,7 +5,8 @@ groups it trains (REACHES), by where its inputs are cut (stop_gradient), so one 
 group:
 
 - critic (the critics and the encoder): n-step clipped double-Q regression on the first step of each sequence;
-- actor (the actor): alpha log pi - min Q at the encoder's latent (not trained by the actor: stop_gradient);
+- actor (the actor): alpha log pi - min Q at the critic's inputs (Config.inputs; the encoder is not trained by the
+  actor: stop_gradient);
 - temperature (log alpha): -log alpha (log pi + target entropy);
 - model, every arm but model-free (encoder, transition, reward head, decoder): the decoded predicted next
   observation against the normalised real one, and the predicted reward, one step, weight model_coef;
@@ -71,18 +72,19 @@ def loss_terms(params: dict, target: dict, norm: nz.RunningStats, batch: dict, h
 
     # critic: n-step clipped double Q
     ret, boot_obs, discount, usable = n_step_target(batch, config.n_step, hp.gamma, hp.reward_scale)
-    z_boot = nets.features(target["encoder"], nz.normalize(norm, boot_obs))
-    a_next, logp_next = nets.sample(params["actor"], z_boot, key_next)
-    q_next = nets.q(target["critic"], z_boot, a_next).min(0)
+    x_boot = nets.features(target["encoder"], nz.normalize(norm, boot_obs))
+    a_next, logp_next = nets.sample(params["actor"], x_boot, key_next)
+    q_next = nets.q(target["critic"], x_boot, a_next).min(0)
     y = jax.lax.stop_gradient(ret + discount * (q_next - alpha_t * logp_next))
-    z0 = nets.features(params["encoder"], obs0)
-    q = nets.q(params["critic"], z0, batch["action"][0])  # [C, B]
+    z0 = nets.encode(params["encoder"], obs0)  # None without an encoder
+    x0 = nets.inputs(obs0, z0)
+    q = nets.q(params["critic"], x0, batch["action"][0])  # [C, B]
     critic = masked_mean(0.5 * ((q - y) ** 2).sum(0), usable)
 
-    # actor and temperature, at the latent the critic was trained on (not shaped by the actor)
-    z_pi = jax.lax.stop_gradient(z0)
-    a_pi, logp = nets.sample(params["actor"], z_pi, key_pi)
-    q_pi = nets.q(jax.lax.stop_gradient(params["critic"]), z_pi, a_pi).min(0)
+    # actor and temperature, at the inputs the critic was trained on (the encoder not shaped by the actor)
+    x_pi = jax.lax.stop_gradient(x0)
+    a_pi, logp = nets.sample(params["actor"], x_pi, key_pi)
+    q_pi = nets.q(jax.lax.stop_gradient(params["critic"]), x_pi, a_pi).min(0)
     valid0 = batch["valid"][0]
     actor = masked_mean(alpha_t * logp - q_pi, valid0)
     target_entropy = -hp.target_entropy_scale * A
@@ -112,7 +114,7 @@ def loss_terms(params: dict, target: dict, norm: nz.RunningStats, batch: dict, h
     if config.arm == "self-pred":
         transition = lambda z, a: nets.model.apply(params["model"], z, a, method="transition")  # noqa: E731
         predicted = sp.latent_rollout(transition, z0, batch["action"][:k])
-        targets = nets.features(target["encoder"], nz.normalize(norm, batch["next_obs"][:k]))
+        targets = nets.encode(target["encoder"], nz.normalize(norm, batch["next_obs"][:k]))
         term, sp_metrics = sp.self_predictive_loss(predicted, targets, mask, hp.rho)
         terms["self_pred"] = hp.alpha * term
         metrics.update(sp_metrics)
@@ -122,7 +124,7 @@ def loss_terms(params: dict, target: dict, norm: nz.RunningStats, batch: dict, h
         actions = sp.policy_path(batch["action"][:k], jnp.tanh(mean_k))
 
         def model_step(p, s, a):  # normalised observation -> the next one, through the latent
-            z = nets.features(p["encoder"], s)
+            z = nets.encode(p["encoder"], s)
             return nets.model.apply(p["model"], nets.model.apply(p["model"], z, a, method="transition"),
                                     method="decode")
 

@@ -106,10 +106,11 @@ class Nets:
         from cdjax.consistency import SequenceEncoder  # the paper's GRU encoder (paper-cd)
 
         self.config, self.obs_size, self.action_size = config, obs_size, action_size
-        self.feature_size = config.latent_dim if config.latent else obs_size
+        self.feature_size = {"latent": config.latent_dim, "obs": obs_size,
+                             "obs+latent": obs_size + config.latent_dim}[config.inputs]
         self.actor = Actor(config.actor_hidden, action_size)
         self.critic = Critic(config.critic_hidden, config.layer_norm)
-        self.encoder = Encoder(config.encoder_hidden, config.latent_dim) if config.latent else None
+        self.encoder = Encoder(config.encoder_hidden, config.latent_dim) if config.use_encoder else None
         self.model = (LatentModel(config.model_hidden, config.latent_dim, obs_size, config.layer_norm)
                       if config.use_model else None)
         window = config.horizon * obs_size if config.cc_encoder == "grounded-gru" else 0
@@ -137,9 +138,18 @@ class Nets:
             params["cc_encoder"] = init_encoder(self.cc_encoder, keys[4], self.obs_size)
         return params
 
+    def encode(self, encoder_params, obs_normalised):
+        """The encoder's latent (None without an encoder)."""
+        return self.encoder.apply(encoder_params, obs_normalised) if self.encoder else None
+
+    def inputs(self, obs_normalised, z):
+        """What the actor and critic read (Config.inputs), from the normalised observation and its latent z."""
+        return {"latent": lambda: z, "obs": lambda: obs_normalised,
+                "obs+latent": lambda: jnp.concatenate([obs_normalised, z], axis=-1)}[self.config.inputs]()
+
     def features(self, encoder_params, obs_normalised):
-        """What the actor and critic read: the encoder's latent, or the normalised observation itself."""
-        return self.encoder.apply(encoder_params, obs_normalised) if self.encoder else obs_normalised
+        """What the actor and critic read at these observations (the encoder applied where it is one)."""
+        return self.inputs(obs_normalised, self.encode(encoder_params, obs_normalised))
 
     def sample(self, actor_params, x, key):
         return sample_action(*self.actor.apply(actor_params, x), key)
