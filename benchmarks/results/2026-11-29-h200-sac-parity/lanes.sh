@@ -27,6 +27,9 @@ lane() {
     stamp "end $name rc=$rc"
   done
 }
+if ! python -c "import brax, mujoco.mjx, cdjax" 2> "$out/import-error"; then  # a lane of failed jobs is a lost loan
+  stamp "cannot import brax, mujoco.mjx or cdjax (PYTHONPATH?): $(tail -n 1 "$out/import-error")"; exit 2
+fi
 stamp "pass start (limit ${limit}s)"
 pids=()
 while IFS= read -r spec; do
