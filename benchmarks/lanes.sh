@@ -19,7 +19,7 @@ module=${MODULE:-benchmarks.brax_sac}
 time_arg=${TIME_ARG:-}
 cd "$(dirname "$0")/.."  # the repository root
 mkdir -p "$out"
-export XLA_PYTHON_CLIENT_PREALLOCATE=false
+export XLA_PYTHON_CLIENT_PREALLOCATE=false CDJAX_BENCH_SHARED_DEVICE=1  # the rows' meta: their times are not speeds
 start=$(date +%s)
 stamp() { echo "$1 $(date -u +%T)" >> "$out/progress"; }
 lane() {

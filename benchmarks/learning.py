@@ -105,6 +105,7 @@ class Task:
         return self.evals * self.updates_per_eval * self.spec.env_steps_per_update
 
 
+SHARED_ENV = "CDJAX_BENCH_SHARED_DEVICE"  # set (benchmarks/lanes.sh): other learner processes share the device
 PLAYGROUND = ("dmc-cartpole-swingup", "dmc-cheetah-run", "dmc-humanoid-walk")  # --suite playground's tasks
 # --suite playground --tiny: the pendulum (Playground's cheapest task to compile on a CPU) at tiny sizes
 PLAYGROUND_TINY = dict(num_envs=4, unroll_length=4, batch_size=4, num_minibatches=2, num_epochs=2, horizon=4,
@@ -201,11 +202,14 @@ class Rows:
         print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
 
     def write_meta(self, module: str, argv, **fields) -> None:
-        """DIR/meta.json: the command (`python -m benchmarks.<module> <argv>`), date, device and `fields`; a unit
-        resuming the directory keeps the earlier units' command, date and device under "earlier"."""
+        """DIR/meta.json: the command (`python -m benchmarks.<module> <argv>`), date, device, whether other
+        processes shared the device (SHARED_ENV set, as benchmarks/lanes.sh does: then its times are not speeds)
+        and `fields`; a unit resuming the directory keeps the earlier units' command, date and device under
+        "earlier"."""
         path = self.path.parent / "meta.json"
         meta = {"command": f"python -m benchmarks.{module} " + shlex.join(argv if argv is not None else sys.argv[1:]),
-                "date": str(datetime.date.today()), **device_info(), **fields}
+                "date": str(datetime.date.today()), **device_info(), "shared_device": bool(os.environ.get(SHARED_ENV)),
+                **fields}
         if path.exists():
             earlier = json.loads(path.read_text())
             meta["earlier"] = earlier.pop("earlier", []) + [{k: earlier.get(k) for k in ("command", "date", "device")}]

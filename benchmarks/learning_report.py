@@ -60,7 +60,8 @@ def load(dirs: list[pathlib.Path | str]) -> tuple[list[dict], list[dict]]:
         for i, line in lines:
             row = _json(d / "rows.jsonl", line, f" line {i}")
             if "eval_return" in row and (framework is None or row["framework"] == framework):
-                rows.append({**row, "device": meta.get("device", "?"), "source": str(d),
+                rows.append({**row, "device": meta.get("device", "?"), "shared": bool(meta.get("shared_device")),
+                             "source": str(d),
                              **({"variant": name} if name else {})})
     if not rows:
         raise ValueError(f"no rows in {', '.join(map(str, dirs))}: each holds only the other framework's rows")
@@ -97,8 +98,11 @@ def _sps(c: dict) -> float:
     """Training env steps per second, the median over runs: for cdjax, all of a run's seeds together (its train_s
     is after compilation); for Brax, one seed, from the training time benchmarks.learning measures (rows with
     `eval_s`), leaving out the first interval (Brax compiles in it), else Brax's own training/sps (brax_sac's rows
-    say `sps`; benchmarks.learning's before they measured it kept it in `train_s`)."""
+    say `sps`; benchmarks.learning's before they measured it kept it in `train_s`). NaN when another process shared
+    the device with any of the runs (their meta says shared_device): their times are not speeds."""
     rs = c["rows"]
+    if any(r.get("shared") for r in rs):
+        return math.nan
     brax = rs[0]["framework"] == "brax"
     if brax and not all("eval_s" in r for r in rs):
         sps = [r.get("sps", r.get("train_s")) for r in rs]
@@ -115,6 +119,10 @@ def _sps(c: dict) -> float:
             steps = run[-1]["env_steps"] - first["env_steps"]
             sps.append(steps * len({r["seed"] for r in run}) / (run[-1]["train_s"] - first["train_s"]))
     return float(np.median(sps)) if sps else math.nan
+
+
+def _speed(sps: float) -> str:
+    return f"{sps:,.0f}" if math.isfinite(sps) else "not read"
 
 
 def _devices(rows: list[dict]) -> str:
@@ -212,13 +220,15 @@ def verdicts(entries: list[dict], reps: int = 2000) -> list[str]:
             ge = e["final"][0] >= brax["final"][0]
             overlap = not (e["final"][1] > brax["final"][2] or e["final"][2] < brax["final"][1])
             speed = e["sps"] / brax["sps"] if brax["sps"] else math.nan
+            speed = (f"training env steps/s {speed:.2f}x Brax's (cdjax: its seeds vmapped together, the median over "
+                     "its runs; Brax: one seed at a time)" if math.isfinite(speed) else
+                     "training env steps/s not compared (other processes shared the device, or no time was measured)")
             poi = (probability_of_improvement(e["final_values"], brax["final_values"], reps=reps)
                    if min(len(e["final_values"]), len(brax["final_values"])) > 1 else None)
             poi = f"; P({name} > {them}) = {poi[0]:.2f} [{poi[1]:.2f}, {poi[2]:.2f}]" if poi else ""
             lines.append(f"- {task}: {name} final IQM {e['final'][0]:.1f} {'>=' if ge else '<'} {them}'s "
                          f"{brax['final'][0]:.1f} at {steps} (intervals "
-                         f"{'overlap' if overlap else 'disjoint'}{poi}); training env steps/s {speed:.2f}x Brax's "
-                         "(cdjax: its seeds vmapped together, the median over its runs; Brax: one seed at a time).")
+                         f"{'overlap' if overlap else 'disjoint'}{poi}); {speed}.")
     return lines
 
 
@@ -277,7 +287,7 @@ def report_text(rows: list[dict], metas: list[dict], parity_variants: tuple[str,
              "train env steps/s | device | final per seed |", "|---|---|---:|---:|---|---|---:|---|---|"]
     for e in parity:
         lines.append(f"| {e['task']} | {e['learner']} | {e['seeds']} | {e['env_steps']:,} | {_ci(e['final'])} | "
-                     f"{_ci(e['auc'])} | {e['sps']:,.0f} | {e['device']} | {e['per_seed']} |")
+                     f"{_ci(e['auc'])} | {_speed(e['sps'])} | {e['device']} | {e['per_seed']} |")
     lines += [""] + verdicts(parity)
     for e in entries:
         for seed, steps, nan in e["left_out"]:

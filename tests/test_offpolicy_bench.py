@@ -34,7 +34,7 @@ def test_both_learners_run_the_tiny_task(tmp_path):
     assert config.buffer_steps * config.num_envs >= task.max_replay and config.learning_starts == task.min_replay
 
 
-def test_the_learning_report_reads_brax_sac_rows_beside_ppo_rows(tmp_path):
+def test_the_learning_report_reads_brax_sac_rows_beside_ppo_rows(tmp_path, monkeypatch):
     """brax_sac's rows (its speed rows among them) in benchmarks.learning --report: cdjax's off-policy arm set against
     Brax SAC at their final evaluations (Brax's count its prefill, within 1%), the obs setting against Brax PPO, Brax
     PPO's env steps/s from the training time the harness measures, less its first interval (its compilation)."""
@@ -59,6 +59,18 @@ def test_the_learning_report_reads_brax_sac_rows_beside_ppo_rows(tmp_path):
     by = {e["learner"]: e for e in learning_report.table(learning_report.load([tmp_path])[0], reps=50)}
     assert by["brax-ppo"]["sps"] == 50.0 and by["brax-sac"]["sps"] == 400.0
     assert by["cdjax offpolicy-model-free"]["sps"] == 2 * 1000 / 1.0  # both seeds of its one run
+    assert "training env steps/s 5.00x Brax's" in text
+    # the same rows from a run that shared its device with other processes (benchmarks/lanes.sh sets the variable
+    # that write_meta records): no speed is read
+    from benchmarks import learning
+
+    monkeypatch.setenv(learning.SHARED_ENV, "1")
+    learning.Rows(tmp_path).write_meta("brax_sac", ["--tasks", "ant"])
+    assert json.loads((tmp_path / "meta.json").read_text())["shared_device"] is True
+    shared = learning_report.report([tmp_path])
+    assert "x Brax's" not in shared and "training env steps/s not compared (other processes shared" in shared
+    assert "| ant | brax-sac | 2 | 1,008 | " in shared and "| not read |" in shared
+    assert "cdjax offpolicy-model-free final IQM 101.5 >= Brax SAC's 50.5" in shared  # the returns still are
 
 
 def test_cdjax_set_puts_typed_fields_over_the_config_and_hparams_and_names_the_variant():
