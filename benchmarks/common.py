@@ -287,5 +287,17 @@ def device_info() -> dict:
     }
 
 
+def process_started_at() -> float | None:
+    """When this process was launched (Unix time, the kernel's record: before Python's imports), or None where
+    /proc does not say (not Linux)."""
+    try:
+        ticks = int(pathlib.Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])  # field 22: starttime
+        boot = next(float(line.split()[1]) for line in pathlib.Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime "))
+        return boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
 def finite(x: float | None) -> bool:
     return x is not None and isinstance(x, (int, float)) and math.isfinite(x)

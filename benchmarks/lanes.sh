@@ -8,7 +8,9 @@
 # runs at an evaluation before LIMIT and skips, when run again, the seeds whose rows are complete. A job that ends
 # with status 0 and without a "time limit:" or "budget:" line in its log is marked OUT/NAME/done and skipped by a
 # later run of the same file: run it again in the next loan and only what did not finish runs (an unfinished
-# benchmarks.brax_sac job starts over). Everything is stopped (SIGTERM) after LIMIT seconds (default 1400).
+# benchmarks.brax_sac job starts over). Everything is stopped (SIGTERM) after LIMIT seconds (default 1400). With
+# more than one lane the rows' meta says that the device was shared (their times are not speeds); a file of one lane
+# runs its jobs alone, one after another, and so times them.
 # OUT/progress says when each job started and ended. It refuses to start when brax, MJX or cdjax cannot be imported
 # (each device call is a fresh shell: export PYTHONPATH in the command that starts it).
 set -u
@@ -19,7 +21,10 @@ module=${MODULE:-benchmarks.brax_sac}
 time_arg=${TIME_ARG:-}
 cd "$(dirname "$0")/.."  # the repository root
 mkdir -p "$out"
-export XLA_PYTHON_CLIENT_PREALLOCATE=false CDJAX_BENCH_SHARED_DEVICE=1  # the rows' meta: their times are not speeds
+export XLA_PYTHON_CLIENT_PREALLOCATE=false
+if [ "$(grep -cvE '^[[:space:]]*(#|$)' "$lanes")" -gt 1 ]; then
+  export CDJAX_BENCH_SHARED_DEVICE=1  # several lanes share the device: the rows' meta says their times are not speeds
+fi
 start=$(date +%s)
 stamp() { echo "$1 $(date -u +%T)" >> "$out/progress"; }
 lane() {

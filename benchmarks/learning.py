@@ -80,7 +80,7 @@ import time
 if __package__ in (None, ""):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import Parser, Spec, device_info, refuse, unwritable_file  # noqa: E402
+from benchmarks.common import Parser, Spec, device_info, process_started_at, refuse, unwritable_file  # noqa: E402
 from cdjax.envs.playground import NAMES  # noqa: E402
 from cdjax.options import non_negative, positive, seconds  # noqa: E402
 
@@ -203,13 +203,13 @@ class Rows:
 
     def write_meta(self, module: str, argv, **fields) -> None:
         """DIR/meta.json: the command (`python -m benchmarks.<module> <argv>`), date, device, whether other
-        processes shared the device (SHARED_ENV set, as benchmarks/lanes.sh does: then its times are not speeds)
-        and `fields`; a unit resuming the directory keeps the earlier units' command, date and device under
-        "earlier"."""
+        processes shared the device (SHARED_ENV set, as benchmarks/lanes.sh does: then its times are not speeds),
+        when this process was launched (the rows' `at` less it: a row's time from the command) and `fields`; a
+        unit resuming the directory keeps the earlier units' command, date and device under "earlier"."""
         path = self.path.parent / "meta.json"
         meta = {"command": f"python -m benchmarks.{module} " + shlex.join(argv if argv is not None else sys.argv[1:]),
                 "date": str(datetime.date.today()), **device_info(), "shared_device": bool(os.environ.get(SHARED_ENV)),
-                **fields}
+                "process_started_at": process_started_at(), **fields}
         if path.exists():
             earlier = json.loads(path.read_text())
             meta["earlier"] = earlier.pop("earlier", []) + [{k: earlier.get(k) for k in ("command", "date", "device")}]

@@ -61,7 +61,7 @@ def load(dirs: list[pathlib.Path | str]) -> tuple[list[dict], list[dict]]:
             row = _json(d / "rows.jsonl", line, f" line {i}")
             if "eval_return" in row and (framework is None or row["framework"] == framework):
                 rows.append({**row, "device": meta.get("device", "?"), "shared": bool(meta.get("shared_device")),
-                             "source": str(d),
+                             "started": meta.get("process_started_at"), "source": str(d),
                              **({"variant": name} if name else {})})
     if not rows:
         raise ValueError(f"no rows in {', '.join(map(str, dirs))}: each holds only the other framework's rows")
@@ -166,7 +166,8 @@ def table(rows: list[dict], reps: int = 2000) -> list[dict]:
             left_out.append((c["seeds"][i], int(c["steps"][j]), not np.isfinite(c["returns"][i, j])))
         out.append({"task": task, "learner": learner, "seeds": int(kept.sum()), "env_steps": int(c["steps"][last]),
                     "final": f[:3], "auc": a[:3], "sps": _sps(c), "device": _devices(c["rows"]),
-                    "per_seed": [round(float(x), 1) for x in final], "final_values": final, "left_out": left_out})
+                    "per_seed": [round(float(x), 1) for x in final], "final_values": final, "left_out": left_out,
+                    "curve": c})
     return out
 
 
@@ -229,7 +230,45 @@ def verdicts(entries: list[dict], reps: int = 2000) -> list[str]:
             lines.append(f"- {task}: {name} final IQM {e['final'][0]:.1f} {'>=' if ge else '<'} {them}'s "
                          f"{brax['final'][0]:.1f} at {steps} (intervals "
                          f"{'overlap' if overlap else 'disjoint'}{poi}); {speed}.")
+            timed = time_to(e, brax, them)
+            if timed:
+                lines.append(timed)
     return lines
+
+
+def time_to(e: dict, brax: dict, them: str) -> str | None:
+    """The wall-clock, from the command, for cdjax's learner `e` to reach Brax's final return (its IQM over seeds)
+    with all its seeds, against Brax's time to its own final evaluation, one process a seed, as one sentence; None
+    unless both were timed alone (no other process on the device, each process's launch in its meta) and cdjax's
+    seeds ran in one process."""
+    rows = e["curve"]["rows"] + brax["curve"]["rows"]
+    if any(r.get("shared") or not r.get("started") or r.get("at", 0.0) < r["started"] for r in rows):
+        return None  # (a row measured before its process started: an earlier unit's, resumed)
+    if len({r["source"] for r in e["curve"]["rows"]}) != 1:
+        return None
+    from cdjax.stats import iqm_columns
+
+    target = brax["final"][0]
+    per_process = defaultdict(list)
+    for r in brax["curve"]["rows"]:
+        per_process[r["source"]].append(r)
+    brax_total = sum(max(r["at"] for r in rs) - rs[0]["started"] for rs in per_process.values())
+    n_brax = len({r["seed"] for r in brax["curve"]["rows"]})
+    per_seed = brax_total / n_brax
+    c = e["curve"]
+    n = len(c["seeds"])
+    returns = np.where(np.isfinite(c["returns"]), c["returns"], -np.inf)
+    reached = np.flatnonzero(iqm_columns(returns[:, None, :]) >= target)
+    at = {int(s): max(r["at"] for r in c["rows"] if r["env_steps"] == s) - c["rows"][0]["started"] for s in c["steps"]}
+    seeds = lambda k: f"{k} seed{'s' if k != 1 else ''}"  # noqa: E731
+    head = (f"- {e['task']}: wall-clock from the command to {them}'s final return (IQM {target:.1f}): Brax "
+            f"{per_seed:.0f} s a seed to its final evaluation (the mean over its {seeds(n_brax)}' processes), so "
+            f"{seeds(n)} one after another {n * per_seed:.0f} s; {e['learner']}, {seeds(n)} in one process, ")
+    if not reached.size:
+        return head + f"did not reach it in its {at[int(c['steps'][-1])]:.0f} s."
+    t = at[int(c["steps"][reached[0]])]
+    return head + (f"{t:.0f} s (its IQM over seeds first reached it at {int(c['steps'][reached[0]]):,} env steps): "
+                   f"{t / (n * per_seed):.2f}x Brax's time for {seeds(n)}, {t / per_seed:.2f}x Brax's for one.")
 
 
 def plot(rows: list[dict], path: pathlib.Path) -> None:

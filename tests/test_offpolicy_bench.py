@@ -73,6 +73,39 @@ def test_the_learning_report_reads_brax_sac_rows_beside_ppo_rows(tmp_path, monke
     assert "cdjax offpolicy-model-free final IQM 101.5 >= Brax SAC's 50.5" in shared  # the returns still are
 
 
+def test_the_report_times_cdjax_to_brax_final_return_from_each_process_launch(tmp_path):
+    """Runs timed alone (their meta has the process's launch, no shared device): the report says when cdjax's IQM
+    over its seeds, all in one process, first reached Brax's final IQM, against Brax's processes' times to their
+    final evaluation (one seed each), for as many seeds one after another and for one."""
+    import json
+
+    from benchmarks import learning_report
+
+    def write(d, rows, started):
+        d.mkdir()
+        (d / "rows.jsonl").write_text("".join(json.dumps(dict(task="ant", **r)) + "\n" for r in rows))
+        (d / "meta.json").write_text(json.dumps({"device": "X", "shared_device": False, "process_started_at": started}))
+
+    t0 = 1000.0
+    write(tmp_path / "cdjax", [dict(framework="cdjax", variant="offpolicy-model-free", seed=s, env_steps=st,
+                                    eval_return=r + s, train_s=1.0, at=t0 + at)
+                               for s in range(2)
+                               for st, r, at in ((0, 0.0, 10.0), (500, 40.0, 15.0), (1000, 60.0, 20.0))], t0)
+    for seed, (start, end) in enumerate(((t0, t0 + 30.0), (t0 + 40.0, t0 + 70.0))):
+        write(tmp_path / f"brax{seed}", [dict(framework="brax", variant="brax-sac", seed=seed, env_steps=st,
+                                              eval_return=50.0 + seed, sps=10.0, at=at)
+                                         for st, at in ((0, start + 5.0), (1008, end))], start)
+    dirs = [tmp_path / n for n in ("cdjax", "brax0", "brax1")]
+    text = learning_report.report(dirs)
+    # Brax: 30 s a seed; cdjax's IQM over its 2 seeds (40.5 at 500 steps, 60.5 at 1000) passes 50.5 at 1000: 20 s
+    assert ("Brax 30 s a seed to its final evaluation (the mean over its 2 seeds' processes), so 2 seeds one after "
+            "another 60 s; cdjax offpolicy-model-free, 2 seeds in one process, 20 s (its IQM over seeds first reached "
+            "it at 1,000 env steps): 0.33x Brax's time for 2 seeds, 0.67x Brax's for one.") in text
+    meta = json.loads((tmp_path / "brax1" / "meta.json").read_text())
+    (tmp_path / "brax1" / "meta.json").write_text(json.dumps({**meta, "shared_device": True}))
+    assert "wall-clock from the command" not in learning_report.report(dirs)  # a process shared the device
+
+
 def test_cdjax_set_puts_typed_fields_over_the_config_and_hparams_and_names_the_variant():
     """--cdjax-set: each value takes its field's type, lands in the Config or the HParams it belongs to, and is named
     in the rows' variant; an unknown field or a value of the wrong type is refused."""
