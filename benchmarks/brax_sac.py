@@ -200,9 +200,11 @@ def run_brax(name: str, task: SacTask, seed: int, rows) -> None:
 
 
 def speed(name: str, task: SacTask, rows, seed_counts=(1, 10), updates: int = 50, plain: bool = False,
-          sets: dict | None = None, brax: bool = True) -> None:
+          sets: dict | None = None, brax: bool = True, trace: str | None = None) -> None:
     """cdjax's env steps/s and gradient steps/s (all seeds together) over `updates` compiled updates, after one
-    warm-up call, at each number of vmapped seeds; Brax SAC's from its own training/sps over a short run."""
+    warm-up call, at each number of vmapped seeds; Brax SAC's from its own training/sps over a short run. With
+    `trace`, one more call of each cdjax program runs under jax.profiler into TRACE/cdjax-<task>-x<seeds>, whose
+    device ops `benchmarks.profile_summary` summarises into summary.md there (the profile of what the time goes to)."""
     import functools
 
     import jax
@@ -228,6 +230,15 @@ def speed(name: str, task: SacTask, rows, seed_counts=(1, 10), updates: int = 50
                  seeds=seeds, compile_s=compile_s,
                  env_steps_per_s=seeds * updates * config.env_steps_per_update / wall,
                  grad_steps_per_s=seeds * updates * config.grad_steps / wall)
+        if trace:
+            from benchmarks import profile_summary
+
+            where = pathlib.Path(trace) / f"cdjax-{name}-x{seeds}"
+            with profile_summary.trace(where, program):
+                jax.block_until_ready(program(state, hps))
+            text = profile_summary.markdown(profile_summary.summarize(where))
+            (where / "summary.md").write_text(text + "\n")
+            print(text, flush=True)
     if not brax:
         return
     # two epochs of Brax's training: the last one's training/sps is measured after its compilation
@@ -262,10 +273,14 @@ def main(argv=None) -> int:
     p.add_argument("--evals", type=positive, help="override every task's number of evaluations")
     p.add_argument("--steps-per-eval", type=positive, help="override every task's env steps between evaluations")
     p.add_argument("--speed", action="store_true", help="the speed case (1 and 10 vmapped seeds against Brax SAC)")
+    p.add_argument("--trace", metavar="DIR", help="--speed: a jax.profiler trace of one call of each cdjax program, "
+                   "summarised (DIR/cdjax-<task>-x<seeds>/summary.md)")
     p.add_argument("--tiny", action="store_true", help="CPU smoke: the point task, 1 seed")
     p.add_argument("--out", help="output directory (rows.jsonl, meta.json)")
     args = p.parse_args(argv)
     sets = parse_sets(args.cdjax_set)
+    if args.trace and not args.speed:
+        refuse(p.prog, "--trace goes with --speed (it profiles the speed case's cdjax programs)")
     if args.tiny:
         args.tasks, args.seeds = ["point"], 1
     from cdjax import io
@@ -286,7 +301,7 @@ def main(argv=None) -> int:
     for name, task in tasks.items():
         if args.speed:
             speed(name, task, rows, seed_counts=(1, 2) if args.tiny else (1, 10), updates=4 if args.tiny else 50,
-                  plain=args.cdjax_plain, sets=sets, brax="brax" in args.frameworks)
+                  plain=args.cdjax_plain, sets=sets, brax="brax" in args.frameworks, trace=args.trace)
             continue
         if "cdjax" in args.frameworks:
             for arm in args.arms:
