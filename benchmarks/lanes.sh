@@ -3,7 +3,7 @@
 #   setsid bash benchmarks/lanes.sh OUT LANES [LIMIT] > OUT.log 2>&1 < /dev/null &
 # Each line of the file LANES is one lane (blank lines and "#" comments skipped); its jobs, separated by ";;", run one
 # after another, and the lanes run side by side. A job is "NAME ARGS...", run from the repository root as
-#   python -m MODULE ARGS [TIME_ARG SECONDS_LEFT] --out OUT/NAME > OUT/NAME.log 2>&1
+#   python -m MODULE ARGS [TIME_ARG SECONDS_LEFT] --out OUT/NAME > OUT/NAME.log 2>&1   ({OUT} in ARGS: OUT)
 # MODULE: benchmarks.brax_sac (the default), or benchmarks.learning with TIME_ARG=--time-limit, which then stops its
 # runs at an evaluation before LIMIT and skips, when run again, the seeds whose rows are complete. A job that ends
 # with status 0 and without a "time limit:" or "budget:" line in its log is marked OUT/NAME/done and skipped by a
@@ -33,6 +33,7 @@ lane() {
     job=${line%%;;*}
     if [ "$job" = "$line" ]; then line=""; else line=${line#*;;}; fi
     read -r name args <<< "$job"
+    args=${args//\{OUT\}/$out}  # {OUT} in a job's arguments: the output directory (e.g. --trace {OUT}/trace)
     [ -z "$name" ] && continue
     if [ -f "$out/$name/done" ]; then stamp "skip $name (done)"; continue; fi
     timing=()
