@@ -199,12 +199,14 @@ def test_swimmer_learns_with_cdjax_on_cpu():
     hp = HParams(lr_policy=1e-3, lr_value=1e-3)
     trainer = make_agent(cfg)
     state = jax.jit(trainer.init)(jax.random.key(0), hp)
-    # 110 updates: the one test here that runs long enough for execution to cost more than compiling, so its update
-    # is compiled at XLA's default optimisation level, not conftest's 0 (371 s -> about 90 s on a 2-core CPU)
+    # 50 updates (25,600 env steps): at conftest's optimisation level 0 their execution would cost more than compiling
+    # the update at XLA's default level, so it is compiled at that level
     update = jax.jit(trainer.update, compiler_options=OPTIMISED)
     speed = []
-    for _ in range(110):
+    for _ in range(50):
         state, metrics = update(state, hp)
         speed.append(float(metrics["env/reward_mean"]))  # per-step reward ~ forward velocity * dt
+    # The untrained policy's mean reward is about 0.003 over updates 5-20 and the learner's about 0.16 over updates
+    # 36-50 (CPU, key 0); a learner that does not learn stays near 0.
     early, late = np.mean(speed[5:20]), np.mean(speed[-15:])
-    assert late > 0 and late > early + 0.005, (early, late)
+    assert late > 0.08 and late > early + 0.08, (early, late)
