@@ -214,6 +214,30 @@ def test_processes_stop_together_and_refuse_together(monkeypatch):
         pass
 
 
+def test_eval_says_where_the_run_stands_when_its_first_collective_finds_a_peer_gone(capsys, tmp_path, monkeypatch):
+    """`cdjax eval` in two processes whose first collective (its checks, before any episode) fails because the other
+    process is gone: the same sentence as a peer lost later, with what was (not) written, whichever of the watch and
+    the collective notices first (the runtime's gloo error here)."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def peer_gone():  # together() settles what the block met (here: no run in RUN_DIR) in a collective, which fails
+        try:
+            yield
+        except (ConfigError, io.RunDirError):
+            pass
+        raise multihost.lost(RuntimeError("Gloo AllGather failed: Connection closed by peer [127.0.0.1]:1"))
+
+    monkeypatch.setattr(multihost, "together", peer_gone)
+    run = tmp_path / "run"
+    with pytest.raises(SystemExit) as ended:
+        main(["eval", str(run)])
+    assert ended.value.code == multihost.PEER_LOST_STATUS
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "cdjax: Process 0 of 1 stopped: another process of the sweep stopped answering (killed, or its host failed: "
+        f"its connection closed); nothing was added to {run / 'eval.jsonl'}.")
+
+
 def test_the_processes_watch_one_another_over_the_connections_they_joined_on(monkeypatch):
     """cdjax.multihost.watch on socket pairs (this end, the peer's end): a peer whose connection closes without a word,
     or that falls silent while heartbeats go to it, ends this process with the sentence (`end` given here records it);

@@ -53,12 +53,12 @@ def cmd_eval(args: argparse.Namespace) -> None:
     writer = multihost.is_writer()
     tell = say if writer else (lambda text: None)  # several processes: process 0 speaks for all
     multihost.tail(lambda: f"; nothing was added to {rd.eval}.")
-    with multihost.together():
-        rd.check_name("RUN_DIR")
-        rd.read()  # a clear error for a directory that holds no run
-        if writer:  # what the evaluation writes, checked before any episode runs
-            rd.check_run_writable(dirs=("videos",) if args.video else (), files=("eval.jsonl", ".lock"))
-    try:
+    try:  # a peer lost in the first collective (the checks) ends this process as one lost later does, same sentence
+        with multihost.together():
+            rd.check_name("RUN_DIR")
+            rd.read()  # a clear error for a directory that holds no run
+            if writer:  # what the evaluation writes, checked before any episode runs
+                rd.check_run_writable(dirs=("videos",) if args.video else (), files=("eval.jsonl", ".lock"))
         with contextlib.ExitStack() as held, library_log(rd.process_log(multihost.index()), tell):
             with multihost.together():
                 if writer:  # a live sweep turns its checkpoints over and appends to eval.jsonl: not beside it
