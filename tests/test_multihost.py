@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import types
 
@@ -229,6 +230,7 @@ def test_eval_says_where_the_run_stands_when_its_first_collective_finds_a_peer_g
         raise multihost.lost(RuntimeError("Gloo AllGather failed: Connection closed by peer [127.0.0.1]:1"))
 
     monkeypatch.setattr(multihost, "together", peer_gone)
+    monkeypatch.setattr(multihost, "LOST", threading.Event())  # lost() sets it: not the process's, for later tests
     run = tmp_path / "run"
     with pytest.raises(SystemExit) as ended:
         main(["eval", str(run)])
