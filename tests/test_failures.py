@@ -114,8 +114,9 @@ def test_a_full_disk_names_the_intact_checkpoint_and_a_resume_is_the_same_run(ca
     monkeypatch.setattr(io, "append_jsonl", full_disk)
     capsys.readouterr()
     line = _fails_mid_run(capsys, ["sweep", *ARGS, "--steps", STEPS, "--out", str(out)])
-    assert line.startswith(f"cdjax: cannot write {out / 'metrics.jsonl'}: No space left on device; the previous "
-                           f"checkpoints are intact (cd at update 2); resume with `cdjax sweep --out {out} --resume`"), line
+    said = (f"cdjax: cannot write {out / 'metrics.jsonl'}: No space left on device; the previous checkpoints are "
+            f"intact (cd at update 2); resume with `cdjax sweep --out {out} --resume`")
+    assert line.startswith(said), line
     monkeypatch.setattr(io, "append_jsonl", append)
     main(["sweep", "--out", str(out), "--resume"])
     assert logged_rows(out) == logged_rows(whole)
