@@ -144,8 +144,11 @@ class Nets:
 
     def inputs(self, obs_normalised, z):
         """What the actor and critic read (Config.inputs), from the normalised observation and its latent z."""
-        return {"latent": lambda: z, "obs": lambda: obs_normalised,
-                "obs+latent": lambda: jnp.concatenate([obs_normalised, z], axis=-1)}[self.config.inputs]()
+        if self.config.inputs == "latent":
+            return z
+        if self.config.inputs == "obs":
+            return obs_normalised
+        return jnp.concatenate([obs_normalised, z], axis=-1)
 
     def features(self, encoder_params, obs_normalised):
         """What the actor and critic read at these observations (the encoder applied where it is one)."""
