@@ -26,6 +26,7 @@ rm -rf /tmp/code && mkdir -p /tmp/code && cp -r cdjax benchmarks experiments pyp
 if ! (cd /tmp/code && python3 -c "import brax, mujoco.mjx, cdjax") > "/tmp/$name.import" 2>&1; then
   echo "not started: $(tail -n 1 "/tmp/$name.import") (carry the missing wheels first)"; exit 2
 fi
-cd /tmp/code && setsid nohup "$@" > "/tmp/$name.log" 2>&1 < /dev/null &
-echo $! > "/tmp/$name.pid"
-echo "started $name (pid $!): $*"
+# setsid forks when the shell made the job a process-group leader, so the job writes its own pid before it execs
+cd /tmp/code && setsid nohup bash -c 'echo $$ > "$0"; exec "$@"' "/tmp/$name.pid" "$@" > "/tmp/$name.log" 2>&1 < /dev/null &
+sleep 1
+echo "started $name (pid $(cat "/tmp/$name.pid")): $*"

@@ -8,9 +8,9 @@
 # runs at an evaluation before LIMIT and skips, when run again, the seeds whose rows are complete. A job that ends
 # with status 0 and without a "time limit:" or "budget:" line in its log is marked OUT/NAME/done and skipped by a
 # later run of the same file: run it again in the next loan and only what did not finish runs (an unfinished
-# benchmarks.brax_sac job starts over). Everything is stopped (SIGTERM) after LIMIT seconds (default 1400). With
-# more than one lane the rows' meta says that the device was shared (their times are not speeds); a file of one lane
-# runs its jobs alone, one after another, and so times them.
+# benchmarks.brax_sac job starts over). Everything is stopped (SIGTERM) after LIMIT seconds (default 1400), and no
+# job starts after that. With more than one lane the rows' meta says that the device was shared (their times are not
+# speeds); a file of one lane runs its jobs alone, one after another, and so times them.
 # OUT/progress says when each job started and ended. It refuses to start when brax, MJX or cdjax cannot be imported
 # (each device call is a fresh shell: export PYTHONPATH in the command that starts it).
 set -u
@@ -36,6 +36,7 @@ lane() {
     args=${args//\{OUT\}/$out}  # {OUT} in a job's arguments: the output directory (e.g. --trace {OUT}/trace)
     [ -z "$name" ] && continue
     if [ -f "$out/$name/done" ]; then stamp "skip $name (done)"; continue; fi
+    if [ -f "$out/.stopped" ]; then stamp "not started $name (time limit)"; continue; fi
     timing=()
     [ -n "$time_arg" ] && timing=("$time_arg" $(( limit - 30 - $(date +%s) + start )))
     stamp "start $name"
@@ -55,7 +56,8 @@ while IFS= read -r spec; do
   case "$spec" in ''|'#'*) continue ;; esac
   lane "$spec" & pids+=($!)
 done < "$lanes"
-( sleep "$limit"; stamp "time limit"; pkill -TERM -f "[${module:0:1}]${module:1}" ) &
+rm -f "$out/.stopped"
+( sleep "$limit"; touch "$out/.stopped"; stamp "time limit"; pkill -TERM -f "[${module:0:1}]${module:1}" ) &
 killer=$!
 wait "${pids[@]}"
 kill "$killer" 2>/dev/null
