@@ -12,9 +12,11 @@ update-to-data ratio), uniform random actions until `learning_starts` env steps,
 terminations not, non-finite env states reset and their transitions masked (`cdjax.envs`).
 
 Arms (Config.arm), the same code with switches:
-- `model-free`: SAC. With inputs="latent" (the default) or "obs+latent" the actor and critic read an encoder's latent
+- `model-free`: SAC. With inputs="obs+latent" (the default) or "latent" the actor and critic read an encoder's latent
   (beside the normalised observation for "obs+latent") that only the critic's loss trains, so that the other arms
-  differ from it by their losses alone; inputs="obs" has no encoder (Brax's SAC reads observations so).
+  differ from it by their losses alone; inputs="obs" has no encoder (Brax's SAC reads observations so). At 1M env
+  steps the latent alone fell behind Brax's SAC on humanoid, and obs+latent is level with it on the four tasks
+  (benchmarks/results/2026-11-29-h200-sac-parity).
 - `model`: a latent model (encoder, latent transition, reward head, observation decoder) trained by one-step
   prediction of the next observation and the reward; no consistency term.
 - `paper-cd`: the model arm plus the paper's term (`cdjax.consistency.consistency_loss`): a GRU encoding of the real
@@ -24,8 +26,8 @@ Arms (Config.arm), the same code with switches:
   older policies' choices, and their gradient goes to the current actor's deterministic action at the same states.
 - `self-pred`: the model arm plus the self-predictive term (`cdjax.consistency.selfpredictive`): the latent transition rolled out
   k steps from enc(s_0) under the replayed actions against an EMA target encoder's latents, weight alpha.
-Every arm with a model has the actor and critic read the encoder's latent (as TD-MPC2 and MR.Q do; with
-inputs="obs+latent" beside the observation, as OFENet does), the critic's gradient and the model's losses shaping it
+Every arm with a model has the actor and critic read the encoder's latent beside the observation (as OFENet does;
+with inputs="latent" the latent alone, as TD-MPC2 and MR.Q do), the critic's gradient and the model's losses shaping it
 and the actor reading it under stop_gradient, so that the representation is what the auxiliary losses change. At
 alpha 0 both consistency arms take the model arm's gradients.
 

@@ -42,7 +42,7 @@ class Config:
     actor_hidden: tuple[int, ...] = (256, 256)
     critic_hidden: tuple[int, ...] = (256, 256)
     layer_norm: bool = True  # LayerNorm after every hidden layer of the critics (and of the model's MLPs)
-    inputs: Inputs = "latent"  # what the actor and critic read: the latent, the normalised obs (model-free only), or both
+    inputs: Inputs = "obs+latent"  # what the actor and critic read: obs and latent, latent, or obs (model-free only)
     latent_dim: int = 64  # size of the encoder's latent
     encoder_hidden: tuple[int, ...] = (256,)
     model_hidden: tuple[int, ...] = (256,)  # the latent transition, reward head and observation decoder
