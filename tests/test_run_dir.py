@@ -699,6 +699,7 @@ def test_a_lock_left_before_run_json_does_not_block_a_fresh_start_but_other_file
     out = tmp_path / "run"
     out.mkdir()
     (out / ".lock").write_text("")
+    (out / ".cdjax-write-test.x1y2z3").write_text("")  # a write probe of a process killed while it probed
     with contextlib.redirect_stderr(StringIO()):
         main(_argv("obs", out, extra=["--no-final-eval"]))
     assert json.loads((out / "run.json").read_text())["arms"] and logged_rows(out)
@@ -709,6 +710,32 @@ def test_a_lock_left_before_run_json_does_not_block_a_fresh_start_but_other_file
     line = _fails(capsys, _argv("obs", other))
     assert line == f"cdjax: {other} exists and is not empty; choose another --out."
     assert snapshot(other) == {".lock": b"", "notes.txt": b"mine"}
+
+
+def test_processes_checking_one_directory_at_once_do_not_remove_each_others_write_probe(tmp_path):
+    """The processes of one sweep check the same run directory at the same time (CI saw the second one refuse with
+    "No such file or directory" when both probed with one file name): each probe is its own file, and none is left."""
+    import threading
+
+    out = tmp_path / "run"
+    for folder in ("checkpoints/cd", "tb", "plots"):
+        (out / folder).mkdir(parents=True)
+    errors = []
+
+    def check():
+        try:
+            for _ in range(300):
+                io.RunDir(out).check_run_writable()
+        except io.RunDirError as err:
+            errors.append(str(err))
+
+    threads = [threading.Thread(target=check) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert not [p for p in out.rglob("*") if p.is_file()]
 
 
 def test_paths_and_the_cache_directory_are_checked_before_anything_is_written(tmp_path, capsys, monkeypatch):

@@ -34,7 +34,7 @@ from cdjax.io.jsonl import (PACKED, ROW_CHECKS, Rows, append_jsonl, eval_row_ok,
                             metric_row_ok, read_jsonl, truncate_jsonl, write_packed)
 from cdjax.io.records import (READABLE_VERSIONS, RUN_VERSION, check_record, dataclass_from_json, dataclass_to_json,
                               hparams_to_json, json_float, metric_rows, phase_rows)
-from cdjax.io.rundir import LEFT_BEFORE_A_RUN, RunDir
+from cdjax.io.rundir import RunDir, left_before_a_run
 from cdjax.io.tensorboard import TensorBoard
 from cdjax.io.timings import Timings, read_timings
 
@@ -49,4 +49,4 @@ __all__ = ["RunDir", "RunDirError", "WriteError", "CheckpointMismatch", "Checkpo
            "metric_rows", "phase_rows", "json_float", "snapshot",
            "dataclass_to_json", "dataclass_from_json", "hparams_to_json", "host", "reason", "writing", "WRITE_FAILED",
            "PACKED", "ROW_CHECKS", "jsonl_exists", "jsonl_source", "write_packed", "READABLE_VERSIONS", "RUN_VERSION",
-           "LEFT_BEFORE_A_RUN", "Timings", "read_timings"]
+           "left_before_a_run", "Timings", "read_timings"]

@@ -8,6 +8,7 @@ import errno
 import json
 import os
 import pathlib
+import tempfile
 from typing import Iterable, Mapping
 
 
@@ -188,20 +189,20 @@ class RunDir:
                 below = top.iterdir() if name == "checkpoints" else top.rglob("*")  # a checkpoint is written once
                 folders += [top, *sorted(p for p in below if p.is_dir())]
         for folder in folders:
-            probe = folder / ".cdjax-write-test"
             try:
-                probe.write_bytes(b"")
-                probe.unlink()
+                _probe(folder)
             except OSError as err:
                 raise RunDirError(f"cannot write into {folder}: {reason(err)}; the command writes there, so nothing "
                                   "was started: make it writable, then run the command again.") from None
         paths = [self.path / name for name in files]
         paths += [p for p in (self.path / "plots").glob("*") if p.is_file()] if "plots" in dirs else []
         for path in paths:
-            if not path.is_file():
+            if not path.is_file() or path.name.startswith(PROBE):
                 continue
             try:
                 os.close(os.open(path, os.O_WRONLY | os.O_APPEND))
+            except FileNotFoundError:
+                continue  # removed since it was listed (by another process of the sweep): nothing to write into
             except OSError as err:
                 raise RunDirError(f"cannot write {path}: {reason(err)}; the command writes it, so nothing was started: "
                                   "make it writable, then run the command again.") from None
@@ -211,9 +212,7 @@ class RunDir:
         self.check_writable()
         try:
             self.path.mkdir(parents=True, exist_ok=True)
-            probe = self.path / ".cdjax-write-test"
-            probe.write_bytes(b"")
-            probe.unlink()
+            _probe(self.path)
         except OSError as err:
             raise RunDirError(f"cannot write into {self.path}: {reason(err)}; choose another --out.") from None
 
@@ -243,10 +242,23 @@ class RunDir:
             tmp.replace(self.run_json)
 
 
-# What a sweep stopped between making its directory and writing run.json leaves (the lock file, a write probe): a
-# directory holding only these has no run, and a fresh sweep may start in it. A live sweep that holds the lock is
-# still found: the new one takes the lock before it writes anything, and refuses in one sentence.
-LEFT_BEFORE_A_RUN = frozenset({".lock", ".cdjax-write-test"})
+PROBE = ".cdjax-write-test."
+
+
+def _probe(folder: pathlib.Path) -> None:
+    """Make and remove a file in `folder` (OSError when it cannot be written). Its name is this call's own, so that
+    the processes of one sweep probing the same folder at once do not remove each other's."""
+    fd, name = tempfile.mkstemp(prefix=PROBE, dir=folder)
+    os.close(fd)
+    os.unlink(name)
+
+
+def left_before_a_run(name: str) -> bool:
+    """Whether a file of this name is what a sweep stopped between making its directory and writing run.json leaves
+    (the lock file, a write probe): a directory holding only these has no run, and a fresh sweep may start in it. A
+    live sweep that holds the lock is still found: the new one takes the lock before it writes anything, and refuses
+    in one sentence."""
+    return name == ".lock" or name.startswith(PROBE)
 
 
 def _exists(path: pathlib.Path) -> bool:

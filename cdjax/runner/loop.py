@@ -70,7 +70,7 @@ def _prepare(spec: SweepSpec, resume: bool) -> tuple[SweepSpec, Setting, list, d
         record["code"] = before if before[-1:] == record["code"] else before + record["code"]
     elif rd.exists():
         raise io.RunDirError(f"{rd.path} already holds a run; continue it with --resume, or choose another --out.")
-    elif rd.path.is_dir() and any(p.name not in io.LEFT_BEFORE_A_RUN for p in rd.path.iterdir()):
+    elif rd.path.is_dir() and any(not io.left_before_a_run(p.name) for p in rd.path.iterdir()):
         raise io.RunDirError(f"{rd.path} exists and is not empty; choose another --out.")
     rd.check_writable()
     return spec, setting, plans, record
