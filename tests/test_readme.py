@@ -77,9 +77,9 @@ def test_the_cpu_install_block_and_the_command_line_block_run(tmp_path):
     cpu = shell_blocks()[0]
     command_line = next(lines for lines in shell_blocks() if any("--resume" in ln for ln in lines))
     run_shell(cpu[1:] + command_line, tmp_path)
-    assert (tmp_path / "runs" / "point" / "run.json").is_file()
-    first = tmp_path / "runs" / "first"
+    first = tmp_path / "runs" / "point"
     record = json.loads((first / "run.json").read_text())
+    assert record["arms"][0]["num_updates"] == 80  # resumed on to --steps 40960 (the preset's 20,480 twice)
     code = record["code"][-1]  # the versions it ran with
     assert code["jax"] and code["brax"] and code["mujoco-mjx"] and code["backend"] == "cpu"
     assert list((first).glob("*.png")) or list(first.rglob("*.png"))  # `cdjax plot` drew the curves
