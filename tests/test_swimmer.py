@@ -1,8 +1,9 @@
 """Tests for the MJX swimmer (cdjax/envs/swimmer.py).
 
-MJX compiles slowly on a CPU, so all tests share a few jitted functions (module-scoped fixtures),
-and each rollout has the same length, so it is compiled once:
-reset, rollout and vmap(reset + rollout).
+MJX compiles slowly on a CPU, so all tests share two jitted functions (module-scoped fixtures): reset, and one
+rollout program, vmapped over a batch of B rollouts of one length, so it is compiled once. A single rollout
+runs as row 0 of a batch whose other rows repeat it; the batch's rows are checked to be independent of each other
+and of their position, and row 0 against C MuJoCo.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ def env():
     return Swimmer()
 
 
+B = 4  # rollouts per call of the one rollout program
+
+
 @pytest.fixture(scope="module")
 def fns(env):
     def rollout(state, actions):
@@ -42,15 +46,21 @@ def fns(env):
 
         return jax.lax.scan(body, state, actions)
 
-    def reset_and_rollout(key, actions):
-        return (s := env.reset(key)), rollout(s, actions)[1]
+    return dict(reset=jax.jit(env.reset), batched=jax.jit(jax.vmap(rollout)))
 
-    return dict(
-        reset=jax.jit(env.reset),
-        rollout=jax.jit(rollout),
-        # vmap(reset) and vmap(rollout) in one compile (MJX compiles slowly on a CPU).
-        batched=jax.jit(jax.vmap(reset_and_rollout)),
-    )
+
+def stack(states):
+    """A batch of states, stacked on the host (no program compiled per leaf)."""
+    return jax.tree.map(lambda *leaves: np.stack([np.asarray(x) for x in leaves]), *states)
+
+
+def row(tree, i):
+    return jax.tree.map(lambda leaf: np.asarray(leaf)[i], tree)
+
+
+def run(fns, state, actions):
+    """One rollout from `state` under `actions` [T, 2]: row 0 of the batched program, the other rows repeating it."""
+    return row(fns["batched"](stack([state] * B), np.stack([np.asarray(actions)] * B)), 0)
 
 
 @pytest.fixture(scope="module")
@@ -79,8 +89,8 @@ def test_reset_shapes_and_randomness(env, fns, start):
 
 def test_step_deterministic_markov_and_finite(env, fns, start):
     actions = jax.random.uniform(jax.random.PRNGKey(2), (T, 2), minval=-1.0, maxval=1.0)
-    final, traj = fns["rollout"](start, actions)
-    _, traj2 = fns["rollout"](start, actions)
+    final, traj = run(fns, start, actions)
+    _, traj2 = run(fns, start, actions)
     for k in ("obs", "reward", "qpos", "x_velocity"):
         np.testing.assert_array_equal(np.asarray(traj[k]), np.asarray(traj2[k]), err_msg=k)
     for k, v in traj.items():
@@ -92,9 +102,9 @@ def test_step_deterministic_markov_and_finite(env, fns, start):
     # The state is Markov: restarting from the State stored after step K with the remaining actions
     # reproduces the rest of the run (the tail is padded to keep one scan length / one compile).
     K = 50
-    state_k = jax.tree.map(lambda leaf: leaf[K - 1], traj["state"])
+    state_k = row(traj["state"], K - 1)
     tail = jnp.concatenate([actions[K:], jnp.zeros((K, 2))])
-    _, rest = fns["rollout"](state_k, tail)
+    _, rest = run(fns, state_k, tail)
     for k in ("obs", "reward", "qpos"):
         np.testing.assert_array_equal(np.asarray(rest[k][: T - K]), np.asarray(traj[k][K:]),
                                       err_msg=k)
@@ -111,15 +121,11 @@ def test_step_deterministic_markov_and_finite(env, fns, start):
     assert np.isfinite(np.asarray(final.pipeline_state.qpos)).all()
 
 
-def _mean_vx(fns, start, actions):
-    _, traj = fns["rollout"](start, jnp.asarray(actions))
-    return float(np.mean(np.asarray(traj["x_velocity"])[WARMUP:])), traj
-
-
 def test_travelling_wave_swims_forward(env, fns, start):
-    v_fwd, traj = _mean_vx(fns, start, wave(PHASE, env.dt))
-    v_mirror, _ = _mean_vx(fns, start, wave(-PHASE, env.dt))
-    v_zero, _ = _mean_vx(fns, start, np.zeros((T, 2), np.float32))
+    gaits = np.stack([wave(PHASE, env.dt), wave(-PHASE, env.dt), np.zeros((T, 2), np.float32), wave(PHASE, env.dt)])
+    _, trajs = fns["batched"](stack([start] * B), gaits)
+    v_fwd, v_mirror, v_zero, _ = np.mean(np.asarray(trajs["x_velocity"])[:, WARMUP:], axis=1)
+    traj = row(trajs, 0)
     print(f"mean x-velocity: wave {v_fwd:.3f}, mirrored wave {v_mirror:.3f}, zero {v_zero:.3f}")
     # A head-to-tail wave swims head first (+x), the mirrored (tail-to-head) wave swims backwards,
     # doing nothing only coasts on the initial velocity (|v| <= 0.1, slowly damped by quadratic drag).
@@ -135,7 +141,7 @@ def test_travelling_wave_swims_forward(env, fns, start):
 def test_matches_c_mujoco(env, fns, start):
     """The MJX physics (fluid forces + RK4) follows C MuJoCo on the same model."""
     actions = wave(PHASE, env.dt)
-    _, traj = fns["rollout"](start, jnp.asarray(actions))
+    _, traj = run(fns, start, actions)
     m = env.sys.mj_model
     d = mujoco.MjData(m)
     d.qpos[:] = np.asarray(start.pipeline_state.qpos, np.float64)
@@ -173,17 +179,19 @@ def test_no_fluid_no_swimming_c_mujoco(env):
     assert com_shift[True] > 10 * com_shift[False]
 
 
-def test_vmap_matches_unbatched(fns, start):
-    keys = jax.random.split(jax.random.PRNGKey(0), 4).at[0].set(jax.random.PRNGKey(0))
-    actions = jax.random.uniform(jax.random.PRNGKey(3), (4, T, 2), minval=-1.0, maxval=1.0)
-    states, vtraj = fns["batched"](keys, actions)
-    assert states.obs.shape == (4, 8)
-    assert vtraj["obs"].shape == (4, T, 8) and vtraj["reward"].shape == (4, T)
-    np.testing.assert_allclose(np.asarray(states.obs[0]), np.asarray(start.obs), atol=1e-6)
-    _, traj = fns["rollout"](start, actions[0])
+def test_batched_rollouts_are_independent_of_each_other_and_of_their_row(fns, start):
+    """Four different starts and action sequences give four different rollouts, and the same four in another order
+    give the same rollouts in that order (no row reads another), so row 0 of `run`, which C MuJoCo checks, stands
+    for every row."""
+    states = stack([start] + [fns["reset"](jax.random.PRNGKey(k)) for k in range(1, B)])
+    actions = jax.random.uniform(jax.random.PRNGKey(3), (B, T, 2), minval=-1.0, maxval=1.0)
+    _, traj = fns["batched"](states, actions)
+    assert traj["obs"].shape == (B, T, 8) and traj["reward"].shape == (B, T)
+    assert np.isfinite(np.asarray(traj["obs"])).all()
+    order = np.array([2, 0, 3, 1])
+    _, shuffled = fns["batched"](jax.tree.map(lambda leaf: leaf[order], states), np.asarray(actions)[order])
     for k in ("obs", "reward", "qpos"):
-        np.testing.assert_allclose(np.asarray(vtraj[k][0]), np.asarray(traj[k]),
-                                   rtol=1e-4, atol=1e-4, err_msg=k)
-    assert np.isfinite(np.asarray(vtraj["obs"])).all()
+        np.testing.assert_allclose(np.asarray(shuffled[k]), np.asarray(traj[k])[order], rtol=1e-5, atol=1e-5,
+                                   err_msg=k)
     # Different starts and actions give different trajectories.
-    assert np.abs(np.asarray(vtraj["qpos"][1] - vtraj["qpos"][0])).max() > 1e-2
+    assert np.abs(np.asarray(traj["qpos"][1] - traj["qpos"][0])).max() > 1e-2
