@@ -25,8 +25,9 @@ runtime.configure(cache_dir=CACHE)
 # taking the next file when it is free, so a long file handed out last would leave one worker finishing alone. Files
 # not named keep their order after these. test_paper_obs_space.py stays well after test_runner.py, whose phase sweep
 # it runs again (the compilation cache serves it once test_runner.py has compiled it).
-HEAVY_FIRST = ("test_train.py", "test_swimmer.py", "test_benchmarks.py", "test_readme.py", "test_learner.py",
-               "test_pixel_model.py", "test_runner.py", "test_sweep.py", "test_settings_face.py", "test_run_dir.py",
+HEAVY_FIRST = ("test_train.py", "test_benchmarks.py", "test_readme.py", "test_learner.py",
+               "test_pixel_model.py", "test_runner.py", "test_sweep.py", "test_swimmer.py", "test_settings_face.py",
+               "test_run_dir.py",
                "test_offpolicy.py", "test_mbmf.py", "test_atari_cli.py", "test_multihost.py", "test_docs.py",
                "test_mpc.py", "test_cli.py", "test_offpolicy_host.py", "test_playground.py", "test_playground_bench.py",
                "test_failures.py", "test_consistency.py", "test_mbmf_options.py", "test_paper_obs_space.py",
