@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from experiments.offpolicy import ALPHAS, SEEDS, STEPS, TASKS, report
-from experiments.offpolicy.units import PARTS, UNITS, sweep_args
+from experiments.offpolicy.units import INPUTS, PARTS, UNITS, sweep_args
 
 
 @pytest.mark.parametrize("name", sorted(UNITS))
@@ -25,8 +25,11 @@ def test_every_units_sweep_plans_the_arms_grid_and_budget_it_names(name):
                       setting)
     plans = plan_arms(spec)
     assert task in TASKS and [p.name for p in plans] == list(arms) and spec.seeds == SEEDS
+    from cdjax.agents.offpolicy import Config
+
     for plan in plans:
         assert plan.config.env == task and plan.config.diagnostics
+        assert plan.config.inputs == INPUTS.get(part, Config().inputs)
         assert abs(plan.total_env_steps - STEPS) <= plan.config.env_steps_per_update
         if horizon is None:
             assert len(plan.hparams) == 1
@@ -84,6 +87,9 @@ def results(tmp_path_factory):
 def test_arm_keys_name_the_arm_its_horizon_and_weight():
     assert report.arm_key(_arm("model-free"), {"alpha": 0.0}) == "model-free"
     assert report.arm_key(_arm("model"), {"alpha": 0.0}) == "model"
+    on_obs = _arm("model-free")
+    on_obs["config"]["inputs"] = "obs"  # the TASK-obs unit's
+    assert report.arm_key(on_obs, {"alpha": 0.0}) == "model-free-obs"
     assert report.arm_key(_arm("self-pred", 5), {"alpha": 0.1}) == "self-pred-k5-a0.1"
 
 

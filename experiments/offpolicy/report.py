@@ -47,10 +47,11 @@ DIAGNOSTICS = (("heldout/open_loop_mse_1", "held-out open-loop MSE, step 1"),
 
 
 def arm_key(arm: dict, hp: dict) -> str:
-    """model-free and model as they are; a consistency arm with its horizon and weight: paper-cd-k3-a1."""
+    """model-free and model as they are (with `-obs` when the actor and critic read the observation alone, the TASK-obs
+    unit); a consistency arm with its horizon and weight: paper-cd-k3-a1."""
     kind = arm.get("arm") or arm.get("config", {}).get("arm")
     if kind in BASELINES:
-        return kind
+        return kind + ("-obs" if arm.get("config", {}).get("inputs") == "obs" else "")
     return f"{kind}-k{arm.get('config', {}).get('horizon')}-a{hp.get('alpha', math.nan):g}"
 
 

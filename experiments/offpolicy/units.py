@@ -3,6 +3,9 @@
   TASK-base     model-free and model, 10 seeds each (the preset TASK: 128 envs, 8 gradient steps per env step)
   TASK-k3       paper-cd and self-pred at horizon 3, alpha 0.1 and 1 (20 runs per arm, vmapped)
   TASK-k5       paper-cd and self-pred at horizon 5, alpha 0.1 and 1
+  TASK-obs      model-free with the actor and critic on the observation alone (`--inputs obs`, no encoder), 10
+                seeds: the reference that reads what every other arm reads beside its latent (issue 68's pass 4:
+                better than the latent arms' control on humanoid and ant)
 
 Each is `cdjax sweep --setting offpolicy --preset TASK --arms ... --seeds 10 --steps STEPS --diagnostics true`
 stopped by --time-limit (a unit that stops short is run again with `--resume` by the same command: the sweep
@@ -19,7 +22,8 @@ from experiments.offpolicy import ALPHAS, SEEDS, STEPS, TASKS
 
 LIMIT_S, END_S = 1260, 1440
 PARTS = {"base": (("model-free", "model"), None), "k3": (("paper-cd", "self-pred"), 3),
-         "k5": (("paper-cd", "self-pred"), 5)}
+         "k5": (("paper-cd", "self-pred"), 5), "obs": (("model-free",), None)}
+INPUTS = {"obs": "obs"}  # the parts whose actor and critic read other inputs than the preset's (Config.inputs)
 THIN = {"points": 1000, "tail": 100}  # collect: the last 10% of a run's points kept whole (its final return)
 
 
@@ -30,6 +34,8 @@ def sweep_args(task: str, part: str, steps: str, out: str) -> list[str]:
             "--diagnostics", "true", "--no-progress", "--out", out]
     if horizon is not None:
         args += ["--horizon", str(horizon), "--alpha", *(f"{a:g}" for a in ALPHAS)]
+    if part in INPUTS:
+        args += ["--inputs", INPUTS[part]]
     return args
 
 
@@ -51,7 +57,7 @@ def _units() -> dict[str, Unit]:
     for task in TASKS:
         for part, (arms, horizon) in PARTS.items():
             what = " and ".join(arms) + (f" at horizon {horizon}, alpha {' and '.join(f'{a:g}' for a in ALPHAS)}"
-                                          if horizon else "")
+                                          if horizon else "") + (f" on inputs {INPUTS[part]}" if part in INPUTS else "")
             units.append(Unit(f"{task}-{part}", f"{task}: {what}, {SEEDS} seeds, `steps` env steps per run", 24,
                               _steps(task, part), {"steps": str(STEPS), "sweep": ""}))
     return {u.name: u for u in units}

@@ -14,9 +14,8 @@ terminations not, non-finite env states reset and their transitions masked (`cdj
 Arms (Config.arm), the same code with switches:
 - `model-free`: SAC. With inputs="obs+latent" (the default) or "latent" the actor and critic read an encoder's latent
   (beside the normalised observation for "obs+latent") that only the critic's loss trains, so that the other arms
-  differ from it by their losses alone; inputs="obs" has no encoder (Brax's SAC reads observations so). At 1M env
-  steps the latent alone fell behind Brax's SAC on humanoid, and obs+latent is level with it on the four tasks
-  (benchmarks/results/2026-11-29-h200-sac-parity).
+  differ from it by their losses alone; inputs="obs" has no encoder (Brax's SAC reads observations so). Why this
+  default: docs/settings/offpolicy.md (the parity with Brax's SAC).
 - `model`: a latent model (encoder, latent transition, reward head, observation decoder) trained by one-step
   prediction of the next observation and the reward; no consistency term.
 - `paper-cd`: the model arm plus the paper's term (`cdjax.consistency.consistency_loss`): a GRU encoding of the real
