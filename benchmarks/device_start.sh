@@ -9,8 +9,8 @@
 # 3. copies the code (cdjax, benchmarks, experiments, pyproject.toml) to /tmp/code, which later calls' copies of the
 #    tree do not touch, and starts `cd /tmp/code && COMMAND ARGS` under setsid with that PYTHONPATH,
 #    XLA_PYTHON_CLIENT_PREALLOCATE=false and PYTHONUNBUFFERED=1, its output in /tmp/NAME.log, its pid in /tmp/NAME.pid.
-# Poll it with `bash benchmarks/device_poll.sh NAME DIR...`. Without COMMAND it only installs and checks (a first
-# call that carries some of the wheels).
+# Poll it with `bash benchmarks/device_poll.sh NAME [WAIT] [DIR...]`. Without COMMAND it only installs and checks (a
+# first call that carries some of the wheels).
 set -u
 name=${1:?job name}
 shift

@@ -197,7 +197,7 @@ class RunDir:
         paths = [self.path / name for name in files]
         paths += [p for p in (self.path / "plots").glob("*") if p.is_file()] if "plots" in dirs else []
         for path in paths:
-            if not path.is_file() or path.name.startswith(PROBE):
+            if not path.is_file():
                 continue
             try:
                 os.close(os.open(path, os.O_WRONLY | os.O_APPEND))

@@ -4,8 +4,7 @@
   TASK-k3       paper-cd and self-pred at horizon 3, alpha 0.1 and 1 (20 runs per arm, vmapped)
   TASK-k5       paper-cd and self-pred at horizon 5, alpha 0.1 and 1
   TASK-obs      model-free with the actor and critic on the observation alone (`--inputs obs`, no encoder), 10
-                seeds: the reference that reads what every other arm reads beside its latent (issue 68's pass 4:
-                better than the latent arms' control on humanoid and ant)
+                seeds: the reference without a latent (why: PLAN.md)
 
 Each is `cdjax sweep --setting offpolicy --preset TASK --arms ... --seeds 10 --steps STEPS --diagnostics true`
 stopped by --time-limit (a unit that stops short is run again with `--resume` by the same command: the sweep
