@@ -184,7 +184,10 @@ def is_peer_error(err: BaseException) -> bool:
 
 
 def lost(err: BaseException) -> PeerLost:
-    """The PeerLost that `err` says (sets LOST); the runtime's own words go to the library log."""
+    """The PeerLost that `err` says (sets LOST); the runtime's own words go to the library log. This process's end is
+    claimed from the watch first (`ending`: the peers are told), so that only one sentence is said: where the watch has
+    already begun to end the process, this blocks until it has."""
+    ending(PEER_LOST_STATUS)
     LOST.set()
     logging.getLogger(__name__).warning("process %d of %d lost another process: %s", index(), count(), err)
     text = str(err).lower()
