@@ -25,6 +25,10 @@ PENDULUM_HP = HParams(alpha=1.0, lr_policy=1e-3, lr_value=1e-3)
 # For the few tests whose programs run long enough that executing them costs more than compiling them (learning runs,
 # MPC on MJX): XLA's default optimisation level instead of the test session's 0 (tests/conftest.py).
 OPTIMISED = {"xla_backend_optimization_level": 3}
+# For the programs that a test compares bit for bit with another program (or with JAX's op-by-op execution): XLA:CPU's
+# own fusion emitters, which users' programs get, instead of the test session's older ones (tests/conftest.py), whose
+# fusions round a few operations differently from one program to the next.
+EXACT = {"xla_cpu_use_fusion_emitters": True}
 
 
 @functools.lru_cache(maxsize=None)

@@ -12,7 +12,7 @@ import pytest
 from cdjax import HParams
 from cdjax.agents.obs.learner import TERM_GROUPS, make_agent, refresh_norms, term_weights, to_segments
 
-from _shared import POINT, compiled
+from _shared import EXACT, POINT, compiled
 
 HP = HParams(alpha=1.0)
 
@@ -31,7 +31,7 @@ def point_batch():
 
 def _grads(trainer, params, norms, mb, hp):
     offsets = jnp.arange(POINT.num_windows)
-    return jax.jit(jax.grad(trainer.loss, has_aux=True))(params, norms, mb, offsets, hp)
+    return jax.jit(jax.grad(trainer.loss, has_aux=True), compiler_options=EXACT)(params, norms, mb, offsets, hp)
 
 
 def _assert_same(a, b):
@@ -184,7 +184,8 @@ def test_skip_if_not_finite_equals_optax_apply_if_finite():
              {"w": jnp.array([0.1, 0.2, jnp.inf]), "b": jnp.ones((2, 2))},
              {"w": jnp.array([-1.0, 0.5, 2.0]), "b": jnp.full((2, 2), -0.7)}]
     for g in grads:
-        (u_ours, s_ours), (u_ref, s_ref) = jax.jit(ours.update)(g, s_ours, params), ref.update(g, s_ref, params)
+        (u_ours, s_ours), (u_ref, s_ref) = (jax.jit(ours.update, compiler_options=EXACT)(g, s_ours, params),
+                                            ref.update(g, s_ref, params))
         for a, b in zip(jax.tree.leaves((u_ours, s_ours)), jax.tree.leaves((u_ref, s_ref))):
             np.testing.assert_array_equal(a, b)
     assert int(s_ours.total_notfinite) == 2 and int(s_ours.notfinite_count) == 0
@@ -225,7 +226,7 @@ def test_diagnostic_shares_sum_to_the_scalar_diagnostics_with_the_same_gradient(
     of shares=False; every other metric and the gradient unchanged."""
     trainer, state, _, _, mb = point_batch
     offsets = jnp.arange(POINT.num_windows)
-    grad = jax.jit(jax.grad(trainer.loss, has_aux=True), static_argnums=(5, 7))
+    grad = jax.jit(jax.grad(trainer.loss, has_aux=True), static_argnums=(5, 7), compiler_options=EXACT)
     g, scalar = grad(state.params, state.norms, mb, offsets, HP, True, None, False)
     g_shares, shared = grad(state.params, state.norms, mb, offsets, HP, True, None, True)
     assert set(shared) == set(scalar)
