@@ -21,7 +21,8 @@ ROLES = ("config", "learner", "networks", "losses", "presets")
 FACE = ("Config", "HParams", "TrainState", "make_train", "make_trainer", "PRESETS", "SETTING")
 UPDATES = 2
 TINY = {
-    "obs": (POINT.replace(num_updates=UPDATES), None),
+    # 6 updates: the program test_train.py's vmap test and test_runner.py run alone (the compilation cache serves it)
+    "obs": (POINT.replace(num_updates=6), None),
     "pixel": (PIXEL_TINY.replace(num_updates=UPDATES), PIXEL_HP),
     "atari": (AtariConfig(env="breakout", arm="a2c-cd", num_envs=4, rollout_len=8, horizon=4, conv_channels=4,
                           latent=16, model_hidden=16, encoder_dim=8, episode_length=100, num_updates=UPDATES),
@@ -73,7 +74,7 @@ def test_make_train_runs_a_tiny_run_with_the_configs_shapes_and_the_settings_met
     names -= {"loss/self_predictive"}
     assert names <= set(metrics), names - set(metrics)
     for key, value in metrics.items():
-        assert value.shape[0] == UPDATES, key  # one row per update, scalars inside the scan
+        assert value.shape[0] == config.num_updates, key  # one row per update, scalars inside the scan
     assert np.isfinite(np.asarray(metrics["loss/consistency"])).all()
 
 
