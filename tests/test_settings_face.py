@@ -27,9 +27,11 @@ TINY = {
     "atari": (AtariConfig(env="breakout", arm="a2c-cd", num_envs=4, rollout_len=8, horizon=4, conv_channels=4,
                           latent=16, model_hidden=16, encoder_dim=8, episode_length=100, num_updates=UPDATES),
               AtariHParams(lr=3e-3)),
+    # the l2 consistency encoder, as PIXEL_TINY's: the paper-cd update with the smallest program to compile (the
+    # grounded GRU's is test_offpolicy.py's)
     "offpolicy": (OffPolicyConfig(env="point", num_envs=4, steps_per_update=4, buffer_steps=32, batch_size=8,
                                   learning_starts=12, num_updates=UPDATES, actor_hidden=(16,), critic_hidden=(16,),
-                                  encoder_hidden=(16,), model_hidden=(16,), latent_dim=8, cc_dim=8,
+                                  encoder_hidden=(16,), model_hidden=(16,), latent_dim=8, cc_encoder="l2",
                                   episode_length=20), None),
 }
 
