@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cdjax.agents.offpolicy import Config, HParams, Learner, make_train
-from cdjax.agents.offpolicy.losses import REACHES, loss_terms, n_step_target, total_loss
+from cdjax.agents.offpolicy.losses import REACHES, loss_terms, n_step_target
 from cdjax.protocol import ConfigError
 from cdjax.replay import RingBuffer, sample_sequences
 
@@ -114,13 +114,14 @@ def replayed(stepped):
 
 
 @functools.cache
-def _programs(config):
-    """jit(grad of total_loss w.r.t. params and target) and jit(jacobian of loss_terms w.r.t. params) of a config,
-    every input an argument (the HParams too: alpha 0 and alpha 1 are one program), built once per config."""
+def _jacobian(config):
+    """jit(the jacobian of loss_terms w.r.t. params and target) of a config: each term's gradient per parameter
+    group. Every input is an argument (the HParams too: alpha 0 and alpha 1 are one program); built once per config
+    and shared by the gradient tests (their sum over the terms is total_loss's gradient, total_loss being the terms'
+    sum)."""
     nets = Learner(config).nets
-    total = lambda *args: total_loss(*args, nets=nets, config=config)[0]  # noqa: E731
     terms = lambda *args: loss_terms(*args, nets=nets, config=config)[0]  # noqa: E731
-    return jax.jit(jax.grad(total, argnums=(0, 1))), jax.jit(jax.jacrev(terms))
+    return jax.jit(jax.jacrev(terms, argnums=(0, 1)))
 
 
 def _params(arm, state):
@@ -130,10 +131,15 @@ def _params(arm, state):
     return params
 
 
-def _grads(arm, state, batch, hp, wrt="params"):
-    grad, _ = _programs(TINY.replace(arm=arm))
-    params, target = grad(_params(arm, state), state.target, state.norm, batch, hp.as_float32(), jax.random.key(4))
-    return params if wrt == "params" else target
+def _terms(arm, state, batch, hp):
+    """Each term's gradient w.r.t. (params, target) at the replayed state and batch."""
+    return _jacobian(TINY.replace(arm=arm))(_params(arm, state), state.target, state.norm, batch, hp.as_float32(),
+                                            jax.random.key(4))
+
+
+def _grads(arm, state, batch, hp):
+    """total_loss's gradient w.r.t. params: the sum of its terms'."""
+    return jax.tree.map(lambda *g: sum(g), *[params for params, _ in _terms(arm, state, batch, hp).values()])
 
 
 @pytest.mark.parametrize("arm", ["paper-cd", "self-pred"])
@@ -154,8 +160,8 @@ def test_the_consistency_arms_at_alpha_0_take_the_model_arms_gradients(replayed,
 
 def test_the_self_predictive_target_receives_no_gradient(replayed):
     state, batch = replayed
-    grads = _grads("self-pred", state, batch, HParams(alpha=1.0), wrt="target")
-    assert all(not np.asarray(g).any() for g in jax.tree.leaves(grads))
+    for term, (_, target) in _terms("self-pred", state, batch, HParams(alpha=1.0)).items():  # not one term's
+        assert all(not np.asarray(g).any() for g in jax.tree.leaves(target)), term
     online = _grads("self-pred", state, batch, HParams(alpha=1.0))
     assert any(np.asarray(g).any() for g in jax.tree.leaves(online["encoder"]))  # the online encoder learns
 
@@ -165,9 +171,7 @@ def test_each_loss_term_reaches_only_the_groups_it_is_built_to_train(replayed, a
     """The stop_gradients route every term as REACHES says: any other group's gradient is exactly zero, and each
     group it names gets some gradient (the diagnostics' "grad/<term>/<group>" are those norms)."""
     state, batch = replayed
-    _, jacobian = _programs(TINY.replace(arm=arm))
-    jac = jacobian(_params(arm, state), state.target, state.norm, batch, HParams(alpha=1.0).as_float32(),
-                   jax.random.key(4))
+    jac = {term: params for term, (params, _) in _terms(arm, state, batch, HParams(alpha=1.0)).items()}
     expected = {"critic", "actor", "temperature", "model"} | ({"consistency", "encoder_aux"} if arm == "paper-cd"
                                                                else {"self_pred"})
     assert set(jac) == expected
@@ -191,8 +195,9 @@ def test_obs_plus_latent_inputs_put_the_observation_beside_the_latent_and_keep_t
     assert z.shape == (obs.shape[0], config.latent_dim)
     np.testing.assert_array_equal(nets.features(params["encoder"], obs), jnp.concatenate([obs, z], axis=-1))
     assert params["actor"]["params"]["MLP_0"]["Dense_0"]["kernel"].shape[0] == obs.shape[-1] + config.latent_dim
-    _, jacobian = _programs(config)  # obs+latent is the default: the self-pred loss-reach test's program
-    jac = jacobian(params, target, state.norm, batch, HParams(alpha=1.0).as_float32(), jax.random.key(4))
+    # obs+latent is the default inputs: the self-pred loss-reach test's program
+    jac = _jacobian(config)(params, target, state.norm, batch, HParams(alpha=1.0).as_float32(), jax.random.key(4))
+    jac = {term: of_params for term, (of_params, _) in jac.items()}
     assert set(jac) == {"critic", "actor", "temperature", "model", "self_pred"}
     for term, grads in jac.items():
         for group, g in grads.items():
