@@ -60,7 +60,8 @@ def test_the_n_step_target_stops_at_episode_ends_and_bootstraps_time_outs():
 @pytest.fixture(scope="module")
 def stepped():
     """The paper-cd arm's update (the largest: every loss term) jitted once and run 12 times from init, through the
-    random-action phase into learning: (how often it was traced, the state, the last update's metrics)."""
+    random-action phase into learning: (how often it was traced, the state, the last update's metrics). The suite's
+    only run of the paper-cd update with its default grounded-GRU encoder (test_settings_face.py's uses l2)."""
     learner = Learner(TINY.replace(arm="paper-cd"))
     traced = []
 
