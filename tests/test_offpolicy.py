@@ -3,13 +3,15 @@ seeds, the consistency arms at alpha 0, the self-predictive target's gradient, a
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from cdjax.agents.offpolicy import Config, HParams, Learner, make_train
-from cdjax.agents.offpolicy.losses import REACHES, loss_terms, n_step_target, total_loss
+from cdjax.agents.offpolicy.losses import REACHES, loss_terms, n_step_target
 from cdjax.protocol import ConfigError
 from cdjax.replay import RingBuffer, sample_sequences
 
@@ -55,8 +57,12 @@ def test_the_n_step_target_stops_at_episode_ends_and_bootstraps_time_outs():
     np.testing.assert_array_equal(usable, [t, t, t, f])  # seq 3: an invalid step inside its n steps
 
 
-def test_the_update_compiles_once():
-    learner = Learner(TINY)
+@pytest.fixture(scope="module")
+def stepped():
+    """The paper-cd arm's update (the largest: every loss term) jitted once and run 12 times from init, through the
+    random-action phase into learning: (how often it was traced, the state, the last update's metrics). The suite's
+    only run of the paper-cd update with its default grounded-GRU encoder (test_settings_face.py's uses l2)."""
+    learner = Learner(TINY.replace(arm="paper-cd"))
     traced = []
 
     def update(state, hp):
@@ -64,50 +70,77 @@ def test_the_update_compiles_once():
         return learner.update(state, hp)
 
     step = jax.jit(update)
-    state = learner.init(jax.random.key(0), HParams())
-    for _ in range(12):  # through the random-action phase into learning
+    state = learner.init(jax.random.key(1), HParams())
+    for _ in range(12):
         state, metrics = step(state, HParams().as_float32())
-    assert len(traced) == 1
+    return len(traced), state, metrics
+
+
+def test_the_update_compiles_once(stepped):
+    traced, state, metrics = stepped
+    assert traced == 1
     assert np.isfinite(float(metrics["loss/critic"])) and int(state.buffer.count) == 24
 
 
-def test_vmap_over_seeds_equals_each_seed_alone():
-    config = TINY.replace(arm="self-pred", num_updates=10)
-    train = jax.jit(make_train(config))
+@pytest.fixture(scope="module")
+def runs():
+    """The self-pred arm's train (10 updates) of two seeds under two alphas, vmapped and each alone: (config, keys,
+    hps, vmapped (states, metrics), [(state, metrics) alone]). The diagnostics test compares its run with the first
+    run alone (heldout_envs sizes only what diagnostics add: without them it is the plain program)."""
+    config = TINY.replace(arm="self-pred", num_updates=10, heldout_envs=2)
     keys = jax.random.split(jax.random.key(3), 2)
-    runs = [HParams(alpha=0.5), HParams(alpha=2.0)]
-    hps = jax.tree.map(lambda *v: jnp.asarray(v, jnp.float32), *runs)
-    states, metrics = jax.jit(jax.vmap(make_train(config)))(keys, hps)
-    for i in range(2):
-        state, alone = train(keys[i], runs[i])
-        for name in alone:
-            np.testing.assert_allclose(metrics[name][i], alone[name], rtol=2e-5, atol=1e-6, err_msg=name)
+    hps = [HParams(alpha=0.5), HParams(alpha=2.0)]
+    stacked = jax.tree.map(lambda *v: jnp.asarray(v, jnp.float32), *hps)
+    vmapped = jax.jit(jax.vmap(make_train(config)))(keys, stacked)
+    train = jax.jit(make_train(config))
+    return config, keys, hps, vmapped, [train(keys[i], hps[i]) for i in range(2)]
+
+
+def test_vmap_over_seeds_equals_each_seed_alone(runs):
+    _, _, _, (states, metrics), alone = runs
+    for i, (state, single) in enumerate(alone):
+        for name in single:
+            np.testing.assert_allclose(metrics[name][i], single[name], rtol=2e-5, atol=1e-6, err_msg=name)
         for a, b in zip(jax.tree.leaves(states.params), jax.tree.leaves(state.params)):
             np.testing.assert_allclose(a[i], b, rtol=2e-5, atol=1e-6)
     assert not np.allclose(metrics["loss/critic"][0, -1], metrics["loss/critic"][1, -1])  # the runs differ
 
 
 @pytest.fixture(scope="module")
-def replayed():
-    """A state past learning_starts and a batch sampled from its buffer."""
-    learner = Learner(TINY.replace(arm="paper-cd"))
-    state = learner.init(jax.random.key(1), HParams())
-    step = jax.jit(learner.update)
-    for _ in range(10):
-        state, _ = step(state, HParams())
+def replayed(stepped):
+    """A paper-cd state past learning_starts and a batch sampled from its buffer."""
+    _, state, _ = stepped
     batch = sample_sequences(state.buffer, jax.random.key(2), 16, 3)
     return state, batch
 
 
-def _grads(arm, state, batch, hp, wrt="params"):
-    config = TINY.replace(arm=arm)
+@functools.cache
+def _jacobian(config):
+    """jit(the jacobian of loss_terms w.r.t. params and target) of a config: each term's gradient per parameter
+    group. Every input is an argument (the HParams too: alpha 0 and alpha 1 are one program); built once per config
+    and shared by the gradient tests (their sum over the terms is total_loss's gradient, total_loss being the terms'
+    sum)."""
     nets = Learner(config).nets
-    params = dict(state.params)
+    terms = lambda *args: loss_terms(*args, nets=nets, config=config)[0]  # noqa: E731
+    return jax.jit(jax.jacrev(terms, argnums=(0, 1)))
+
+
+def _params(arm, state):
+    params = dict(state.params)  # the paper-cd state's: the other arms have no consistency encoder
     if arm != "paper-cd":
         params.pop("cc_encoder")
-    fn = lambda p, t: total_loss(p, t, state.norm, batch, hp.as_float32(), jax.random.key(4), nets=nets,  # noqa: E731
-                                 config=config)
-    return jax.jit(jax.grad(lambda p, t: fn(p, t)[0], argnums=0 if wrt == "params" else 1))(params, state.target)
+    return params
+
+
+def _terms(arm, state, batch, hp):
+    """Each term's gradient w.r.t. (params, target) at the replayed state and batch."""
+    return _jacobian(TINY.replace(arm=arm))(_params(arm, state), state.target, state.norm, batch, hp.as_float32(),
+                                            jax.random.key(4))
+
+
+def _grads(arm, state, batch, hp):
+    """total_loss's gradient w.r.t. params: the sum of its terms'."""
+    return jax.tree.map(lambda *g: sum(g), *[params for params, _ in _terms(arm, state, batch, hp).values()])
 
 
 @pytest.mark.parametrize("arm", ["paper-cd", "self-pred"])
@@ -128,8 +161,8 @@ def test_the_consistency_arms_at_alpha_0_take_the_model_arms_gradients(replayed,
 
 def test_the_self_predictive_target_receives_no_gradient(replayed):
     state, batch = replayed
-    grads = _grads("self-pred", state, batch, HParams(alpha=1.0), wrt="target")
-    assert all(not np.asarray(g).any() for g in jax.tree.leaves(grads))
+    for term, (_, target) in _terms("self-pred", state, batch, HParams(alpha=1.0)).items():  # not one term's
+        assert all(not np.asarray(g).any() for g in jax.tree.leaves(target)), term
     online = _grads("self-pred", state, batch, HParams(alpha=1.0))
     assert any(np.asarray(g).any() for g in jax.tree.leaves(online["encoder"]))  # the online encoder learns
 
@@ -139,15 +172,7 @@ def test_each_loss_term_reaches_only_the_groups_it_is_built_to_train(replayed, a
     """The stop_gradients route every term as REACHES says: any other group's gradient is exactly zero, and each
     group it names gets some gradient (the diagnostics' "grad/<term>/<group>" are those norms)."""
     state, batch = replayed
-    config = TINY.replace(arm=arm)
-    nets = Learner(config).nets
-    params = dict(state.params)
-    if arm != "paper-cd":
-        params.pop("cc_encoder")
-    hp = HParams(alpha=1.0).as_float32()
-    terms = lambda p: loss_terms(p, state.target, state.norm, batch, hp, jax.random.key(4), nets=nets,  # noqa: E731
-                                 config=config)[0]
-    jac = jax.jit(jax.jacrev(terms))(params)
+    jac = {term: params for term, (params, _) in _terms(arm, state, batch, HParams(alpha=1.0)).items()}
     expected = {"critic", "actor", "temperature", "model"} | ({"consistency", "encoder_aux"} if arm == "paper-cd"
                                                                else {"self_pred"})
     assert set(jac) == expected
@@ -171,10 +196,9 @@ def test_obs_plus_latent_inputs_put_the_observation_beside_the_latent_and_keep_t
     assert z.shape == (obs.shape[0], config.latent_dim)
     np.testing.assert_array_equal(nets.features(params["encoder"], obs), jnp.concatenate([obs, z], axis=-1))
     assert params["actor"]["params"]["MLP_0"]["Dense_0"]["kernel"].shape[0] == obs.shape[-1] + config.latent_dim
-    hp = HParams(alpha=1.0).as_float32()
-    terms = lambda p: loss_terms(p, target, state.norm, batch, hp, jax.random.key(4), nets=nets,  # noqa: E731
-                                 config=config)[0]
-    jac = jax.jit(jax.jacrev(terms))(params)
+    # obs+latent is the default inputs: the self-pred loss-reach test's program
+    jac = _jacobian(config)(params, target, state.norm, batch, HParams(alpha=1.0).as_float32(), jax.random.key(4))
+    jac = {term: of_params for term, (of_params, _) in jac.items()}
     assert set(jac) == {"critic", "actor", "temperature", "model", "self_pred"}
     for term, grads in jac.items():
         for group, g in grads.items():
@@ -184,19 +208,18 @@ def test_obs_plus_latent_inputs_put_the_observation_beside_the_latent_and_keep_t
         TINY.replace(arm="model", inputs="obs")
 
 
-def test_diagnostics_change_no_training_number_and_hold_their_envs_out_of_the_replay():
-    config = TINY.replace(arm="model", num_updates=10, heldout_envs=2)
-    hp = HParams()
-    plain_state, plain = jax.jit(make_train(config))(jax.random.key(5), hp)
-    state, metrics = jax.jit(make_train(config.replace(diagnostics=True)))(jax.random.key(5), hp)
+def test_diagnostics_change_no_training_number_and_hold_their_envs_out_of_the_replay(runs):
+    config, keys, hps, _, alone = runs
+    plain_state, plain = alone[0]
+    state, metrics = jax.jit(make_train(config.replace(diagnostics=True)))(keys[0], hps[0])
     for name in plain:
         np.testing.assert_allclose(metrics[name], plain[name], rtol=2e-5, atol=1e-6, err_msg=name)
     for a, b in zip(jax.tree.leaves(state.params), jax.tree.leaves(plain_state.params)):
         np.testing.assert_allclose(a, b, rtol=2e-5, atol=1e-6)
     learning = np.asarray(plain["loss/critic"])
     assert np.isnan(learning[0]) and np.isfinite(learning[-1])  # the last updates learn, the first do not
-    for name in ("grad/critic/encoder", "grad/model/model", "latent/spread", "heldout/open_loop_mse_1",
-                 f"heldout/open_loop_mse_{config.horizon}"):
+    for name in ("grad/critic/encoder", "grad/model/model", "grad/self_pred/encoder", "latent/spread",
+                 "heldout/open_loop_mse_1", f"heldout/open_loop_mse_{config.horizon}"):
         values = np.asarray(metrics[name])
         assert np.isnan(values[0]) and np.isfinite(values[-1]) and values[-1] > 0, name
     assert float(metrics["heldout/windows"][-1]) > 0

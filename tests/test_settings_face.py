@@ -21,14 +21,17 @@ ROLES = ("config", "learner", "networks", "losses", "presets")
 FACE = ("Config", "HParams", "TrainState", "make_train", "make_trainer", "PRESETS", "SETTING")
 UPDATES = 2
 TINY = {
-    "obs": (POINT.replace(num_updates=UPDATES), None),
+    # 6 updates: the program test_train.py's vmap test and test_runner.py run alone (the compilation cache serves it)
+    "obs": (POINT.replace(num_updates=6), None),
     "pixel": (PIXEL_TINY.replace(num_updates=UPDATES), PIXEL_HP),
     "atari": (AtariConfig(env="breakout", arm="a2c-cd", num_envs=4, rollout_len=8, horizon=4, conv_channels=4,
                           latent=16, model_hidden=16, encoder_dim=8, episode_length=100, num_updates=UPDATES),
               AtariHParams(lr=3e-3)),
+    # the l2 consistency encoder, as PIXEL_TINY's: the paper-cd update with the smallest program to compile (the
+    # grounded GRU's is test_offpolicy.py's)
     "offpolicy": (OffPolicyConfig(env="point", num_envs=4, steps_per_update=4, buffer_steps=32, batch_size=8,
                                   learning_starts=12, num_updates=UPDATES, actor_hidden=(16,), critic_hidden=(16,),
-                                  encoder_hidden=(16,), model_hidden=(16,), latent_dim=8, cc_dim=8,
+                                  encoder_hidden=(16,), model_hidden=(16,), latent_dim=8, cc_encoder="l2",
                                   episode_length=20), None),
 }
 
@@ -73,7 +76,7 @@ def test_make_train_runs_a_tiny_run_with_the_configs_shapes_and_the_settings_met
     names -= {"loss/self_predictive"}
     assert names <= set(metrics), names - set(metrics)
     for key, value in metrics.items():
-        assert value.shape[0] == UPDATES, key  # one row per update, scalars inside the scan
+        assert value.shape[0] == config.num_updates, key  # one row per update, scalars inside the scan
     assert np.isfinite(np.asarray(metrics["loss/consistency"])).all()
 
 
