@@ -66,13 +66,14 @@ def state(init):
     return init(jax.random.key(0), HP)
 
 
-def test_elbo_of_an_untrained_model_equals_a_hand_computation(learner):
+def test_elbo_of_an_untrained_model_equals_a_hand_computation(learner, state):
     model, c = learner.model, learner.config
     T, B, F = 3, 2, c.frame_stack
-    key_frames, key_params, key_eps = jax.random.split(jax.random.key(1), 3)
-    frames = np.asarray(jax.random.randint(key_frames, (T + F - 1, B, c.image_size, c.image_size, 3), 0, 256), np.uint8)
-    actions = np.asarray(jax.random.uniform(key_frames, (T, B, A), minval=-1, maxval=1), np.float32)
-    params = model.init(key_params)
+    rng = np.random.default_rng(1)  # inputs drawn in numpy: eager jax.random calls would each compile a program
+    frames = rng.integers(0, 256, (T + F - 1, B, c.image_size, c.image_size, 3), np.uint8)
+    actions = rng.uniform(-1, 1, (T, B, A)).astype(np.float32)
+    key_eps = jax.random.key(1)
+    params = state.params  # the untrained model of the shared initial state (its own init ran op by op)
     elbo, parts, _ = jax.jit(model.elbo)(params, frames, actions, key_eps)
 
     eps = np.asarray(jax.random.normal(key_eps, (T, B, c.latent)))
@@ -115,10 +116,10 @@ def test_open_loop_draws_from_the_prior_and_never_reads_the_frames_it_predicts(l
     assert np.abs(np.asarray(grads[:read])).sum() > 0  # the context: read
 
     B = 3
-    h0 = jax.random.normal(jax.random.key(3), (B, c.hidden))
-    c0 = jax.random.normal(jax.random.key(4), (B, c.hidden))
-    acts = jax.random.uniform(jax.random.key(5), (4, B, A), minval=-1, maxval=1)
-    eps = jax.random.normal(jax.random.key(6), (4, B, c.latent))
+    rng = np.random.default_rng(3)  # numpy: eager jax.random calls would each compile a program
+    h0, c0 = (rng.standard_normal((B, c.hidden), np.float32) for _ in range(2))
+    acts = rng.uniform(-1, 1, (4, B, A)).astype(np.float32)
+    eps = rng.standard_normal((4, B, c.latent), np.float32)
     h_im, _, z_im = jax.jit(model.imagine)(params, h0, c0, acts, eps)
     prior = jax.jit(lambda h, a: model.core.apply(params["core"], h, a, method="prior"))
     transition = jax.jit(lambda h, cell, z, a: model.core.apply(params["core"], h, cell, z, a, method="transition"))
