@@ -694,6 +694,20 @@ def test_conv_arrangements_equal_the_grouped_convolution_under_the_runs_vmap(imp
                 assert relative(a, b) < 1e-2
 
 
+# 32 channels: "auto" keeps the middle layers grouped and runs the narrow first (12 in) and last (24 out) per run
+WIDE = TINY.replace(conv_channels=32)
+
+
+@functools.lru_cache(maxsize=None)
+def runs_update(impl: str):
+    """(jit(vmap(update)) over 2 runs of WIDE in conv_impl `impl`, the runs' states (shapes), their HParams): the
+    next two tests lower it and count its FLOPs from one trace (jit keeps it)."""
+    learner = learner_for(WIDE.replace(conv_impl=impl))
+    hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
+    states = jax.eval_shape(jax.vmap(learner.init), jax.random.split(jax.random.key(0), 2), hps)
+    return jax.jit(jax.vmap(learner.update)), states, hps
+
+
 def test_the_runs_vmap_gives_grouped_convolutions_only_with_conv_impl_grouped():
     """The lowered program of jit(vmap(update)) over 2 runs: grouped convolutions (feature_group_count 2) with
     'grouped'; ungrouped convolutions, two per layer use, with 'per-run'; batched matrix products and no
@@ -702,13 +716,9 @@ def test_the_runs_vmap_gives_grouped_convolutions_only_with_conv_impl_grouped():
     import re
 
     counts = {}
-    # 32 channels: "auto" keeps the middle layers grouped and runs the narrow first (12 in) and last (24 out) per run
-    wide = TINY.replace(conv_channels=32)
     for impl in ("grouped", "per-run", "matmul", "auto"):
-        learner = learner_for(wide.replace(conv_impl=impl))
-        hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
-        states = jax.eval_shape(jax.vmap(learner.init), jax.random.split(jax.random.key(0), 2), hps)
-        text = jax.jit(jax.vmap(learner.update)).lower(states, hps).as_text()
+        update, states, hps = runs_update(impl)
+        text = update.lower(states, hps).as_text()
         convolutions = re.findall(r"stablehlo\.convolution.*?feature_group_count = (\d+)", text)
         counts[impl] = (len(convolutions), {int(g) for g in convolutions},
                         len(re.findall(r"stablehlo\.dot_general.*?batching_dims = \[0\] x \[0\]", text)))
@@ -786,12 +796,7 @@ def test_roofline_counts_each_product_and_convolution_and_scanned_bodies_times_t
     assert count(lambda y: lax.while_loop(lambda c: c[0, 0] < 5, lambda c: c @ m, y), y) == (step, 1)
     # the model's FLOPs do not depend on how its convolutions are arranged (per-run's custom rule also computes the
     # frames' gradient, dead code that XLA drops and the count must too)
-    hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
-    counts = set()
-    for impl in ("grouped", "per-run", "matmul"):
-        lrn = learner_for(TINY.replace(conv_impl=impl))
-        states = jax.eval_shape(jax.vmap(lrn.init), jax.random.split(jax.random.key(0), 2), hps)
-        counts.add(roofline.program_flops(jax.vmap(lrn.update), states, hps))
+    counts = {roofline.program_flops(*runs_update(impl)) for impl in ("grouped", "per-run", "matmul")}
     assert len(counts) == 1 and min(counts)[0] > 0, counts
     row = roofline.roofline(scanned, (y,), frames=16, peak=1.0, repeats=1)
     assert row["flops_per_frame"] == 10 * step / 16 and row["while_loops_counted_once"] == 0
