@@ -464,8 +464,8 @@ def one_batch(state):
     def of(config):
         if config not in done:
             lrn = learner_for(config)
-            traced = jax.jit(jax.value_and_grad(lambda p: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0])).trace(
-                state.params)
+            loss = lambda p: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]  # noqa: E731
+            traced = jax.jit(jax.value_and_grad(loss)).trace(state.params)
             loss, grads = traced.lower().compile()(state.params)
             done[config] = (float(loss), grads, traced.jaxpr.jaxpr)
         return done[config]
