@@ -1,4 +1,7 @@
-"""Run by test_sweep.py in a fresh process with 2 forced CPU devices (XLA_FLAGS set by the caller)."""
+"""Run by test_sweep.py in a fresh process with 2 forced CPU devices (XLA_FLAGS set by the caller): the sharded sweep
+of 6 runs of POINT, its metrics and its runs' keys; the caller runs each run alone on its one device (a program
+compiled for 1 device and for 2 have different compilation-cache keys: there it is the one tests/test_train.py
+compiles)."""
 
 import json
 import re
@@ -9,7 +12,7 @@ import numpy as np
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
 from _shared import POINT  # noqa: E402
-from cdjax import HParams, make_train, make_agent  # noqa: E402
+from cdjax import HParams, make_agent  # noqa: E402
 from cdjax.sweep import make_sweep, unpad  # noqa: E402
 
 assert jax.device_count() == 2, jax.devices()
@@ -17,23 +20,21 @@ sweep = make_sweep(make_agent(POINT))
 hps = [HParams(alpha=0.0), HParams(alpha=1.0)]
 keys, stacked = sweep.grid(seed=7, num_seeds=3, hps=hps)  # 6 runs -> even, no padding on 2 devices
 state = sweep.init(keys, stacked)
-# One sharded program (a chunk of 1 update), compiled once and called three times: compiling is most of this
+# One sharded program (a chunk of 1 update), compiled once and called UPDATES times: compiling is most of this
 # process's time, and the collectives below are counted in the same program.
+UPDATES = 6  # as tests/test_train.py runs POINT alone
 compiled = sweep.lower(state, stacked, 1).compile()
 chunks = []
-for _ in range(3):
+for _ in range(UPDATES):
     state, metrics = compiled(state, stacked)
     chunks.append(np.asarray(metrics["loss/total"]))
 devices_used = sorted({d.id for leaf in jax.tree.leaves(state.params) for d in leaf.sharding.device_set})
 spec = str(jax.tree.leaves(state.params)[0].sharding.spec)
-total = np.concatenate(chunks, axis=1)  # [R, 3]
-# the same runs alone, unsharded, in one call of 3 updates
-train = jax.jit(make_train(POINT.replace(num_updates=3)))
-alone = [np.asarray(train(keys[r], HParams(alpha=[0.0, 1.0][r // 3]))[1]["loss/total"]) for r in range(6)]
+total = np.concatenate(chunks, axis=1)  # [R, UPDATES]
 # padding: 3 runs on 2 devices -> 4, and unpad drops the extra one
 keys3, hps3 = sweep.grid(seed=7, num_seeds=3, hps=hps[:1])
 collectives = {op: len(re.findall(re.escape(op) + r"[.(\s-]", compiled.as_text()))
                for op in ("all-gather", "all-reduce", "all-to-all", "collective-permute")}
 print(json.dumps({"collectives": collectives, "devices_used": devices_used, "spec": spec, "sharded": total.tolist(),
-                  "alone": [a.tolist() for a in alone], "padded_runs": int(keys3.shape[0]),
+                  "keys": np.asarray(jax.random.key_data(keys)).tolist(), "padded_runs": int(keys3.shape[0]),
                   "unpadded_runs": int(unpad(keys3, 3).shape[0])}))

@@ -66,13 +66,14 @@ def state(init):
     return init(jax.random.key(0), HP)
 
 
-def test_elbo_of_an_untrained_model_equals_a_hand_computation(learner):
+def test_elbo_of_an_untrained_model_equals_a_hand_computation(learner, state):
     model, c = learner.model, learner.config
     T, B, F = 3, 2, c.frame_stack
-    key_frames, key_params, key_eps = jax.random.split(jax.random.key(1), 3)
-    frames = np.asarray(jax.random.randint(key_frames, (T + F - 1, B, c.image_size, c.image_size, 3), 0, 256), np.uint8)
-    actions = np.asarray(jax.random.uniform(key_frames, (T, B, A), minval=-1, maxval=1), np.float32)
-    params = model.init(key_params)
+    rng = np.random.default_rng(1)  # inputs drawn in numpy: eager jax.random calls would each compile a program
+    frames = rng.integers(0, 256, (T + F - 1, B, c.image_size, c.image_size, 3), np.uint8)
+    actions = rng.uniform(-1, 1, (T, B, A)).astype(np.float32)
+    key_eps = jax.random.key(1)
+    params = state.params  # the untrained model of the shared initial state (its own init ran op by op)
     elbo, parts, _ = jax.jit(model.elbo)(params, frames, actions, key_eps)
 
     eps = np.asarray(jax.random.normal(key_eps, (T, B, c.latent)))
@@ -115,10 +116,10 @@ def test_open_loop_draws_from_the_prior_and_never_reads_the_frames_it_predicts(l
     assert np.abs(np.asarray(grads[:read])).sum() > 0  # the context: read
 
     B = 3
-    h0 = jax.random.normal(jax.random.key(3), (B, c.hidden))
-    c0 = jax.random.normal(jax.random.key(4), (B, c.hidden))
-    acts = jax.random.uniform(jax.random.key(5), (4, B, A), minval=-1, maxval=1)
-    eps = jax.random.normal(jax.random.key(6), (4, B, c.latent))
+    rng = np.random.default_rng(3)  # numpy: eager jax.random calls would each compile a program
+    h0, c0 = (rng.standard_normal((B, c.hidden), np.float32) for _ in range(2))
+    acts = rng.uniform(-1, 1, (4, B, A)).astype(np.float32)
+    eps = rng.standard_normal((4, B, c.latent), np.float32)
     h_im, _, z_im = jax.jit(model.imagine)(params, h0, c0, acts, eps)
     prior = jax.jit(lambda h, a: model.core.apply(params["core"], h, a, method="prior"))
     transition = jax.jit(lambda h, cell, z, a: model.core.apply(params["core"], h, cell, z, a, method="transition"))
@@ -176,13 +177,17 @@ def test_the_fused_chain_is_the_scanned_terms_with_their_gradients_on_each_path(
         terms, _ = lrn.consistency_terms(params, states, actions, eps, offsets, hp)
         return sum(mix[name] * value for name, value in terms.items())
 
+    def terms_and_grads(lrn, params, states, actions):  # one compiled program per path (op by op, the first case
+        # compiled some 500 small programs)
+        return (lrn.consistency_terms(params, states, actions, eps, offsets, hp),
+                jax.grad(functools.partial(scalar, lrn), argnums=(0, 1, 2))(params, states, actions))
+
     calls = []
     original = chain._chain_fwd
     try:
         chain._chain_fwd = lambda *a: calls.append(1) or original(*a)  # noqa: E731 - count the chain's traces
-        results = [lrn.consistency_terms(params, states, actions, eps, offsets, hp) for lrn in learners]
-        grads = [jax.grad(functools.partial(scalar, lrn), argnums=(0, 1, 2))(params, states, actions)
-                 for lrn in learners]
+        results, grads = zip(*(jax.jit(functools.partial(terms_and_grads, lrn))(params, states, actions)
+                               for lrn in learners))
     finally:
         chain._chain_fwd = original
     assert calls, "the fused learner did not run the chain"
@@ -196,7 +201,7 @@ def test_the_fused_chain_is_the_scanned_terms_with_their_gradients_on_each_path(
     reached = {"core", "policy", "cc_encoder"} - ({"cc_encoder"} if encoder == "frozen-gru" else set()) - (
         {"policy"} if imagine == "expert" else set())
     for group in params:  # the term reaches the core, the policy (when it acts) and the encoder (unless frozen)
-        largest = [max(float(jnp.abs(x).max()) for x in jax.tree.leaves(g[0][group])) for g in grads]
+        largest = [max(float(np.abs(np.asarray(x)).max()) for x in jax.tree.leaves(g[0][group])) for g in grads]
         assert (largest[0] > 0) == (group in reached), (group, largest)
         if group in reached:
             assert relative(grads[1][0][group], grads[0][0][group]) < 1e-5, group
@@ -448,28 +453,51 @@ def relative(a, b) -> float:
     return float(np.linalg.norm(a - b) / np.linalg.norm(b))
 
 
-def test_float32_is_the_default_and_bfloat16_agrees_within_its_rounding(learner, state, update):
+@pytest.fixture(scope="module")
+def one_batch(state):
+    """config -> (loss, gradient, jaxpr) of one batch's loss (the state's first batch_size sequences, key 4) at the
+    state's parameters: the value and the gradient from one compiled program per config, its jaxpr from the same
+    trace, each config's computed once for the tests below that compare precisions and core implementations."""
+    frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
+    done = {}
+
+    def of(config):
+        if config not in done:
+            lrn = learner_for(config)
+            loss = lambda p: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]  # noqa: E731
+            traced = jax.jit(jax.value_and_grad(loss)).trace(state.params)
+            loss, grads = traced.lower().compile()(state.params)
+            done[config] = (float(loss), grads, traced.jaxpr.jaxpr)
+        return done[config]
+
+    return of
+
+
+def test_float32_is_the_default_and_bfloat16_agrees_within_its_rounding(state, update, one_batch):
     """compute_dtype float32 is the default (with conv_impl grouped; the next tests: the model before, bit for bit);
-    bfloat16 operands (float32 parameters, optimiser state and ELBO sums) change every metric of 3 updates by less than 2e-3
-    relative, and the gradient of the loss of one batch by less than 1e-2 (relative L2 per parameter group)."""
+    bfloat16 operands (float32 parameters, optimiser state and ELBO sums), as the presets run them (output_grad
+    compute), change every metric of 3 updates by less than 2e-3 relative, and the gradient of the loss of one batch by
+    less than 1e-2 (relative L2 per parameter group), with output_grad float32 too. (output_grad changes only the
+    output layers' backward, the next test: the loss is the same number and the gradients agree as closely, so the
+    update of output_grad float32 is not compiled again here.)"""
     assert (TINY.compute_dtype, TINY.conv_impl, HP.lr_policy) == ("float32", "grouped", 0.0)
     _, metrics = three_updates(update, state)
     assert all(np.isfinite(v) for v in metrics.values()), metrics
-    mixed = learner_for(TINY.replace(compute_dtype="bfloat16"))
-    assert jax.tree.structure(mixed.model.init(jax.random.key(0))) == jax.tree.structure(state.params)
-    for config in (mixed.config, mixed.config.replace(output_grad="compute")):  # the second: as the presets run
-        after_mixed, metrics_mixed = three_updates(jax.jit(learner_for(config).update), state)
-        for name, value in metrics.items():
-            np.testing.assert_allclose(metrics_mixed[name], value, rtol=2e-3, err_msg=name)
-        assert metrics_mixed != metrics  # it did compute in another precision
-        assert all(x.dtype == jnp.float32 for x in jax.tree.leaves((after_mixed.params, after_mixed.opt_state))
-                   if jnp.issubdtype(x.dtype, jnp.floating))
+    mixed = TINY.replace(compute_dtype="bfloat16")
+    assert jax.tree.structure(jax.eval_shape(learner_for(mixed).model.init, jax.random.key(0))) == jax.tree.structure(
+        state.params)
+    after_mixed, metrics_mixed = three_updates(jax.jit(learner_for(mixed.replace(output_grad="compute")).update), state)
+    for name, value in metrics.items():
+        np.testing.assert_allclose(metrics_mixed[name], value, rtol=2e-3, err_msg=name)
+    assert metrics_mixed != metrics  # it did compute in another precision
+    assert all(x.dtype == jnp.float32 for x in jax.tree.leaves((after_mixed.params, after_mixed.opt_state))
+               if jnp.issubdtype(x.dtype, jnp.floating))
     # Adam's first steps are about lr * sign(g): compare the gradients themselves
-    frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
-    grads = [jax.jit(jax.grad(lambda p, lrn=lrn: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]))(state.params)
-             for lrn in (learner, mixed)]
-    for group in state.params:
-        assert relative(grads[1][group], grads[0][group]) < 1e-2, group
+    full = one_batch(TINY)[1]
+    for config in (mixed, mixed.replace(output_grad="compute")):
+        grads = one_batch(config)[1]
+        for group in state.params:
+            assert relative(grads[group], full[group]) < 1e-2, (config.output_grad, group)
 
 
 def _convolution_operands(jaxpr) -> list[tuple[str, str]]:
@@ -483,20 +511,16 @@ def _convolution_operands(jaxpr) -> list[tuple[str, str]]:
     return found
 
 
-def test_output_grad_compute_keeps_the_forward_and_runs_every_convolution_gradient_in_bfloat16(state):
+def test_output_grad_compute_keeps_the_forward_and_runs_every_convolution_gradient_in_bfloat16(state, one_batch):
     """output_grad "compute" with compute_dtype bfloat16: the loss is the same number (the forward pass is
     unchanged); the output layers' backward takes a bfloat16 cotangent, so no convolution of the gradient has a
     float32 operand (with "float32", the decoder's output layer's two gradients do); the gradient of one batch's loss
     differs from float32 cotangents' by less than 1e-2 (relative L2 per parameter group), as bfloat16 does from
     float32 (and so, against full float32, do the presets' gradients). With compute_dtype float32 (the switch back
     to full float32) it changes nothing, bit for bit."""
-    frames, actions = (jnp.swapaxes(x[:TINY.batch_size], 0, 1) for x in (state.data.frames, state.data.actions))
-
     def loss_grad_convolutions(config):
-        lrn = learner_for(config)
-        loss = lambda p: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]  # noqa: E731
-        return (float(jax.jit(loss)(state.params)), jax.jit(jax.grad(loss))(state.params),
-                _convolution_operands(jax.make_jaxpr(jax.grad(loss))(state.params).jaxpr))
+        loss, grads, jaxpr = one_batch(config)
+        return loss, grads, _convolution_operands(jaxpr)
 
     mixed = TINY.replace(compute_dtype="bfloat16")
     (loss0, grads0, ops0), (loss1, grads1, ops1) = (loss_grad_convolutions(c)
@@ -544,7 +568,8 @@ def _products_per_step(fn, *args) -> list[int]:
     return scans(jax.make_jaxpr(fn)(*args).jaxpr)
 
 
-def test_the_fused_core_computes_the_flax_cores_function_with_half_the_products_per_step(learner, state, update):
+def test_the_fused_core_computes_the_flax_cores_function_with_half_the_products_per_step(learner, state, update,
+                                                                                        one_batch):
     """core_impl fused against flax (the default, the model of before): the filter's scan does 3 matrix products
     per step instead of 6 (forward and backward), the held-out imagination's 3 instead of 4 (the actions' share
     before its loop), the consistency term's k steps are unrolled, and the filter's outputs and gradients (random cotangents on all outputs), 3 updates' metrics and one
@@ -560,24 +585,28 @@ def test_the_fused_core_computes_the_flax_cores_function_with_half_the_products_
     steps = [_products_per_step(lrn.model.imagine, state.params, embeds[0, :, :TINY.hidden] * 0, embeds[0, :, :TINY.hidden] * 0,
                                 actions, eps) for lrn in (learner, fused)]
     assert steps == [[4], [3]], steps
-    filtered = [lrn.model.filter(state.params, embeds, actions, eps) for lrn in (learner, fused)]
-    for name, a, b in zip(filtered[0]._fields, *filtered):
-        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6, err_msg=name)
     # the fused filter's own backward: every output's cotangent (random) to every input, against flax's autodiff;
     # its loop does 3 products per step too (the cotangents of z, of the output layer's input and of h)
     h0 = jax.random.normal(jax.random.key(5), (B, TINY.hidden))
     c0 = jax.random.normal(jax.random.key(6), (B, TINY.hidden))
-    imagined = [lrn.model.imagine(state.params, h0, c0, actions, eps) for lrn in (learner, fused)]
-    for name, a, b in zip("hcz", *imagined):
-        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6, err_msg=name)
-    weights = jax.tree.map(lambda x: jax.random.normal(jax.random.key(7), x.shape), filtered[0])
+    weights = jax.tree.map(lambda x: jax.random.normal(jax.random.key(7), x.shape),
+                           jax.eval_shape(learner.model.filter, state.params, embeds, actions, eps))
 
     def scalar(lrn, *args):
         out = lrn.model.filter(args[0], *args[1:])
         return sum((x * wx).sum() for x, wx in zip(out, weights))
 
+    def outputs(lrn, *args):  # the filter's outputs, the imagination's and the filter's gradients: one program a core
+        params, embeds, actions, eps, h0, c0 = args
+        return (lrn.model.filter(params, embeds, actions, eps), lrn.model.imagine(params, h0, c0, actions, eps),
+                jax.grad(functools.partial(scalar, lrn), argnums=tuple(range(6)))(*args))
+
     args = (state.params, embeds, actions, eps, h0, c0)
-    grads = [jax.jit(jax.grad(functools.partial(scalar, lrn), argnums=tuple(range(6))))(*args) for lrn in (learner, fused)]
+    filtered, imagined, grads = zip(*(jax.jit(functools.partial(outputs, lrn))(*args) for lrn in (learner, fused)))
+    for name, a, b in zip(filtered[0]._fields, *filtered):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6, err_msg=name)
+    for name, a, b in zip("hcz", *imagined):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6, err_msg=name)
     assert relative(grads[1][0]["core"], grads[0][0]["core"]) < 1e-5
     for i, name in enumerate(("embeds", "actions", "eps", "h0", "c0"), start=1):
         np.testing.assert_allclose(grads[1][i], grads[0][i], rtol=1e-4, atol=1e-5, err_msg=name)
@@ -591,8 +620,7 @@ def test_the_fused_core_computes_the_flax_cores_function_with_half_the_products_
     _, metrics_fused = three_updates(jax.jit(fused.update), state)
     for name, value in metrics.items():
         np.testing.assert_allclose(metrics_fused[name], value, rtol=1e-5, err_msg=name)
-    grads = [jax.jit(jax.grad(lambda p, lrn=lrn: lrn.loss(p, frames, actions, HP, jax.random.key(4))[0]))(state.params)
-             for lrn in (learner, fused)]
+    grads = [one_batch(lrn.config)[1] for lrn in (learner, fused)]
     for group in state.params:
         assert relative(grads[1][group], grads[0][group]) < 1e-5, group
 
@@ -666,6 +694,20 @@ def test_conv_arrangements_equal_the_grouped_convolution_under_the_runs_vmap(imp
                 assert relative(a, b) < 1e-2
 
 
+# 32 channels: "auto" keeps the middle layers grouped and runs the narrow first (12 in) and last (24 out) per run
+WIDE = TINY.replace(conv_channels=32)
+
+
+@functools.lru_cache(maxsize=None)
+def runs_update(impl: str):
+    """(jit(vmap(update)) over 2 runs of WIDE in conv_impl `impl`, the runs' states (shapes), their HParams): the
+    next two tests lower it and count its FLOPs from one trace (jit keeps it)."""
+    learner = learner_for(WIDE.replace(conv_impl=impl))
+    hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
+    states = jax.eval_shape(jax.vmap(learner.init), jax.random.split(jax.random.key(0), 2), hps)
+    return jax.jit(jax.vmap(learner.update)), states, hps
+
+
 def test_the_runs_vmap_gives_grouped_convolutions_only_with_conv_impl_grouped():
     """The lowered program of jit(vmap(update)) over 2 runs: grouped convolutions (feature_group_count 2) with
     'grouped'; ungrouped convolutions, two per layer use, with 'per-run'; batched matrix products and no
@@ -674,13 +716,9 @@ def test_the_runs_vmap_gives_grouped_convolutions_only_with_conv_impl_grouped():
     import re
 
     counts = {}
-    # 32 channels: "auto" keeps the middle layers grouped and runs the narrow first (12 in) and last (24 out) per run
-    wide = TINY.replace(conv_channels=32)
     for impl in ("grouped", "per-run", "matmul", "auto"):
-        learner = learner_for(wide.replace(conv_impl=impl))
-        hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
-        states = jax.eval_shape(jax.vmap(learner.init), jax.random.split(jax.random.key(0), 2), hps)
-        text = jax.jit(jax.vmap(learner.update)).lower(states, hps).as_text()
+        update, states, hps = runs_update(impl)
+        text = update.lower(states, hps).as_text()
         convolutions = re.findall(r"stablehlo\.convolution.*?feature_group_count = (\d+)", text)
         counts[impl] = (len(convolutions), {int(g) for g in convolutions},
                         len(re.findall(r"stablehlo\.dot_general.*?batching_dims = \[0\] x \[0\]", text)))
@@ -758,12 +796,7 @@ def test_roofline_counts_each_product_and_convolution_and_scanned_bodies_times_t
     assert count(lambda y: lax.while_loop(lambda c: c[0, 0] < 5, lambda c: c @ m, y), y) == (step, 1)
     # the model's FLOPs do not depend on how its convolutions are arranged (per-run's custom rule also computes the
     # frames' gradient, dead code that XLA drops and the count must too)
-    hps = jax.tree.map(lambda v: jnp.full((2,), v, jnp.float32), HP)
-    counts = set()
-    for impl in ("grouped", "per-run", "matmul"):
-        lrn = learner_for(TINY.replace(conv_impl=impl))
-        states = jax.eval_shape(jax.vmap(lrn.init), jax.random.split(jax.random.key(0), 2), hps)
-        counts.add(roofline.program_flops(jax.vmap(lrn.update), states, hps))
+    counts = {roofline.program_flops(*runs_update(impl)) for impl in ("grouped", "per-run", "matmul")}
     assert len(counts) == 1 and min(counts)[0] > 0, counts
     row = roofline.roofline(scanned, (y,), frames=16, peak=1.0, repeats=1)
     assert row["flops_per_frame"] == 10 * step / 16 and row["while_loops_counted_once"] == 0

@@ -11,6 +11,13 @@ import pytest
 
 
 def test_runs_sharded_over_two_devices_equal_runs_alone():
+    """6 runs of POINT (3 seeds x alpha 0 and 1) sharded over 2 forced CPU devices (a subprocess), 6 updates: each
+    run's losses equal the run's alone, here on one device (the single-run program tests/test_train.py compiles)."""
+    import jax
+    from _shared import POINT
+
+    from cdjax import HParams, make_train
+
     env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2",
                JAX_PLATFORMS="cpu")
     script = pathlib.Path(__file__).with_name("_sharded_sweep.py")
@@ -19,7 +26,11 @@ def test_runs_sharded_over_two_devices_equal_runs_alone():
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     assert out["devices_used"] == [0, 1]
     assert "runs" in out["spec"]
-    np.testing.assert_allclose(np.array(out["sharded"]), np.array(out["alone"]), rtol=2e-5, atol=1e-6)
+    sharded = np.array(out["sharded"])  # [runs, updates]
+    train = jax.jit(make_train(POINT.replace(num_updates=sharded.shape[1])))
+    keys = jax.random.wrap_key_data(np.array(out["keys"], np.uint32))
+    alone = [np.asarray(train(keys[r], HParams(alpha=[0.0, 1.0][r // 3]))[1]["loss/total"]) for r in range(6)]
+    np.testing.assert_allclose(sharded, np.array(alone), rtol=2e-5, atol=1e-6)
     assert out["padded_runs"] == 4 and out["unpadded_runs"] == 3
     # each device runs its own runs: the point-mass trainer's compiled chunk holds no collective (the pixel
     # setting's vmapped convolutions would be all-gathered by the partitioner: its trainer splits "local"ly, below)
