@@ -28,7 +28,7 @@ from cdjax.cli import main
 from cdjax.runner import restore_arms
 from experiments.pixel.report import write_strips
 
-from _shared import PIXEL_HP, PIXEL_TINY, TINY_ARGS, fail_in_one_sentence, logged_rows, pixel_programs
+from _shared import EXACT, PIXEL_HP, PIXEL_TINY, TINY_ARGS, fail_in_one_sentence, logged_rows, pixel_programs
 
 # ltq-cd with the l2 encoder: the whole update (ELBO, imitation, consistency) with the smallest program to compile;
 # the GRU encoders (the default is grounded-gru) are checked in the consistency test.
@@ -754,7 +754,7 @@ def test_the_policys_rate_scales_only_the_policys_steps_and_zero_is_adam_at_lr()
                              params)
         updates = {}
         for name, opt in opts.items():
-            updates[name], states[name] = jax.jit(opt.update)(grads, states[name], params)
+            updates[name], states[name] = jax.jit(opt.update, compiler_options=EXACT)(grads, states[name], params)
         for a, b in zip(jax.tree.leaves(updates["zero"]), jax.tree.leaves(updates["before"])):
             np.testing.assert_array_equal(a, b)
         for group in params:
