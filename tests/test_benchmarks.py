@@ -55,16 +55,21 @@ def test_matched_config_follows_brax_ppo_semantics():
 
 def test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps(tmp_path):
     """`python -m benchmarks.learning --tiny`: both learners, every seed, evaluated at the same env-step counts;
-    the report's table and verdict come from those rows."""
+    the report's table and verdict come from those rows. One update between the evaluations: the point task is
+    benchmarks.run's --tiny Spec, so cdjax's program of 2 vmapped seeds for one update and Brax's training epoch of
+    one step are the ones the `tiny` fixture's seeds suite and Brax case (--brax-steps-per-epoch 1) compile, and the
+    compilation cache serves them to the fixture, which runs after this test."""
     from benchmarks import learning, learning_report
     from cdjax import io
     from cdjax.agents.obs.config import Config
     from conftest import CACHE
 
     out = tmp_path / "learning"
-    learning.main(["--tiny", "--seeds", "2", "--evals", "1", "--out", str(out), "--cache-dir", str(CACHE)])
+    learning.main(["--tiny", "--seeds", "2", "--evals", "1", "--updates-per-eval", "1", "--out", str(out),
+                   "--cache-dir", str(CACHE)])
     rows = [json.loads(line) for line in (out / "rows.jsonl").read_text().splitlines()]
-    task = learning.TASKS["point"]
+    task = dataclasses.replace(learning.TASKS["point"], evals=1, updates_per_eval=1)  # as run
+    assert task.spec == TINY
     steps = {(r["framework"], r["seed"]): [] for r in rows}
     for r in rows:
         steps[(r["framework"], r["seed"])].append(r["env_steps"])
@@ -78,9 +83,8 @@ def test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps(t
     # meta.json holds the Config each cdjax variant ran with: what `default` meant when the rows were made
     meta = json.loads((out / "meta.json").read_text())
     config = meta["configs"]["point"]["default"]
-    ran = dataclasses.replace(task, evals=1)  # --evals 1
-    assert config == json.loads(json.dumps(io.dataclass_to_json(learning.cdjax_config(ran, "default"))))
-    assert config["num_updates"] == ran.updates_per_eval
+    assert config == json.loads(json.dumps(io.dataclass_to_json(learning.cdjax_config(task, "default"))))
+    assert config["num_updates"] == task.updates_per_eval == 1
     assert config["arm"] == "model-free" and config["policy_head_scale"] == Config().policy_head_scale
     assert config["num_envs"] == task.spec.num_envs and set(meta["code"]) >= {"commit", "jax"}
 
@@ -240,10 +244,11 @@ def test_learning_benchmark_refuses_bad_arguments_in_one_sentence_before_anythin
 def tiny(tmp_path_factory):
     """One run of the tiny suite (a subset of `--tiny --suite all`: every part except the devices
     comparison, which needs several devices; 1 and 2 seeds; one num_envs, the compare one, so that its
-    programs come from the compilation cache)."""
+    programs come from the compilation cache). Brax's epochs of one training step, and 2 seeds: the programs
+    test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps compiled, from the cache."""
     out = tmp_path_factory.mktemp("bench")
     main(["--tiny", "--suite", "compare", "seeds", "envs", "--cases", *COMPARE, "--seed-counts", "1", "2",
-          "--scaling-cases", "model-free", "--env-counts", "16", "--out", str(out),
+          "--scaling-cases", "model-free", "--env-counts", "16", "--out", str(out), "--brax-steps-per-epoch", "1",
           "--trace", str(out / "trace"), "--trace-top", "10",
           "--budget-s", "86400"])  # every case is asserted below: no case may be skipped because the CPU is busy
     return out, json.loads((out / "results.json").read_text())
