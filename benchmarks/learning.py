@@ -324,7 +324,7 @@ def run_brax(name: str, task: Task, seed: int, rows: Rows, deadline: float = mat
     evaluate, clock = acting.Evaluator.run_evaluation, {"eval": 0.0, "train": 0.0, "mark": None}
     device = jax.local_devices()[0]  # Brax's one (max_devices_per_host=1)
 
-    def timed_evaluation(self, policy_params, *args, **kwargs):  # Brax's evaluation returns host numbers: it has finished
+    def timed_evaluation(self, policy_params, *args, **kwargs):  # Brax's evaluation returns host numbers: it ended
         t0 = time.perf_counter()
         # Brax's evaluation program compiles once, not again at the second evaluation, when its arguments are alike at
         # every evaluation: the parameters through the host onto the device as plain arrays, whether they are the
