@@ -77,7 +77,7 @@ def test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps(t
     expected = [0, task.updates_per_eval * task.spec.env_steps_per_update]
     assert sorted(steps) == [("brax", 0), ("brax", 1), ("cdjax", 0), ("cdjax", 1)]
     assert all(sorted(v) == expected for v in steps.values())
-    text = learning_report.report([out], str(out / "report.md"))
+    text = learning_report.report([out], str(out / "report.md"), reps=50)
     assert "| point | brax-ppo | 2 |" in text and "| point | cdjax default | 2 |" in text
     assert f"at {expected[-1]:,} env steps" in text and (out / "report.png").exists()
     # meta.json holds the Config each cdjax variant ran with: what `default` meant when the rows were made
@@ -124,7 +124,7 @@ def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
     assert by["brax-ppo"]["seeds"] == 3 and by["brax-ppo"]["env_steps"] == 30
     assert by["brax-ppo"]["per_seed"] == [30.0, 30.0, 30.0] and by["brax-ppo"]["left_out"] == [(3, 10, False)]
     assert by["cdjax default"]["seeds"] == 4 and by["cdjax default"]["left_out"] == []
-    text = learning_report.report_text(rows, [])
+    text = learning_report.report_text(rows, [], reps=50)
     assert "brax-ppo seed 3 left out" in text and "stopped at 10 env steps" in text
     assert "cdjax default final IQM" in text and "at 30 env steps" in text
     # cdjax's finals 30, 130, 230, 330 against the kept Brax finals 30, 30, 30: 9 of 12 pairs above, 3 ties
@@ -140,7 +140,7 @@ def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
     (cd,) = [e for e in learning_report.table(nan_rows, reps=50) if e["learner"] == "cdjax default"]
     assert cd["seeds"] == 3 and cd["left_out"] == [(2, 30, True)]
     assert "seed 2 left out of the final return and the mean over evaluations: its evaluation at 30 env steps is " \
-        "not a number" in learning_report.report_text(nan_rows, [])
+        "not a number" in learning_report.report_text(nan_rows, [], reps=50)
 
     # three of four cdjax seeds cut after 10 env steps: all four read at 10, and the verdict says why none is given
     rows = [r for r in rows if r["framework"] == "brax" or r["seed"] == 0 or r["env_steps"] <= 10]
@@ -148,7 +148,7 @@ def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
     assert by["cdjax default"]["env_steps"] == 10 and by["cdjax default"]["seeds"] == 4
     assert by["cdjax default"]["left_out"] == []
     assert "cdjax default not compared: its final return is read at 10 env steps, Brax PPO's at 30" in \
-        learning_report.report_text(rows, [])
+        learning_report.report_text(rows, [], reps=50)
 
 
 def test_learning_report_sources_rename_cdjax_rows_and_refuse_a_seed_twice(tmp_path, capsys):
