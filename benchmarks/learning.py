@@ -80,7 +80,7 @@ import time
 if __package__ in (None, ""):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import Parser, Spec, device_info, process_started_at, refuse, unwritable_file  # noqa: E402
+from benchmarks.common import TINY, Parser, Spec, device_info, process_started_at, refuse, unwritable_file  # noqa: E402
 from cdjax.envs.playground import NAMES  # noqa: E402
 from cdjax.options import non_negative, positive, seconds  # noqa: E402
 
@@ -153,11 +153,9 @@ TASKS = {
     "humanoid": Task(Spec(env="humanoid", num_envs=2048, unroll_length=10, batch_size=1024, num_minibatches=32,
                           num_epochs=8, discounting=0.97, reward_scaling=0.1, entropy_cost=1e-3),
                      evals=8, updates_per_eval=8),
-    # CPU smoke: the pure-JAX point mass (it has Brax's Env interface, so Brax PPO runs on it too).
-    "point": Task(Spec(env="point", num_envs=16, unroll_length=4, batch_size=16, num_minibatches=2, num_epochs=2,
-                       horizon=4, episode_length=40, policy_hidden=(16,), value_hidden=(16,), model_hidden=(16,),
-                       encoder_dim=8, eval_envs=2, eval_horizon=10),
-                  evals=2, updates_per_eval=2, eval_episodes=4),
+    # CPU smoke: the pure-JAX point mass (it has Brax's Env interface, so Brax PPO runs on it too), at benchmarks.run's
+    # --tiny sizes (one Spec: the tests compile its programs once for both harnesses).
+    "point": Task(TINY, evals=2, updates_per_eval=2, eval_episodes=4),
 }
 
 # cdjax learner options, each set back to its previous value (before the learner issue): the ablation.
@@ -302,6 +300,8 @@ def run_brax(name: str, task: Task, seed: int, rows: Rows, deadline: float = mat
     Playground's own wrap_for_brax_training. Rows carry Brax's training time (wall clock less its evaluations)."""
     import functools
 
+    import jax
+    import numpy as np
     from brax.training import acting
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.agents.ppo import train as ppo
@@ -322,10 +322,18 @@ def run_brax(name: str, task: Task, seed: int, rows: Rows, deadline: float = mat
     factory = functools.partial(ppo_networks.make_ppo_networks, policy_hidden_layer_sizes=spec.policy_hidden,
                                 value_hidden_layer_sizes=spec.value_hidden)
     evaluate, clock = acting.Evaluator.run_evaluation, {"eval": 0.0, "train": 0.0, "mark": None}
+    device = jax.local_devices()[0]  # Brax's one (max_devices_per_host=1)
 
-    def timed_evaluation(self, *args, **kwargs):  # Brax's evaluation returns host numbers: it has finished
+    def timed_evaluation(self, policy_params, *args, **kwargs):  # Brax's evaluation returns host numbers: it ended
         t0 = time.perf_counter()
-        out = evaluate(self, *args, **kwargs)
+        # Brax's evaluation program compiles once, not again at the second evaluation, when its arguments are alike at
+        # every evaluation: the parameters through the host onto the device as plain arrays, whether they are the
+        # replicas placed before training (weakly typed where their value was) or a pmapped epoch's output (typed with
+        # its mesh axis), and the evaluation's env state (donated to the next evaluation) committed to the device as
+        # the previous evaluation's output is, not left where Brax's first reset put it
+        policy_params = jax.device_put(jax.tree.map(np.asarray, policy_params), device)
+        self._eval_state_to_donate = jax.device_put(self._eval_state_to_donate, device)
+        out = evaluate(self, policy_params, *args, **kwargs)
         clock["eval"] += time.perf_counter() - t0
         return out
 

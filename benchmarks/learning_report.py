@@ -303,11 +303,13 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
     plt.close(fig)
 
 
-def report(dirs: list[pathlib.Path], write: str | None = None, parity_variants: tuple[str, ...] = ("default",)) -> str:
+def report(dirs: list[pathlib.Path], write: str | None = None, parity_variants: tuple[str, ...] = ("default",),
+           reps: int = 2000) -> str:
     """The markdown (and with `write` the file and the plot beside it); `parity_variants`: the cdjax variants
-    set against Brax PPO in the first table (the others appear in the ablation beside cdjax default)."""
+    set against Brax PPO in the first table (the others appear in the ablation beside cdjax default); `reps`: the
+    bootstrap's resamples for the tables' intervals."""
     rows, metas = load(dirs)
-    text = report_text(rows, metas, parity_variants)
+    text = report_text(rows, metas, parity_variants, reps)
     if write:
         path = pathlib.Path(write)
         png = path.with_suffix(".png")
@@ -316,9 +318,10 @@ def report(dirs: list[pathlib.Path], write: str | None = None, parity_variants: 
     return text
 
 
-def report_text(rows: list[dict], metas: list[dict], parity_variants: tuple[str, ...] = ("default",)) -> str:
-    """The report's markdown for these rows (and the commands of `metas`)."""
-    entries = table(rows)
+def report_text(rows: list[dict], metas: list[dict], parity_variants: tuple[str, ...] = ("default",),
+                reps: int = 2000) -> str:
+    """The report's markdown for these rows (and the commands of `metas`); `reps`: the bootstrap's resamples."""
+    entries = table(rows, reps)
     wanted = {f"cdjax {v}" for v in parity_variants}
     parity = [e for e in entries if e["learner"] in wanted or e["learner"].startswith(("brax", "cdjax offpolicy-"))]
     lines = ["### cdjax against Brax (PPO: the obs setting's model-free arm; SAC: the off-policy setting)", "",
@@ -327,14 +330,14 @@ def report_text(rows: list[dict], metas: list[dict], parity_variants: tuple[str,
     for e in parity:
         lines.append(f"| {e['task']} | {e['learner']} | {e['seeds']} | {e['env_steps']:,} | {_ci(e['final'])} | "
                      f"{_ci(e['auc'])} | {_speed(e['sps'])} | {e['device']} | {e['per_seed']} |")
-    lines += [""] + verdicts(parity)
+    lines += [""] + verdicts(parity, reps)
     for e in entries:
         for seed, steps, nan in e["left_out"]:
             why = (f"its evaluation at {steps:,} env steps is not a number" if nan else
                    f"its run stopped at {steps:,} env steps, before the last evaluation")
             lines.append(f"- {e['task']}: {e['learner']} seed {seed} left out of the final return and the mean over "
                          f"evaluations: {why}.")
-    abl = ablation(rows)
+    abl = ablation(rows, reps)
     if abl:
         lines += ["", "### Ablation: one cdjax option changed (each at its last evaluation)", "",
                   "| task | variant | seeds | env steps | variant IQM [95% CI] | cdjax default IQM [95% CI] (seeds) |",

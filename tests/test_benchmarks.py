@@ -55,16 +55,21 @@ def test_matched_config_follows_brax_ppo_semantics():
 
 def test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps(tmp_path):
     """`python -m benchmarks.learning --tiny`: both learners, every seed, evaluated at the same env-step counts;
-    the report's table and verdict come from those rows."""
+    the report's table and verdict come from those rows. One update between the evaluations: the point task is
+    benchmarks.run's --tiny Spec, so cdjax's program of 2 vmapped seeds for one update and Brax's training epoch of
+    one step are the ones the `tiny` fixture's seeds suite and Brax case (--brax-steps-per-epoch 1) compile, and the
+    compilation cache serves them to the fixture, which runs after this test."""
     from benchmarks import learning, learning_report
     from cdjax import io
     from cdjax.agents.obs.config import Config
     from conftest import CACHE
 
     out = tmp_path / "learning"
-    learning.main(["--tiny", "--seeds", "2", "--evals", "1", "--out", str(out), "--cache-dir", str(CACHE)])
+    learning.main(["--tiny", "--seeds", "2", "--evals", "1", "--updates-per-eval", "1", "--out", str(out),
+                   "--cache-dir", str(CACHE)])
     rows = [json.loads(line) for line in (out / "rows.jsonl").read_text().splitlines()]
-    task = learning.TASKS["point"]
+    task = dataclasses.replace(learning.TASKS["point"], evals=1, updates_per_eval=1)  # as run
+    assert task.spec == TINY
     steps = {(r["framework"], r["seed"]): [] for r in rows}
     for r in rows:
         steps[(r["framework"], r["seed"])].append(r["env_steps"])
@@ -72,15 +77,14 @@ def test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps(t
     expected = [0, task.updates_per_eval * task.spec.env_steps_per_update]
     assert sorted(steps) == [("brax", 0), ("brax", 1), ("cdjax", 0), ("cdjax", 1)]
     assert all(sorted(v) == expected for v in steps.values())
-    text = learning_report.report([out], str(out / "report.md"))
+    text = learning_report.report([out], str(out / "report.md"), reps=50)
     assert "| point | brax-ppo | 2 |" in text and "| point | cdjax default | 2 |" in text
     assert f"at {expected[-1]:,} env steps" in text and (out / "report.png").exists()
     # meta.json holds the Config each cdjax variant ran with: what `default` meant when the rows were made
     meta = json.loads((out / "meta.json").read_text())
     config = meta["configs"]["point"]["default"]
-    ran = dataclasses.replace(task, evals=1)  # --evals 1
-    assert config == json.loads(json.dumps(io.dataclass_to_json(learning.cdjax_config(ran, "default"))))
-    assert config["num_updates"] == ran.updates_per_eval
+    assert config == json.loads(json.dumps(io.dataclass_to_json(learning.cdjax_config(task, "default"))))
+    assert config["num_updates"] == task.updates_per_eval == 1
     assert config["arm"] == "model-free" and config["policy_head_scale"] == Config().policy_head_scale
     assert config["num_envs"] == task.spec.num_envs and set(meta["code"]) >= {"commit", "jax"}
 
@@ -120,7 +124,7 @@ def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
     assert by["brax-ppo"]["seeds"] == 3 and by["brax-ppo"]["env_steps"] == 30
     assert by["brax-ppo"]["per_seed"] == [30.0, 30.0, 30.0] and by["brax-ppo"]["left_out"] == [(3, 10, False)]
     assert by["cdjax default"]["seeds"] == 4 and by["cdjax default"]["left_out"] == []
-    text = learning_report.report_text(rows, [])
+    text = learning_report.report_text(rows, [], reps=50)
     assert "brax-ppo seed 3 left out" in text and "stopped at 10 env steps" in text
     assert "cdjax default final IQM" in text and "at 30 env steps" in text
     # cdjax's finals 30, 130, 230, 330 against the kept Brax finals 30, 30, 30: 9 of 12 pairs above, 3 ties
@@ -136,7 +140,7 @@ def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
     (cd,) = [e for e in learning_report.table(nan_rows, reps=50) if e["learner"] == "cdjax default"]
     assert cd["seeds"] == 3 and cd["left_out"] == [(2, 30, True)]
     assert "seed 2 left out of the final return and the mean over evaluations: its evaluation at 30 env steps is " \
-        "not a number" in learning_report.report_text(nan_rows, [])
+        "not a number" in learning_report.report_text(nan_rows, [], reps=50)
 
     # three of four cdjax seeds cut after 10 env steps: all four read at 10, and the verdict says why none is given
     rows = [r for r in rows if r["framework"] == "brax" or r["seed"] == 0 or r["env_steps"] <= 10]
@@ -144,7 +148,7 @@ def test_learning_report_leaves_out_a_seed_cut_short_and_says_so():
     assert by["cdjax default"]["env_steps"] == 10 and by["cdjax default"]["seeds"] == 4
     assert by["cdjax default"]["left_out"] == []
     assert "cdjax default not compared: its final return is read at 10 env steps, Brax PPO's at 30" in \
-        learning_report.report_text(rows, [])
+        learning_report.report_text(rows, [], reps=50)
 
 
 def test_learning_report_sources_rename_cdjax_rows_and_refuse_a_seed_twice(tmp_path, capsys):
@@ -239,11 +243,13 @@ def test_learning_benchmark_refuses_bad_arguments_in_one_sentence_before_anythin
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """One run of the tiny suite (a subset of `--tiny --suite all`: every part except the devices
-    comparison, which needs several devices; 1 and 2 seeds; one num_envs, the compare one, so that its
-    programs come from the compilation cache)."""
+    comparison, which needs several devices; one num_envs, the compare one, so that its programs come from the
+    compilation cache). Brax's epochs of one training step, and 2 vmapped seeds (one count: the ratios to one seed
+    are checked on hand-made rows in test_targets_and_scaling_on_hand_made_numbers): the programs
+    test_learning_benchmark_tiny_evaluates_both_learners_at_the_same_env_steps compiled, from the cache."""
     out = tmp_path_factory.mktemp("bench")
-    main(["--tiny", "--suite", "compare", "seeds", "envs", "--cases", *COMPARE, "--seed-counts", "1", "2",
-          "--scaling-cases", "model-free", "--env-counts", "16", "--out", str(out),
+    main(["--tiny", "--suite", "compare", "seeds", "envs", "--cases", *COMPARE, "--seed-counts", "2",
+          "--scaling-cases", "model-free", "--env-counts", "16", "--out", str(out), "--brax-steps-per-epoch", "1",
           "--trace", str(out / "trace"), "--trace-top", "10",
           "--budget-s", "86400"])  # every case is asserted below: no case may be skipped because the CPU is busy
     return out, json.loads((out / "results.json").read_text())
@@ -302,7 +308,7 @@ def test_tiny_suite_measures_every_case(tiny):
     assert [r["case"] for r in parts["compare"]] == COMPARE
     # the scaling parts on model-free only (CD's vmapped programs are tested in test_train; compiling them
     # again here cost ~1 min of CI)
-    assert {(r["case"], r["seeds"]) for r in parts["seeds"]} == {("model-free", n) for n in (1, 2)}
+    assert {(r["case"], r["seeds"]) for r in parts["seeds"]} == {("model-free", 2)}
     assert {(r["case"], r["num_envs"]) for r in parts["envs"]} == {("ceiling", 16), ("model-free", 16)}
     for part, rows in parts.items():
         for r in rows:
@@ -457,11 +463,10 @@ def test_ratios_follow_from_raw_numbers(tiny):
     assert cd["wall_vs_model_free"] == pytest.approx(cd["update_s"] / mf["update_s"])
     assert cd["env_steps_per_s"] == pytest.approx(cd["steps_per_update"] / cd["update_s"])
     seeds = {(r["case"], r["seeds"]): r for r in results["parts"]["seeds"]}
-    for case in ("model-free",):  # the scaling parts run model-free only (the tiny fixture)
-        one, two = seeds[(case, 1)], seeds[(case, 2)]
-        assert two["steps_per_update"] == 2 * one["steps_per_update"] == 2 * TINY.with_num_envs(16).env_steps_per_update
-        assert two["speedup_vs_1"] == pytest.approx(two["env_steps_per_s"] / one["env_steps_per_s"])
-        assert two["s_per_seed_update"] == pytest.approx(two["update_s"] / 2)
+    two = seeds[("model-free", 2)]  # the scaling parts run model-free at 2 seeds only (the tiny fixture)
+    assert two["steps_per_update"] == 2 * TINY.with_num_envs(16).env_steps_per_update
+    assert two["speedup_vs_1"] is None  # no 1-seed row to divide by (hand-made rows: a ratio where there is one)
+    assert two["s_per_seed_update"] == pytest.approx(two["update_s"] / 2)
     by = {t["target"]: t for t in report.targets(results)}
     assert by["cd_vs_brax"]["value"] == pytest.approx(cd["env_steps_per_s"] / brax["env_steps_per_s"])
     assert by["mf_vs_brax"]["value"] == pytest.approx(mf["env_steps_per_s"] / brax["env_steps_per_s"])

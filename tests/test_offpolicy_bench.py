@@ -53,7 +53,7 @@ def test_the_learning_report_reads_brax_sac_rows_beside_ppo_rows(tmp_path, monke
     # Brax PPO, two intervals of 100 env steps: the first 10 s (with its compilation), the second 2 s: 50 steps/s
     rows += [row("brax", "brax-ppo", 0, st, 1.0, train_s=t, eval_s=1.0) for st, t in ((0, 0), (100, 10), (200, 12))]
     (tmp_path / "rows.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    text = learning_report.report([tmp_path])
+    text = learning_report.report([tmp_path], reps=50)
     assert "| ant | brax-sac | 2 | 1,008 |" in text and "| ant | cdjax offpolicy-model-free | 2 | 1,000 |" in text
     assert "cdjax offpolicy-model-free final IQM 101.5 >= Brax SAC's 50.5 at 1,000 env steps (Brax's at 1,008)" in text
     by = {e["learner"]: e for e in learning_report.table(learning_report.load([tmp_path])[0], reps=50)}
@@ -67,7 +67,7 @@ def test_the_learning_report_reads_brax_sac_rows_beside_ppo_rows(tmp_path, monke
     monkeypatch.setenv(learning.SHARED_ENV, "1")
     learning.Rows(tmp_path).write_meta("brax_sac", ["--tasks", "ant"])
     assert json.loads((tmp_path / "meta.json").read_text())["shared_device"] is True
-    shared = learning_report.report([tmp_path])
+    shared = learning_report.report([tmp_path], reps=50)
     assert "x Brax's" not in shared and "training env steps/s not compared (other processes shared" in shared
     assert "| ant | brax-sac | 2 | 1,008 | " in shared and "| not read |" in shared
     assert "cdjax offpolicy-model-free final IQM 101.5 >= Brax SAC's 50.5" in shared  # the returns still are
@@ -96,14 +96,14 @@ def test_the_report_times_cdjax_to_brax_final_return_from_each_process_launch(tm
                                               eval_return=50.0 + seed, sps=10.0, at=at)
                                          for st, at in ((0, start + 5.0), (1008, end))], start)
     dirs = [tmp_path / n for n in ("cdjax", "brax0", "brax1")]
-    text = learning_report.report(dirs)
+    text = learning_report.report(dirs, reps=50)
     # Brax: 30 s a seed; cdjax's IQM over its 2 seeds (40.5 at 500 steps, 60.5 at 1000) passes 50.5 at 1000: 20 s
     assert ("Brax 30 s a seed to its final evaluation (the mean over its 2 seeds' processes), so 2 seeds one after "
             "another 60 s; cdjax offpolicy-model-free, 2 seeds in one process, 20 s (its IQM over seeds first reached "
             "it at 1,000 env steps): 0.33x Brax's time for 2 seeds, 0.67x Brax's for one.") in text
     meta = json.loads((tmp_path / "brax1" / "meta.json").read_text())
     (tmp_path / "brax1" / "meta.json").write_text(json.dumps({**meta, "shared_device": True}))
-    assert "wall-clock from the command" not in learning_report.report(dirs)  # a process shared the device
+    assert "wall-clock from the command" not in learning_report.report(dirs, reps=50)  # a process shared the device
 
 
 def test_cdjax_set_puts_typed_fields_over_the_config_and_hparams_and_names_the_variant():
