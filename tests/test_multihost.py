@@ -306,6 +306,9 @@ def test_a_process_that_falls_silent_after_jax_started_ends_the_other_with_one_s
     assert _last_line(err) == ("cdjax: Process 0 of 2 stopped: another process of the sweep stopped answering (killed, "
                                "or its host failed: it was silent for 3 s, --heartbeat-timeout)" + tail), err
     assert status1 == multihost.PEER_LOST_STATUS and "Traceback" not in err1, err1
-    assert _last_line(err1) == ("cdjax: Process 1 of 2 stopped: another process of the sweep stopped answering "
-                                "(killed, or its host failed: its connection closed)" + tail), err1
+    # continued, process 1's watch and its main thread run on together: the sentence says where the main thread was
+    # when the watch found the connection closed (the eval command begun, or not yet, just after JAX's start-up)
+    not_begun = " after JAX's start-up, before the command began; nothing was written, run the command again."
+    assert _last_line(err1) in {"cdjax: Process 1 of 2 stopped: another process of the sweep stopped answering (killed, "
+                                "or its host failed: its connection closed)" + end for end in (tail, not_begun)}, err1
     assert took < 90 and not out.exists()

@@ -132,6 +132,8 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
             signal.signal(signal.SIGTERM, previous)
     with _quiet_stdout():  # gloo says on stdout that it connected, at the first collective: here, not in the output
         exchange("")
+    # JAX has started; until the command says where its run stands (its own tail), nothing has been written
+    watch.tail(lambda: " after JAX's start-up, before the command began; nothing was written, run the command again.")
 
 
 def _stderr(text: str) -> None:
