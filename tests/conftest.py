@@ -1,9 +1,11 @@
-"""Shared test setup: JAX's persistent compilation cache (MJX compiles slowly on CPU), through cdjax.runtime, and
-XLA's CPU backend at optimisation level 0 with its older fusion emitters for the whole test session (and the processes
-it starts, which inherit XLA_FLAGS), with cdjax's own XLA defaults on top (as its entry points apply them): the tests' programs are tiny and compiling them is most of the suite's time; level 0 compiles them in
-about half the time (test_train's compile-once tests: 96 s -> 47 s) and computes the same operations, so every
-comparison the tests make (vmapped against alone, resumed against uninterrupted, fused against scanned) is made
-between programs compiled alike. Set CDJAX_TEST_XLA_OPT=default to test with XLA's own optimisation level and emitters."""
+"""Shared test setup: JAX's persistent compilation cache (MJX compiles slowly on CPU), through cdjax.runtime, and XLA's
+CPU backend at optimisation level 0 with its older fusion emitters for the whole test session (and the processes it
+starts, which inherit XLA_FLAGS), with cdjax's own XLA defaults on top (as its entry points apply them): the tests'
+programs are tiny and compiling them is most of the suite's time; level 0 compiles them in about half the time
+(test_train's compile-once tests: 96 s -> 47 s) and computes the same operations, so every comparison the tests make
+(vmapped against alone, resumed against uninterrupted, fused against scanned) is made between programs compiled
+alike (two different programs compared bit for bit are compiled with XLA's own emitters: _shared.EXACT). Set
+CDJAX_TEST_XLA_OPT=default to test with XLA's own optimisation level and emitters."""
 
 import os
 import pathlib
