@@ -234,8 +234,12 @@ class Checkpoints:
             directory.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise WriteError(f"cannot write {directory}: {reason(err)}") from None
+        # Orbax names its barriers by step alone: with several processes, two arms saving the same step at once
+        # would meet in one barrier ("already ongoing") unless each arm's names are its own.
+        sync = ocp.options.MultiprocessingOptions(barrier_sync_key_prefix=f"cdjax.{directory.name}")
         self.manager = ocp.CheckpointManager(
-            directory.resolve(), options=ocp.CheckpointManagerOptions(max_to_keep=MAX_TO_KEEP, create=True),
+            directory.resolve(), options=ocp.CheckpointManagerOptions(max_to_keep=MAX_TO_KEEP, create=True,
+                                                                      multiprocessing_options=sync),
             item_names=("state", "progress"))
         self._pending: int | None = None
         self._reads_device = False
