@@ -4,6 +4,7 @@ processes resume to the numbers of one process on two devices, bit for bit, with
 processes agree on (a stop, a refusal) is checked with the exchange faked; the options of --distributed refuse in one
 sentence."""
 
+import json
 import os
 import pathlib
 import re
@@ -33,6 +34,7 @@ ARGS = [*TINY_ARGS[:TINY_ARGS.index("--seeds")], "--seeds", "4", *TINY_ARGS[TINY
 FINAL = str(12 * 192)
 README = pathlib.Path(__file__).resolve().parents[1] / "docs" / "sweeps.md"  # the docs page with the two-process example
 KILLS_ITSELF = pathlib.Path(__file__).with_name("_multihost_process.py")
+PARTS = pathlib.Path(__file__).with_name("_multihost_parts.py")
 
 
 def _env(devices: int) -> dict:
@@ -120,6 +122,18 @@ def test_a_lost_process_leaves_a_run_that_two_processes_resume_to_one_process_nu
     finally:
         if one.poll() is None:
             one.kill()
+
+
+def test_each_process_builds_its_own_environment_model_and_arms_checkpoint_the_same_step_at_once(tmp_path):
+    """Two processes (tests/_multihost_parts.py): each holds the MJX model of the environment it built on its own
+    device, and two arms' checkpoints of the same step, saved at once, are both complete."""
+    port, script = _port(), str(PARTS)
+    procs = [subprocess.Popen([sys.executable, script, str(port), str(i), str(tmp_path)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, env=_env(1)) for i in (0, 1)]
+    for i, (status, stdout, err) in enumerate(_ended(procs, timeout=300)):
+        assert status == 0, err[-3000:]
+        said = json.loads(stdout.strip().splitlines()[-1])
+        assert said == {"model_processes": [i], "saved": [1, 1]}, (i, said)
 
 
 def test_the_readme_runs_what_these_tests_run():

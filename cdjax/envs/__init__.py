@@ -25,6 +25,7 @@ else.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from typing import Any, Callable
 
@@ -48,7 +49,6 @@ BRAX_MJX_ENVS = (
 
 def _quiet_import(module: str):
     """Import a module whose import prints to stdout (mujoco.mjx announces its optional warp backend)."""
-    import contextlib
     import importlib
     import io
 
@@ -101,12 +101,38 @@ def describe() -> dict[str, str]:
             for name in available_envs()}
 
 
+@contextlib.contextmanager
+def _models_on_this_process():
+    """MJX puts a model on `jax.devices()[0]` unless given a device. With several processes (`--distributed`) that
+    is process 0's first device: the other processes hold no data of it, and every program that closes over the
+    model fails to compile there ("Closing over jax.Array that spans non-addressable devices"). While an environment
+    is built here, a model put without a device goes on this process's own first device (the same device in one
+    process)."""
+    if jax.process_count() == 1:
+        yield
+        return
+    mjx = _quiet_import("mujoco.mjx")
+    put_model, device = mjx.put_model, jax.local_devices()[0]
+
+    def put_model_here(m, *args, **kwargs):  # put_model(m, device=None, impl=None, ...)
+        if not args and kwargs.get("device") is None:
+            kwargs["device"] = device
+        return put_model(m, *args, **kwargs)
+
+    mjx.put_model = put_model_here
+    try:
+        yield
+    finally:
+        mjx.put_model = put_model
+
+
 def make_single_env(name: str, **kwargs):
     """One (unbatched) Brax-style environment with reset(key) -> State and step(State, a) -> State."""
     table = _registry()
     if name not in table:
         raise KeyError(f"unknown env {name!r}")
-    return table[name](**kwargs)
+    with _models_on_this_process():
+        return table[name](**kwargs)
 
 
 @struct.dataclass
