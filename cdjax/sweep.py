@@ -154,6 +154,9 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
     split = split or getattr(trainer, "runs_split", None) or "partition"
     if split not in SPLITS:
         raise ValueError(f"split {split!r}: choose one of {SPLITS}")
+    # Every program's outputs are declared on the run axis (out_shardings), the empty leaves too (MJX's data holds
+    # arrays of size 0): XLA would give those a replicated sharding, which the next program, compiled for the run
+    # axis, refuses on several devices.
     sharded = NamedSharding(mesh, PartitionSpec(AXIS))
 
     def place(tree):
@@ -172,7 +175,7 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
     if getattr(trainer, "reset", None) is not None and getattr(trainer, "init_from", None) is not None:
         reset = shared_reset(trainer, mesh, place)
 
-        @jax.jit
+        @functools.partial(jax.jit, out_shardings=sharded)
         def init_from(keys, hps, env_state):
             return place(jax.vmap(trainer.init_from)(keys, hps, env_state))
 
@@ -181,7 +184,7 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
     else:
         reset = init_from = None
 
-        @jax.jit
+        @functools.partial(jax.jit, out_shardings=sharded)
         def init(keys, hps):
             return place(jax.vmap(trainer.init)(keys, hps))
 
@@ -191,7 +194,7 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
 
         return jax.vmap(one_run)(state, hps)
 
-    @functools.partial(jax.jit, static_argnums=2, donate_argnums=0)
+    @functools.partial(jax.jit, static_argnums=2, donate_argnums=0, out_shardings=sharded)
     def run(state, hps, num_updates):
         return over_runs(updates, num_updates)(state, hps)
 
@@ -209,13 +212,13 @@ def make_sweep(trainer, mesh: Mesh | None = None, phase: Callable | None = None,
 
         return jax.vmap(one_run)(state, hps)
 
-    @functools.partial(jax.jit, static_argnums=2, donate_argnums=0)
+    @functools.partial(jax.jit, static_argnums=2, donate_argnums=0, out_shardings=sharded)
     def chunk(state, hps, length, n):
         return over_runs(first_updates, length)(state, hps, n)
 
     if phase is not None:
 
-        @functools.partial(jax.jit, donate_argnums=0)
+        @functools.partial(jax.jit, donate_argnums=0, out_shardings=sharded)
         def phase_run(state, hps):
             state, info = jax.vmap(phase)(state, hps)
             return place(state), place(info)
@@ -238,7 +241,7 @@ def shared_reset(trainer, mesh: Mesh, place: Callable) -> Callable:
     cache_key = (env_key, tuple(d.id for d in mesh.devices.flat), mesh.axis_names)
     if env_key is None or cache_key not in _RESETS:
 
-        @jax.jit
+        @functools.partial(jax.jit, out_shardings=NamedSharding(mesh, PartitionSpec(AXIS)))
         def reset(keys):
             return place(jax.vmap(trainer.reset)(keys))
 

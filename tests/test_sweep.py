@@ -12,7 +12,8 @@ import pytest
 
 def test_runs_sharded_over_two_devices_equal_runs_alone():
     """6 runs of POINT (3 seeds x alpha 0 and 1) sharded over 2 forced CPU devices (a subprocess), 6 updates: each
-    run's losses equal the run's alone, here on one device (the single-run program tests/test_train.py compiles)."""
+    run's losses equal the run's alone, here on one device (the single-run program tests/test_train.py compiles),
+    and every leaf of the state, one of size 0 among them, stays on the run axis."""
     import jax
     from _shared import POINT
 
@@ -26,6 +27,9 @@ def test_runs_sharded_over_two_devices_equal_runs_alone():
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     assert out["devices_used"] == [0, 1]
     assert "runs" in out["spec"]
+    # every leaf of the state (the one of size 0 too) and of the metrics lies on the run axis, after init and after
+    # the chunks: the next program, compiled for the run axis, would refuse another sharding
+    assert out["specs"] == {"init": [["runs"]], "chunk": [["runs"]], "metrics": [["runs"]]}, out["specs"]
     sharded = np.array(out["sharded"])  # [runs, updates]
     train = jax.jit(make_train(POINT.replace(num_updates=sharded.shape[1])))
     keys = jax.random.wrap_key_data(np.array(out["keys"], np.uint32))
