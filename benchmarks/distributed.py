@@ -197,7 +197,8 @@ def main(argv: list[str] | None = None) -> dict:
                    help="the sweeps' --compile-mode (default deterministic: the layouts must agree bit for bit)")
     p.add_argument("--time-limit", type=float, default=1200, help="seconds for the whole command; the throughput "
                    "step is skipped when less than --throughput-s is left (default 1200)")
-    p.add_argument("--throughput-s", type=float, default=400, help="seconds for both layouts' seeds suite (default 400)")
+    p.add_argument("--throughput-s", type=float, default=400, help="seconds for both layouts' seeds suite (default "
+                   "400; 0: not measured)")
     p.add_argument("--tiny", action="store_true", help="the point mass on CPU devices: a dry run of the sequence")
     args = p.parse_args(argv)
     begin = time.time()
@@ -234,8 +235,10 @@ def main(argv: list[str] | None = None) -> dict:
     # 2. the cut run resumed by N processes and, from a copy, by one
     if runs["cut"].exists():
         shutil.copytree(runs["cut"], runs["cut-by-one"])
-        resumed = [*host.many("resume-many", [*cdjax, "--out", str(runs["cut"]), "--resume", "--no-progress"]),
-                   *host.one("resume-one", [*cdjax, "--out", str(runs["cut-by-one"]), "--resume", "--no-progress"])]
+        # --compile-mode is not recorded in run.json (each command chooses how XLA compiles): given again
+        again = ["--resume", "--no-progress", "--compile-mode", args.compile_mode]
+        resumed = [*host.many("resume-many", [*cdjax, "--out", str(runs["cut"]), *again]),
+                   *host.one("resume-one", [*cdjax, "--out", str(runs["cut-by-one"]), *again])]
         step("resume", resumed, 900)
 
     # 3. what the layouts wrote
@@ -258,7 +261,9 @@ def main(argv: list[str] | None = None) -> dict:
     throughput = {}
     left = deadline - time.time()
     bench = ["-m", "benchmarks.run", *(TINY_SEEDS if args.tiny else GPU_SEEDS)]
-    if left >= args.throughput_s:
+    if args.throughput_s <= 0:
+        steps.append({"step": "throughput", "skipped": "--throughput-s 0"})
+    elif left >= args.throughput_s:
         budget = str(int(args.throughput_s / 2 - 30))  # benchmarks.run starts no case after it
         for name, start in (("seeds-one", host.one), ("seeds-many", host.many)):
             step(name, start(name, [*bench, "--budget-s", budget, "--out", str(args.out / name)]),
