@@ -160,7 +160,7 @@ def test_a_sweep_of_seeds_is_cut_resumed_and_evaluated(whole, tmp_path):
     with pytest.raises(Interrupted):
         run_sweep(spec, after_chunk=lambda chunks, updates: chunks >= 1)
     # the 40M-frame tier's way to the next machine (experiments/atari/ale40m.py): packed, unpacked elsewhere
-    parts = ale40m.pack(tmp_path / "cut", tmp_path / "outbox", "ale40m-breakout-a2c-cd", part_bytes=200_000)
+    parts = ale40m.pack(tmp_path / "cut", tmp_path / "outbox", "ale40m-breakout-a2c-cd", part_bytes=200_000, every=1)
     assert ale40m.unpack(parts, tmp_path / "moved") == CHUNK
     run_sweep(resume_spec(tmp_path / "cut", progress=False), resume=True)
     cut = logged_rows(tmp_path / "cut")

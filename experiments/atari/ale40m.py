@@ -13,7 +13,8 @@ games (they live outside JAX and are not checkpointed: cdjax.agents.atari.ale), 
 
 On the GPU host (every call: `. experiments/wheels.sh && ensure_wheels && atari_packages ale &&` first):
 
-    python -m experiments.atari.ale40m start PIECE [PIECE ...] --work W [--carried DIR] [--end-in S] [--gpus N]
+    python -m experiments.atari.ale40m start PIECE [PIECE ...] --work W [--carried DIR] [--end-in S] [--gpus N] \
+        [--param NAME=VALUE ...]
     python -m experiments.atari.ale40m poll --work W [--wait S]
     python -m experiments.atari.ale40m send --work W --out "$OUT" [--again]   # again while it prints MORE
 
@@ -53,6 +54,12 @@ STEPS = 10_000_000  # agent steps per run: 40M frames at frame skip 4, A2C's pub
 STEPS_PER_UPDATE = 16 * 5  # the ALE presets' 16 envs x 5 steps
 UPDATES = STEPS // STEPS_PER_UPDATE  # 125,000 per run
 PIECES = tuple(f"ale40m-{game}-{arm}" for game in GAMES for arm in ARMS)
+# The metrics a piece's state carries: every EVERY-th update's rows (5,000 of a run's 125,000; a row of a2c-cd is
+# about 1 kB, so its whole log would be 375 MB, about 65 MB compressed, by the end), the same rows wherever the run
+# was cut. The report's final return then averages 500 points of each run's last 10%, its AUC 5,000.
+EVERY = 25
+# The fields of the rows kept in the repository (`merge`): what experiments.atari.report and aggregate read.
+KEPT_FIELDS = ("arm", "hp", "seed", "update", "env_steps", "wall_s", "episode/return", "episode/discounted_return")
 
 # What one call of the device tool brings back from $OUT, and carries in (experiments/atari/RESULTS.md).
 FILE_MAX = 16 * 2**20  # bytes of one file back
@@ -191,9 +198,10 @@ def _kept(run_dir: pathlib.Path) -> list[pathlib.Path]:
 
 
 def pack(run_dir: pathlib.Path, dest: pathlib.Path, name: str, part_bytes: int = FILE_MAX,
-         logs: Sequence[pathlib.Path] = ()) -> list[pathlib.Path]:
-    """dest/NAME.uUPDATES.I-of-N: the run directory's resumable state (`_kept`) as one xz-compressed tar cut into N
-    parts of at most `part_bytes`; UPDATES is what every arm has checkpointed. `logs` (e.g. the unit's log) are first
+         logs: Sequence[pathlib.Path] = (), every: int = EVERY) -> list[pathlib.Path]:
+    """dest/NAME.uUPDATES.I-of-N: the run directory's resumable state (`_kept`, its metrics.jsonl reduced to the rows of
+    every `every`-th update) as one xz-compressed tar cut into N parts of at most `part_bytes`; UPDATES is what every
+    arm has checkpointed. `logs` (e.g. the unit's log) are first
     copied into run_dir/logs/ as STEM.uUPDATES.SUFFIX, so that each loan's log travels on with the run. Earlier parts
     of the same piece in dest are removed once the new ones are written."""
     updates = updates_done(run_dir)
@@ -201,10 +209,18 @@ def pack(run_dir: pathlib.Path, dest: pathlib.Path, name: str, part_bytes: int =
         if path.is_file():
             (run_dir / "logs").mkdir(exist_ok=True)
             shutil.copyfile(path, run_dir / "logs" / f"{path.stem}.u{updates:06d}{path.suffix}")
+    from cdjax import io
+
     buf = _io.BytesIO()
     with tarfile.open(fileobj=buf, mode="w") as tar:
         for path in _kept(run_dir):
-            tar.add(path, arcname=str(path.relative_to(run_dir)), recursive=False)
+            if path.name not in ("metrics.jsonl", "metrics.jsonl.xz", "metrics.jsonl.gz"):
+                tar.add(path, arcname=str(path.relative_to(run_dir)), recursive=False)
+        rows = [r for r in io.read_jsonl(run_dir / "metrics.jsonl") if r["update"] % every == 0]
+        text = "".join(json.dumps(r) + "\n" for r in rows).encode()
+        info = tarfile.TarInfo("metrics.jsonl")
+        info.size, info.mtime = len(text), int(time.time())
+        tar.addfile(info, _io.BytesIO(text))
     # xz at preset 1: the checkpoints' float32 arrays hardly compress at any preset (RESULTS.md), the logs do at any
     data = lzma.compress(buf.getvalue(), preset=1)
     count = max(1, -(-len(data) // part_bytes))
@@ -318,18 +334,25 @@ class Slot:
 
 
 def start(pieces: Sequence[str], work: pathlib.Path, carried: pathlib.Path | None, end_in: int, gpus: int,
-          cores: Sequence[int], say=print) -> list[str]:
+          cores: Sequence[int], params: Sequence[str] = (), say=print) -> list[str]:
     """Start each piece not yet started whose state is here (or that starts from nothing), on its GPU and cores
     (`shares` of all the pieces named), its training stopped so that it has evaluated (where its run reached its steps)
-    and packed `end_in` seconds from now; returns the pieces started by this call. The carried folder's MANIFEST
+    and packed `end_in` seconds from now; `params` (NAME=VALUE) go to every piece's unit (e.g. a dry run's smaller
+    `steps` and `sweep` options); returns the pieces started by this call. The carried folder's MANIFEST
     (`stage`) names the updates each piece has done: a piece done in part waits for its parts, never starts afresh."""
     from experiments import launch
 
     for piece in pieces:
         piece_of(piece)
-    carried_sets = part_sets(carried) if carried is not None else {}
-    manifest = carried / MANIFEST if carried is not None else None
-    expected = json.loads(manifest.read_text()) if manifest is not None and manifest.exists() else {}
+    # A call's carry replaces the carried folder there: its parts are gathered in work/incoming across the calls.
+    incoming = work / "incoming"
+    incoming.mkdir(parents=True, exist_ok=True)
+    for path in sorted(carried.iterdir()) if carried is not None and carried.is_dir() else ():
+        if PART.match(path.name) or path.name == MANIFEST:
+            shutil.copyfile(path, incoming / path.name)
+    carried_sets = part_sets(incoming)
+    manifest = incoming / MANIFEST
+    expected = json.loads(manifest.read_text()) if manifest.exists() else {}
     started = []
     for piece, (gpu, cpus) in zip(pieces, shares(cores, gpus, len(pieces))):
         queue = work / piece
@@ -353,7 +376,8 @@ def start(pieces: Sequence[str], work: pathlib.Path, carried: pathlib.Path | Non
             say(f"{piece}: not started: {end_in} s left, fewer than {EVAL_S + PACK_S + 120} s")
             continue
         launch.start("atari", [piece], queue, time_limit=limit, gpu=gpu,
-                     args=["--end", str(end_in), "--param", f"cpus={cpus}", "--param", f"outbox={outbox(work)}"])
+                     args=["--end", str(end_in), "--param", f"cpus={cpus}", "--param", f"outbox={outbox(work)}",
+                           *(x for item in params for x in ("--param", item))])
         say(f"{piece}: STARTED on GPU {gpu}, cores {cpus}, training for at most {limit} s, packed within {end_in} s")
         started.append(piece)
     return started
@@ -482,8 +506,9 @@ def stage(pieces: Sequence[str], store: pathlib.Path, into: pathlib.Path, room: 
 
 def merge_game(runs: Sequence[pathlib.Path], out: pathlib.Path) -> pathlib.Path:
     """One run directory per game for experiments.atari.report and aggregate (as the 1M tier's): the pieces' run
-    directories (one arm each, the same game, seeds and preset) joined: run.json with every arm, metrics.jsonl.xz and
-    eval.jsonl with every arm's rows, each piece's log.txt kept as log-ARM.txt."""
+    directories (one arm each, the same game, seeds and preset) joined: run.json with every arm, metrics.jsonl.xz
+    (the rows the pieces carried, with KEPT_FIELDS) and eval.jsonl with every arm's rows, each piece's log.txt as
+    log-ARM.txt and its loans' unit logs under logs-ARM/."""
     from cdjax import io
 
     records = [json.loads((r / "run.json").read_text()) for r in runs]
@@ -494,14 +519,16 @@ def merge_game(runs: Sequence[pathlib.Path], out: pathlib.Path) -> pathlib.Path:
     merged = dict(first, arms=[a for rec in records for a in rec["arms"]])
     out.mkdir(parents=True, exist_ok=True)
     (out / "run.json").write_text(json.dumps(merged, indent=1))
-    metrics = [row for r in runs for row in io.read_jsonl(r / "metrics.jsonl")]
+    metrics = [{k: row[k] for k in KEPT_FIELDS if k in row} for r in runs for row in io.read_jsonl(r / "metrics.jsonl")]
     io.write_packed(out / "metrics.jsonl", "".join(json.dumps(row) + "\n" for row in metrics).encode())
     evals = [row for r in runs for row in io.read_jsonl(r / "eval.jsonl")]
     (out / "eval.jsonl").write_text("".join(json.dumps(row) + "\n" for row in evals))
     for r, rec in zip(runs, records):
-        for name in ("log.txt", "unit.log"):
-            if (r / name).exists():
-                shutil.copyfile(r / name, out / f"{pathlib.Path(name).stem}-{rec['arms'][0]['name']}.txt")
+        arm = rec["arms"][0]["name"]
+        if (r / "log.txt").exists():
+            shutil.copyfile(r / "log.txt", out / f"log-{arm}.txt")
+        if (r / "logs").is_dir():
+            shutil.copytree(r / "logs", out / f"logs-{arm}", dirs_exist_ok=True)
     return out
 
 
@@ -527,6 +554,8 @@ def main(argv=None) -> int:
     s.add_argument("--end-in", type=int, metavar="S", help="seconds from now by which every piece has packed "
                    f"(default: {HOLD_S} s less the machine's uptime, a minute and {SEND_S} s)")
     s.add_argument("--gpus", type=int, help="GPUs to share (default: nvidia-smi's count)")
+    s.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="a parameter of every piece's unit (a dry run: steps=400, sweep='--num-envs 2 --latent 32')")
     pl = sub.add_parser("poll", help="on the GPU host: each piece's state; exit status 0 once all have ended")
     pl.add_argument("--work", type=pathlib.Path, required=True)
     pl.add_argument("--wait", type=float, default=0, metavar="S")
@@ -539,6 +568,7 @@ def main(argv=None) -> int:
     pk.add_argument("dest", type=pathlib.Path)
     pk.add_argument("--name", required=True)
     pk.add_argument("--log", type=pathlib.Path, action="append", default=[], help="a log to keep with the run")
+    pk.add_argument("--every", type=int, default=EVERY, help=f"metrics of every N-th update kept (default {EVERY})")
     pin = sub.add_parser("pin", help="run a command on the given cores")
     pin.add_argument("cpus")
     pin.add_argument("argv", nargs=argparse.REMAINDER)
@@ -569,7 +599,8 @@ def main(argv=None) -> int:
         print(f"{len(os.sched_getaffinity(0))} cores, {gpus} GPUs; the pieces end, packed, within {end_in} s "
               f"({usable_cores()} usable)")
         try:
-            start(args.pieces, args.work, args.carried, end_in, max(gpus, 1), sorted(os.sched_getaffinity(0)))
+            start(args.pieces, args.work, args.carried, end_in, max(gpus, 1), sorted(os.sched_getaffinity(0)),
+                  args.param)
         except ValueError as err:
             p.error(str(err))
         return 0
@@ -584,7 +615,7 @@ def main(argv=None) -> int:
               f"RUNNING: {', '.join(running)} not yet packed; poll, then send again" if running else "ALL SENT")
         return 0
     if args.command == "pack":
-        for path in pack(args.run_dir, args.dest, args.name, logs=args.log):
+        for path in pack(args.run_dir, args.dest, args.name, logs=args.log, every=args.every):
             print(f"{path} {path.stat().st_size:,}")
         return 0
     if args.command == "plan":
