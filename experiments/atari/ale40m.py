@@ -34,7 +34,6 @@ carries 64 MiB with the tracked tree) while the pieces already complete train.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import io as _io
 import json
 import lzma
@@ -55,7 +54,7 @@ STEPS_PER_UPDATE = 16 * 5  # the ALE presets' 16 envs x 5 steps
 UPDATES = STEPS // STEPS_PER_UPDATE  # 125,000 per run
 PIECES = tuple(f"ale40m-{game}-{arm}" for game in GAMES for arm in ARMS)
 # The metrics a piece's state carries: every EVERY-th update's rows (5,000 of a run's 125,000; a row of a2c-cd is
-# about 1 kB, so its whole log would be 375 MB, about 65 MB compressed, by the end), the same rows wherever the run
+# about 1 kB, so its whole log would be about 380 MB, 75 MB compressed, by the end), the same rows wherever the run
 # was cut. The report's final return then averages 500 points of each run's last 10%, its AUC 5,000.
 EVERY = 25
 # The fields of the rows kept in the repository (`merge`): what experiments.atari.report and aggregate read.
@@ -326,13 +325,6 @@ def gpu_count() -> int:
     return sum(1 for line in listed.splitlines() if line.startswith("GPU "))
 
 
-@dataclasses.dataclass(frozen=True)
-class Slot:
-    piece: str
-    gpu: int
-    cpus: str
-
-
 def start(pieces: Sequence[str], work: pathlib.Path, carried: pathlib.Path | None, end_in: int, gpus: int,
           cores: Sequence[int], params: Sequence[str] = (), say=print) -> list[str]:
     """Start each piece not yet started whose state is here (or that starts from nothing), on its GPU and cores
@@ -478,13 +470,13 @@ def stage(pieces: Sequence[str], store: pathlib.Path, into: pathlib.Path, room: 
           say=print) -> list[pathlib.Path]:
     """Copy into `into` (emptied first; a folder of the repository that .git/info/exclude ignores, named in the call's
     carry) the parts of the pieces' states that `room` bytes hold, in the order the pieces are named, and MANIFEST
-    ({piece: updates} of the pieces in the store); parts staged earlier in this loan (`into`.sent; forgotten with
+    ({piece: updates} of the pieces in the store); parts staged earlier in this loan (store/staged; forgotten with
     `first`, a new loan) are not staged again. Returns what was copied."""
     sets = part_sets(store / "state")
     shutil.rmtree(into, ignore_errors=True)
     into.mkdir(parents=True)
     (into / MANIFEST).write_text(json.dumps({p: sets[p]["updates"] for p in pieces if p in sets}))
-    record = into.parent / f"{into.name}.sent"
+    record = store / "staged"
     sent = set() if first or not record.exists() else set(record.read_text().split())
     copied, used, full = [], 1024, False
     for piece in pieces:
