@@ -25,6 +25,7 @@ frames", gives the whole sequence):
     python -m experiments.atari.ale40m stage PIECE [PIECE ...] --store S --into .ale40m-in [--first] [--beside P..]
     python -m experiments.atari.ale40m absorb FILES_AT --store S         # what a call brought back
     python -m experiments.atari.ale40m merge --store S --out experiments/atari/data/ale-10m
+    python -m experiments.atari.ale40m sizes --out DIR [--games G ..] [--arms A ..] [--seeds 3]   # a piece's state
 
 `start` is idempotent: a piece already started is left alone and a piece whose parts have not all been carried in
 yet waits for the call that brings the rest, so the parts of several pieces can come in over several calls (each
@@ -535,6 +536,63 @@ def merge(store: pathlib.Path, out: pathlib.Path, say=print) -> list[pathlib.Pat
     return written
 
 
+def state_size(game: str, arm: str, seeds: int, out: pathlib.Path, steps: int = 2) -> dict:
+    """What one piece's checkpoint takes, at the game's preset sizes (needs ale-py; no emulator is started): `seeds`
+    runs' parameters and optimiser state after `steps` optimiser steps on random frames (so that no leaf is all zeros,
+    which a checkpoint leaves out), written by cdjax.io.Checkpoints into out/checkpoints/ARM; returns the bytes of the
+    arrays, of orbax's files, of their tar and of that tar compressed (xz presets 1 and 6, gzip), with the seconds each
+    compression took."""
+    import gzip
+
+    import jax
+    import jax.numpy as jnp
+
+    from cdjax import consistency, io
+    from cdjax.agents.atari import AtariConfig, AtariHParams
+    from cdjax.agents.atari.learner import A2C, Batch
+    from cdjax.agents.atari.presets import PRESETS
+
+    config = AtariConfig(**PRESETS[game].config, arm=arm)
+    agent, hp = A2C(config), AtariHParams()
+    T, B = config.rollout_len, config.num_envs
+
+    def one_run(key):
+        key_params, key = jax.random.split(key)
+        params = agent.init_params(key_params)
+        opt = agent.optimizer(hp)
+        opt_state = opt.init(params)
+        for _ in range(steps):
+            key_obs, key_act, key_rew, key_win, key = jax.random.split(key, 5)
+            frames = jax.random.randint(key_obs, (T + 1, B, *agent.env.obs_shape), 0, 255).astype(jnp.uint8)
+            batch = Batch(obs=frames[:-1], action=jax.random.randint(key_act, (T, B), 0, agent.num_actions),
+                          reward=jax.random.normal(key_rew, (T, B)), next_obs=frames[1:],
+                          terminated=jnp.zeros((T, B), bool), ended=jnp.zeros((T, B), bool),
+                          valid=jnp.ones((T, B), bool))
+            offsets = consistency.window_offsets(key_win, T, config.horizon, config.num_windows)
+            grads, _ = jax.grad(agent.loss, has_aux=True)(params, batch, offsets, hp)
+            updates, opt_state = opt.update(grads, opt_state, params)
+            params = jax.tree.map(jnp.add, params, updates)
+        return {"params": params, "opt_state": opt_state}
+
+    tree = jax.jit(jax.vmap(one_run))(jax.random.split(jax.random.key(0), seeds))
+    ckpt = io.Checkpoints(out / "checkpoints" / arm)
+    ckpt.save(steps, tree, {"updates": steps})
+    ckpt.wait()
+    ckpt.close()
+    buf = _io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        tar.add(out / "checkpoints", arcname="checkpoints")
+    data = buf.getvalue()
+    sizes = {"arrays": sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(tree)),
+             "params": sum(x.size for x in jax.tree.leaves(tree["params"])) // seeds,
+             "files": sum(p.stat().st_size for p in (out / "checkpoints").rglob("*") if p.is_file()), "tar": len(data)}
+    for name, compress in (("xz1", lambda d: lzma.compress(d, preset=1)), ("xz6", lambda d: lzma.compress(d, preset=6)),
+                           ("gzip6", lambda d: gzip.compress(d, 6))):
+        t = time.perf_counter()
+        sizes[name] = (len(compress(data)), round(time.perf_counter() - t, 1))
+    return sizes
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.atari.ale40m", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -577,6 +635,11 @@ def main(argv=None) -> int:
     ab = sub.add_parser("absorb", help="here: keep what a call brought back")
     ab.add_argument("files_at", type=pathlib.Path)
     ab.add_argument("--store", type=pathlib.Path, required=True)
+    sz = sub.add_parser("sizes", help="what a piece's checkpoint takes at the preset's sizes (needs ale-py)")
+    sz.add_argument("--games", nargs="+", default=list(GAMES), choices=GAMES)
+    sz.add_argument("--arms", nargs="+", default=list(ARMS), choices=ARMS)
+    sz.add_argument("--seeds", type=int, default=SEEDS)
+    sz.add_argument("--out", type=pathlib.Path, required=True, help="a directory for the checkpoints written")
     mg = sub.add_parser("merge", help="here: one run directory per game for the report")
     mg.add_argument("--store", type=pathlib.Path, required=True)
     mg.add_argument("--out", type=pathlib.Path, required=True)
@@ -622,6 +685,15 @@ def main(argv=None) -> int:
         return 0
     if args.command == "absorb":
         absorb(args.files_at, args.store)
+        return 0
+    if args.command == "sizes":
+        from cdjax import runtime
+
+        runtime.apply_xla_defaults()
+        for game in args.games:
+            for arm in args.arms:
+                print(game, arm, args.seeds, "runs:", state_size(game, arm, args.seeds, args.out / f"{game}-{arm}"),
+                      flush=True)
         return 0
     merge(args.store, args.out)
     return 0
