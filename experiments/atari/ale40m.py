@@ -662,6 +662,9 @@ def main(argv=None) -> int:
     if args.command == "poll":
         return poll(args.work, args.wait)
     if args.command == "send":
+        if not any(args.work.glob("*/queue.json")):
+            print(f"{args.work}: nothing started there", file=sys.stderr)
+            return 2
         left = send(outbox(args.work), args.out, again=args.again)
         for path in sorted(args.out.iterdir()):
             print(f"{path.name} {path.stat().st_size:,}")
