@@ -1,13 +1,16 @@
 """The ALE tier (optional extra `atari`): a real game stepped inside a jitted lax.scan through ale-py's XLA
 interface gives the observations, rewards and ends of ale-py's own Python-side stepping for the same seeds and
 actions, and life losses end learning episodes only; runs vmapped together (folded into one vector environment)
-step the same games as each run alone; `cdjax sweep` of 2 seeds trains, is cut, resumed and evaluated, and its first
-updates equal each seed's alone; the throughput benchmark reports cdjax's rate and ale-py's."""
+step the same games as each run alone; the emulators get one thread per core the process may run on (its CPU
+affinity); `cdjax sweep` of 2 seeds trains, is cut, resumed and evaluated, resumes alike where it was cut and
+elsewhere from its packed state (experiments/atari/ale40m.py), and its first updates equal each seed's alone; the
+throughput benchmark reports cdjax's rate and ale-py's."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import pathlib
 import sys
 
 import jax
@@ -21,15 +24,16 @@ from ale_py.vector_env import AtariVectorEnv  # noqa: E402
 
 from cdjax import io  # noqa: E402
 from cdjax.agents.atari import AtariConfig, AtariHParams, make_trainer  # noqa: E402
-from cdjax.agents.atari.ale import ONE_DEVICE, ONE_PROCESS, AleEnv, vector_env  # noqa: E402
+from cdjax.agents.atari.ale import ONE_DEVICE, ONE_PROCESS, AleEnv, usable_cores, vector_env  # noqa: E402
 from cdjax.cli import main  # noqa: E402
 from cdjax.protocol import ConfigError  # noqa: E402
-from cdjax.runner import Interrupted, resume_spec, run_sweep  # noqa: E402
+from cdjax.runner import Interrupted, restore_arms, resume_spec, run_sweep  # noqa: E402
 
 from _shared import logged_rows  # noqa: E402
 
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1]))  # `benchmarks` is not installed
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # `benchmarks` is not installed
 from benchmarks import ale as bench  # noqa: E402
+from experiments.atari import ale40m  # noqa: E402
 
 CONFIG = AtariConfig(env="ale-breakout", num_envs=3, sticky_prob=0.25, episode_length=27000, latent=512)
 STEPS = 300
@@ -102,6 +106,31 @@ def test_runs_vmapped_together_step_the_games_each_run_steps_alone(monkeypatch):
     assert ONE_DEVICE.endswith(".") and ONE_PROCESS.endswith(".")
 
 
+@pytest.mark.skipif(usable_cores() < 2, reason="one core: every thread count is 1")
+def test_the_emulators_get_one_thread_per_core_the_process_may_run_on():
+    """Under a CPU affinity of one core (as `taskset -c` or ale40m's `pin` gives a piece), the vector env steps its
+    emulators with one thread on that core, not one per core of the host (ale-py's own default)."""
+    import os
+
+    tasks = lambda: set(os.listdir("/proc/self/task"))  # noqa: E731
+    cores = sorted(os.sched_getaffinity(0))
+    before = tasks()
+    wide = vector_env(AtariVectorEnv, CONFIG, 8)
+    assert len(tasks() - before) == min(8, len(cores))
+    del wide
+    os.sched_setaffinity(0, cores[:1])  # this thread's: the threads it starts inherit it
+    try:
+        before = tasks()
+        narrow = vector_env(AtariVectorEnv, CONFIG, 8)
+        new = tasks() - before
+        assert usable_cores() == 1 and len(new) == 1
+        allowed = pathlib.Path(f"/proc/self/task/{new.pop()}/status").read_text()
+        assert f"Cpus_allowed_list:\t{cores[0]}\n" in allowed
+        del narrow
+    finally:
+        os.sched_setaffinity(0, cores)
+
+
 # 2 seeds x 2 envs of the breakout preset with small networks and short games (benchmarks.ale's tiny config, so that
 # the benchmark's chunk program is this sweep's): 4 updates of 2 envs x 5 steps, chunks of 2.
 CHUNK, UPDATES = 2, 4
@@ -130,8 +159,20 @@ def test_a_sweep_of_seeds_is_cut_resumed_and_evaluated(whole, tmp_path):
     spec = dataclasses.replace(resume_spec(whole, progress=False), out=tmp_path / "cut")
     with pytest.raises(Interrupted):
         run_sweep(spec, after_chunk=lambda chunks, updates: chunks >= 1)
+    # the 40M-frame tier's way to the next machine (experiments/atari/ale40m.py): packed, unpacked elsewhere
+    parts = ale40m.pack(tmp_path / "cut", tmp_path / "outbox", "ale40m-breakout-a2c-cd", part_bytes=200_000, every=1)
+    assert ale40m.unpack(parts, tmp_path / "moved") == CHUNK
     run_sweep(resume_spec(tmp_path / "cut", progress=False), resume=True)
     cut = logged_rows(tmp_path / "cut")
+    # resumed elsewhere it is the run resumed where it was cut: the checkpoint's parameters, optimiser state and keys,
+    # and the same new games (a resumed run's emulators start from init's, wherever it resumes)
+    run_sweep(resume_spec(tmp_path / "moved", progress=False), resume=True)
+    assert logged_rows(tmp_path / "moved") == cut
+    for a, b in zip(restore_arms(tmp_path / "moved")[1], restore_arms(tmp_path / "cut")[1]):
+        for x, y in zip(jax.tree.leaves(a.state), jax.tree.leaves(b.state)):
+            x, y = (jax.random.key_data(v) if jax.dtypes.issubdtype(v.dtype, jax.dtypes.prng_key) else v
+                    for v in (x, y))
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     first = lambda rows: [r for r in rows if r["update"] <= CHUNK]  # noqa: E731
     # the first chunk is the same run; after the resume the emulators play new games (they are not checkpointed)
     assert [r["train/reward"] for r in first(cut)] == [r["train/reward"] for r in first(rows)]

@@ -3,11 +3,13 @@ profiles) and the a2c arm against the MinAtar paper's actor-critic, from the kep
 
     python -m experiments.atari.aggregate --out experiments/atari/results/minatar-aggregate
     python -m experiments.atari.aggregate --tier ale --out experiments/atari/results/ale-1m-aggregate
+    python -m experiments.atari.aggregate --tier ale --data ale-10m --out experiments/atari/results/ale-10m-aggregate
 
 `--tier ale`: the same statistics over the ALE tier's games (`data/ale-1m/GAME`: the paper's four games, a2c vs a2c-cd,
 3 seeds, 1M agent steps; the games present), normalised with uniform random play's published scores (`ALE_RANDOM`),
 without the MinAtar paper's comparison (`experiments.atari.published` holds ALE's published A2C points). Writes
-OUT/aggregate.md, OUT/aggregate.json and OUT/profiles.png.
+OUT/aggregate.md, OUT/aggregate.json and OUT/profiles.png. `--data ale-10m`: the tier at the paper's 10M agent steps
+(`data/ale-10m/GAME`, each game's two pieces joined by `python -m experiments.atari.ale40m merge`).
 
 Runs: each game's kept run directory at its checked learning rate (`CHECKED`: RMSprop 2e-2, Space Invaders 1e-2), and
 again with every game at 2e-2 (`SHARED`, Space Invaders' 2e-2 run instead). Scores per run (seed), from
@@ -273,11 +275,11 @@ def ale_markdown(agg: dict, games: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def ale_main(out: pathlib.Path, reps: int) -> str:
-    """The ALE tier's aggregate over the games whose run directory is kept."""
-    dirs = {g: d for g, d in ALE_DIRS.items() if (d / "run.json").exists()}
+def ale_main(out: pathlib.Path, reps: int, data: str = "ale-1m") -> str:
+    """The ALE tier's aggregate over the games whose run directory is kept under data/`data`."""
+    dirs = {g: DATA / data / g for g in ALE_GAMES if (DATA / data / g / "run.json").exists()}
     if len(dirs) < 2:
-        raise SystemExit(f"the ALE tier's aggregate needs at least two games' runs under {DATA / 'ale-1m'}")
+        raise SystemExit(f"the ALE tier's aggregate needs at least two games' runs under {DATA / data}")
     games = load_scores(dirs)
     agg = aggregate(games, {g: ALE_RANDOM[g] for g in dirs}, reps)
     text = ale_markdown(agg, games)
@@ -296,6 +298,7 @@ def main(argv=None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=pathlib.Path, required=True)
     parser.add_argument("--tier", choices=("minatar", "ale"), default="minatar")
+    parser.add_argument("--data", default="ale-1m", help="with --tier ale: the folder of data/ (ale-1m, ale-10m)")
     parser.add_argument("--bootstrap-reps", type=int, default=2000)
     args = parser.parse_args(argv)
     from cdjax import runtime
@@ -303,7 +306,7 @@ def main(argv=None) -> str:
     runtime.apply_xla_defaults()  # its XLA:CPU flag before JAX starts
 
     if args.tier == "ale":
-        return ale_main(args.out, args.bootstrap_reps)
+        return ale_main(args.out, args.bootstrap_reps, args.data)
 
     checked, shared = load_scores(CHECKED), load_scores(SHARED)
     randoms = {game: random_play(CHECKED[game]) for game in GAMES}  # the same env (game, sticky, time-out) in both

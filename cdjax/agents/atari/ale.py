@@ -8,9 +8,9 @@ the emulators live in C++ outside JAX, so:
 - **Runs are folded into one vector environment.** Under `vmap` over R runs (a sweep's seeds and hyper-parameter
   combinations), the custom calls' batching rule (`jax.custom_batching.custom_vmap`) reshapes the runs' [R, B]
   actions and reset seeds into one axis of R x B and steps one ale-py vector environment of R x B emulators, with
-  as many threads as the host has cores; run r owns emulators r*B .. r*B+B-1. Nested vmaps fold again. Each
-  emulator is seeded at reset from its run's key alone, so a run steps the same games whether it runs alone or
-  among others (tests/test_atari_ale.py).
+  one thread per core the process may run on (its CPU affinity: `taskset -c 0-15` gives it 16); run r owns
+  emulators r*B .. r*B+B-1. Nested vmaps fold again. Each emulator is seeded at reset from its run's key alone,
+  so a run steps the same games whether it runs alone or among others (tests/test_atari_ale.py).
 - **The emulators are made when a reset first runs**, not when it is traced: the reset's custom call takes its
   vector environment's handle from a host callback that makes (once) the vector environment of that many
   emulators for this `AleEnv`. Tracing for shapes (`jax.eval_shape`) makes none, and no compiled program holds
@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import atexit
 import functools
+import os
 import threading
 import weakref
 
@@ -227,10 +228,18 @@ class AleEnv:
                         key=state.key), out
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity: all of the host's, or those `taskset` gave it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def vector_env(vector_type, config, num_envs: int, num_threads: int = 0):
     """ale-py's vector env (`vector_type`: ale_py.vector_env.AtariVectorEnv) with this module's preprocessing and
-    `num_threads` threads (0: one per core); its own Python-side reset(seed=...) and step(actions) step the same games
-    as `AleEnv` does inside XLA."""
+    `num_threads` threads (0: one per core this process may run on, at most one per emulator); its own Python-side
+    reset(seed=...) and step(actions) step the same games as `AleEnv` does inside XLA. ale-py's own 0 would be one
+    thread per core of the host (std::thread::hardware_concurrency ignores the affinity), so a sweep given 16 of 64
+    cores by `taskset` would crowd 48 threads onto them."""
+    num_threads = num_threads or min(num_envs, usable_cores())
     return vector_type(
         GAMES[config.env], num_envs, frameskip=config.frame_skip, maxpool=True, stack_num=4, img_height=84,
         img_width=84, grayscale=True, noop_max=30, use_fire_reset=True, episodic_life=False, reward_clipping=False,
