@@ -63,3 +63,31 @@ def _scan_backward(a: jax.Array, b: jax.Array) -> jax.Array:
 
     _, x = jax.lax.associative_scan(combine, (a[::-1], b[::-1]))
     return x[::-1]
+
+
+def orthogonal(scale: float = 1.0):
+    """Flax's orthogonal initializer (`flax.linen.initializers.orthogonal(scale)`), the same values bit for bit,
+    whose `vmap` draws one matrix after another (`jax.lax.map`) instead of factoring the whole batch in one QR.
+
+    jaxlib's batched QR on a CPU splits the batch over XLA's thread pool and waits for its parts inside the pool: where
+    the program runs two such QRs at once on a machine of two cores, both threads of the pool wait and nothing runs
+    them (a sweep's vmapped init of the Atari network hung on a 2-core machine, every thread idle). Drawn one run at a
+    time, each QR is a single matrix and runs where it is. Only the initial weights are drawn so: once per run."""
+    from flax import linen as nn
+
+    draw_one = nn.initializers.orthogonal(scale)
+
+    def init(key, shape, dtype=jnp.float32):
+        @jax.custom_batching.custom_vmap
+        def draw(key):
+            return draw_one(key, shape, dtype)
+
+        @draw.def_vmap
+        def _one_after_another(axis_size, in_batched, key):
+            if not in_batched[0]:  # one key for the whole batch: one matrix
+                return draw(key), False
+            return jax.lax.map(draw, key), True
+
+        return draw(key)
+
+    return init

@@ -134,6 +134,27 @@ def test_backward_recurrence_equals_the_sequential_loop(steps):
 
 
 
+def test_orthogonal_init_gives_flax_matrices_one_run_at_a_time_under_vmap():
+    """cdjax.numerics.orthogonal under vmap, and under two nested vmaps, draws flax's orthogonal matrices bit for bit,
+    each from its own key, by one QR per matrix: no batched QR (jaxlib's batched QR on a CPU waits inside XLA's
+    thread pool, and two at once hung a 2-core machine's vmapped init)."""
+    import re
+
+    from flax import linen as nn
+
+    shape = (12, 5)
+    keys = jax.random.split(jax.random.key(3), 6).reshape(2, 3)
+    ours = jax.jit(jax.vmap(jax.vmap(lambda key: numerics.orthogonal(1.5)(key, shape))))(keys)
+    flax_one = jax.jit(lambda key: nn.initializers.orthogonal(1.5)(key, shape))
+    for i, j in np.ndindex(2, 3):
+        np.testing.assert_array_equal(ours[i, j], flax_one(keys[i, j]))
+    same = jax.vmap(lambda _: numerics.orthogonal(1.5)(keys[0, 0], shape))(jnp.arange(3))  # one key: one matrix
+    np.testing.assert_array_equal(same, np.broadcast_to(flax_one(keys[0, 0]), (3, *shape)))
+    program = str(jax.make_jaxpr(jax.vmap(jax.vmap(lambda key: numerics.orthogonal(1.5)(key, shape))))(keys))
+    factored = re.findall(r"f32\[([\d,]+)\] \S+:f32\[[\d,]+\] = qr\[", program)
+    assert factored == ["12,5"], factored
+
+
 def test_policy_head_scale_scales_only_the_policy_head():
     """policy_head_scale multiplies lecun-uniform's policy head (its last layer's initial weights) and changes nothing
     else (hidden layers, biases; the same key draws the same weights); orthogonal weights keep their own head (gain

@@ -18,7 +18,9 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-ORTHO = nn.initializers.orthogonal
+from cdjax.numerics import orthogonal
+
+ORTHO = orthogonal  # flax's, drawn one run at a time under vmap (cdjax.numerics.orthogonal)
 
 
 class MinAtarTorso(nn.Module):

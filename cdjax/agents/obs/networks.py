@@ -16,6 +16,7 @@ import jax.numpy as jnp
 
 from cdjax.agents.obs.config import Config
 from cdjax.consistency import SequenceEncoder, init_encoder
+from cdjax.numerics import orthogonal
 
 if TYPE_CHECKING:
     import distrax
@@ -73,7 +74,7 @@ class MLP(nn.Module):
             hidden = nn.initializers.lecun_uniform()
             last = nn.initializers.variance_scaling(self.out_scale ** 2, "fan_in", "uniform")
         else:
-            hidden, last = nn.initializers.orthogonal(jnp.sqrt(2.0)), nn.initializers.orthogonal(self.out_scale)
+            hidden, last = orthogonal(jnp.sqrt(2.0)), orthogonal(self.out_scale)
         for w in self.widths:
             x = act(Dense(w, kernel_init=hidden)(x))
         return Dense(self.out, kernel_init=last)(x)
