@@ -187,6 +187,15 @@ def _kill_when_checkpointed(procs, run: pathlib.Path, arm: str, deadline: float)
     return {"killed": None, "ended": {p.name: p.poll() for p in procs}}
 
 
+def _gpus() -> int:
+    """How many GPUs `nvidia-smi -L` lists (0 where it cannot run)."""
+    try:
+        listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=60).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return 0
+    return sum(line.startswith("GPU ") for line in listed.splitlines())
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(prog="python -m benchmarks.distributed", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -205,10 +214,9 @@ def main(argv: list[str] | None = None) -> dict:
     deadline = begin + args.time_limit
     if args.out.exists():
         p.error(f"--out {args.out} exists; give a new directory")
-    n = args.gpus or (2 if args.tiny else len(subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True,
-                                                            check=True).stdout.strip().splitlines()))
+    n = args.gpus or (2 if args.tiny else _gpus())
     if n < 2:
-        p.error(f"needs at least 2 devices, found {n}")
+        p.error(f"needs at least 2 devices, found {n} (nvidia-smi -L); give --gpus N, or --tiny on a CPU")
     host = Host(n, args.tiny, args.out / "logs")
     sweep = [*(TINY_SWEEP if args.tiny else GPU_SWEEP), "--compile-mode", args.compile_mode]
     arm = sweep[sweep.index("--arms") + 1]
