@@ -263,6 +263,17 @@ def cleanup():
     gc.collect()
 
 
+def gpu_count() -> int:
+    """The host's GPUs as `nvidia-smi -L` lists them (0 where it cannot run), without starting JAX."""
+    import subprocess
+
+    try:
+        listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=60).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return 0
+    return sum(line.startswith("GPU ") for line in listed.splitlines())
+
+
 def device_info() -> dict:
     import jax
 

@@ -40,6 +40,8 @@ import subprocess
 import sys
 import time
 
+from benchmarks.common import gpu_count
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 # the ant preset's structure (2,048 envs x T=32, k=20) at a budget a loan holds: 48 updates in chunks of 8
 GPU_SWEEP = ["--env", "ant", "--arms", "mbmf", "cd", "--seeds", "8", "--steps", str(48 * 2048 * 32),
@@ -187,15 +189,6 @@ def _kill_when_checkpointed(procs, run: pathlib.Path, arm: str, deadline: float)
     return {"killed": None, "ended": {p.name: p.poll() for p in procs}}
 
 
-def _gpus() -> int:
-    """How many GPUs `nvidia-smi -L` lists (0 where it cannot run)."""
-    try:
-        listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=60).stdout
-    except (OSError, subprocess.TimeoutExpired):
-        return 0
-    return sum(line.startswith("GPU ") for line in listed.splitlines())
-
-
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(prog="python -m benchmarks.distributed", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -214,7 +207,7 @@ def main(argv: list[str] | None = None) -> dict:
     deadline = begin + args.time_limit
     if args.out.exists():
         p.error(f"--out {args.out} exists; give a new directory")
-    n = args.gpus or (2 if args.tiny else _gpus())
+    n = args.gpus or (2 if args.tiny else gpu_count())
     if n < 2:
         p.error(f"needs at least 2 devices, found {n} (nvidia-smi -L); give --gpus N, or --tiny on a CPU")
     host = Host(n, args.tiny, args.out / "logs")

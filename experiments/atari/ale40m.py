@@ -315,17 +315,6 @@ def _end_in(given: int | None) -> int:
     return int(HOLD_S - up - 60 - SEND_S)
 
 
-def gpu_count() -> int:
-    """The host's GPUs, from nvidia-smi (0 where it is missing)."""
-    import subprocess
-
-    try:
-        listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=60).stdout
-    except (OSError, subprocess.TimeoutExpired):
-        return 0
-    return sum(1 for line in listed.splitlines() if line.startswith("GPU "))
-
-
 def start(pieces: Sequence[str], work: pathlib.Path, carried: pathlib.Path | None, end_in: int, gpus: int,
           cores: Sequence[int], params: Sequence[str] = (), say=print) -> list[str]:
     """Start each piece not yet started whose state is here (or that starts from nothing), on its GPU and cores
@@ -648,6 +637,8 @@ def main(argv=None) -> int:
         _pin(args.cpus, args.argv)
     if args.command == "start":
         end_in = _end_in(args.end_in)
+        from benchmarks.common import gpu_count
+
         gpus = args.gpus if args.gpus is not None else gpu_count()
         from cdjax.agents.atari.ale import usable_cores
 
